@@ -1,0 +1,45 @@
+"""The `hammer` command line.
+
+Each area of the project owns its own commands in a `cli.py` of its package and adds them here
+through a `register(app, bench)` function, so this file stays a table of contents.
+"""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="hammer",
+    help=(
+        "Train and run HAMMER teams: one central agent learns to send each lightweight local agent "
+        "a short message; local agents act on their own observation plus that message."
+    ),
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseline measured in the same run).",
+                    no_args_is_help=True)
+app.add_typer(bench, name="bench")
+
+
+def _register_all() -> None:
+    # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
+    from deploy import cli as deploy_cli
+    from envs import cli as envs_cli
+    from learning import cli as learning_cli
+    from protocol import cli as protocol_cli
+
+    for area in (protocol_cli, envs_cli, learning_cli, deploy_cli):
+        area.register(app, bench)
+
+
+_register_all()
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()
