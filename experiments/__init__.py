@@ -1,0 +1,1 @@
+"""Experiments over many runs: resumable sweeps, learning-curve plots and result tables."""

@@ -1,0 +1,53 @@
+"""Learning curves like the paper's figures: rolling mean of the paper metric against episodes,
+mean over seeds with a standard-error band, one line per variant, one panel per setting."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from experiments.runs import Run, group_runs, rolling_mean
+
+
+def seed_curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(episodes, mean, standard error) over seeds, cut to the shortest seed."""
+    n = min(len(r.paper_metric) for r in runs)
+    curves = np.stack([rolling_mean(r.paper_metric[:n], window) for r in runs])
+    mean = curves.mean(axis=0)
+    se = curves.std(axis=0, ddof=1) / np.sqrt(len(runs)) if len(runs) > 1 else np.zeros(n)
+    return np.arange(1, n + 1), mean, se
+
+
+def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None = None) -> list[Path]:
+    """Write `<out>.png` and `<out>.svg`; returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = group_runs(runs)
+    settings = sorted({s for s, _ in groups})
+    fig, axes = plt.subplots(1, len(settings), figsize=(6.5 * len(settings), 4.5), squeeze=False)
+    for ax, setting in zip(axes[0], settings, strict=True):
+        for (s, label), rs in sorted(groups.items()):
+            if s != setting:
+                continue
+            x, mean, se = seed_curves(rs, window)
+            (line,) = ax.plot(x, mean, label=f"{label} ({len(rs)} seeds)", lw=1.4)
+            ax.fill_between(x, mean - se, mean + se, color=line.get_color(), alpha=0.2, lw=0)
+        ax.set_title(title or setting)
+        ax.set_xlabel("episode")
+        ax.set_ylabel(f"average reward per local agent (rolling mean {window})")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    written = []
+    for ext in (".png", ".svg"):
+        p = out.with_suffix(ext)
+        fig.savefig(p, dpi=120)
+        written.append(p)
+    plt.close(fig)
+    return written

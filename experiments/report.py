@@ -1,0 +1,65 @@
+"""Table 1 of the paper, rebuilt from run directories: final performance as mean ± standard error
+over seeds, with Welch's t-test of each HAMMER setting against independent learners (IL)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from experiments.runs import Run, group_runs
+
+
+@dataclass
+class Row:
+    setting: str
+    label: str
+    n_seeds: int
+    episodes: int  # the fewest episodes any seed of this group ran
+    mean: float
+    sem: float
+    p_vs_il: float | None
+    finals: list[float]
+
+
+def final_performance(run: Run, last: int) -> float:
+    """Mean paper metric over the run's last `last` episodes."""
+    if len(run.paper_metric) == 0:
+        raise ValueError(f"{run.path} has no episodes yet")
+    return float(np.mean(run.paper_metric[-last:]))
+
+
+def sem(x: np.ndarray) -> float:
+    return float(np.std(x, ddof=1) / np.sqrt(len(x))) if len(x) > 1 else float("nan")
+
+
+def build_rows(runs: list[Run], last: int = 500) -> list[Row]:
+    groups = group_runs(runs)
+    finals = {key: np.array([final_performance(r, last) for r in rs]) for key, rs in groups.items()}
+    rows: list[Row] = []
+    for (setting, label), rs in sorted(groups.items()):
+        x = finals[(setting, label)]
+        p = None
+        il = finals.get((setting, "il"))
+        if label.startswith("hammer") and il is not None and len(x) > 1 and len(il) > 1:
+            p = float(stats.ttest_ind(x, il, equal_var=False).pvalue)
+        rows.append(Row(setting, label, len(rs), int(min(len(r.paper_metric) for r in rs)),
+                        float(np.mean(x)), sem(x), p, [float(v) for v in x]))
+    return rows
+
+
+def to_markdown(rows: list[Row], last: int) -> str:
+    out = [
+        f"Final performance = mean paper metric (average reward per local agent per episode) over each "
+        f"seed's last {last} episodes; mean ± standard error over seeds; p = Welch's t-test against IL "
+        f"in the same setting.",
+        "",
+        "| setting | variant | seeds | episodes | final (mean ± s.e.) | p vs IL |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        p = "" if r.p_vs_il is None else f"{r.p_vs_il:.3g}"
+        se = "n/a" if np.isnan(r.sem) else f"{r.sem:.2f}"
+        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f} ± {se} | {p} |")
+    return "\n".join(out) + "\n"

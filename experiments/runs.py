@@ -1,0 +1,100 @@
+"""Reading finished (or partial) run directories written by `hammer train` / `hammer up`.
+
+A run directory holds `config.json` (the resolved RunConfig), `metrics.csv` (one row per
+episode) and, once finished, `summary.json`. Everything here reads only those files, so curves
+and tables can be rebuilt from runs made on any machine.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Run:
+    path: Path
+    config: dict
+    episodes: np.ndarray  # (E,) episode number
+    paper_metric: np.ndarray  # (E,) the paper's average reward per local agent
+    team_return: np.ndarray  # (E,)
+    finished: bool
+
+    @property
+    def seed(self) -> int:
+        return int(self.config.get("seed", 0))
+
+    @property
+    def setting(self) -> str:
+        """Environment setting, e.g. `cn N=3`, used as the row group of tables."""
+        return f"{self.config.get('env', '?')} N={self.config.get('n_agents', '?')}"
+
+    @property
+    def label(self) -> str:
+        """The comparison a run belongs to: variant, central mode for HAMMER, message length."""
+        variant = self.config.get("variant", "?")
+        if variant == "hammer":
+            return f"hammer-{self.config.get('central_mode', '?')}-m{self.config.get('msg_dim', '?')}"
+        if variant == "random":
+            return f"random-m{self.config.get('msg_dim', '?')}"
+        return str(variant)
+
+
+def find_runs(paths: list[Path]) -> list[Path]:
+    """Every run directory (holding metrics.csv) at or below the given paths."""
+    found: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if not p.exists():
+            raise FileNotFoundError(f"run path {p} does not exist")
+        if (p / "metrics.csv").is_file():
+            found.append(p)
+        else:
+            found.extend(sorted(m.parent for m in p.rglob("metrics.csv")))
+    return found
+
+
+def load_run(path: Path) -> Run:
+    path = Path(path)
+    cfg_file = path / "config.json"
+    if not cfg_file.is_file():
+        raise FileNotFoundError(f"{path} has no config.json: not a hammer run directory")
+    config = json.loads(cfg_file.read_text())
+    eps: list[float] = []
+    metric: list[float] = []
+    team: list[float] = []
+    with open(path / "metrics.csv", newline="") as f:
+        for row in csv.DictReader(f):
+            eps.append(float(row["episode"]))
+            metric.append(float(row["paper_metric"]))
+            team.append(float(row["team_return"]))
+    return Run(
+        path=path,
+        config=config,
+        episodes=np.asarray(eps),
+        paper_metric=np.asarray(metric),
+        team_return=np.asarray(team),
+        finished=(path / "summary.json").is_file(),
+    )
+
+
+def rolling_mean(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing rolling mean; the first window-1 points average what exists so far."""
+    if len(x) == 0:
+        return x
+    c = np.cumsum(np.insert(np.asarray(x, dtype=np.float64), 0, 0.0))
+    idx = np.arange(1, len(x) + 1)
+    lo = np.maximum(idx - window, 0)
+    return (c[idx] - c[lo]) / (idx - lo)
+
+
+def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
+    """Runs grouped by (setting, label): the seeds of one comparison."""
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r in runs:
+        groups.setdefault((r.setting, r.label), []).append(r)
+    return groups
