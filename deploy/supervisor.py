@@ -1,0 +1,132 @@
+"""Starting, watching, restarting and stopping role processes.
+
+Every role runs as a fresh interpreter (`python -m hammer.cli <role> ...`), never a fork of the
+launcher: a forked child inherits a Zenoh session that delivers nothing (see docs/architecture.md).
+Children learn the launcher's pid from HAMMER_PARENT_PID and exit by themselves if it disappears
+(`parent_watchdog`), so even a SIGKILLed launcher leaves no stray process behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger("hammer.deploy")
+
+PARENT_ENV = "HAMMER_PARENT_PID"
+
+
+@dataclass
+class RoleSpec:
+    """One role process: its name (used for logs and liveliness) and CLI arguments after `hammer`."""
+
+    name: str
+    args: list[str]
+    restart: bool = False  # restart when it dies before the run is over
+    max_restarts: int = 3
+
+
+@dataclass
+class RoleProcess:
+    spec: RoleSpec
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    started_at: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+
+class Supervisor:
+    """Owns the role processes of one run."""
+
+    def __init__(self, log_dir: Path, env: dict[str, str] | None = None) -> None:
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.roles: dict[str, RoleProcess] = {}
+        self._env = dict(os.environ if env is None else env)
+        self._env[PARENT_ENV] = str(os.getpid())
+        # Roles must not oversubscribe 2 cores with torch/BLAS threads.
+        self._env.setdefault("OMP_NUM_THREADS", "1")
+        self._env.setdefault("MKL_NUM_THREADS", "1")
+
+    def start(self, spec: RoleSpec) -> RoleProcess:
+        rp = self.roles.get(spec.name) or RoleProcess(spec, self.log_dir / f"{spec.name}.log")
+        self.roles[spec.name] = rp
+        logf = open(rp.log_path, "ab")  # noqa: SIM115 - owned by the child for its lifetime
+        cmd = [sys.executable, "-m", "hammer.cli", *spec.args]
+        log.info("starting %s: %s", spec.name, " ".join(cmd))
+        rp.proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                   env=self._env, close_fds=True)
+        logf.close()
+        rp.started_at = time.monotonic()
+        return rp
+
+    def poll(self) -> list[RoleProcess]:
+        """Roles that exited since the last poll (their exit code is recorded)."""
+        dead = []
+        for rp in self.roles.values():
+            if rp.proc is not None and rp.proc.poll() is not None:
+                rp.exit_codes.append(rp.proc.returncode)
+                rp.proc = None
+                dead.append(rp)
+        return dead
+
+    def alive(self, name: str) -> bool:
+        rp = self.roles.get(name)
+        return rp is not None and rp.proc is not None and rp.proc.poll() is None
+
+    def pid(self, name: str) -> int | None:
+        rp = self.roles.get(name)
+        return rp.proc.pid if rp and rp.proc else None
+
+    def signal(self, name: str, sig: int) -> None:
+        rp = self.roles.get(name)
+        if rp and rp.proc and rp.proc.poll() is None:
+            rp.proc.send_signal(sig)
+
+    def stop_all(self, timeout: float = 5.0) -> None:
+        """SIGTERM every role, then SIGKILL whatever is still there after `timeout`."""
+        procs = [rp.proc for rp in self.roles.values() if rp.proc is not None and rp.proc.poll() is None]
+        for p in procs:
+            try:
+                p.send_signal(signal.SIGCONT)  # a paused (SIGSTOPped) role cannot handle SIGTERM
+                p.terminate()
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            try:
+                p.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("role pid %d ignored SIGTERM; killing", p.pid)
+                p.kill()
+                p.wait(2.0)
+        for rp in self.roles.values():
+            if rp.proc is not None:
+                rp.exit_codes.append(rp.proc.returncode)
+                rp.proc = None
+
+
+def parent_watchdog(interval: float = 0.5) -> None:
+    """In a role process: exit when the launcher that started us is gone (no stray processes)."""
+    raw = os.environ.get(PARENT_ENV)
+    if not raw:
+        return
+    parent = int(raw)
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval)
+            # Re-parenting (to init or a subreaper) is the reliable sign: a pid can be reused.
+            if os.getppid() != parent:
+                log.error("launcher (pid %d) is gone; exiting", parent)
+                os._exit(3)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
