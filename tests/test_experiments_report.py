@@ -1,0 +1,69 @@
+"""Report and plot from run directories written in the on-disk format of `hammer train`."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from experiments.plot import plot_runs
+from experiments.report import build_rows, to_markdown
+from experiments.runs import find_runs, load_run, rolling_mean
+
+
+def write_run(root, name, cfg, metric):
+    d = root / name
+    d.mkdir(parents=True)
+    (d / "config.json").write_text(json.dumps(cfg))
+    with open(d / "metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode", "env_steps", "paper_metric", "team_return", "length", "wall_time"])
+        for i, m in enumerate(metric):
+            w.writerow([i + 1, 25 * (i + 1), m, 3 * m, 25, 0.01 * i])
+    (d / "summary.json").write_text("{}")
+    return d
+
+
+@pytest.fixture
+def runs_dir(tmp_path):
+    rng = np.random.default_rng(0)
+    for seed in range(4):
+        base = dict(env="cn", n_agents=3, seed=seed, msg_dim=4)
+        write_run(tmp_path, f"il-s{seed}", {**base, "variant": "il"}, rng.normal(-20, 1, 800))
+        write_run(tmp_path, f"hm-s{seed}", {**base, "variant": "hammer", "central_mode": "backprop"},
+                  rng.normal(-18, 1, 800) - np.linspace(2, 0, 800))
+    return tmp_path
+
+
+def test_rolling_mean_matches_naive():
+    x = np.random.default_rng(1).normal(size=57)
+    w = 10
+    naive = [x[max(0, i - w + 1): i + 1].mean() for i in range(len(x))]
+    np.testing.assert_allclose(rolling_mean(x, w), naive)
+
+
+def test_report_means_sem_and_welch(runs_dir):
+    runs = [load_run(p) for p in find_runs([runs_dir])]
+    assert len(runs) == 8
+    rows = {r.label: r for r in build_rows(runs, last=500)}
+    il = np.array([load_run(runs_dir / f"il-s{s}").paper_metric[-500:].mean() for s in range(4)])
+    hm = np.array([load_run(runs_dir / f"hm-s{s}").paper_metric[-500:].mean() for s in range(4)])
+    assert rows["il"].mean == pytest.approx(il.mean())
+    assert rows["il"].sem == pytest.approx(il.std(ddof=1) / 2)
+    assert rows["hammer-backprop-m4"].p_vs_il == pytest.approx(stats.ttest_ind(hm, il, equal_var=False).pvalue)
+    assert rows["il"].p_vs_il is None
+    md = to_markdown(list(rows.values()), 500)
+    assert "| cn N=3 | hammer-backprop-m4 | 4 | 800 |" in md
+
+
+def test_plot_writes_png_and_svg(runs_dir, tmp_path):
+    runs = [load_run(p) for p in find_runs([runs_dir])]
+    out = plot_runs(runs, tmp_path / "figs" / "curves", window=100)
+    assert [p.suffix for p in out] == [".png", ".svg"]
+    assert all(p.stat().st_size > 1000 for p in out)
+
+
+def test_missing_run_path_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        find_runs([tmp_path / "nope"])
