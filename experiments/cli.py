@@ -1,0 +1,97 @@
+"""`hammer sweep`, `hammer plot`, `hammer report`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def register(app: typer.Typer, bench: typer.Typer) -> None:
+    app.command("sweep")(sweep)
+    app.command("plot")(plot)
+    app.command("report")(report)
+
+
+def _fail(msg: str) -> None:
+    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(2)
+
+
+def sweep(
+    out: Annotated[Path, typer.Option(help="Sweep directory; one run directory per grid point inside it.")],
+    presets: Annotated[str, typer.Option(help="Comma-separated presets, e.g. cn3,cn5.")] = "cn3",
+    variants: Annotated[str, typer.Option(
+        help="Comma-separated: hammer, hammer-rl, hammer-backprop, il, random, centralized.")] = "hammer,il",
+    seeds: Annotated[str, typer.Option(help="Seeds: a range 0-4 or a list 0,1,2.")] = "0-4",
+    grid: Annotated[list[str] | None, typer.Option(
+        help="Extra grid axis KEY=V1,V2,... (repeatable), e.g. --grid msg_dim=1,2,4,8.")] = None,
+    jobs: Annotated[int | None, typer.Option(help="Runs at once (default: number of cores).")] = None,
+    episodes: Annotated[int | None, typer.Option(help="Override the preset's episode budget.")] = None,
+) -> None:
+    """Run a grid of independent training runs, resumably.
+
+    Re-running the same command skips finished runs, resumes interrupted ones from their last
+    checkpoint and starts the rest. Each run is its own run directory under OUT.
+    """
+    from rich.console import Console
+
+    from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep
+
+    console = Console()
+    try:
+        points = expand(presets.split(","), variants.split(","), parse_seeds(seeds),
+                        parse_grid_overrides(grid or []))
+    except ValueError as e:
+        _fail(str(e))
+    console.print(f"sweep: {len(points)} runs into {out}")
+
+    def event(kind: str, name: str) -> None:
+        style = {"done": "green", "fail": "red", "skip": "dim"}.get(kind, "cyan")
+        console.print(f"[{style}]{kind:>6}[/] {name}")
+
+    res = run_sweep(points, out, jobs=jobs, episodes=episodes, on_event=event)
+    console.print(f"finished {len(res.done)}, skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
+    if res.failed:
+        _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
+
+
+def plot(
+    runs: Annotated[list[Path], typer.Argument(help="Run directories or folders holding them.")],
+    out: Annotated[Path, typer.Option(help="Output path without extension; writes .png and .svg.")] = Path("curves"),
+    window: Annotated[int, typer.Option(help="Rolling-mean window in episodes.")] = 500,
+) -> None:
+    """Learning curves: paper metric vs episodes, mean over seeds with a standard-error band."""
+    from experiments.plot import plot_runs
+    from experiments.runs import find_runs, load_run
+
+    try:
+        loaded = [load_run(p) for p in find_runs(runs)]
+    except FileNotFoundError as e:
+        _fail(str(e))
+    if not loaded:
+        _fail("no run directories (with metrics.csv) found under the given paths")
+    for p in plot_runs(loaded, out, window=window):
+        typer.echo(f"wrote {p}")
+
+
+def report(
+    runs: Annotated[list[Path], typer.Argument(help="Run directories or folders holding them.")],
+    last: Annotated[int, typer.Option(help="Final performance = mean of each run's last N episodes.")] = 500,
+    out: Annotated[Path | None, typer.Option(help="Also write the markdown table here.")] = None,
+) -> None:
+    """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL."""
+    from experiments.report import build_rows, to_markdown
+    from experiments.runs import find_runs, load_run
+
+    try:
+        loaded = [load_run(p) for p in find_runs(runs)]
+    except FileNotFoundError as e:
+        _fail(str(e))
+    if not loaded:
+        _fail("no run directories (with metrics.csv) found under the given paths")
+    md = to_markdown(build_rows(loaded, last), last)
+    typer.echo(md)
+    if out:
+        out.write_text(md)

@@ -1,0 +1,154 @@
+"""Resumable grids of independent training runs.
+
+A sweep is a directory; every point of the grid (preset × variant × seed × overrides) is one run
+directory inside it with a deterministic name. Re-running the same sweep command skips finished
+runs (they have summary.json), resumes interrupted ones from their last checkpoint, and starts the
+rest, at most `jobs` at a time, each a fresh `hammer train` process with one torch thread.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
+VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    preset: str
+    variant: str
+    seed: int
+    overrides: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def name(self) -> str:
+        parts = [self.preset, self.variant]
+        parts += [f"{k.replace('.', '_')}={v}" for k, v in self.overrides]
+        parts.append(f"s{self.seed}")
+        return "-".join(parts)
+
+    def train_args(self, run_dir: Path, episodes: int | None) -> list[str]:
+        variant, _, mode = self.variant.partition("-")
+        args = ["train", "--preset", self.preset, "--variant", variant, "--seed", str(self.seed),
+                "--run-dir", str(run_dir)]
+        if mode:
+            args += ["--central-mode", mode]
+        for k, v in self.overrides:
+            args += ["--set", f"{k}={v}"]
+        if episodes is not None:
+            args += ["--episodes", str(episodes)]
+        return args
+
+
+def parse_seeds(text: str) -> list[int]:
+    """`0-4` or `0,2,5` → list of seeds."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            lo, dash, hi = part.partition("-")
+            seeds += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
+    except ValueError:
+        raise ValueError(f"--seeds {text!r}: expected a range like 0-4 or a list like 0,1,2") from None
+    return seeds
+
+
+def parse_grid_overrides(items: list[str]) -> list[tuple[str, list[str]]]:
+    """`msg_dim=1,2,4,8` → [("msg_dim", ["1","2","4","8"])]; each key is one grid axis."""
+    axes = []
+    for item in items:
+        key, eq, values = item.partition("=")
+        if not eq or not key or not values:
+            raise ValueError(f"--grid {item!r}: expected KEY=V1,V2,... e.g. msg_dim=1,2,4,8")
+        axes.append((key.strip(), [v.strip() for v in values.split(",")]))
+    return axes
+
+
+def expand(presets: list[str], variants: list[str], seeds: list[int],
+           grid: list[tuple[str, list[str]]] | None = None) -> list[SweepPoint]:
+    for v in variants:
+        if v not in VARIANTS:
+            raise ValueError(f"variant {v!r} is not one of {', '.join(VARIANTS)}")
+    grid = grid or []
+    keys = [k for k, _ in grid]
+    combos = list(itertools.product(*[vals for _, vals in grid])) or [()]
+    return [SweepPoint(p, v, s, tuple(zip(keys, combo, strict=True)))
+            for p in presets for v in variants for combo in combos for s in seeds]
+
+
+def state_of(run_dir: Path) -> str:
+    if (run_dir / "summary.json").is_file():
+        return "done"
+    if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").glob("*.json")):
+        return "resume"
+    return "new"
+
+
+@dataclass
+class SweepResult:
+    done: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: list[tuple[str, int]] = field(default_factory=list)
+
+
+def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
+              on_event=None) -> SweepResult:
+    """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = jobs or max(1, os.cpu_count() or 1)
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", HAMMER_TORCH_THREADS="1")
+    result = SweepResult()
+    queue: list[tuple[SweepPoint, Path, str]] = []
+    for p in points:
+        run_dir = out / p.name
+        st = state_of(run_dir)
+        if st == "done":
+            result.skipped.append(p.name)
+            if on_event:
+                on_event("skip", p.name)
+        else:
+            queue.append((p, run_dir, st))
+    running: dict[str, tuple[subprocess.Popen, object]] = {}
+    try:
+        while queue or running:
+            while queue and len(running) < jobs:
+                p, run_dir, st = queue.pop(0)
+                run_dir.mkdir(parents=True, exist_ok=True)
+                args = (["train", "--resume", str(run_dir)] if st == "resume"
+                        else p.train_args(run_dir, episodes))
+                logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
+                proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], stdout=logf,
+                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+                running[p.name] = (proc, logf)
+                if on_event:
+                    on_event("resume" if st == "resume" else "start", p.name)
+            time.sleep(0.2)
+            for name, (proc, logf) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                logf.close()
+                del running[name]
+                if proc.returncode == 0:
+                    result.done.append(name)
+                    if on_event:
+                        on_event("done", name)
+                else:
+                    result.failed.append((name, proc.returncode))
+                    if on_event:
+                        on_event("fail", name)
+    finally:
+        for proc, logf in running.values():
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            logf.close()
+    return result
