@@ -52,8 +52,7 @@ DIM_C = 2  # communication channel width; agents are silent so these observation
 
 # Discrete action -> applied force (mpe2 sets u[axis] = +-1.0, then multiplies by sensitivity).
 _ACTION_FORCE = (
-    np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]], dtype=np.float64)
-    * SENSITIVITY
+    np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]], dtype=np.float64) * SENSITIVITY
 )
 
 
@@ -65,9 +64,12 @@ def spread_obs_dim(n_agents: int) -> int:
 class VecSimpleSpread(VecEnv):
     """K copies of mpe2 simple_spread_v3 (discrete actions) stepped as numpy arrays.
 
-    State arrays (float64, like mpe2): `pos`, `vel` (K, N, 2) for agents and `landmarks` (K, N, 2).
     Every copy always has all N agents present; episodes last exactly `max_steps` steps and end by
     truncation, after which the copy is reset from its own random stream (auto-reset).
+
+    Internally the copy index K is the *last* axis of every array (positions are (2, N, K)), so
+    each numpy operation runs one long contiguous loop over the copies instead of many loops of
+    length 2; `pos`, `vel` and `landmarks` expose the state as (K, N, 2) views.
     """
 
     def __init__(
@@ -96,46 +98,75 @@ class VecSimpleSpread(VecEnv):
             default_action=0,
         )
         k, n = num_envs, n_agents
-        self.pos = np.zeros((k, n, 2))
-        self.vel = np.zeros((k, n, 2))
-        self.landmarks = np.zeros((k, n, 2))
+        # World state, float64 like mpe2; write it only through set_state, because the pairwise
+        # geometry below is cached from it.
+        self._p = np.zeros((2, n, k))  # agent positions  [xy, agent, copy]
+        self._v = np.zeros((2, n, k))  # agent velocities [xy, agent, copy]
+        self._lm = np.zeros((n, 2, k))  # landmark positions [landmark, xy, copy]
         self.t = np.zeros(k, dtype=np.int64)  # world steps taken in the current episode
+        # other[i] = indices j != i in increasing order (mpe2's "others" list order); stored
+        # transposed so that p[:, other_t] is (2, N-1, N, K).
+        self._other_t = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).T
+        # Geometry of the current positions, shared by the reward/observation of one step and the
+        # physics of the next: rel[:, m, i] = p_(m-th other of i) - p_i, dist = |rel| (N-1, N, K).
+        self._rel = np.zeros((2, n - 1, n, k))
+        self._dist = np.zeros((n - 1, n, k))
+        self._action_force = np.ascontiguousarray(_ACTION_FORCE.T)  # (2, 5)
         self._rngs: list[np.random.Generator] | None = None
         self._tracker = EpisodeTracker(k)
-        # other[i] = indices j != i in increasing order (mpe2's "others" list order).
-        self._other = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64)
-        self._rows = np.arange(n)[:, None]
-        self._eye = np.eye(n, dtype=bool)
         self._all_true = np.ones((k, n), dtype=bool)
-        self._no_term = np.zeros((k, n), dtype=bool)
         # mpe2 computes dist_min = agent1.size + agent2.size.
         self._dist_min = AGENT_SIZE + AGENT_SIZE
+
+    @property
+    def pos(self) -> np.ndarray:
+        """Agent positions (K, N, 2), a read-only view."""
+        return _readonly(self._p.transpose(2, 1, 0))
+
+    @property
+    def vel(self) -> np.ndarray:
+        """Agent velocities (K, N, 2), a read-only view."""
+        return _readonly(self._v.transpose(2, 1, 0))
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        """Landmark positions (K, N, 2), a read-only view."""
+        return _readonly(self._lm.transpose(2, 0, 1))
 
     # ------------------------------------------------------------------ reset / state access
     def reset(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Seed copy k with `seed + k`, draw every copy's initial state and observe it."""
         self._rngs = [np.random.default_rng(seed + k) for k in range(self.num_envs)]
-        self._reset_copies(np.arange(self.num_envs))
         self._tracker = EpisodeTracker(self.num_envs)
-        return self._observe_all(), self._all_true.copy()
+        return self._reset_copies(np.arange(self.num_envs)), self._all_true.copy()
 
-    def _reset_copies(self, idx: np.ndarray) -> None:
-        """mpe2 Scenario.reset_world: agents' then landmarks' positions ~ U(-1, 1)^2, all else 0."""
+    def _reset_copies(self, idx: np.ndarray) -> np.ndarray:
+        """mpe2 Scenario.reset_world for copies idx: agents' then landmarks' positions ~ U(-1, 1)^2
+        from each copy's own stream, velocities 0. Returns those copies' observations (k, N, D)."""
         assert self._rngs is not None
-        n = self.n_agents
-        for k in idx:
-            draw = self._rngs[k].uniform(-1.0, 1.0, (2 * n, 2))
-            self.pos[k] = draw[:n]
-            self.landmarks[k] = draw[n:]
-        self.vel[idx] = 0.0
+        n, rngs = self.n_agents, self._rngs
+        # one draw per resetting copy (resets happen once per episode), then one batched write
+        draws = np.stack([rngs[k].uniform(-1.0, 1.0, (2 * n, 2)) for k in idx])  # (k, 2N, 2)
+        self._p[:, :, idx] = draws[:, :n].transpose(2, 1, 0)
+        self._lm[:, :, idx] = draws[:, n:].transpose(1, 2, 0)
+        self._v[:, :, idx] = 0.0
         self.t[idx] = 0
+        return self._refresh(idx)
+
+    def _refresh(self, idx: np.ndarray) -> np.ndarray:
+        """Recompute the cached geometry of copies idx after their state changed; return obs."""
+        p = self._p[:, :, idx]
+        rel, dist = self._agent_geometry(p)
+        self._rel[..., idx] = rel
+        self._dist[..., idx] = dist
+        return self._observe(self._v[:, :, idx], p, rel, self._lm[:, :, None, idx] - p[None])
 
     def get_state(self, k: int) -> dict[str, np.ndarray]:
         """Copies of copy k's world state: agent_pos, agent_vel, landmark_pos (N, 2) and step t."""
         return {
-            "agent_pos": self.pos[k].copy(),
-            "agent_vel": self.vel[k].copy(),
-            "landmark_pos": self.landmarks[k].copy(),
+            "agent_pos": self._p[:, :, k].T.copy(),
+            "agent_vel": self._v[:, :, k].T.copy(),
+            "landmark_pos": self._lm[:, :, k].copy(),
             "t": np.int64(self.t[k]),
         }
 
@@ -149,43 +180,47 @@ class VecSimpleSpread(VecEnv):
     ) -> np.ndarray:
         """Overwrite copy k's world state (e.g. from an mpe2 world) and return its obs (N, D).
 
-        The step counter `t` is kept unless given, so the copy still truncates on schedule.
+        Arrays are (N, 2) as in mpe2's entity states. The step counter `t` is kept unless given,
+        so the copy still truncates on schedule.
         """
         shape = (self.n_agents, 2)
-        for name, value in (("agent_pos", agent_pos), ("agent_vel", agent_vel), ("landmark_pos", landmark_pos)):
+        for name, value in (
+            ("agent_pos", agent_pos),
+            ("agent_vel", agent_vel),
+            ("landmark_pos", landmark_pos),
+        ):
             if np.shape(value) != shape:
                 raise ValueError(f"set_state: {name} must have shape {shape}, got {np.shape(value)}")
-        self.pos[k] = agent_pos
-        self.vel[k] = agent_vel
-        self.landmarks[k] = landmark_pos
+        self._p[:, :, k] = np.asarray(agent_pos, dtype=np.float64).T
+        self._v[:, :, k] = np.asarray(agent_vel, dtype=np.float64).T
+        self._lm[:, :, k] = landmark_pos
         if t is not None:
             self.t[k] = t
-        return self._observe(self.pos[k : k + 1], self.vel[k : k + 1], self.landmarks[k : k + 1])[0]
+        return self._refresh(np.array([k]))[0]
 
     # ------------------------------------------------------------------ physics / obs / reward
-    def _observe(self, pos: np.ndarray, vel: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
-        """Scenario.observation for every agent of the given copies: (k, N, D) float32."""
-        kk, n = pos.shape[0], self.n_agents
-        obs = np.zeros((kk, n, self.spec.obs_dim), dtype=np.float32)
-        obs[:, :, 0:2] = vel
-        obs[:, :, 2:4] = pos
-        end = 4 + 2 * n
-        obs[:, :, 4:end] = (landmarks[:, None, :, :] - pos[:, :, None, :]).reshape(kk, n, 2 * n)
-        other = pos[:, self._other, :] - pos[:, :, None, :]  # (k, N, N-1, 2): p_j - p_i
-        obs[:, :, end : end + 2 * (n - 1)] = other.reshape(kk, n, 2 * (n - 1))
-        # the remaining DIM_C * (N - 1) communication slots stay 0 (agents are silent)
-        return obs
+    def _agent_geometry(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """rel (2, N-1, N, k): p_j - p_i for the m-th other agent j of i; dist = |rel| (N-1, N, k)."""
+        rel = p[:, self._other_t] - p[:, None]
+        # mpe2: np.sqrt(np.sum(np.square(d))); with 2 components that is exactly x*x + y*y.
+        return rel, np.sqrt(np.square(rel[0]) + np.square(rel[1]))
 
-    def _observe_all(self) -> np.ndarray:
-        return self._observe(self.pos, self.vel, self.landmarks)
+    def _observe(self, v: np.ndarray, p: np.ndarray, rel: np.ndarray, lm_rel: np.ndarray) -> np.ndarray:
+        """Scenario.observation of every agent of k copies, cast to float32: (k, N, D).
 
-    def _pairwise(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """delta[k, i, j] = p_i - p_j and its length, with self-distances set to +inf."""
-        delta = pos[:, :, None, :] - pos[:, None, :, :]
-        # np.sqrt(np.sum(np.square(d))) in mpe2; for 2 components that is x*x + y*y exactly.
-        dist = np.sqrt(np.square(delta[..., 0]) + np.square(delta[..., 1]))
-        dist[:, self._eye] = np.inf  # no self-collision: force and penetration become exactly 0
-        return delta, dist
+        Per agent i: [v_i, p_i, landmark_l - p_i for all l, p_j - p_i for j != i, comm zeros].
+        Built feature-major (D, N, k) with long contiguous writes, then transposed once.
+        """
+        n, kk = self.n_agents, p.shape[-1]
+        buf = np.empty((self.spec.obs_dim, n, kk), dtype=np.float32)
+        buf[0:2] = v
+        buf[2:4] = p
+        a = 4 + 2 * n
+        buf[4:a].reshape(n, 2, n, kk)[...] = lm_rel  # lm_rel is (L, 2, N, k)
+        b = a + 2 * (n - 1)
+        buf[a:b].reshape(n - 1, 2, n, kk)[...] = rel.transpose(1, 0, 2, 3)
+        buf[b:] = 0.0  # silent agents: the communication slots are always 0
+        return np.ascontiguousarray(buf.transpose(2, 1, 0))
 
     def step(self, actions: np.ndarray) -> VecStep:
         """One world step of every copy (mpe2 SimpleEnv._execute_world_step), then auto-reset."""
@@ -198,43 +233,52 @@ class VecSimpleSpread(VecEnv):
                 f"got {actions.shape}"
             )
         if actions.dtype.kind not in "iu" or actions.min() < 0 or actions.max() >= N_ACTIONS:
-            raise ValueError(f"actions must be integers in [0, {N_ACTIONS}), got {actions.dtype} {actions.min()}..{actions.max()}")
+            raise ValueError(
+                f"actions must be integers in [0, {N_ACTIONS}) (0 no-op, 1 left, 2 right, 3 down, 4 up), "
+                f"got dtype {actions.dtype} with values {actions.min()}..{actions.max()}"
+            )
 
-        # --- forces: action force + pairwise soft contact forces (World.apply_*_force)
-        force = _ACTION_FORCE[actions]  # fresh (K, N, 2) array
-        delta, dist = self._pairwise(self.pos)
-        pen = np.logaddexp(0.0, -(dist - self._dist_min) / CONTACT_MARGIN) * CONTACT_MARGIN
-        contact = CONTACT_FORCE * delta / dist[..., None] * pen[..., None]
-        force += contact.sum(axis=2)
-        # --- World.integrate_state
-        self.pos += self.vel * DT
-        self.vel *= 1.0 - DAMPING
-        self.vel += (force / MASS) * DT
+        # --- World.apply_action_force + apply_environment_force. mpe2's contact force on i from j
+        # is 100 * (p_i - p_j) / d * pen; with rel = p_j - p_i that is exactly -(100 * rel / d * pen).
+        # The softplus is only evaluated where it can be non-zero: for exponents below -746,
+        # exp underflows to exactly 0 and mpe2's logaddexp(0, z) is exactly 0 too.
+        rel, dist = self._rel, self._dist
+        z = (self._dist_min - dist) / CONTACT_MARGIN
+        pen = np.zeros_like(z)
+        np.logaddexp(0.0, z, out=pen, where=z > -746.0)
+        pen *= CONTACT_MARGIN
+        push = CONTACT_FORCE * rel / dist * pen  # (2, N-1, N, K)
+        force = self._action_force[:, actions.T] - push.sum(axis=1)  # (2, N, K)
+        # --- World.integrate_state (mass 1, no max speed)
+        p, v = self._p, self._v
+        p += v * DT
+        v *= 1.0 - DAMPING
+        v += (force / MASS) * DT
 
-        # --- rewards on the new positions (Scenario.reward / global_reward)
-        _, dist = self._pairwise(self.pos)
-        collisions = (dist < self._dist_min).sum(axis=2)  # self-distance is inf: never counted
-        lm_delta = self.landmarks[:, :, None, :] - self.pos[:, None, :, :]  # (K, L, N, 2)
-        lm_dist = np.sqrt(np.square(lm_delta[..., 0]) + np.square(lm_delta[..., 1]))
-        global_rew = -lm_dist.min(axis=2).sum(axis=1)  # (K,)
-        reward = (
-            global_rew[:, None] * (1.0 - self.local_ratio) - collisions * self.local_ratio
-        ).astype(np.float32)
+        # --- Scenario.reward / global_reward on the new positions, then the observation
+        rel, dist = self._agent_geometry(p)
+        self._rel, self._dist = rel, dist
+        collisions = (dist < self._dist_min).sum(axis=0)  # (N, K): other agents in contact
+        lm_rel = self._lm[:, :, None] - p[None]  # (L, 2, N, K): landmark_l - p_i
+        lm_dist = np.sqrt(np.square(lm_rel[:, 0]) + np.square(lm_rel[:, 1]))  # (L, N, K)
+        global_rew = -lm_dist.min(axis=1).sum(axis=0)  # (K,): -sum_l min_i |p_i - landmark_l|
+        lr = self.local_ratio
+        reward = np.ascontiguousarray((global_rew * (1.0 - lr) - collisions * lr).T, dtype=np.float32)
+        obs = self._observe(v, p, rel, lm_rel)
 
-        obs = self._observe_all()
+        # --- time limit (SimpleEnv.step: truncate when steps >= max_cycles) and auto-reset
         self.t += 1
         done = self.t >= self.max_steps
         truncated = np.repeat(done[:, None], self.n_agents, axis=1)
         final_obs = obs.copy()
         if done.any():
             idx = np.flatnonzero(done)
-            self._reset_copies(idx)
-            obs[idx] = self._observe(self.pos[idx], self.vel[idx], self.landmarks[idx])
+            obs[idx] = self._reset_copies(idx)
         episodes = self._tracker.record(reward, self._all_true, done)
         return VecStep(
             obs=obs,
             reward=reward,
-            terminated=self._no_term.copy(),
+            terminated=np.zeros((self.num_envs, self.n_agents), dtype=bool),
             truncated=truncated,
             active=self._all_true.copy(),
             next_active=self._all_true.copy(),
@@ -242,3 +286,8 @@ class VecSimpleSpread(VecEnv):
             done=done,
             episodes=episodes,
         )
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a

@@ -171,7 +171,7 @@ def test_initial_state_distribution() -> None:
     for c in (0, 1, 999):
         ref = make_mpe(n)
         ref.reset(seed=5 + c)
-        pos, vel, lm = mpe_state(ref)
+        pos, _vel, lm = mpe_state(ref)
         np.testing.assert_array_equal(env.pos[c], pos)
         np.testing.assert_array_equal(env.landmarks[c], lm)
 
@@ -179,7 +179,7 @@ def test_initial_state_distribution() -> None:
 def test_auto_reset_final_obs_and_episode_stats() -> None:
     k, n = 4, 3
     env = VecSimpleSpread(k, n_agents=n)
-    obs, _ = env.reset(11)
+    env.reset(11)
     rng = np.random.default_rng(0)
     paper = np.zeros(k)
     team = np.zeros(k)
@@ -199,7 +199,7 @@ def test_auto_reset_final_obs_and_episode_stats() -> None:
     np.testing.assert_array_equal(out.obs[:, :, 0:2], 0.0)
     assert np.abs(out.final_obs[:, :, 0:2]).max() > 0  # final obs still has the old velocities
     assert not np.allclose(out.obs, out.final_obs)
-    np.testing.assert_array_equal(out.obs, env._observe_all())
+    np.testing.assert_array_equal(out.obs, env._refresh(np.arange(k)))
     assert (env.t == 0).all()
     assert sorted(e.env_index for e in out.episodes) == list(range(k))
     for e in out.episodes:
