@@ -1,0 +1,66 @@
+"""One valid message of every protocol type: for tests here and in other packages, and the bench."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from protocol.schemas import (
+    Action,
+    CentralMsg,
+    Control,
+    EpisodeInfo,
+    ExperienceChunk,
+    GlobalState,
+    Heartbeat,
+    LocalObs,
+    Message,
+    StepResult,
+    Weights,
+)
+
+K, N, D, M, A = 4, 3, 18, 4, 5
+
+
+def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
+    rng = np.random.default_rng(seed)
+    idx = np.arange(K, dtype=np.int64)
+    h = dict(run=run, step=7, env_idx=idx, ts=123, seq=5, sender="tester")
+    f32 = lambda *s: rng.standard_normal(s).astype(np.float32)  # noqa: E731
+    return [
+        LocalObs(**h, agent=1, obs=f32(K, D), active=np.array([True, False, True, True])),
+        GlobalState(**h, obs=f32(K, N, D), prev_actions=np.eye(A, dtype=np.float32)[rng.integers(0, A, (K, N))],
+                    active=np.ones((K, N), bool)),
+        CentralMsg(**h, agent=2, msg=np.tanh(f32(K, M)), policy_version=3),
+        Action(**h, agent=0, action=rng.integers(0, A, K), logp=f32(K), value=f32(K), policy_version=3,
+               fallback=np.array([False, True, False, False])),
+        Action(**h, agent=0, action=np.clip(f32(K, 4), -1, 1)),
+        StepResult(**h, rewards=f32(K, N), terminated=np.zeros((K, N), bool), truncated=np.ones((K, N), bool),
+                   done=np.array([True, False, False, True]),
+                   episodes=[EpisodeInfo(env_index=0, paper_metric=-20.5, team_return=-61.5, length=25)]),
+        ExperienceChunk(**h, role="local", policy_version=2,
+                        arrays={"obs": f32(8, K, D), "action": rng.integers(0, A, (8, K)),
+                                "done": np.zeros((8, K), bool), "img": np.zeros((2, 3), np.uint8),
+                                "v64": rng.standard_normal(3), "i32": np.arange(3, dtype=np.int32)},
+                        meta={"lr": 3e-4, "note": "x", "n": 3, "flag": True, "none": None}),
+        Weights.from_blob("central", 4, bytes(rng.integers(0, 256, 1000, dtype=np.uint8)), **h),
+        Control(**h, command="checkpoint", target="learner", args={"path": "runs/a", "every": 10}),
+        Heartbeat(**h, role="env", pid=42, status="running", counters={"steps": 100, "fps": 950.5}),
+    ]
+
+
+def assert_same(a: Message, b: Message) -> None:
+    """Field-by-field equality, comparing arrays by dtype, shape and values."""
+    assert type(a) is type(b)
+    for name in type(a).model_fields:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), name
+        elif isinstance(x, dict):
+            assert x.keys() == y.keys(), name
+            for k in x:
+                if isinstance(x[k], np.ndarray):
+                    assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k]), f"{name}.{k}"
+                else:
+                    assert x[k] == y[k], f"{name}.{k}"
+        else:
+            assert x == y, name

@@ -1,0 +1,561 @@
+"""Pydantic models of every message the hammer roles exchange.
+
+Why batched: encoding plus decoding one small message costs ~15 us in Python, so one message
+carries all K env copies of one vector step (arrays have a leading K axis), never one per copy.
+
+numpy arrays are plain `np.ndarray` fields: code builds and reads messages with numpy directly.
+The same validators run when a message is built in Python and when it is decoded from the wire,
+so a NaN or a wrong dtype is caught at the sender as well as at the receiver.
+
+Array conventions (K = env copies in this message, N = agents, D = obs dim, M = message length,
+A = action vector length):
+  LocalObs     obs (K,D) float32, active (K,) bool
+  GlobalState  obs (K,N,D) float32, prev_actions (K,N,A) float32, active (K,N) bool
+  CentralMsg   msg (K,M) float32 in [-1,1]
+  Action       action (K,) int64 (discrete) or (K,A) float32 (continuous), logp/value (K,) float32
+  StepResult   rewards (K,N) float32, terminated/truncated/defaulted (K,N) bool, done (K,) bool
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import (
+    AllowInfNan,
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    GetJsonSchemaHandler,
+    Strict,
+    StrictBool,
+    StrictInt,
+    StrictStr,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError, core_schema
+
+from protocol.errors import RangeError, ShapeError
+
+SCHEMA_VERSION = 1
+
+# dtype names on the wire -> numpy dtype (always little-endian on the wire).
+WIRE_DTYPES: dict[str, np.dtype] = {
+    "float32": np.dtype("<f4"),
+    "float64": np.dtype("<f8"),
+    "int64": np.dtype("<i8"),
+    "int32": np.dtype("<i4"),
+    "uint8": np.dtype("u1"),
+    "bool": np.dtype("?"),
+}
+FLOAT_DTYPES = frozenset({"float32", "float64"})
+_NATIVE: dict[str, np.dtype] = {name: dt.newbyteorder("=") for name, dt in WIRE_DTYPES.items()}
+# dtype -> wire name, looked up by dtype object because `dtype.name` is slow Python code.
+_NAME_OF: dict[np.dtype, str] = {dt: name for name, dt in WIRE_DTYPES.items()}
+
+
+def dtype_name(dt: np.dtype) -> str:
+    """Wire name of a numpy dtype, or its numpy name when it is not on the whitelist."""
+    name = _NAME_OF.get(dt)
+    if name is None:
+        name = _NAME_OF.get(dt.newbyteorder("<"), dt.name) if dt.byteorder == ">" else dt.name
+    return name
+MAX_NDIM = 8
+
+MiB = 1 << 20
+DEFAULT_MAX_BYTES = 4 * MiB
+
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+NAME_RULE = "1-64 chars of letters, digits, '_', '-', '.', starting with a letter or digit"
+
+
+def _err(reason: str, field: str | None, msg: str) -> PydanticCustomError:
+    """A pydantic error whose type is a protocol `reason`; the codec maps it to a ProtocolError."""
+    # The field name is in the text too: model-level errors have no `loc` in pydantic's message.
+    return PydanticCustomError(reason, "{field}: {msg}" if field else "{msg}", {"msg": msg, "field": field or ""})
+
+
+def check_name(value: str, what: str) -> str:
+    """Validate a run id / role name used inside key expressions (raises ValueError)."""
+    if not isinstance(value, str) or not NAME_RE.match(value):
+        raise ValueError(f"invalid {what} {value!r}: use {NAME_RULE}")
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# numpy array fields
+# --------------------------------------------------------------------------------------------
+
+
+def array_to_wire(a: np.ndarray) -> dict[str, Any]:
+    """The wire map of an array: {"dtype": name, "shape": [..], "data": raw little-endian bytes}."""
+    name = dtype_name(a.dtype)
+    wire = WIRE_DTYPES.get(name)
+    if wire is None:
+        raise _err("dtype", None, f"dtype {name} is not allowed on the wire ({', '.join(WIRE_DTYPES)})")
+    if a.dtype.byteorder == ">":
+        a = a.astype(wire)
+    # tobytes() always writes C order, whatever the memory layout of `a`.
+    return {"dtype": name, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _array_from_wire(d: dict, field: str | None) -> np.ndarray:
+    if len(d) != 3 or "dtype" not in d or "shape" not in d or "data" not in d:
+        raise _err("field", field, f"array map must have exactly keys dtype, shape, data; got {sorted(d)}")
+    name, shape, data = d["dtype"], d["shape"], d["data"]
+    if not isinstance(name, str) or name not in WIRE_DTYPES:
+        raise _err("dtype", field, f"dtype {name!r} is not allowed ({', '.join(WIRE_DTYPES)})")
+    if (
+        not isinstance(shape, list)
+        or len(shape) > MAX_NDIM
+        or not all(type(n) is int and n >= 0 for n in shape)
+    ):
+        raise _err("shape", field, f"shape must be a list of at most {MAX_NDIM} non-negative ints, got {shape!r}")
+    if not isinstance(data, bytes):
+        raise _err("field", field, f"array data must be msgpack bin, got {type(data).__name__}")
+    dtype = WIRE_DTYPES[name]
+    count = 1
+    for n in shape:
+        count *= n
+    if count * dtype.itemsize != len(data):
+        raise _err("shape", field, f"shape {shape} of {name} needs {count * dtype.itemsize} bytes, got {len(data)}")
+    if name == "bool" and data and max(data) > 1:
+        raise _err("field", field, "bool array bytes must be 0 or 1")
+    # astype(native, copy=True): decoded arrays are native-endian, writable and do not pin the buffer.
+    return np.frombuffer(data, dtype=dtype).reshape(shape).astype(_NATIVE[name], copy=True)
+
+
+@dataclass(frozen=True)
+class _ArrayField:
+    """Pydantic annotation for an np.ndarray field with allowed dtypes and ranks."""
+
+    dtypes: tuple[str, ...]
+    ndims: tuple[int, ...] | None
+
+    def validate(self, value: Any, info: core_schema.ValidationInfo) -> np.ndarray:
+        field = info.field_name
+        if isinstance(value, dict):
+            a = _array_from_wire(value, field)
+        elif isinstance(value, np.ndarray):
+            a = value
+        else:
+            raise _err("field", field, f"expected a numpy array (or wire array map), got {type(value).__name__}")
+        name = dtype_name(a.dtype)
+        if name not in self.dtypes:
+            hint = f"; cast with .astype(np.{self.dtypes[0]})" if self.dtypes[0] != "bool" else ""
+            raise _err("dtype", field, f"dtype {name} not allowed here, need one of {list(self.dtypes)}{hint}")
+        if self.ndims is not None and a.ndim not in self.ndims:
+            raise _err("shape", field, f"needs {' or '.join(map(str, self.ndims))} dims, got shape {a.shape}")
+        if a.ndim > MAX_NDIM:
+            raise _err("shape", field, f"at most {MAX_NDIM} dims, got {a.ndim}")
+        if name in FLOAT_DTYPES and not np.isfinite(a).all():
+            raise _err("nonfinite", field, "holds NaN or inf")
+        return a
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        return core_schema.with_info_plain_validator_function(self.validate)
+
+    def __get_pydantic_json_schema__(self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler) -> dict:
+        desc = f"numpy array, dtype {' or '.join(self.dtypes)}"
+        if self.ndims is not None:
+            desc += f", {' or '.join(map(str, self.ndims))} dims"
+        return {
+            "type": "object",
+            "description": desc + "; raw bytes are little-endian, C order",
+            "properties": {
+                "dtype": {"type": "string", "enum": list(self.dtypes)},
+                "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "maxItems": MAX_NDIM},
+                "data": {"type": "string", "format": "binary"},
+            },
+            "required": ["dtype", "shape", "data"],
+            "additionalProperties": False,
+        }
+
+
+def NDArray(dtypes: str | tuple[str, ...], ndims: int | tuple[int, ...] | None = None) -> Any:
+    """An np.ndarray field type: `NDArray("float32", 2)` is a float32 matrix."""
+    dts = (dtypes,) if isinstance(dtypes, str) else tuple(dtypes)
+    nds = (ndims,) if isinstance(ndims, int) else ndims
+    return Annotated[np.ndarray, _ArrayField(dts, nds)]
+
+
+NonNegInt = Annotated[int, Strict(), Field(ge=0)]
+FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
+Name = Annotated[str, Strict(), Field(pattern=NAME_RE.pattern)]
+
+
+def _empty_idx() -> np.ndarray:
+    return np.zeros(0, dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# Declared dimensions a receiver can check messages against
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Dims:
+    """Dimensions a receiver expects; None means "do not check".
+
+    num_envs: total env copies (env_idx < num_envs, K <= num_envs); n_agents: N; obs_dim: D;
+    msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
+    discrete: whether actions are discrete ids (int64) or continuous vectors (float32).
+    """
+
+    num_envs: int | None = None
+    n_agents: int | None = None
+    obs_dim: int | None = None
+    msg_dim: int | None = None
+    action_dim: int | None = None
+    discrete: bool | None = None
+
+    @classmethod
+    def from_spec(cls, spec: Any, num_envs: int | None = None, msg_dim: int | None = None) -> Dims:
+        """From an `envs.base.EnvSpec` (duck-typed so this module stays import-light)."""
+        return cls(num_envs, spec.n_agents, spec.obs_dim, msg_dim, spec.action_dim, spec.discrete)
+
+
+def _expect(field: str, what: str, actual: int, expected: int | None) -> None:
+    if expected is not None and actual != expected:
+        raise ShapeError(f"{what} is {actual}, expected {expected} (declared Dims)", field)
+
+
+# --------------------------------------------------------------------------------------------
+# Messages
+# --------------------------------------------------------------------------------------------
+
+
+class Message(BaseModel):
+    """Common header of every message.
+
+    `run`, `ts`, `seq` and `sender` are stamped by `HammerSession.publish`; code that builds a
+    message only sets `step` and `env_idx` (plus the payload).
+    """
+
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=False, validate_default=False)
+
+    TYPE: ClassVar[str] = ""
+    MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES
+
+    v: StrictInt = Field(SCHEMA_VERSION, description="schema version (SCHEMA_VERSION)")
+    type: StrictStr = Field(description="type tag")
+    run: Annotated[str, Strict(), Field(pattern=f"^$|{NAME_RE.pattern}")] = Field(
+        "", description="run id; empty only before publishing (the session stamps it)"
+    )
+    step: NonNegInt = Field(0, description="vector step")
+    env_idx: NDArray("int64", 1) = Field(
+        default_factory=_empty_idx, description="(K,) indices of the env copies this message carries"
+    )
+    ts: NonNegInt = Field(0, description="send time, ns since the Unix epoch (stamped at publish)")
+    seq: NonNegInt = Field(0, description="sequence number of this sender on this key, from 0")
+    sender: Annotated[str, Strict(), Field(max_length=128)] = Field("", description="sender name")
+
+    @field_validator("v")
+    @classmethod
+    def _check_version(cls, v: int) -> int:
+        if v != SCHEMA_VERSION:
+            raise _err("version", "v", f"schema version {v}, this code speaks {SCHEMA_VERSION}")
+        return v
+
+    @field_validator("env_idx")
+    @classmethod
+    def _check_env_idx(cls, a: np.ndarray) -> np.ndarray:
+        if a.size and (a[0] if a.size == 1 else a.min()) < 0:
+            raise _err("range", "env_idx", "env indices must be >= 0")
+        if a.size > 1 and np.unique(a).size != a.size:
+            raise _err("shape", "env_idx", "env indices must be unique")
+        return a
+
+    @property
+    def k(self) -> int:
+        """Number of env copies carried."""
+        return int(self.env_idx.shape[0])
+
+    def _need(self, field: str, a: np.ndarray | None, shape: tuple) -> None:
+        """Raise a shape error when array `a` does not have `shape` (None entries = any)."""
+        if a is None:
+            return
+        actual = a.shape
+        if len(actual) != len(shape) or any(s is not None and s != n for s, n in zip(shape, actual)):
+            want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + (",)" if len(shape) == 1 else ")")
+            raise _err("shape", field, f"shape {a.shape} disagrees with the message, expected {want} "
+                                       f"(K={self.k} from env_idx)")
+
+    def check_dims(self, dims: Dims) -> None:
+        """Raise ShapeError/RangeError when the message disagrees with declared dimensions."""
+        if dims.num_envs is not None:
+            if self.k > dims.num_envs:
+                raise ShapeError(f"{self.k} env copies but num_envs is {dims.num_envs}", "env_idx")
+            if self.k and int(self.env_idx.max()) >= dims.num_envs:
+                raise RangeError(f"env index {int(self.env_idx.max())} >= num_envs {dims.num_envs}", "env_idx")
+        self._check_dims(dims)
+
+    def _check_dims(self, dims: Dims) -> None:
+        """Per-type checks against Dims; overridden by subclasses."""
+
+    def _check_agent(self, agent: int, dims: Dims) -> None:
+        if dims.n_agents is not None and agent >= dims.n_agents:
+            raise RangeError(f"agent {agent} >= n_agents {dims.n_agents}", "agent")
+
+
+class LocalObs(Message):
+    """Env host -> local agent `agent`: its observation in each env copy."""
+
+    TYPE: ClassVar[str] = "local_obs"
+    type: Literal["local_obs"] = "local_obs"
+    agent: NonNegInt
+    obs: NDArray("float32", 2) = Field(description="(K, D) float32")
+    active: NDArray("bool", 1) = Field(description="(K,) bool: the agent is present in that copy")
+
+    @model_validator(mode="after")
+    def _shapes(self) -> LocalObs:
+        k = self.k
+        self._need("obs", self.obs, (k, None))
+        self._need("active", self.active, (k,))
+        return self
+
+    def _check_dims(self, dims: Dims) -> None:
+        self._check_agent(self.agent, dims)
+        _expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
+
+
+class GlobalState(Message):
+    """Env host -> central agent: all observations and every agent's previous action."""
+
+    TYPE: ClassVar[str] = "global_state"
+    type: Literal["global_state"] = "global_state"
+    obs: NDArray("float32", 3) = Field(description="(K, N, D) float32")
+    prev_actions: NDArray("float32", 3) = Field(
+        description="(K, N, A) float32: continuous actions, or for discrete actions a one-hot "
+        "(A = n_actions) or the action id as a float (A = 1); zeros on the first step"
+    )
+    active: NDArray("bool", 2) = Field(description="(K, N) bool")
+
+    @model_validator(mode="after")
+    def _shapes(self) -> GlobalState:
+        k, n = self.k, self.obs.shape[1]
+        self._need("obs", self.obs, (k, n, None))
+        self._need("prev_actions", self.prev_actions, (k, n, None))
+        self._need("active", self.active, (k, n))
+        return self
+
+    def _check_dims(self, dims: Dims) -> None:
+        _expect("obs", "n_agents", self.obs.shape[1], dims.n_agents)
+        _expect("obs", "obs_dim", self.obs.shape[2], dims.obs_dim)
+        a = self.prev_actions.shape[2]
+        if dims.action_dim is not None and dims.discrete is not None:
+            ok = a in (1, dims.action_dim) if dims.discrete else a == dims.action_dim
+            if not ok:
+                raise ShapeError(f"last dim {a} does not fit action_dim {dims.action_dim}", "prev_actions")
+
+
+class CentralMsg(Message):
+    """Central agent -> local agent `agent`: its message vector in each env copy."""
+
+    TYPE: ClassVar[str] = "central_msg"
+    type: Literal["central_msg"] = "central_msg"
+    agent: NonNegInt
+    msg: NDArray("float32", 2) = Field(description="(K, M) float32 in [-1, 1]")
+    policy_version: NonNegInt = 0
+
+    @model_validator(mode="after")
+    def _shapes(self) -> CentralMsg:
+        self._need("msg", self.msg, (self.k, None))
+        if self.msg.size and (self.msg.min() < -1.0 or self.msg.max() > 1.0):
+            raise _err("range", "msg", "message values must lie in [-1, 1]")
+        return self
+
+    def _check_dims(self, dims: Dims) -> None:
+        self._check_agent(self.agent, dims)
+        _expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
+
+
+class Action(Message):
+    """Local agent `agent` -> env host: its action in each env copy."""
+
+    TYPE: ClassVar[str] = "action"
+    type: Literal["action"] = "action"
+    agent: NonNegInt
+    action: NDArray(("int64", "float32"), (1, 2)) = Field(
+        description="(K,) int64 action ids, or (K, A) float32 continuous actions"
+    )
+    logp: NDArray("float32", 1) | None = Field(None, description="(K,) log-probability of the action")
+    value: NDArray("float32", 1) | None = Field(None, description="(K,) critic value")
+    policy_version: NonNegInt = 0
+    fallback: NDArray("bool", 1) | None = Field(
+        None, description="(K,) the central message was late and a fallback was used (None = all False)"
+    )
+
+    @model_validator(mode="after")
+    def _shapes(self) -> Action:
+        k = self.k
+        if self.action.dtype == np.int64:
+            self._need("action", self.action, (k,))
+        else:
+            self._need("action", self.action, (k, None))
+        self._need("logp", self.logp, (k,))
+        self._need("value", self.value, (k,))
+        if self.fallback is None:
+            self.fallback = np.zeros(k, dtype=bool)
+        self._need("fallback", self.fallback, (k,))
+        return self
+
+    @property
+    def discrete(self) -> bool:
+        return self.action.dtype == np.int64
+
+    def _check_dims(self, dims: Dims) -> None:
+        self._check_agent(self.agent, dims)
+        if dims.discrete is not None and dims.discrete != self.discrete:
+            want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
+            raise ShapeError(f"actions must be {want}, got {self.action.dtype} {self.action.shape}", "action")
+        if dims.action_dim is None:
+            return
+        if self.discrete:
+            if self.action.size and (self.action.min() < 0 or self.action.max() >= dims.action_dim):
+                raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
+        else:
+            _expect("action", "action vector length", self.action.shape[1], dims.action_dim)
+
+
+class EpisodeInfo(BaseModel):
+    """One finished episode of one env copy (mirrors envs.base.EpisodeStats)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    env_index: NonNegInt
+    paper_metric: FiniteFloat
+    team_return: FiniteFloat
+    length: NonNegInt
+
+    @classmethod
+    def from_stats(cls, s: Any) -> EpisodeInfo:
+        return cls(env_index=int(s.env_index), paper_metric=float(s.paper_metric),
+                   team_return=float(s.team_return), length=int(s.length))
+
+
+class StepResult(Message):
+    """Env host -> learners/monitors: what one vector step produced."""
+
+    TYPE: ClassVar[str] = "step_result"
+    type: Literal["step_result"] = "step_result"
+    rewards: NDArray("float32", 2) = Field(description="(K, N) float32")
+    terminated: NDArray("bool", 2) = Field(description="(K, N) bool")
+    truncated: NDArray("bool", 2) = Field(description="(K, N) bool")
+    done: NDArray("bool", 1) = Field(description="(K,) bool: the copy's episode ended and was reset")
+    defaulted: NDArray("bool", 2) | None = Field(
+        None, description="(K, N) bool: the agent's action missed the deadline and the default was used"
+    )
+    episodes: list[EpisodeInfo] = Field(default_factory=list, max_length=4096)
+
+    @model_validator(mode="after")
+    def _shapes(self) -> StepResult:
+        k, n = self.k, self.rewards.shape[1]
+        self._need("rewards", self.rewards, (k, n))
+        self._need("terminated", self.terminated, (k, n))
+        self._need("truncated", self.truncated, (k, n))
+        self._need("done", self.done, (k,))
+        if self.defaulted is None:
+            self.defaulted = np.zeros((k, n), dtype=bool)
+        self._need("defaulted", self.defaulted, (k, n))
+        return self
+
+    def _check_dims(self, dims: Dims) -> None:
+        _expect("rewards", "n_agents", self.rewards.shape[1], dims.n_agents)
+        if dims.num_envs is not None:
+            for e in self.episodes:
+                if e.env_index >= dims.num_envs:
+                    raise RangeError(f"env_index {e.env_index} >= num_envs {dims.num_envs}", "episodes")
+
+
+ArrayName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$")]
+Scalar = StrictBool | StrictInt | FiniteFloat | Annotated[str, Strict(), Field(max_length=256)] | None
+
+
+class ExperienceChunk(Message):
+    """An actor -> its learner: named arrays of experience tagged with the producing policy version.
+
+    The learner defines the array names and shapes (e.g. obs (T,K,D), reward (T,K)); the codec only
+    enforces the dtype whitelist, finiteness and at most 64 arrays.
+    """
+
+    TYPE: ClassVar[str] = "experience"
+    MAX_BYTES: ClassVar[int] = 64 * MiB
+    type: Literal["experience"] = "experience"
+    role: Name
+    policy_version: NonNegInt
+    arrays: dict[ArrayName, NDArray(tuple(WIRE_DTYPES))] = Field(max_length=64)
+    meta: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=64)
+
+
+class Weights(Message):
+    """A learner -> actors: a policy version as a safetensors blob with its sha256."""
+
+    TYPE: ClassVar[str] = "weights"
+    MAX_BYTES: ClassVar[int] = 256 * MiB
+    type: Literal["weights"] = "weights"
+    role: Name
+    version: NonNegInt
+    format: Literal["safetensors"] = "safetensors"
+    blob: Annotated[bytes, Strict()]
+    sha256: Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$")]
+
+    @model_validator(mode="after")
+    def _digest(self) -> Weights:
+        if hashlib.sha256(self.blob).hexdigest() != self.sha256:
+            raise _err("checksum", "sha256", "sha256 of blob does not match (corrupted or truncated weights)")
+        return self
+
+    @classmethod
+    def from_blob(cls, role: str, version: int, blob: bytes, **header: Any) -> Weights:
+        """Build a Weights message computing the sha256 of `blob`."""
+        return cls(role=role, version=version, blob=blob, sha256=hashlib.sha256(blob).hexdigest(), **header)
+
+
+ControlCommand = Literal["start", "pause", "resume", "stop", "shutdown", "checkpoint", "reset", "ping", "set"]
+
+
+class Control(Message):
+    """Launcher -> roles: a command with small arguments."""
+
+    TYPE: ClassVar[str] = "control"
+    type: Literal["control"] = "control"
+    command: ControlCommand
+    target: Annotated[str, Strict(), Field(pattern=f"^\\*$|{NAME_RE.pattern}")] = Field(
+        "*", description="role name, or * for every role"
+    )
+    args: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=32)
+
+
+HeartbeatStatus = Literal["starting", "ready", "running", "paused", "stopping", "stopped", "error"]
+
+
+class Heartbeat(Message):
+    """Any role -> launcher: alive, what it is doing, a few counters."""
+
+    TYPE: ClassVar[str] = "heartbeat"
+    type: Literal["heartbeat"] = "heartbeat"
+    role: Name
+    pid: NonNegInt
+    status: HeartbeatStatus
+    counters: dict[ArrayName, StrictInt | FiniteFloat] = Field(default_factory=dict, max_length=64)
+    detail: Annotated[str, Strict(), Field(max_length=1024)] = ""
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (LocalObs, GlobalState, CentralMsg, Action, StepResult, ExperienceChunk, Weights, Control, Heartbeat)
+}
+
+
+def json_schemas() -> dict[str, Any]:
+    """JSON Schema (validation side) of every message type, keyed by type tag."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "messages": {tag: cls.model_json_schema() for tag, cls in MESSAGE_TYPES.items()},
+    }

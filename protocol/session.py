@@ -1,0 +1,456 @@
+"""The only place in hammer that opens Zenoh.
+
+`HammerSession` wraps one Zenoh session of one run: typed publishing (stamps run, send time,
+sequence number and sender), validated subscriptions, liveliness, and the seeded fault layer.
+
+Rules it enforces (learned the hard way, see shared/zenoh-notes.md):
+- Multicast scouting is always off unless the user hands a Zenoh JSON5 config file; peers find
+  each other through explicit `listen` / `connect` endpoints (tcp/127.0.0.1:PORT here).
+- Must-arrive traffic uses reliable publishers with CongestionControl.BLOCK (DROP loses
+  messages even on loopback). Loss is simulated only by our seeded fault layer.
+- Zenoh callbacks run on Zenoh's threads: the subscriber callback only copies the payload bytes
+  into a `queue.Queue`; decoding and validation happen in the consumer's `get()` / `drain()`.
+- fork is unsafe (a forked child's inherited session delivers nothing, a new open can hang):
+  start processes with multiprocessing "spawn" or as fresh interpreters and open the session
+  inside each process. A session used from another pid than the one that opened it raises.
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import json
+import logging
+import os
+import queue
+import re
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from protocol.codec import Expected, decode, encode
+from protocol.errors import ProtocolError, RunMismatchError
+from protocol.faults import FaultInjector, FaultSpec
+from protocol.keys import Keys
+from protocol.schemas import Dims, Message
+
+log = logging.getLogger(__name__)
+
+_ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (bind to port 0, read, release)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def loopback_endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+class TransportConfig(BaseModel):
+    """How a process reaches the others.
+
+    Default: a peer with no endpoints (talks to nobody). Typical loopback setup: one process
+    `listen=["tcp/127.0.0.1:7447"]`, the others `connect=["tcp/127.0.0.1:7447"]`. For real
+    deployments (router, client mode, TLS, auth) give `zenoh_config_file` (JSON5); then that file
+    decides scouting too, and `mode` / `listen` / `connect` given here override it when set.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
+    connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
+    zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
+                raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447' (protocol/address:port)")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> TransportConfig:
+        if self.zenoh_config_file is None and self.mode == "client" and not self.connect:
+            raise ValueError("mode 'client' needs at least one connect endpoint (the router's address)")
+        if self.zenoh_config_file is not None and not self.zenoh_config_file.is_file():
+            raise ValueError(f"zenoh_config_file {str(self.zenoh_config_file)!r} does not exist")
+        return self
+
+    @classmethod
+    def listener(cls, port: int | None = None) -> TransportConfig:
+        """A peer listening on 127.0.0.1:port (a free port if None)."""
+        return cls(listen=[loopback_endpoint(port or free_loopback_port())])
+
+    @classmethod
+    def connector(cls, port: int) -> TransportConfig:
+        """A peer connecting to 127.0.0.1:port."""
+        return cls(connect=[loopback_endpoint(port)])
+
+    def to_zenoh(self) -> zenoh.Config:
+        if self.zenoh_config_file is not None:
+            cfg = zenoh.Config.from_file(str(self.zenoh_config_file))
+            if "mode" in self.model_fields_set:
+                cfg.insert_json5("mode", json.dumps(self.mode))
+        else:
+            cfg = zenoh.Config()
+            cfg.insert_json5("mode", json.dumps(self.mode))
+            cfg.insert_json5("scouting/multicast/enabled", "false")
+        if self.listen or self.zenoh_config_file is None:
+            cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
+        if self.connect or self.zenoh_config_file is None:
+            cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# Subscriptions
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SubscriptionStats:
+    """received: payloads taken off the queue; delivered: valid messages returned;
+    rejected: invalid payloads per reason (size, decode, version, type, field, dtype, shape,
+    nonfinite, range, checksum, run); overflow: payloads dropped because the queue was full."""
+
+    received: int = 0
+    delivered: int = 0
+    overflow: int = 0
+    rejected: collections.Counter = field(default_factory=collections.Counter)
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+
+class _QueueSub:
+    """Shared part: a Zenoh subscriber whose callback only enqueues raw bytes."""
+
+    def __init__(self, key_expr: str, maxsize: int) -> None:
+        self.key_expr = key_expr
+        self.stats = SubscriptionStats()
+        self._q: queue.Queue[bytes] = queue.Queue(maxsize)
+        self._zsub: Any = None
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
+        try:
+            self._q.put_nowait(sample.payload.to_bytes())
+        except queue.Full:
+            self.stats.overflow += 1
+
+    def pending(self) -> int:
+        return self._q.qsize()
+
+    def close(self) -> None:
+        if self._zsub is not None:
+            try:
+                self._zsub.undeclare()
+            except Exception:  # already closed with its session
+                pass
+            self._zsub = None
+
+
+class RawSubscription(_QueueSub):
+    """Raw payload bytes, for benchmarks and tools; no validation."""
+
+    def get(self, timeout: float | None = None) -> bytes | None:
+        try:
+            data = self._q.get(timeout=timeout) if timeout != 0 else self._q.get_nowait()
+        except queue.Empty:
+            return None
+        self.stats.received += 1
+        self.stats.delivered += 1
+        return data
+
+
+class Subscription(_QueueSub):
+    """Validated messages of the expected type(s) from one key expression.
+
+    `get()` / `drain()` decode in the caller's thread. Invalid payloads are counted in
+    `stats.rejected[reason]` and logged, never raised: the next valid message is delivered.
+    """
+
+    def __init__(self, key_expr: str, expected: Expected, dims: Dims | None, run: str,
+                 maxsize: int, max_bytes: int | None) -> None:
+        super().__init__(key_expr, maxsize)
+        self.expected, self.dims, self.run, self.max_bytes = expected, dims, run, max_bytes
+
+    def _decode(self, data: bytes) -> Message | None:
+        self.stats.received += 1
+        try:
+            msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes, run=self.run)
+        except ProtocolError as e:
+            self.stats.rejected[e.reason] += 1
+            n = self.stats.rejected[e.reason]
+            if n <= 10 or n % 1000 == 0:
+                log.warning("rejected message #%d (%s) on %s: %s", n, e.reason, self.key_expr, e)
+            return None
+        self.stats.delivered += 1
+        return msg
+
+    def get(self, timeout: float | None = None) -> Message | None:
+        """The next valid message, waiting up to `timeout` s (None = forever, 0 = no wait);
+        None if none arrived in time."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                if deadline is None:
+                    data = self._q.get()
+                else:
+                    remaining = deadline - time.monotonic()
+                    data = self._q.get(timeout=remaining) if remaining > 0 else self._q.get_nowait()
+            except queue.Empty:
+                return None
+            msg = self._decode(data)
+            if msg is not None:
+                return msg
+
+    def drain(self, max_items: int | None = None) -> list[Message]:
+        """Every valid message already queued (without waiting)."""
+        out: list[Message] = []
+        while max_items is None or len(out) < max_items:
+            try:
+                data = self._q.get_nowait()
+            except queue.Empty:
+                break
+            msg = self._decode(data)
+            if msg is not None:
+                out.append(msg)
+        return out
+
+
+@dataclass(frozen=True)
+class AliveEvent:
+    role: str
+    alive: bool
+
+
+class LivelinessWatch:
+    """Roles appearing (token declared) and disappearing (undeclared, closed or killed)."""
+
+    def __init__(self, keys: Keys) -> None:
+        self._keys = keys
+        self._q: queue.Queue[AliveEvent] = queue.Queue()
+        self._zsub: Any = None
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        role = self._keys.role_of_alive_key(str(sample.key_expr))
+        self._q.put_nowait(AliveEvent(role, sample.kind == zenoh.SampleKind.PUT))
+
+    def get(self, timeout: float | None = None) -> AliveEvent | None:
+        try:
+            return self._q.get(timeout=timeout) if timeout != 0 else self._q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def drain(self) -> list[AliveEvent]:
+        out = []
+        while (e := self.get(0)) is not None:
+            out.append(e)
+        return out
+
+    def close(self) -> None:
+        if self._zsub is not None:
+            try:
+                self._zsub.undeclare()
+            except Exception:
+                pass
+            self._zsub = None
+
+
+# --------------------------------------------------------------------------------------------
+# Publishing
+# --------------------------------------------------------------------------------------------
+
+
+class Publisher:
+    """Publishes typed messages (or raw bytes) on one key, through the fault layer if any."""
+
+    def __init__(self, session: HammerSession, key: str, zpub: zenoh.Publisher) -> None:
+        self.key = key
+        self._session = session
+        self._zpub = zpub
+        self._rel = session.keys.relative(key)
+        self._seq = itertools.count()
+        self._lock = threading.Lock()
+
+    def publish(self, msg: Message) -> int:
+        """Stamp run/ts/seq/sender, encode and send; returns the seq used."""
+        run = self._session.run_id
+        if msg.run and msg.run != run:
+            raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
+        with self._lock:
+            seq = next(self._seq)
+        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender})
+        self.put_bytes(data)
+        return seq
+
+    def put_bytes(self, data: bytes) -> None:
+        faults = self._session.faults
+        if faults is None:
+            self._zpub.put(data)
+        else:
+            faults.submit(self._rel, data, self._zpub.put)
+
+    def close(self) -> None:
+        try:
+            self._zpub.undeclare()
+        except Exception:
+            pass
+
+
+class HammerSession:
+    """One process's Zenoh session for one run. Use as a context manager; open it in the process
+    that uses it (spawn-safe, never fork)."""
+
+    def __init__(self, run_id: str, transport: TransportConfig | None = None,
+                 faults: FaultSpec | None = None, sender: str | None = None) -> None:
+        self.keys = Keys(run_id)
+        self.run_id = run_id
+        self.transport = transport or TransportConfig()
+        self.sender = sender or f"pid{os.getpid()}"
+        self.faults = FaultInjector(faults) if faults is not None and faults.enabled else None
+        self._z: zenoh.Session | None = None
+        self._pid: int | None = None
+        self._publishers: dict[tuple[str, bool, bool], Publisher] = {}
+        self._subs: list[Any] = []
+        self._tokens: list[Any] = []
+        self._lock = threading.Lock()
+
+    # ---- lifecycle -------------------------------------------------------------------------
+
+    def open(self) -> HammerSession:
+        if self._z is None:
+            self._z = zenoh.open(self.transport.to_zenoh())
+            self._pid = os.getpid()
+        return self
+
+    def __enter__(self) -> HammerSession:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __getstate__(self) -> None:
+        raise TypeError("HammerSession cannot be pickled or sent to another process: "
+                        "pass the run id and TransportConfig and open a session there")
+
+    def close(self) -> None:
+        """Flush the fault layer, undeclare everything and close the Zenoh session."""
+        if self._z is None:
+            return
+        if self.faults is not None:
+            self.faults.close()
+        for s in self._subs:
+            s.close()
+        for t in self._tokens:
+            try:
+                t.undeclare()
+            except Exception:
+                pass
+        for p in self._publishers.values():
+            p.close()
+        self._subs.clear()
+        self._tokens.clear()
+        self._publishers.clear()
+        self._z.close()
+        self._z = None
+
+    @property
+    def zenoh(self) -> zenoh.Session:
+        if self._z is None:
+            raise RuntimeError("session is not open: use `with HammerSession(...) as s:` or call open()")
+        if self._pid != os.getpid():
+            raise RuntimeError(f"session opened in pid {self._pid} used in pid {os.getpid()}: fork is unsafe, "
+                               "open a new session inside each process (multiprocessing 'spawn')")
+        return self._z
+
+    def _own(self, key: str) -> str:
+        self.keys.relative(key)  # raises if the key is not under hammer/<run>/
+        return key
+
+    # ---- publish ---------------------------------------------------------------------------
+
+    def publisher(self, key: str, reliable: bool = True, express: bool = False) -> Publisher:
+        """A (cached) publisher on `key`. reliable=True: RELIABLE + CongestionControl.BLOCK, for
+        everything that must arrive; reliable=False: BEST_EFFORT + DROP (telemetry only)."""
+        self._own(key)
+        with self._lock:
+            pub = self._publishers.get((key, reliable, express))
+            if pub is None:
+                zpub = self.zenoh.declare_publisher(
+                    key,
+                    congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
+                    reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+                    express=express,
+                )
+                pub = self._publishers[(key, reliable, express)] = Publisher(self, key, zpub)
+        return pub
+
+    def publish(self, key: str, msg: Message) -> int:
+        """Publish a typed message reliably on `key`; returns its seq."""
+        return self.publisher(key).publish(msg)
+
+    def put_bytes(self, key: str, data: bytes) -> None:
+        """Publish raw bytes reliably (benchmarks, malformed-input tests)."""
+        self.publisher(key).put_bytes(data)
+
+    # ---- subscribe -------------------------------------------------------------------------
+
+    def subscribe(self, key_expr: str, expected: Expected = None, dims: Dims | None = None, *,
+                  maxsize: int = 0, max_bytes: int | None = None) -> Subscription:
+        """Validated messages of type(s) `expected` on `key_expr` (wildcards allowed).
+        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow)."""
+        sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        self._subs.append(sub)
+        return sub
+
+    def subscribe_raw(self, key_expr: str, *, maxsize: int = 0) -> RawSubscription:
+        sub = RawSubscription(self._own(key_expr), maxsize)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        self._subs.append(sub)
+        return sub
+
+    # ---- liveliness ------------------------------------------------------------------------
+
+    def declare_alive(self, role: str) -> Any:
+        """Declare this process's liveliness token `hammer/<run>/alive/<role>`. It disappears
+        when undeclared, when the session closes, or when the process dies."""
+        token = self.zenoh.liveliness().declare_token(self.keys.alive(role))
+        self._tokens.append(token)
+        return token
+
+    def watch_alive(self, history: bool = True) -> LivelinessWatch:
+        """Events for every role of this run going alive / dead (history: also those already alive)."""
+        watch = LivelinessWatch(self.keys)
+        watch._zsub = self.zenoh.liveliness().declare_subscriber(
+            self.keys.alive("**"), watch._on_sample, history=history
+        )
+        self._subs.append(watch)
+        return watch
+
+    def alive_roles(self, timeout: float = 1.0) -> set[str]:
+        """Roles of this run whose liveliness token is currently declared."""
+        replies = self.zenoh.liveliness().get(self.keys.alive("**"), timeout=timeout)
+        roles = set()
+        for reply in replies:
+            if reply.ok is not None:
+                roles.add(self.keys.role_of_alive_key(str(reply.ok.key_expr)))
+        return roles
+
+    def fault_report(self) -> dict[str, dict[str, int]]:
+        return self.faults.report() if self.faults is not None else {}
