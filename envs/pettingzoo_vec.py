@@ -98,11 +98,13 @@ class PettingZooVecEnv(VecEnv):
         self.num_envs = num_envs
         self.index_offset = index_offset
         self.envs = [factory() for _ in range(num_envs)]
+        from pettingzoo import AECEnv
+
         for e in self.envs:
-            if not hasattr(e, "possible_agents") or hasattr(e, "agent_selection"):
-                raise TypeError(
+            if isinstance(e, AECEnv) or not hasattr(e, "possible_agents"):
+                raise EnvSpaceError(
                     f"env {name!r}: the factory returned {type(e).__name__}, which is not a PettingZoo "
-                    "parallel env (an AEC env has agent_selection); use the module's parallel_env()."
+                    "parallel env (AEC envs step one agent at a time); use the module's parallel_env()."
                 )
         self.spec = spec_from_parallel_env(self.envs[0], name, max_steps)
         K, N, D = num_envs, self.spec.n_agents, self.spec.obs_dim
