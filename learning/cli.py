@@ -1,9 +1,108 @@
-"""Commands of this package, added to the `hammer` CLI by `hammer.cli`."""
+"""`hammer train`: the in-process vectorised trainer from the command line."""
 
 from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
 
 import typer
 
 
+def _fail(msg: str) -> None:
+    typer.secho(f"error: {msg}", fg="red", err=True)
+    raise typer.Exit(2)
+
+
+def train_command(
+    preset: Annotated[Optional[str], typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings)")] = None,
+    variant: Annotated[Optional[str], typer.Option(help="hammer | il | random | centralized")] = None,
+    central_mode: Annotated[Optional[str], typer.Option(help="rl (paper text) | backprop (authors' code)")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="run seed")] = None,
+    episodes: Annotated[Optional[int], typer.Option(help="episode budget (overrides the preset)")] = None,
+    config: Annotated[Optional[Path], typer.Option(help="YAML file of RunConfig fields")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="field=value override, repeatable")] = None,
+    out: Annotated[Optional[str], typer.Option(help="root directory for run directories")] = None,
+    name: Annotated[Optional[str], typer.Option(help="run directory name under --out")] = None,
+    run_dir: Annotated[Optional[Path], typer.Option(help="exact run directory (overrides --out/--name)")] = None,
+    resume: Annotated[Optional[Path], typer.Option(help="continue this run directory from its last checkpoint")] = None,
+    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+) -> None:
+    """Train a HAMMER team (or a baseline) in-process; writes a run directory."""
+    from learning.config import ConfigError, build_config, merge_config
+    from learning.rundir import RunDir
+
+    try:
+        if resume is not None:
+            if any(v is not None for v in (preset, variant, central_mode, seed, config, set_)):
+                raise ConfigError("--resume: only --episodes may be changed when resuming; fix: drop the other options")
+            rd, cfg = RunDir.open(resume)
+            if episodes is not None:
+                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
+                rd.write_config(cfg)
+            if rd.latest_checkpoint() is None:
+                raise ConfigError(f"--resume '{resume}': no checkpoint yet; fix: start it again with --run-dir")
+        else:
+            extra = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes,
+                     "out": out}
+            if "HAMMER_TORCH_THREADS" in os.environ and not any(s.startswith("torch_threads") for s in set_ or []):
+                extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
+            cfg = merge_config(preset, config, set_ or [], extra)
+        from envs.registry import EnvConfigError
+        from learning.trainer import make_env
+
+        try:  # build the env first so a bad env name/kwarg fails before any file is written
+            env = make_env(cfg)
+        except EnvConfigError as e:
+            raise ConfigError(str(e)) from None
+        if resume is None:
+            path = run_dir if run_dir is not None else Path(cfg.out) / (name or cfg.run_name())
+            try:
+                rd = RunDir.create(path, cfg)
+            except ConfigError:
+                env.close()
+                raise
+        _run(cfg, rd, env, resume is not None, quiet)
+    except ConfigError as e:
+        _fail(str(e))
+
+
+def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from learning.trainer import train
+
+    console = Console(stderr=True)
+    console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.variant}"
+                  f"{'/' + cfg.central_mode if cfg.variant == 'hammer' else ''}, seed {cfg.seed})")
+    if quiet or not sys.stderr.isatty():
+        last = [0]
+
+        def report(p) -> None:  # a line every ~5% for logs
+            if p.episodes - last[0] >= max(1, p.budget // 20):
+                last[0] = p.episodes
+                console.print(f"episodes {p.episodes}/{p.budget}  env-steps/s {p.steps_per_s:,.0f}  "
+                              f"metric(100) {p.running_metric:.2f}")
+
+        summary = train(cfg, rd, resume=resume, env=env, on_progress=None if quiet else report)
+    else:
+        with Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
+                      TextColumn("{task.fields[sps]} env-steps/s"), TextColumn("metric {task.fields[metric]}"),
+                      TimeElapsedColumn(), console=console) as bar:
+            task = bar.add_task("train", total=cfg.episodes, sps="-", metric="-")
+
+            def report(p) -> None:
+                bar.update(task, completed=p.episodes, sps=f"{p.steps_per_s:,.0f}",
+                           metric=f"{p.running_metric:.2f}")
+
+            summary = train(cfg, rd, resume=resume, env=env, on_progress=report)
+    console.print(f"done: {summary['episodes']} episodes, last-500 paper metric "
+                  f"{summary['final_paper_metric_last500']:.3f}, "
+                  f"{summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+
+
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add this package's commands to the top-level app and its `bench` group."""
+    app.command("train")(train_command)

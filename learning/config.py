@@ -1,0 +1,186 @@
+"""The run configuration: one strict pydantic model for every knob of a training run.
+
+Why strict: a typo in a sweep (`--set gama=0.9`) must fail loudly instead of silently training with
+the default. Every error names the field and says how to fix it (`ConfigError`).
+
+Sources are merged in this order (later wins): model defaults < preset < YAML file < `--set k=v`.
+"""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+Variant = Literal["hammer", "il", "random", "centralized"]
+CentralMode = Literal["rl", "backprop"]
+
+
+class ConfigError(ValueError):
+    """A bad configuration value; the message is one line naming the field and the fix."""
+
+
+class RunConfig(BaseModel):
+    """Everything that determines a training run (together with the code version)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    # --- environment -------------------------------------------------------------------------
+    env: str = Field("cn", description="registry name: cn, cn-mpe2, mw or module:factory")
+    n_agents: int = Field(3, ge=1, description="number of local agents N")
+    env_kwargs: dict[str, Any] = Field(default_factory=dict, description="extra env constructor kwargs")
+    env_workers: int = Field(0, ge=0, description="subprocess workers for the env (0 = in-process)")
+    num_envs: int = Field(16, ge=1, description="K env copies stepped as one batch")
+
+    # --- method ------------------------------------------------------------------------------
+    variant: Variant = Field("hammer", description="hammer | il | random | centralized")
+    central_mode: CentralMode = Field("rl", description="how the central agent learns: rl | backprop")
+    msg_dim: int = Field(4, ge=0, description="message length M (used by hammer and random)")
+    use_prev_actions: bool = Field(True, description="global state includes every agent's previous action")
+    msg_std: float = Field(0.5, gt=0, description="std of the Gaussian message policy (rl mode)")
+    msg_dropout: float = Field(0.0, ge=0, le=1, description="prob. of zeroing each message in training")
+
+    # --- PPO ---------------------------------------------------------------------------------
+    rollout_steps: int = Field(50, ge=1, description="vector steps T per update")
+    gamma: float = Field(0.95, gt=0, le=1)
+    gae_lambda: float = Field(0.95, ge=0, le=1)
+    clip: float = Field(0.2, gt=0, lt=1, description="PPO ratio clip epsilon")
+    lr_central: float = Field(3e-4, gt=0, lt=1)
+    lr_local: float = Field(3e-4, gt=0, lt=1)
+    epochs: int = Field(8, ge=1)
+    minibatches: int = Field(4, ge=1)
+    ent_coef: float = Field(0.01, ge=0)
+    vf_coef: float = Field(0.5, ge=0)
+    max_grad_norm: float = Field(0.5, gt=0)
+    norm_adv: bool = True
+
+    # --- networks ----------------------------------------------------------------------------
+    actor_hidden: list[int] = Field(default_factory=lambda: [64, 64])
+    critic_hidden: list[int] = Field(default_factory=lambda: [64, 32])
+    central_hidden: list[int] = Field(default_factory=lambda: [64, 64])
+    log_std_init: float = Field(-0.5, description="initial log-std of the Gaussian local policy")
+
+    # --- run ---------------------------------------------------------------------------------
+    episodes: int = Field(30_000, ge=1, description="budget in finished episodes")
+    seed: int = Field(0, ge=0, lt=2**31)
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads (small nets: 1 is fastest)")
+    out: str = Field("runs", description="root directory for run directories")
+    checkpoint_every: int = Field(50, ge=1, description="updates between checkpoints")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RunConfig:
+        for name in ("actor_hidden", "critic_hidden", "central_hidden"):
+            sizes = getattr(self, name)
+            if not sizes or any(s < 1 for s in sizes):
+                raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
+        if self.variant in ("hammer", "random") and self.msg_dim < 1:
+            raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
+        if self.minibatches > self.rollout_steps * self.num_envs:
+            raise ValueError("minibatches: must be <= rollout_steps * num_envs")
+        return self
+
+    @property
+    def effective_msg_dim(self) -> int:
+        """Message length the local agents actually receive (0 for il and centralized)."""
+        return self.msg_dim if self.variant in ("hammer", "random") else 0
+
+    def run_name(self) -> str:
+        mode = f"-{self.central_mode}" if self.variant == "hammer" else ""
+        return f"{self.env.replace(':', '_')}{self.n_agents}-{self.variant}{mode}-s{self.seed}"
+
+
+_FIXES = {
+    "variant": "use one of hammer, il, random, centralized",
+    "central_mode": "use rl or backprop",
+    "gamma": "use a discount in (0, 1], e.g. gamma=0.95",
+    "gae_lambda": "use a value in [0, 1], e.g. gae_lambda=0.95",
+    "clip": "use a clip epsilon in (0, 1), e.g. clip=0.2",
+    "msg_dropout": "use a probability in [0, 1]",
+}
+
+
+def _format_error(err: ValidationError) -> str:
+    parts = []
+    for e in err.errors():
+        field = ".".join(str(x) for x in e["loc"]) or "config"
+        if e["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(e["loc"][0]), RunConfig.model_fields, n=1)
+            hint = f"did you mean '{close[0]}'?" if close else "see `hammer train --help` for the fields"
+            parts.append(f"config field '{field}': unknown field; fix: remove it ({hint})")
+            continue
+        msg = e["msg"].removeprefix("Value error, ")
+        if not e["loc"] and ":" in msg:  # model-level checks name their field first
+            field, msg = (s.strip() for s in msg.split(":", 1))
+        got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
+        fix = _FIXES.get(field, f"set a valid value with --set {field}=...")
+        parts.append(f"config field '{field}': {msg}{got}; fix: {fix}")
+    return "; ".join(parts)
+
+
+def build_config(data: dict[str, Any]) -> RunConfig:
+    """Validate a merged dict into a RunConfig, raising a one-line `ConfigError`."""
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_error(err)) from None
+
+
+def parse_override(item: str) -> tuple[list[str], Any]:
+    """`key=value` or `env_kwargs.key=value`; the value is parsed as YAML (so 1e-4, true, [64,64])."""
+    if "=" not in item:
+        raise ConfigError(f"override '{item}': expected key=value, e.g. --set gamma=0.95")
+    key, raw = item.split("=", 1)
+    key = key.strip().replace("-", "_")
+    if not key:
+        raise ConfigError(f"override '{item}': empty key; fix: write key=value")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return key.split("."), value
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file '{p}': not found; fix: pass an existing YAML file to --config")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"config file '{p}': invalid YAML ({err.__class__.__name__}); fix the syntax") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file '{p}': top level must be a mapping of field: value")
+    return data
+
+
+def merge_config(
+    preset: str | None = None,
+    file: str | Path | None = None,
+    overrides: list[str] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> RunConfig:
+    """defaults < preset < YAML file < `extra` (explicit CLI flags) < `--set` overrides."""
+    from learning.presets import preset_dict
+
+    data: dict[str, Any] = {}
+    if preset:
+        data.update(preset_dict(preset))
+    if file:
+        data.update(load_yaml(file))
+    data.update({k: v for k, v in (extra or {}).items() if v is not None})
+    for item in overrides or []:
+        keys, value = parse_override(item)
+        node = data
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override '{item}': '{k}' is not a mapping")
+        node[keys[-1]] = value
+    return build_config(data)
+
+
+def save_yaml(cfg: RunConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))

@@ -1,0 +1,85 @@
+"""Forward passes of the exported networks in plain numpy (no torch: edge devices run this).
+
+Loads the flat dicts from `LocalPolicy.export_numpy()` / `CentralAgent.export_numpy()` (or a
+safetensors file read with safetensors.numpy) and reproduces logits / Gaussian mean / values /
+message means to float32 tolerance. Layer naming follows learning/networks.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _layers(params: dict[str, np.ndarray], prefix: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    out = []
+    i = 0
+    while f"{prefix}.layers.{i}.weight" in params:
+        out.append((np.asarray(params[f"{prefix}.layers.{i}.weight"], dtype=np.float32),
+                    np.asarray(params[f"{prefix}.layers.{i}.bias"], dtype=np.float32)))
+        i += 1
+    if not out:
+        raise KeyError(f"no layers named '{prefix}.layers.0.weight' in the weight dict")
+    return out
+
+
+def mlp_forward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray, final_tanh: bool) -> np.ndarray:
+    """Same maths as networks.TanhMLP: x W^T + b, tanh between layers."""
+    x = np.asarray(x, dtype=np.float32)
+    last = len(layers) - 1
+    for i, (w, b) in enumerate(layers):
+        x = x @ w.T + b
+        if i < last or final_tanh:
+            x = np.tanh(x)
+    return x
+
+
+def softmax(logits: np.ndarray) -> np.ndarray:
+    """Probabilities in float64 (what `sampling.categorical_inverse_cdf` consumes)."""
+    z = np.asarray(logits, dtype=np.float64)
+    z = z - z.max(axis=-1, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=-1, keepdims=True)
+
+
+class NumpyLocalPolicy:
+    """The shared local actor-critic; discrete iff there is no `log_std`."""
+
+    def __init__(self, params: dict[str, np.ndarray]) -> None:
+        self.actor = _layers(params, "actor")
+        self.critic = _layers(params, "critic")
+        self.discrete = "log_std" not in params
+        self.log_std = None if self.discrete else np.asarray(params["log_std"], dtype=np.float32)
+        self.in_dim = self.actor[0][0].shape[1]
+
+    def actor_out(self, x: np.ndarray) -> np.ndarray:
+        """Logits (discrete) or Gaussian mean (continuous)."""
+        return mlp_forward(self.actor, x, final_tanh=False)
+
+    def value(self, x: np.ndarray) -> np.ndarray:
+        return mlp_forward(self.critic, x, final_tanh=False)[..., 0]
+
+    @property
+    def std(self) -> np.ndarray:
+        if self.log_std is None:
+            raise AttributeError("a discrete policy has no std")
+        return np.exp(self.log_std)
+
+
+class NumpyCentralAgent:
+    """Encoder + per-agent heads → message means; optional critic (rl mode)."""
+
+    def __init__(self, params: dict[str, np.ndarray]) -> None:
+        self.encoder = _layers(params, "encoder")
+        self.head_weight = np.asarray(params["head_weight"], dtype=np.float32)  # (N, H, M)
+        self.head_bias = np.asarray(params["head_bias"], dtype=np.float32)  # (N, M)
+        self.critic = _layers(params, "critic") if "critic.layers.0.weight" in params else None
+        self.n_agents, _, self.msg_dim = self.head_weight.shape
+
+    def message_mean(self, state: np.ndarray) -> np.ndarray:
+        h = mlp_forward(self.encoder, state, final_tanh=True)
+        return np.tanh(np.einsum("...h,nhm->...nm", h, self.head_weight) + self.head_bias)
+
+    def values(self, state: np.ndarray) -> np.ndarray:
+        if self.critic is None:
+            raise AttributeError("this central agent has no critic (backprop mode)")
+        return mlp_forward(self.critic, state, final_tanh=False)

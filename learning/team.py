@@ -1,0 +1,173 @@
+"""The acting side of a HAMMER team, shared by the in-process trainer and the runtime.
+
+One `Team` holds the shared local policy and (variant hammer) the central agent, and knows how
+each variant wires them:
+  hammer       local input = o_i ⊕ u_i, u from the central agent (rl: Gaussian sample, backprop: mean)
+  random       local input = o_i ⊕ u_i, u uniform in [-1, 1] from the central stream
+  il           local input = o_i
+  centralized  local input = o_1 ⊕ … ⊕ o_N ⊕ one-hot(i)
+All acting randomness goes through `learning.sampling.ActingStreams` (the randomness contract).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from envs.base import EnvSpec
+from learning.config import RunConfig
+from learning.networks import CentralAgent, LocalPolicy
+from learning.numpy_policy import softmax
+from learning.sampling import ActingStreams, categorical_inverse_cdf
+
+_LOG_2PI = float(np.log(2 * np.pi))
+
+
+@dataclass
+class CentralOut:
+    """One vector step of central messages, all numpy."""
+
+    sent: np.ndarray  # (K, N, M) float32: what each local agent receives (clipped, after dropout)
+    mean: np.ndarray  # (K, N, M) float32: tanh mean of the message policy
+    raw: np.ndarray  # (K, N, M) float32: the unclipped Gaussian sample (rl); its logp is trained
+    logp: np.ndarray  # (K, N) float32: log-density of raw (rl), else 0
+    value: np.ndarray  # (K, N) float32: central critic per message stream (rl), else 0
+    keep: np.ndarray  # (K, N) bool: message not dropped
+
+
+class Team:
+    """Networks + variant wiring; numpy in, numpy out on the acting path."""
+
+    def __init__(self, cfg: RunConfig, spec: EnvSpec) -> None:
+        torch.manual_seed(cfg.seed)
+        self.cfg, self.spec = cfg, spec
+        self.n, self.obs_dim = spec.n_agents, spec.obs_dim
+        self.discrete = spec.discrete
+        self.act_dim = spec.action_dim  # one-hot width (discrete) or vector length (continuous)
+        self.variant = cfg.variant
+        self.msg_dim = cfg.effective_msg_dim
+        self.state_dim = self.n * self.obs_dim + (self.n * self.act_dim if cfg.use_prev_actions else 0)
+        if self.variant == "centralized":
+            self.local_in_dim = self.n * self.obs_dim + self.n
+        else:
+            self.local_in_dim = self.obs_dim + self.msg_dim
+        self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
+                                 cfg.critic_hidden, cfg.log_std_init)
+        self.central: CentralAgent | None = None
+        if self.variant == "hammer":
+            self.central = CentralAgent(self.state_dim, self.n, self.msg_dim, cfg.central_hidden,
+                                        cfg.critic_hidden if cfg.central_mode == "rl" else None)
+        self._eye = torch.eye(self.n)
+
+    @property
+    def central_rl(self) -> bool:
+        return self.central is not None and self.cfg.central_mode == "rl"
+
+    # ----- global state -------------------------------------------------------------------------
+    def encode_actions(self, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """Actions as the central agent sees them: one-hot (discrete) or raw, zero if absent. (K, N, A)."""
+        if self.discrete:
+            enc = np.zeros((*actions.shape, self.act_dim), dtype=np.float32)
+            np.put_along_axis(enc, actions[..., None].astype(np.int64), 1.0, axis=-1)
+        else:
+            enc = np.clip(actions, self.spec.action_low, self.spec.action_high).astype(np.float32)
+        return enc * active[..., None]
+
+    def zero_prev_actions(self, k: int) -> np.ndarray:
+        return np.zeros((k, self.n, self.act_dim), dtype=np.float32)
+
+    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
+        """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32."""
+        k = obs.shape[0]
+        parts = [obs.reshape(k, -1)]
+        if self.cfg.use_prev_actions:
+            parts.append(prev_actions.reshape(k, -1))
+        return np.concatenate(parts, axis=1).astype(np.float32, copy=False)
+
+    # ----- central agent ------------------------------------------------------------------------
+    @torch.no_grad()
+    def central_messages(self, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0) -> CentralOut:
+        """Messages for every agent of every copy from the global state (K, S)."""
+        k, n, m = state.shape[0], self.n, self.msg_dim
+        zeros_kn = np.zeros((k, n), dtype=np.float32)
+        value = zeros_kn
+        if self.variant == "random":
+            mean = raw = streams.central_uniform_messages(k, n, m)
+            sent, logp = raw, zeros_kn
+        elif self.central is not None:
+            st = torch.from_numpy(state)
+            mean = self.central.message_mean(st).numpy()
+            if self.cfg.central_mode == "rl":
+                z = streams.central_normals(k, n, m)
+                raw = (mean + self.cfg.msg_std * z).astype(np.float32)
+                logp = (-0.5 * z**2 - np.log(self.cfg.msg_std) - 0.5 * _LOG_2PI).sum(-1).astype(np.float32)
+                sent = np.clip(raw, -1.0, 1.0)
+                value = self.central.values(st).numpy()
+            else:  # backprop: act on the deterministic message, recomputed with grad at update time
+                raw, sent, logp = mean, mean, zeros_kn
+        else:
+            mean = raw = sent = np.zeros((k, n, 0), dtype=np.float32)
+            logp = zeros_kn
+        keep = streams.dropout_keep(k, n, dropout) if m else np.ones((k, n), dtype=bool)
+        if not keep.all():
+            sent = sent * keep[..., None]
+        return CentralOut(sent.astype(np.float32, copy=False), mean, raw, logp, value, keep)
+
+    @torch.no_grad()
+    def bootstrap_messages(self, state: np.ndarray) -> np.ndarray:
+        """Messages used only to value a state (no stream draws): central mean, zeros for random."""
+        k = state.shape[0]
+        if self.central is not None:
+            return self.central.message_mean(torch.from_numpy(state)).numpy()
+        return np.zeros((k, self.n, self.msg_dim), dtype=np.float32)
+
+    @torch.no_grad()
+    def central_values(self, state: np.ndarray) -> np.ndarray:
+        if not self.central_rl:
+            return np.zeros((state.shape[0], self.n), dtype=np.float32)
+        return self.central.values(torch.from_numpy(state)).numpy()
+
+    # ----- local agents -------------------------------------------------------------------------
+    def local_input(self, obs: torch.Tensor, msg: torch.Tensor) -> torch.Tensor:
+        """(B, N, D) obs and (B, N, M) messages → (B, N, in) local policy input."""
+        if self.variant == "centralized":
+            b = obs.shape[0]
+            joint = obs.reshape(b, 1, -1).expand(b, self.n, self.n * self.obs_dim)
+            return torch.cat([joint, self._eye.expand(b, self.n, self.n)], dim=-1)
+        if self.msg_dim == 0:
+            return obs
+        return torch.cat([obs, msg], dim=-1)
+
+    @torch.no_grad()
+    def local_act(self, obs: np.ndarray, msg: np.ndarray, streams: ActingStreams
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All K×N local agents in one forward pass → (action, logp, value).
+
+        Discrete: int64 (K, N) sampled by inverse CDF. Continuous: float32 (K, N, A) unclipped
+        Gaussian sample (its logp is what PPO trains; `env_action` clips it for the env).
+        """
+        k = obs.shape[0]
+        x = self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
+        out = self.local.actor_out(x)
+        value = self.local.value(x).numpy()
+        if self.discrete:
+            u = streams.local_uniforms(k)
+            action = categorical_inverse_cdf(softmax(out.numpy()), u)
+            logp = torch.log_softmax(out, -1).gather(-1, torch.from_numpy(action)[..., None])[..., 0]
+            return action, logp.numpy(), value
+        z = streams.local_normals(k, self.act_dim)
+        log_std = self.local.log_std.numpy()
+        action = (out.numpy() + np.exp(log_std) * z).astype(np.float32)
+        logp = (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1).astype(np.float32)
+        return action, logp, value
+
+    @torch.no_grad()
+    def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:
+        return self.local.value(self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))).numpy()
+
+    def env_action(self, action: np.ndarray) -> np.ndarray:
+        if self.discrete:
+            return action
+        return np.clip(action, self.spec.action_low, self.spec.action_high).astype(np.float32)

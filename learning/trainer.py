@@ -1,0 +1,324 @@
+"""The in-process vectorised HAMMER trainer.
+
+One loop, CleanRL style: collect T vector steps from K env copies with the team, compute GAE for
+the local agents (and, in rl mode, for the central agent's message streams), then run PPO epochs
+over shuffled minibatches of the T*K rows (each row carries all N agents, so the central network
+runs once per row).
+
+Reproducibility: acting draws from `learning.sampling` streams, minibatch order from a stream
+keyed by the update index, and the env copies are reseeded at every checkpoint point (every
+`checkpoint_every` updates, seed `env_reset_seed(seed, update)`), because a VecEnv's internal state
+cannot be saved. A checkpoint therefore holds everything needed to continue bit-exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from envs.base import VecEnv
+from learning.config import RunConfig
+from learning.networks import gaussian_logp
+from learning.ppo import (
+    PPOUpdater,
+    clipped_policy_loss,
+    gae,
+    masked_mean,
+    minibatch_indices,
+    next_values,
+    normalize_advantages,
+    value_loss,
+)
+from learning.rollout import RolloutBuffer
+from learning.rundir import RunDir, optimizer_from_tensors, optimizer_to_tensors
+from learning.sampling import MINIBATCH_STREAM, ActingStreams, env_reset_seed, stream
+from learning.team import Team
+
+
+def make_env(cfg: RunConfig) -> VecEnv:
+    from envs.registry import make_vec_env
+
+    return make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs or None,
+                        workers=cfg.env_workers)
+
+
+@dataclass
+class Progress:
+    """What the trainer reports after every update (for progress bars)."""
+
+    episodes: int
+    budget: int
+    env_steps: int
+    steps_per_s: float
+    running_metric: float  # mean paper metric of the last 100 episodes
+    update: int
+
+
+class Trainer:
+    def __init__(self, cfg: RunConfig, run_dir: RunDir, env: VecEnv | None = None,
+                 on_progress: Callable[[Progress], None] | None = None, tensorboard: bool = True) -> None:
+        torch.set_num_threads(cfg.torch_threads)
+        self.cfg, self.rd, self.on_progress = cfg, run_dir, on_progress
+        self.env = env if env is not None else make_env(cfg)
+        if self.env.spec.n_agents != cfg.n_agents or self.env.num_envs != cfg.num_envs:
+            raise ValueError("env does not match the config's n_agents/num_envs")
+        self.team = Team(cfg, self.env.spec)
+        self.streams = ActingStreams(cfg.seed, cfg.n_agents)
+        self.local_opt = PPOUpdater(self.team.local.parameters(), cfg.lr_local, cfg.max_grad_norm)
+        self.central_opt = (PPOUpdater(self.team.central.parameters(), cfg.lr_central, cfg.max_grad_norm)
+                            if self.team.central is not None else None)
+        spec = self.env.spec
+        self.buf = RolloutBuffer(cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim,
+                                 self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
+        self.update = 0
+        self.episodes = 0
+        self.env_steps = 0
+        self.wall_offset = 0.0
+        self.recent: deque[float] = deque(maxlen=500)
+        self.tensorboard = tensorboard
+        self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
+
+    # ----- checkpoints --------------------------------------------------------------------------
+    def _checkpoint(self) -> None:
+        tensors = {f"local/{k}": v for k, v in self.team.local.state_dict().items()}
+        t, opt_meta = optimizer_to_tensors(self.local_opt.optimizer, "opt_local")
+        tensors.update(t)
+        meta: dict[str, Any] = {"opt_local": opt_meta}
+        if self.team.central is not None:
+            tensors.update({f"central/{k}": v for k, v in self.team.central.state_dict().items()})
+            t, meta["opt_central"] = optimizer_to_tensors(self.central_opt.optimizer, "opt_central")
+            tensors.update(t)
+        meta.update(update=self.update, episodes=self.episodes, env_steps=self.env_steps,
+                    wall_time=self._wall(), streams=self.streams.state(), recent=list(self.recent),
+                    config=self.cfg.model_dump(mode="json"))
+        self.rd.save_checkpoint(self.update, tensors, meta)
+
+    def restore(self) -> None:
+        """Load the run directory's latest checkpoint into this trainer."""
+        stem = self.rd.latest_checkpoint()
+        if stem is None:
+            raise FileNotFoundError(f"{self.rd.path}: no checkpoint to resume from")
+        tensors, meta = RunDir.load_checkpoint(stem)
+        self.team.local.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("local/")})
+        optimizer_from_tensors(self.local_opt.optimizer, "opt_local", tensors, meta["opt_local"])
+        if self.team.central is not None:
+            self.team.central.load_state_dict({k[8:]: v for k, v in tensors.items() if k.startswith("central/")})
+            optimizer_from_tensors(self.central_opt.optimizer, "opt_central", tensors, meta["opt_central"])
+        self.streams.set_state(meta["streams"])
+        self.update, self.episodes, self.env_steps = meta["update"], meta["episodes"], meta["env_steps"]
+        self.wall_offset = meta["wall_time"]
+        self.recent = deque(meta["recent"], maxlen=500)
+        self.rd.truncate_metrics(self.episodes)
+        self._resumed = True
+
+    def _wall(self) -> float:
+        return self.wall_offset + time.perf_counter() - self._t0
+
+    # ----- main loop ----------------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        cfg, team, env, buf = self.cfg, self.team, self.env, self.buf
+        self._t0 = time.perf_counter()
+        resumed = getattr(self, "_resumed", False)
+        steps_at_start, t_start = self.env_steps, time.perf_counter()
+        tb = self.rd.tensorboard(purge_step=self.env_steps if resumed else None) if self.tensorboard else None
+        k = cfg.num_envs
+        done_training = self.episodes >= cfg.episodes
+        obs = prev = None
+        while not done_training:
+            if self.update % cfg.checkpoint_every == 0:
+                if not resumed:
+                    self._checkpoint()
+                resumed = False
+                obs, _ = env.reset(env_reset_seed(cfg.seed, self.update))
+                prev = team.zero_prev_actions(k)
+            obs, prev, done_training = self._collect(obs, prev)
+            if done_training:
+                break
+            stats = self._learn(obs, prev)
+            self.update += 1
+            sps = (self.env_steps - steps_at_start) / max(time.perf_counter() - t_start, 1e-9)
+            running = float(np.mean(list(self.recent)[-100:])) if self.recent else float("nan")
+            if tb is not None:
+                for name, val in stats.items():
+                    tb.add_scalar(f"train/{name}", val, self.env_steps)
+                tb.add_scalar("perf/env_steps_per_s", sps, self.env_steps)
+                if self.recent:
+                    tb.add_scalar("episode/paper_metric_100", running, self.env_steps)
+            self.rd.flush()
+            if self.on_progress:
+                self.on_progress(Progress(self.episodes, cfg.episodes, self.env_steps, sps, running, self.update))
+        self.rd.flush()
+        elapsed = time.perf_counter() - t_start
+        summary = self._summary(elapsed, self.env_steps - steps_at_start)
+        self.rd.export_policy(team.local.export_numpy(),
+                              team.central.export_numpy() if team.central is not None else None,
+                              {"variant": cfg.variant, "central_mode": cfg.central_mode})
+        self.rd.write_summary(summary)
+        self.rd.close()
+        return summary
+
+    def _summary(self, elapsed: float, steps: int) -> dict[str, Any]:
+        import csv
+
+        with open(self.rd.metrics_path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        paper = np.array([float(r["paper_metric"]) for r in rows[-500:]])
+        team = np.array([float(r["team_return"]) for r in rows[-500:]])
+        return {
+            "episodes": self.episodes,
+            "env_steps": self.env_steps,
+            "updates": self.update,
+            "final_paper_metric_last500": float(paper.mean()) if len(paper) else None,
+            "final_team_return_last500": float(team.mean()) if len(team) else None,
+            "wall_time": self._wall(),
+            "env_steps_per_s_this_session": steps / max(elapsed, 1e-9),
+            "n_agents": self.cfg.n_agents,
+            "episode_length": int(self.env.spec.max_steps),
+            "variant": self.cfg.variant,
+            "central_mode": self.cfg.central_mode,
+            "env": self.cfg.env,
+        }
+
+    def _collect(self, obs: np.ndarray, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Fill the rollout buffer; returns the next obs/prev actions and whether the budget is spent."""
+        cfg, team, buf, streams = self.cfg, self.team, self.buf, self.streams
+        buf.reset[:] = False
+        for t in range(cfg.rollout_steps):
+            state = team.global_state(obs, prev)
+            c = team.central_messages(state, streams, cfg.msg_dropout)
+            action, logp, value = team.local_act(obs, c.sent, streams)
+            st = self.env.step(team.env_action(action))
+            buf.obs[t], buf.state[t], buf.msg[t], buf.msg_raw[t] = obs, state, c.sent, c.raw
+            buf.keep[t], buf.actions[t], buf.logp[t], buf.values[t] = c.keep, action, logp, value
+            buf.c_logp[t], buf.c_values[t] = c.logp, c.value
+            buf.rewards[t], buf.terminated[t], buf.truncated[t] = st.reward, st.terminated, st.truncated
+            buf.active[t] = st.active
+            prev = team.encode_actions(action, st.active)
+            if st.done.any():
+                idx = np.flatnonzero(st.done)
+                buf.reset[t, idx] = True
+                fstate = team.global_state(st.final_obs[idx], prev[idx])
+                buf.final_values[t, idx] = team.local_values(st.final_obs[idx], team.bootstrap_messages(fstate))
+                buf.c_final_values[t, idx] = team.central_values(fstate)
+                prev[idx] = 0.0
+            obs = st.obs
+            self.env_steps += cfg.num_envs
+            if st.episodes:
+                wall = round(self._wall(), 3)
+                rows = []
+                for e in st.episodes:
+                    if self.episodes >= cfg.episodes:
+                        break
+                    self.episodes += 1
+                    self.recent.append(e.paper_metric)
+                    rows.append((self.episodes, self.env_steps, repr(e.paper_metric), repr(e.team_return),
+                                 e.length, wall))
+                self.rd.append_episodes(rows)
+                if self.episodes >= cfg.episodes:
+                    return obs, prev, True
+        return obs, prev, False
+
+    def _batch(self, obs: np.ndarray, prev: np.ndarray) -> dict[str, torch.Tensor]:
+        """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors."""
+        cfg, team, buf = self.cfg, self.team, self.buf
+        last_state = team.global_state(obs, prev)
+        last_v = team.local_values(obs, team.bootstrap_messages(last_state))
+        dones = buf.terminated | buf.truncated
+        nv = next_values(buf.values, last_v, buf.final_values, buf.reset)
+        adv, ret = gae(buf.rewards, buf.values, nv, buf.terminated, dones, cfg.gamma, cfg.gae_lambda, buf.active)
+
+        def flat(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a.reshape(buf.t * buf.k, *a.shape[2:])))
+
+        b = {"obs": flat(buf.obs), "state": flat(buf.state), "msg": flat(buf.msg), "keep": flat(buf.keep),
+             "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
+             "mask": flat(buf.active.astype(np.float32))}
+        if team.central_rl:
+            c_nv = next_values(buf.c_values, team.central_values(last_state), buf.c_final_values, buf.reset)
+            c_adv, c_ret = gae(buf.rewards, buf.c_values, c_nv, buf.terminated, dones, cfg.gamma,
+                               cfg.gae_lambda, buf.active)
+            b.update(raw=flat(buf.msg_raw), c_logp=flat(buf.c_logp), c_adv=flat(c_adv), c_ret=flat(c_ret),
+                     c_mask=b["mask"] * b["keep"])
+        return b
+
+    def _losses(self, b: dict[str, torch.Tensor], mb: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, float]]:
+        """(local PPO loss, central PPO loss or None, logs) on the rows `mb`.
+
+        backprop: the messages are recomputed from the stored global states with grad, so the
+        local actor loss flows through u_i into the central heads and encoder (DIAL-style); the
+        local critic sees detached messages. rl: the local loss sees the stored (sent) messages,
+        the central loss is its own PPO on the Gaussian messages; the two graphs never meet.
+        """
+        cfg, team = self.cfg, self.team
+        m = b["mask"][mb]
+        backprop = team.central is not None and cfg.central_mode == "backprop"
+        if backprop:
+            msg = team.central.message_mean(b["state"][mb]) * b["keep"][mb].unsqueeze(-1)
+        else:
+            msg = b["msg"][mb]
+        x = team.local_input(b["obs"][mb], msg)
+        new_logp, entropy = team.local.logp_entropy(x, b["act"][mb])
+        new_v = team.local.value(team.local_input(b["obs"][mb], msg.detach()) if backprop else x)
+        a = normalize_advantages(b["adv"][mb], m) if cfg.norm_adv else b["adv"][mb]
+        pg, st = clipped_policy_loss(new_logp, b["logp"][mb], a, cfg.clip, m)
+        vl = value_loss(new_v, b["ret"][mb], m)
+        ent = masked_mean(entropy, m)
+        local_loss = pg - cfg.ent_coef * ent + cfg.vf_coef * vl
+        logs = {"local/policy_loss": pg.item(), "local/value_loss": vl.item(), "local/entropy": ent.item(),
+                "local/approx_kl": st["approx_kl"], "local/clipfrac": st["clipfrac"]}
+        central_loss = None
+        if team.central_rl:
+            cm = b["c_mask"][mb]
+            mean = team.central.message_mean(b["state"][mb])
+            c_logp = gaussian_logp(b["raw"][mb], mean, self._msg_log_std)
+            ca = normalize_advantages(b["c_adv"][mb], cm) if cfg.norm_adv else b["c_adv"][mb]
+            cpg, cst = clipped_policy_loss(c_logp, b["c_logp"][mb], ca, cfg.clip, cm)
+            cvl = value_loss(team.central.values(b["state"][mb]), b["c_ret"][mb], cm)
+            central_loss = cpg + cfg.vf_coef * cvl
+            logs.update({"central/policy_loss": cpg.item(), "central/value_loss": cvl.item(),
+                         "central/approx_kl": cst["approx_kl"]})
+        return local_loss, central_loss, logs
+
+    def _learn(self, obs: np.ndarray, prev: np.ndarray) -> dict[str, float]:
+        """PPO epochs over shuffled minibatches of rows; one backward over the summed losses,
+        then each network clips its own gradient norm and steps its own optimiser."""
+        cfg, buf = self.cfg, self.buf
+        b = self._batch(obs, prev)
+        rng = stream(cfg.seed, MINIBATCH_STREAM, self.update)
+        sums: dict[str, float] = {}
+        n_mb = 0
+        for _ in range(cfg.epochs):
+            for mb_np in minibatch_indices(buf.t * buf.k, cfg.minibatches, rng):
+                local_loss, central_loss, logs = self._losses(b, torch.from_numpy(mb_np))
+                loss = local_loss if central_loss is None else local_loss + central_loss
+                self.local_opt.zero_grad()
+                if self.central_opt is not None:
+                    self.central_opt.zero_grad()
+                loss.backward()
+                logs["local/grad_norm"] = self.local_opt.step()
+                if self.central_opt is not None:
+                    logs["central/grad_norm"] = self.central_opt.step()
+                for key, v in logs.items():
+                    sums[key] = sums.get(key, 0.0) + v
+                n_mb += 1
+        return {key: v / n_mb for key, v in sums.items()}
+
+
+def train(cfg: RunConfig, run_dir: RunDir, resume: bool = False, env: VecEnv | None = None,
+          on_progress: Callable[[Progress], None] | None = None, tensorboard: bool = True) -> dict[str, Any]:
+    """Run (or resume) one training run to its episode budget; returns the summary."""
+    trainer = Trainer(cfg, run_dir, env=env, on_progress=on_progress, tensorboard=tensorboard)
+    try:
+        if resume:
+            trainer.restore()
+        return trainer.run()
+    finally:
+        trainer.env.close()

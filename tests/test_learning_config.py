@@ -1,0 +1,58 @@
+"""Config: strict fields, one-line errors naming the field, merge order, presets."""
+
+import pytest
+
+from learning.config import ConfigError, RunConfig, merge_config
+from learning.presets import PRESETS
+
+
+@pytest.mark.parametrize(("overrides", "field"), [
+    (["gama=0.9"], "gama"),
+    (["gamma=1.5"], "gamma"),
+    (["variant=foo"], "variant"),
+    (["central_mode=dial"], "central_mode"),
+    (["msg_dropout=2"], "msg_dropout"),
+    (["num_envs=0"], "num_envs"),
+    (["actor_hidden=[]"], "actor_hidden"),
+    (["variant=hammer", "msg_dim=0"], "msg_dim"),
+    (["lr_local=fast"], "lr_local"),
+])
+def test_errors_name_the_field_and_a_fix(overrides, field):
+    with pytest.raises(ConfigError) as e:
+        merge_config("cn3", overrides=overrides)
+    msg = str(e.value)
+    assert f"'{field}'" in msg and "fix:" in msg and "\n" not in msg
+
+
+def test_unknown_field_suggests_the_close_one():
+    with pytest.raises(ConfigError, match="did you mean 'gamma'"):
+        merge_config(overrides=["gama=0.9"])
+
+
+def test_merge_order_preset_file_flags_overrides(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("gamma: 0.9\nmsg_dim: 6\nseed: 3\nenv_kwargs: {local_ratio: 0.25}\n")
+    cfg = merge_config("cn5", f, ["seed=7", "env_kwargs.max_steps=30"], {"msg_dim": 2, "variant": None})
+    assert (cfg.gamma, cfg.msg_dim, cfg.seed, cfg.n_agents) == (0.9, 2, 7, 5)
+    assert cfg.env_kwargs == {"local_ratio": 0.25, "max_steps": 30}
+    assert cfg.variant == "hammer"  # None flags do not override
+
+
+def test_bad_yaml_file_names_the_file(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("- just\n- a list\n")
+    with pytest.raises(ConfigError, match="c.yaml"):
+        merge_config(file=f)
+    with pytest.raises(ConfigError, match="preset 'cn7'"):
+        merge_config("cn7")
+
+
+def test_presets_carry_the_paper_settings():
+    expected = {"cn3": (3, 4, 30_000), "cn5": (5, 8, 30_000), "mw3": (3, 8, 10_000), "mw5": (5, 10, 10_000)}
+    for name, (n, m, budget) in expected.items():
+        cfg = merge_config(name)
+        assert (cfg.n_agents, cfg.msg_dim, cfg.episodes, cfg.gamma, cfg.clip) == (n, m, budget, 0.95, 0.2)
+        assert cfg.lr_central == 3e-4
+    assert set(PRESETS) == set(expected)
+    assert RunConfig().use_prev_actions and RunConfig().msg_dropout == 0.0
+    assert merge_config("cn3", overrides=["variant=il"]).effective_msg_dim == 0

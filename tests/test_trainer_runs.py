@@ -1,0 +1,97 @@
+"""The in-process trainer: determinism, exact resume, run-directory files, CLI."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from safetensors.numpy import load_file
+from typer.testing import CliRunner
+
+from learning.config import merge_config
+from learning.numpy_policy import NumpyLocalPolicy
+from learning.rundir import RunDir
+from learning.trainer import train
+
+SMALL = ["num_envs=8", "rollout_steps=25", "epochs=2", "minibatches=2"]
+
+
+def _rows(path):
+    with open(path / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    return [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]
+
+
+def _run(tmp_path, name, sets, resume=False):
+    cfg = merge_config("cn3", overrides=SMALL + sets)
+    rd = RunDir.open(tmp_path / name)[0] if resume else RunDir.create(tmp_path / name, cfg)
+    if resume:
+        rd, cfg = RunDir.open(tmp_path / name)
+        cfg = cfg.model_copy(update={"episodes": int(dict(s.split("=") for s in sets)["episodes"])})
+    return train(cfg, rd, resume=resume, tensorboard=False)
+
+
+def test_same_seed_same_metrics_and_seed_matters(tmp_path):
+    sets = ["variant=hammer", "central_mode=backprop", "episodes=120", "seed=3"]
+    _run(tmp_path, "a", sets)
+    _run(tmp_path, "b", sets)
+    _run(tmp_path, "c", sets[:-1] + ["seed=4"])
+    a, b, c = _rows(tmp_path / "a"), _rows(tmp_path / "b"), _rows(tmp_path / "c")
+    assert len(a) == 120 and a == b
+    assert [r["paper_metric"] for r in a] != [r["paper_metric"] for r in c]
+    assert [int(r["episode"]) for r in a] == list(range(1, 121))
+    assert int(a[-1]["env_steps"]) == 120 * 25  # 8 synchronous copies, 25-step episodes
+
+
+def test_resume_continues_the_same_run_exactly(tmp_path):
+    sets = ["variant=hammer", "central_mode=rl", "msg_dropout=0.2", "checkpoint_every=3", "seed=1"]
+    _run(tmp_path, "full", sets + ["episodes=200"])
+    # An interrupted run: stopped at 100 episodes, and its newest checkpoint lost as in a crash mid-write.
+    _run(tmp_path, "cut", sets + ["episodes=100"])
+    ckpts = sorted((tmp_path / "cut" / "checkpoints").glob("ckpt_*.json"))
+    assert [p.stem for p in ckpts] == ["ckpt_0000006", "ckpt_0000009", "ckpt_0000012"]
+    ckpts[-1].unlink()
+    summary = _run(tmp_path, "cut", ["episodes=200"], resume=True)
+    assert summary["episodes"] == 200
+    assert _rows(tmp_path / "cut") == _rows(tmp_path / "full")
+    fa = load_file(str(tmp_path / "full" / "final" / "central.safetensors"))
+    fb = load_file(str(tmp_path / "cut" / "final" / "central.safetensors"))
+    assert all(np.array_equal(fa[k], fb[k]) for k in fa)
+
+
+def test_run_directory_contents(tmp_path):
+    _run(tmp_path, "r", ["variant=il", "episodes=48"])
+    d = tmp_path / "r"
+    cfg = json.loads((d / "config.json").read_text())
+    assert cfg["variant"] == "il" and cfg["episodes"] == 48
+    summary = json.loads((d / "summary.json").read_text())
+    assert summary["episodes"] == 48 and np.isfinite(summary["final_paper_metric_last500"])
+    assert summary["n_agents"] == 3 and summary["episode_length"] == 25
+    rows = _rows(d)
+    assert np.mean([float(r["paper_metric"]) for r in rows]) == pytest.approx(
+        summary["final_paper_metric_last500"])
+    # team return = N * paper metric when all agents are present
+    r0 = rows[0]
+    assert float(r0["team_return"]) == pytest.approx(3 * float(r0["paper_metric"]), rel=1e-9)
+    policy = NumpyLocalPolicy(load_file(str(d / "final" / "local.safetensors")))
+    assert policy.discrete and policy.in_dim == 18  # il: own observation only
+    assert not (d / "final" / "central.safetensors").exists()
+
+
+def test_cli_train_and_one_line_errors(tmp_path):
+    from hammer.cli import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["train", "--preset", "cn3", "--variant", "random", "--seed", "2", "--episodes", "40",
+                              "--out", str(tmp_path), "--quiet", "--set", "num_envs=8", "--set", "rollout_steps=25"])
+    assert res.exit_code == 0, res.output
+    d = tmp_path / "cn3-random-s2"
+    assert len(_rows(d)) == 40 and json.loads((d / "config.json").read_text())["msg_dim"] == 4
+    res = runner.invoke(app, ["train", "--preset", "cn3", "--set", "gamma=2", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "'gamma'" in res.output and "fix:" in res.output
+    res = runner.invoke(app, ["train", "--preset", "cn3", "--variant", "random", "--seed", "2", "--out",
+                              str(tmp_path), "--quiet"])
+    assert res.exit_code == 2 and "--resume" in res.output  # refuses to overwrite a run
+    res = runner.invoke(app, ["train", "--resume", str(d), "--episodes", "48", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert len(_rows(d)) == 48
