@@ -1,0 +1,80 @@
+"""Multiwalker env steps per second: in-process `PettingZooVecEnv` vs `SubprocVecEnv`, same run.
+
+Both are driven with the same seeded uniform-random torques (episodes then last ~50-100 steps, so
+auto-resets are part of the cost, as early in training). Phases alternate (in-process, workers,
+in-process, workers, ...) so that load from other processes hits both alike; the best phase of each
+is compared. The machine's load (1-min load average and system-wide CPU busy % during each phase)
+is printed alongside, because the speed-up depends on how many cores are actually free.
+
+    .venv/bin/python benchmarks/bench_workers.py [--num-envs 8] [--workers 2] [--steps 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+import psutil
+
+from envs.registry import make_vec_env
+
+
+def _phase(venv, steps: int, seed: int) -> tuple[float, float]:
+    """(env-steps per second, system CPU busy % during the phase) for `steps` batched steps."""
+    venv.reset(seed)
+    rng = np.random.default_rng(seed)
+    shape = (venv.num_envs, venv.spec.n_agents, venv.spec.action_dim)
+    acts = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(steps)]
+    psutil.cpu_percent(None)
+    t0 = time.perf_counter()
+    for a in acts:
+        venv.step(a)
+    dt = time.perf_counter() - t0
+    return venv.num_envs * steps / dt, psutil.cpu_percent(None)
+
+
+def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300, repeats: int = 3) -> dict:
+    load_before = os.getloadavg()[0]
+    local = make_vec_env("mw", n_agents, num_envs)
+    t0 = time.perf_counter()
+    sub = make_vec_env("mw", n_agents, num_envs, workers=workers)
+    start_s = time.perf_counter() - t0
+    try:
+        _phase(local, 30, 0)  # warm-up (imports, allocator, first terrain)
+        _phase(sub, 30, 0)
+        res: dict[str, list[tuple[float, float]]] = {"in-process": [], f"{workers} workers": []}
+        for r in range(repeats):
+            res["in-process"].append(_phase(local, steps, 100 + r))
+            res[f"{workers} workers"].append(_phase(sub, steps, 100 + r))
+    finally:
+        local.close()
+        sub.close()
+    best = {k: max(v) for k, v in res.items()}
+    speedup = best[f"{workers} workers"][0] / best["in-process"][0]
+    return {"num_envs": num_envs, "workers": workers, "n_agents": n_agents, "steps": steps,
+            "cores": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0],
+            "worker_start_s": start_s, "phases": res, "best": best, "speedup": speedup}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--num-envs", type=int, default=8)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--n-agents", type=int, default=3)
+    p.add_argument("--steps", type=int, default=300, help="batched steps per timed phase")
+    p.add_argument("--repeats", type=int, default=3)
+    a = p.parse_args(argv)
+    r = run(a.num_envs, a.workers, a.n_agents, a.steps, a.repeats)
+    print(f"multiwalker N={r['n_agents']} K={r['num_envs']}, {r['steps']} batched steps x {a.repeats} phases, "
+          f"{r['cores']} cores; 1-min load average {r['load_before']:.2f} before, {r['load_after']:.2f} after; "
+          f"workers started in {r['worker_start_s']:.2f} s")
+    for name, phases in r["phases"].items():
+        runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% cpu)" for sps, cpu in phases)
+        print(f"  {name:>12}: env-steps/s per phase (system cpu busy): {runs}")
+    print(f"speed-up (best workers / best in-process): {r['speedup']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
