@@ -87,3 +87,20 @@ def test_module_factory_any_parallel_env():
 def test_errors_name_the_field_and_the_fix(call, exc, pattern):
     with pytest.raises(exc, match=pattern):
         call()
+
+
+def test_cli_envs_list_shows_dims():
+    import typer
+    from typer.testing import CliRunner
+
+    from envs import cli
+
+    app, bench = typer.Typer(), typer.Typer()
+    cli.register(app, bench)
+    res = CliRunner().invoke(app, ["envs", "list", "-n", "5"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    rows = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:6]]
+            for line in res.output.splitlines() if line.startswith("│")}
+    assert rows["mw"] == ["5", "31", "4 in [-1, 1]", "500"]
+    assert rows["cn-mpe2"] == ["5", "30", "5 discrete", "25"]
+    assert rows["cn"][:2] == ["5", "30"]
