@@ -79,9 +79,13 @@ def encode(msg: Message, *, stamp: dict[str, Any] | None = None, max_bytes: int 
     return data
 
 
+_ALL_TYPES = tuple(MESSAGE_TYPES.values())
+_ALL_CAP = max(t.MAX_BYTES for t in _ALL_TYPES)
+
+
 def _expected_types(expected: Expected) -> tuple[type[Message], ...]:
     if expected is None:
-        return tuple(MESSAGE_TYPES.values())
+        return _ALL_TYPES
     if isinstance(expected, type):
         return (expected,)
     return tuple(expected)
@@ -132,14 +136,21 @@ def decode(
             data = bytes(data)
         else:
             raise DecodeError(f"payload must be bytes, got {type(data).__name__}")
-    cap = max_bytes if max_bytes is not None else max(t.MAX_BYTES for t in types)
+    if max_bytes is not None:
+        cap = max_bytes
+    elif types is _ALL_TYPES:
+        cap = _ALL_CAP
+    elif len(types) == 1:
+        cap = types[0].MAX_BYTES
+    else:
+        cap = max(t.MAX_BYTES for t in types)
     if len(data) > cap:
         raise SizeError(f"payload of {len(data)} bytes is over the cap of {cap}")
     try:
         d = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, ext_hook=_reject_ext)
     except ProtocolError:
         raise
-    except Exception as e:  # msgpack raises ValueError, FormatError, StackError, ExtraData, TypeError...
+    except Exception as e:  # noqa: BLE001 - msgpack raises ValueError, FormatError, StackError, ExtraData, TypeError...
         raise DecodeError(f"not well-formed msgpack: {type(e).__name__}: {e}") from None
     if not isinstance(d, dict):
         raise DecodeError(f"top level must be a map, got {type(d).__name__}")

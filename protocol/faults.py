@@ -198,6 +198,20 @@ class FaultInjector:
         for action in now_actions:
             action()
 
+    def pending(self) -> int:
+        """Scheduled sends not yet done (delayed copies and held messages' release timers)."""
+        with self._lock:
+            return len(self._heap)
+
+    def wait_idle(self, timeout: float = 10.0) -> bool:
+        """Wait until every delayed or held message went out; False on timeout."""
+        deadline = time.monotonic() + timeout
+        while self.pending():
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
+
     def flush(self) -> None:
         """Send everything held or delayed right now, in due order (used at close)."""
         with self._lock:
@@ -280,8 +294,12 @@ class FaultInjector:
                     self._lock.wait(timeout)
                 if self._closed:
                     return
-                _, _, action = heapq.heappop(self._heap)
-            try:
-                action()
-            except Exception as e:  # a closed publisher at shutdown must not kill the scheduler
-                log.warning("delayed send failed: %s", e)
+                now = time.monotonic()
+                due = []
+                while self._heap and self._heap[0][0] <= now:
+                    due.append(heapq.heappop(self._heap)[2])
+            for action in due:
+                try:
+                    action()
+                except Exception as e:  # noqa: BLE001 - a closed publisher at shutdown must not kill the scheduler
+                    log.warning("delayed send failed: %s", e)

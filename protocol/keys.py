@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from protocol.schemas import NAME_RULE, check_name
+from protocol.schemas import check_name
 
 ROOT = "hammer"
 
@@ -32,7 +32,7 @@ def validate_run_id(run: str) -> str:
 
 def _agent(agent: int | str) -> str:
     if isinstance(agent, bool) or not isinstance(agent, int | str):
-        raise ValueError(f"agent must be an int index or '*', got {agent!r}")
+        raise TypeError(f"agent must be an int index or '*', got {agent!r}")
     if isinstance(agent, int):
         if agent < 0:
             raise ValueError(f"agent index must be >= 0, got {agent}")
@@ -111,5 +111,3 @@ class Keys:
         """The role name of a liveliness key built by `alive(role)`."""
         return self.relative(key).removeprefix("alive/")
 
-
-__all__ = ["Keys", "ROOT", "NAME_RULE", "validate_run_id"]

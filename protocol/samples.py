@@ -24,8 +24,11 @@ K, N, D, M, A = 4, 3, 18, 4, 5
 def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
     rng = np.random.default_rng(seed)
     idx = np.arange(K, dtype=np.int64)
-    h = dict(run=run, step=7, env_idx=idx, ts=123, seq=5, sender="tester")
-    f32 = lambda *s: rng.standard_normal(s).astype(np.float32)  # noqa: E731
+    h = {"run": run, "step": 7, "env_idx": idx, "ts": 123, "seq": 5, "sender": "tester"}
+
+    def f32(*shape: int) -> np.ndarray:
+        return rng.standard_normal(shape).astype(np.float32)
+
     return [
         LocalObs(**h, agent=1, obs=f32(K, D), active=np.array([True, False, True, True])),
         GlobalState(**h, obs=f32(K, N, D), prev_actions=np.eye(A, dtype=np.float32)[rng.integers(0, A, (K, N))],

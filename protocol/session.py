@@ -29,7 +29,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Self
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -43,6 +43,14 @@ from protocol.schemas import Dims, Message
 log = logging.getLogger(__name__)
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+
+
+def _quietly(undeclare: Any) -> None:
+    """Undeclare at shutdown; an entity already gone with its session is not an error."""
+    try:
+        undeclare()
+    except Exception as e:  # noqa: BLE001 - zenoh raises ZError for already-closed entities
+        log.debug("undeclare at close: %s", e)
 
 
 def free_loopback_port() -> int:
@@ -156,10 +164,7 @@ class _QueueSub:
 
     def close(self) -> None:
         if self._zsub is not None:
-            try:
-                self._zsub.undeclare()
-            except Exception:  # already closed with its session
-                pass
+            _quietly(self._zsub.undeclare)
             self._zsub = None
 
 
@@ -264,10 +269,7 @@ class LivelinessWatch:
 
     def close(self) -> None:
         if self._zsub is not None:
-            try:
-                self._zsub.undeclare()
-            except Exception:
-                pass
+            _quietly(self._zsub.undeclare)
             self._zsub = None
 
 
@@ -306,10 +308,7 @@ class Publisher:
             faults.submit(self._rel, data, self._zpub.put)
 
     def close(self) -> None:
-        try:
-            self._zpub.undeclare()
-        except Exception:
-            pass
+        _quietly(self._zpub.undeclare)
 
 
 class HammerSession:
@@ -332,13 +331,13 @@ class HammerSession:
 
     # ---- lifecycle -------------------------------------------------------------------------
 
-    def open(self) -> HammerSession:
+    def open(self) -> Self:
         if self._z is None:
             self._z = zenoh.open(self.transport.to_zenoh())
             self._pid = os.getpid()
         return self
 
-    def __enter__(self) -> HammerSession:
+    def __enter__(self) -> Self:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:
@@ -357,10 +356,7 @@ class HammerSession:
         for s in self._subs:
             s.close()
         for t in self._tokens:
-            try:
-                t.undeclare()
-            except Exception:
-                pass
+            _quietly(t.undeclare)
         for p in self._publishers.values():
             p.close()
         self._subs.clear()

@@ -1,0 +1,36 @@
+"""`hammer protocol schema` and `hammer bench transport` (tiny counts: it must run, not be fast)."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from hammer.cli import app
+from protocol.schemas import MESSAGE_TYPES
+
+
+def test_schema_command_writes_every_message(tmp_path):
+    out = tmp_path / "schema.json"
+    result = CliRunner().invoke(app, ["protocol", "schema", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    assert set(data["messages"]) == set(MESSAGE_TYPES)
+    assert data["messages"]["central_msg"]["properties"]["msg"]["required"] == ["dtype", "shape", "data"]
+
+
+def test_bench_transport_runs_and_writes_json(tmp_path):
+    out = tmp_path / "bench.json"
+    result = CliRunner().invoke(app, ["bench", "transport", "--rounds", "20", "--flood", "200", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    names = [r["payload"] for r in data["rows"]]
+    assert names == ["local_obs K=1 D=18", "global_state K=1 N=3 D=18", "global_state K=1 N=5 D=30",
+                     "global_state K=64 N=3 D=18"]
+    for r in data["rows"]:
+        assert r["typed_msgs_per_s"] > 0 and r["raw_msgs_per_s"] > 0
+        assert 0 < r["typed_rtt_p50_us"] <= r["typed_rtt_p99_us"]
+        assert r["rate_ratio"] == r["typed_msgs_per_s"] / r["raw_msgs_per_s"]
+    # The K=64 batch carries 64x the data of one copy in one message.
+    assert data["rows"][3]["bytes"] > 30 * data["rows"][1]["bytes"] // 2
+    assert "typed" in result.output and "raw" in result.output

@@ -1,0 +1,201 @@
+"""HammerSession over real Zenoh on 127.0.0.1 (explicit endpoints, multicast scouting off)."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import pickle
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol.bench import echo_main
+from protocol.codec import encode
+from protocol.errors import RunMismatchError
+from protocol.samples import sample_messages
+from protocol.schemas import SCHEMA_VERSION, Dims, GlobalState, LocalObs, Message
+from protocol.session import HammerSession, TransportConfig
+
+HEADER_STAMPS = {"run", "ts", "seq", "sender"}
+
+
+def _same_payload(a: Message, b: Message) -> None:
+    assert type(a) is type(b)
+    for name in type(a).model_fields:
+        if name in HEADER_STAMPS:
+            continue
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and np.array_equal(x, y), name
+        elif isinstance(x, dict):
+            assert x.keys() == y.keys(), name
+            for k in x:
+                assert np.array_equal(x[k], y[k]) if isinstance(x[k], np.ndarray) else x[k] == y[k], f"{name}.{k}"
+        else:
+            assert x == y, name
+
+
+@pytest.fixture
+def pair():
+    """Two sessions of run 'r1' in this process: `a` listens, `b` connects to it."""
+    t = TransportConfig.listener()
+    port = int(t.listen[0].rsplit(":", 1)[1])
+    with HammerSession("r1", t, sender="a") as a, HammerSession("r1", TransportConfig.connector(port), sender="b") as b:
+        yield a, b
+
+
+def _settle() -> None:
+    time.sleep(0.25)  # let subscriber declarations reach the publisher's side
+
+
+def test_every_message_type_through_zenoh(pair):
+    a, b = pair
+    sub = b.subscribe(b.keys.bench("all"))
+    _settle()
+    sent = sample_messages(run="")
+    seqs = [a.publish(a.keys.bench("all"), m) for m in sent]
+    got = [sub.get(5.0) for _ in sent]
+    assert seqs == list(range(len(sent)))
+    for m, g in zip(sent, got):
+        assert g is not None
+        _same_payload(m, g)
+        assert g.run == "r1" and g.sender == "a" and g.ts > 0
+    assert [g.seq for g in got] == seqs
+    assert sub.stats.delivered == len(sent) and sub.stats.rejected_total == 0
+
+
+def test_malformed_input_is_counted_and_never_stops_delivery(pair):
+    a, b = pair
+    key = a.keys.state()
+    sub = b.subscribe(b.keys.state(), GlobalState, Dims(n_agents=3, obs_dim=18), max_bytes=64 << 10)
+    _settle()
+    good = sample_messages(run="r1")[1]
+    valid = encode(good)
+    d = msgpack.unpackb(valid)
+
+    def variant(**kv) -> bytes:
+        x = msgpack.unpackb(valid)
+        for k, v in kv.items():
+            if "__" in k:
+                f, g = k.split("__")
+                x[f][g] = v
+            else:
+                x[k] = v
+        return msgpack.packb(x)
+
+    bad = {
+        "decode": [b"\x93\x01", valid[:-3], bytes(np.random.default_rng(0).integers(0, 256, 200, dtype=np.uint8))],
+        "version": [variant(v=SCHEMA_VERSION + 1)],
+        "type": [encode(sample_messages(run="r1")[0])],  # a LocalObs where GlobalState is expected
+        "dtype": [variant(obs__dtype="float64", obs__data=d["obs"]["data"] * 2)],
+        "shape": [variant(obs__shape=[4, 3, 9, 2]), variant(active__shape=[2, 6])],
+        "nonfinite": [variant(obs__data=np.full((4, 3, 18), np.nan, np.float32).tobytes()),
+                      variant(obs__data=np.full((4, 3, 18), -np.inf, np.float32).tobytes())],
+        "size": [valid + bytes(70 << 10)],
+        "run": [encode(good, stamp={"run": "other"})],
+        "field": [variant(step=-3)],
+    }
+    n_valid = 0
+    for payloads in bad.values():
+        for p in payloads:
+            a.put_bytes(key, p)
+            a.publish(key, good)  # the next valid message must still come through
+            n_valid += 1
+    got = []
+    while len(got) < n_valid:
+        m = sub.get(5.0)
+        assert m is not None, f"only {len(got)} of {n_valid} valid messages delivered"
+        got.append(m)
+    assert all(isinstance(m, GlobalState) for m in got)
+    # Dims mismatch is a rejection too, not a crash.
+    other_dims = b.subscribe(b.keys.state(), GlobalState, Dims(obs_dim=30))
+    _settle()
+    a.publish(key, good)
+    assert other_dims.get(0.5) is None and other_dims.stats.rejected["shape"] == 1
+    assert sub.get(2.0) is not None
+    assert dict(sub.stats.rejected) == {r: len(p) for r, p in bad.items()}
+    assert sub.stats.delivered == n_valid + 1
+
+
+def test_two_runs_on_one_host_do_not_cross_talk():
+    t = TransportConfig.listener()
+    port = int(t.listen[0].rsplit(":", 1)[1])
+    # Both runs are connected to the same listener; only key prefixes separate them.
+    with HammerSession("runA", t) as hub, HammerSession("runB", TransportConfig.connector(port)) as other, \
+         HammerSession("runA", TransportConfig.connector(port)) as same:
+        sub_a = same.subscribe(same.keys.obs("*"), LocalObs)
+        sub_b = other.subscribe(other.keys.obs("*"), LocalObs)
+        _settle()
+        lo = sample_messages(run="")[0]
+        for _ in range(5):
+            hub.publish(hub.keys.obs(1), lo)
+            other.publish(other.keys.obs(1), lo)
+        got_a = [sub_a.get(2.0) for _ in range(5)]
+        got_b = [sub_b.get(2.0) for _ in range(5)]
+        assert all(m is not None and m.run == "runA" and m.sender == hub.sender for m in got_a)
+        assert all(m is not None and m.run == "runB" for m in got_b)
+        time.sleep(0.2)
+        assert sub_a.get(0) is None and sub_b.get(0) is None
+        assert sub_a.stats.rejected_total == 0 and sub_b.stats.rejected_total == 0
+        with pytest.raises(ValueError, match="not under this run"):
+            hub.subscribe("hammer/runB/**")
+        with pytest.raises(RunMismatchError):
+            hub.publish(hub.keys.obs(0), sample_messages(run="runB")[0])
+
+
+def test_liveliness_tokens_appear_and_disappear(pair):
+    a, b = pair
+    watch = b.watch_alive()
+    token = a.declare_alive("env")
+    ev = watch.get(3.0)
+    assert ev is not None and (ev.role, ev.alive) == ("env", True)
+    assert b.alive_roles(1.0) == {"env"}
+    token.undeclare()
+    ev = watch.get(3.0)
+    assert ev is not None and (ev.role, ev.alive) == ("env", False)
+    assert b.alive_roles(1.0) == set()
+
+
+def test_sessions_refuse_pickling_and_bad_config():
+    s = HammerSession("r1")
+    with pytest.raises(TypeError, match="open a session there"):
+        pickle.dumps(s)
+    with pytest.raises(RuntimeError, match="not open"):
+        s.publisher(s.keys.state())
+    with pytest.raises(ValueError, match="tcp/127.0.0.1:7447"):
+        TransportConfig(listen=["127.0.0.1:7447"])
+    with pytest.raises(ValueError, match="connect endpoint"):
+        TransportConfig(mode="client")
+    with pytest.raises(ValueError, match="run id"):
+        HammerSession("bad run")
+
+
+def test_round_trip_across_two_spawned_processes():
+    """Every message type goes to an echo peer in a spawned process and back, decoded both ways."""
+    t = TransportConfig.listener()
+    ctx = mp.get_context("spawn")
+    echo = ctx.Process(target=echo_main, args=("x2proc", t.listen, 60.0), daemon=True)
+    with HammerSession("x2proc", t, sender="main") as s:
+        pong = s.subscribe(s.keys.bench("pong"))
+        watch = s.watch_alive()
+        echo.start()
+        try:
+            ev = watch.get(30.0)
+            assert ev is not None and ev.role == "echo" and ev.alive
+            for m in sample_messages(run=""):
+                s.publish(s.keys.bench("ping"), m)
+                back = pong.get(10.0)
+                assert back is not None, f"no echo of {m.TYPE}"
+                _same_payload(m, back)
+                assert back.sender == "echo" and back.run == "x2proc"
+            assert pong.stats.rejected_total == 0
+            s.put_bytes(s.keys.bench("quit"), b"q")
+            echo.join(15)
+            assert echo.exitcode == 0
+            # The echo's liveliness token went away with its session.
+            ev = watch.get(3.0)
+            assert ev is not None and ev.role == "echo" and not ev.alive
+        finally:
+            if echo.is_alive():
+                echo.terminate()
