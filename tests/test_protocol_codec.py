@@ -264,3 +264,20 @@ def test_fuzz_structured_field_replacement(data, draw):
         codec.decode(msgpack.packb(d, use_bin_type=True))
     except ProtocolError:
         pass
+
+
+def test_hand_built_map_from_the_docs_decodes():
+    """A client in another language following docs/wire-format.md produces what we accept."""
+    import struct
+
+    wire = {
+        "v": 1, "type": "local_obs", "run": "exp1", "step": 12,
+        "env_idx": {"dtype": "int64", "shape": [1], "data": struct.pack("<q", 0)},
+        "ts": 1732240000000000000, "seq": 12, "sender": "env", "agent": 1,
+        "obs": {"dtype": "float32", "shape": [1, 2], "data": struct.pack("<2f", 1.0, -2.0)},
+        "active": {"dtype": "bool", "shape": [1], "data": b"\x01"},
+    }
+    msg = codec.decode(msgpack.packb(wire, use_bin_type=True), LocalObs)
+    assert msg.obs.tolist() == [[1.0, -2.0]] and msg.active.tolist() == [True] and msg.agent == 1
+    assert struct.pack("<2f", 1.0, -2.0) == bytes.fromhex("0000803f000000c0")
+    assert msgpack.unpackb(codec.encode(msg)) == wire
