@@ -311,6 +311,7 @@ class LocalObs(Message):
     agent: NonNegInt
     obs: NDArray("float32", 2) = Field(description="(K, D) float32")
     active: NDArray("bool", 1) = Field(description="(K,) bool: the agent is present in that copy")
+    policy_version: NonNegInt = Field(0, description="policy version the agent must act with (on-policy sync)")
 
     @model_validator(mode="after")
     def _shapes(self) -> LocalObs:
@@ -335,6 +336,7 @@ class GlobalState(Message):
         "(A = n_actions) or the action id as a float (A = 1); zeros on the first step"
     )
     active: NDArray("bool", 2) = Field(description="(K, N) bool")
+    policy_version: NonNegInt = Field(0, description="policy version the central agent must use")
 
     @model_validator(mode="after")
     def _shapes(self) -> GlobalState:
@@ -390,6 +392,9 @@ class Action(Message):
     fallback: NDArray("bool", 1) | None = Field(
         None, description="(K,) the central message was late and a fallback was used (None = all False)"
     )
+    msg: NDArray("float32", 2) | None = Field(
+        None, description="(K, M) float32: the message the agent acted on (received or fallback)"
+    )
 
     @model_validator(mode="after")
     def _shapes(self) -> Action:
@@ -403,6 +408,7 @@ class Action(Message):
         if self.fallback is None:
             self.fallback = np.zeros(k, dtype=bool)
         self._need("fallback", self.fallback, (k,))
+        self._need("msg", self.msg, (k, None))
         return self
 
     @property
@@ -411,6 +417,8 @@ class Action(Message):
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
+        if self.msg is not None:
+            _expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
         if dims.discrete is not None and dims.discrete != self.discrete:
             want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
             raise ShapeError(f"actions must be {want}, got {self.action.dtype} {self.action.shape}", "action")

@@ -275,7 +275,7 @@ def test_hand_built_map_from_the_docs_decodes():
         "env_idx": {"dtype": "int64", "shape": [1], "data": struct.pack("<q", 0)},
         "ts": 1732240000000000000, "seq": 12, "sender": "env", "agent": 1,
         "obs": {"dtype": "float32", "shape": [1, 2], "data": struct.pack("<2f", 1.0, -2.0)},
-        "active": {"dtype": "bool", "shape": [1], "data": b"\x01"},
+        "active": {"dtype": "bool", "shape": [1], "data": b"\x01"}, "policy_version": 3,
     }
     msg = codec.decode(msgpack.packb(wire, use_bin_type=True), LocalObs)
     assert msg.obs.tolist() == [[1.0, -2.0]] and msg.active.tolist() == [True] and msg.agent == 1
