@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -16,17 +16,17 @@ def _fail(msg: str) -> None:
 
 
 def train_command(
-    preset: Annotated[Optional[str], typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings)")] = None,
-    variant: Annotated[Optional[str], typer.Option(help="hammer | il | random | centralized")] = None,
-    central_mode: Annotated[Optional[str], typer.Option(help="rl (paper text) | backprop (authors' code)")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="run seed")] = None,
-    episodes: Annotated[Optional[int], typer.Option(help="episode budget (overrides the preset)")] = None,
-    config: Annotated[Optional[Path], typer.Option(help="YAML file of RunConfig fields")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option("--set", help="field=value override, repeatable")] = None,
-    out: Annotated[Optional[str], typer.Option(help="root directory for run directories")] = None,
-    name: Annotated[Optional[str], typer.Option(help="run directory name under --out")] = None,
-    run_dir: Annotated[Optional[Path], typer.Option(help="exact run directory (overrides --out/--name)")] = None,
-    resume: Annotated[Optional[Path], typer.Option(help="continue this run directory from its last checkpoint")] = None,
+    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings)")] = None,
+    variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized")] = None,
+    central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code)")] = None,
+    seed: Annotated[int | None, typer.Option(help="run seed")] = None,
+    episodes: Annotated[int | None, typer.Option(help="episode budget (overrides the preset)")] = None,
+    config: Annotated[Path | None, typer.Option(help="YAML file of RunConfig fields")] = None,
+    set_: Annotated[list[str] | None, typer.Option("--set", help="field=value override, repeatable")] = None,
+    out: Annotated[str | None, typer.Option(help="root directory for run directories")] = None,
+    name: Annotated[str | None, typer.Option(help="run directory name under --out")] = None,
+    run_dir: Annotated[Path | None, typer.Option(help="exact run directory (overrides --out/--name)")] = None,
+    resume: Annotated[Path | None, typer.Option(help="continue this run directory from its last checkpoint")] = None,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
 ) -> None:
     """Train a HAMMER team (or a baseline) in-process; writes a run directory."""

@@ -11,6 +11,7 @@ in numpy from `export_numpy()`; keep the two in step.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -32,7 +33,7 @@ class TanhMLP(nn.Module):
         n = len(sizes) - 1
         self.layers = nn.ModuleList(
             _init(nn.Linear(a, b), out_std if i == n - 1 else math.sqrt(2)) for i, (a, b) in
-            enumerate(zip(sizes[:-1], sizes[1:]))
+            enumerate(itertools.pairwise(sizes))
         )
         self.final_tanh = final_tanh
 

@@ -123,7 +123,7 @@ class Trainer:
 
     # ----- main loop ----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
-        cfg, team, env, buf = self.cfg, self.team, self.env, self.buf
+        cfg, team, env = self.cfg, self.team, self.env
         self._t0 = time.perf_counter()
         resumed = getattr(self, "_resumed", False)
         steps_at_start, t_start = self.env_steps, time.perf_counter()

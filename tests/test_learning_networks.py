@@ -123,7 +123,7 @@ def test_rl_mode_keeps_the_two_graphs_apart(tmp_path):
 
 
 def test_message_dropout_zeroes_messages(tmp_path):
-    tr, b = _trainer(tmp_path, "rl", msg_dropout=0.5)
+    _tr, b = _trainer(tmp_path, "rl", msg_dropout=0.5)
     keep = b["keep"].numpy().astype(bool)
     assert 0.35 < keep.mean() < 0.65
     msg = b["msg"].numpy()

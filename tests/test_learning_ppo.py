@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from learning.ppo import clipped_policy_loss, gae, minibatch_indices, next_values, normalize_advantages, value_loss
+from learning.ppo import (
+    clipped_policy_loss,
+    gae,
+    minibatch_indices,
+    next_values,
+    normalize_advantages,
+    value_loss,
+)
 
 GAMMA, LAM = 0.9, 0.8
 

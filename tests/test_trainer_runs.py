@@ -23,11 +23,12 @@ def _rows(path):
 
 
 def _run(tmp_path, name, sets, resume=False):
-    cfg = merge_config("cn3", overrides=SMALL + sets)
-    rd = RunDir.open(tmp_path / name)[0] if resume else RunDir.create(tmp_path / name, cfg)
-    if resume:
+    if resume:  # like `hammer train --resume DIR --episodes N`: the stored config, a new budget
         rd, cfg = RunDir.open(tmp_path / name)
         cfg = cfg.model_copy(update={"episodes": int(dict(s.split("=") for s in sets)["episodes"])})
+    else:
+        cfg = merge_config("cn3", overrides=SMALL + sets)
+        rd = RunDir.create(tmp_path / name, cfg)
     return train(cfg, rd, resume=resume, tensorboard=False)
 
 
