@@ -4,7 +4,9 @@ Both are driven with the same seeded uniform-random torques (episodes then last 
 auto-resets are part of the cost, as early in training). Phases alternate (in-process, workers,
 in-process, workers, ...) so that load from other processes hits both alike; the best phase of each
 is compared. The machine's load (1-min load average and system-wide CPU busy % during each phase)
-is printed alongside, because the speed-up depends on how many cores are actually free.
+is printed alongside, with the cores our own processes actually got (CPU seconds / wall seconds), because
+the speed-up depends on how many cores are free: 2 workers on a machine where others keep one core busy
+cannot reach 2x.
 
     .venv/bin/python benchmarks/bench_workers.py [--num-envs 8] [--workers 2] [--steps 300]
 """
@@ -12,6 +14,7 @@ is printed alongside, because the speed-up depends on how many cores are actuall
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
 
@@ -21,18 +24,28 @@ import psutil
 from envs.registry import make_vec_env
 
 
-def _phase(venv, steps: int, seed: int) -> tuple[float, float]:
-    """(env-steps per second, system CPU busy % during the phase) for `steps` batched steps."""
+def _own_cpu_seconds() -> float:
+    """CPU time used so far by this process and its workers (user + system)."""
+    total = 0.0
+    for p in [psutil.Process(), *psutil.Process().children(recursive=True)]:
+        with contextlib.suppress(psutil.Error):
+            t = p.cpu_times()
+            total += t.user + t.system
+    return total
+
+
+def _phase(venv, steps: int, seed: int) -> tuple[float, float, float]:
+    """(env-steps/s, system CPU busy %, cores our processes got) for `steps` batched steps."""
     venv.reset(seed)
     rng = np.random.default_rng(seed)
     shape = (venv.num_envs, venv.spec.n_agents, venv.spec.action_dim)
     acts = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(steps)]
     psutil.cpu_percent(None)
-    t0 = time.perf_counter()
+    c0, t0 = _own_cpu_seconds(), time.perf_counter()
     for a in acts:
         venv.step(a)
     dt = time.perf_counter() - t0
-    return venv.num_envs * steps / dt, psutil.cpu_percent(None)
+    return venv.num_envs * steps / dt, psutil.cpu_percent(None), (_own_cpu_seconds() - c0) / dt
 
 
 def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300, repeats: int = 3) -> dict:
@@ -71,8 +84,8 @@ def main(argv: list[str] | None = None) -> None:
           f"{r['cores']} cores; 1-min load average {r['load_before']:.2f} before, {r['load_after']:.2f} after; "
           f"workers started in {r['worker_start_s']:.2f} s")
     for name, phases in r["phases"].items():
-        runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% cpu)" for sps, cpu in phases)
-        print(f"  {name:>12}: env-steps/s per phase (system cpu busy): {runs}")
+        runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% busy, {own:.2f} cores ours)" for sps, cpu, own in phases)
+        print(f"  {name:>12}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
     print(f"speed-up (best workers / best in-process): {r['speedup']:.2f}x")
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
+import signal
 import traceback
 import weakref
 from typing import Any
@@ -65,6 +66,8 @@ def _views(raw: dict[str, Any], fields: dict[str, tuple[tuple[int, ...], np.dtyp
 def _worker_main(conn: Any, desc: EnvDescription, offset: int, count: int, spec: EnvSpec, num_envs: int,
                  raw: dict[str, Any], parent_pid: int) -> None:
     """Entry point of one worker process: build the slice, then serve commands until told to stop."""
+    # Ctrl-C reaches the whole process group; the parent decides when workers stop (via close()).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         venv = build_local(desc, count, index_offset=offset)
     except BaseException:  # noqa: BLE001 - report any build failure to the parent, then exit
