@@ -83,7 +83,7 @@ def _trainer(tmp_path, mode, **over):
     prev = tr.team.zero_prev_actions(4)
     tr._t0 = 0.0
     obs, prev, _ = tr._collect(obs, prev)
-    return tr, tr._batch(obs, prev)
+    return tr, tr.learner.batch(obs, prev)
 
 
 def _grads(module):
@@ -93,13 +93,13 @@ def _grads(module):
 def test_backprop_mode_trains_the_central_net_through_the_local_loss(tmp_path):
     tr, b = _trainer(tmp_path, "backprop")
     assert tr.team.central.critic is None
-    local_loss, central_loss, _ = tr._losses(b, torch.arange(100))
+    local_loss, central_loss, _ = tr.learner.losses(b, torch.arange(100))
     assert central_loss is None
     local_loss.backward()
     grads = _grads(tr.team.central)
     assert all(g is not None for g in grads) and sum(float(g.abs().sum()) for g in grads) > 0
     before = {k: v.clone() for k, v in tr.team.central.state_dict().items()}
-    tr._learn(*_last(tr))
+    tr.learner.learn(*_last(tr), 0)
     after = tr.team.central.state_dict()
     assert all(not torch.equal(before[k], after[k]) for k in before)
 
@@ -112,7 +112,7 @@ def _last(tr):
 
 def test_rl_mode_keeps_the_two_graphs_apart(tmp_path):
     tr, b = _trainer(tmp_path, "rl")
-    local_loss, central_loss, _ = tr._losses(b, torch.arange(100))
+    local_loss, central_loss, _ = tr.learner.losses(b, torch.arange(100))
     local_loss.backward(retain_graph=True)
     assert all(g is None for g in _grads(tr.team.central))
     assert any(g is not None for g in _grads(tr.team.local))
