@@ -87,6 +87,11 @@ def main(argv: list[str] | None = None) -> None:
         runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% busy, {own:.2f} cores ours)" for sps, cpu, own in phases)
         print(f"  {name:>12}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
     print(f"speed-up (best workers / best in-process): {r['speedup']:.2f}x")
+    per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items()}
+    ratio = per_core[f"{r['workers']} workers"] / per_core["in-process"]
+    print("env-steps per core-second our processes used: " + ", ".join(f"{k} {v:,.0f}" for k, v in per_core.items())
+          + f" (workers/in-process {ratio:.2f}: below 1 is IPC and load-imbalance overhead; the speed-up can"
+          f" only approach {ratio:.2f} x the cores the workers get)")
 
 
 if __name__ == "__main__":
