@@ -1,0 +1,126 @@
+"""The central-agent server: one batched forward pass per vector step, one message per local agent.
+
+It runs the same `learning.team.Team.central_messages` as the in-process trainer (same torch
+code, same random stream), so with the same weights and no faults it sends exactly the messages
+the trainer would. Weights come from the learner (`learn/central/weights`); for variant `random`
+there are no weights, only the central random stream.
+
+When the learner needs what only the central agent knows (rl mode: the Gaussian sample, its
+log-density and the central critic's value; any mode with message dropout: which messages were
+dropped), the server publishes a small per-step record to `learn/central/exp`, tagged with the
+step, so the learner can join it with the env host's rollout.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from safetensors.numpy import load as load_safetensors
+
+from envs.base import EnvSpec
+from learning.config import RunConfig
+from learning.sampling import ActingStreams
+from learning.team import Team
+from protocol.schemas import CentralMsg, Control, Dims, ExperienceChunk, GlobalState, Heartbeat, Weights
+from protocol.session import HammerSession
+
+log = logging.getLogger("hammer.central")
+
+
+@dataclass
+class CentralCounters:
+    steps: int = 0
+    states_stale: int = 0  # a state for a step already served (duplicate / reordered)
+    weights_loaded: int = 0
+    weights_wait_timeouts: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+def needs_central_record(cfg: RunConfig) -> bool:
+    return (cfg.variant == "hammer" and cfg.central_mode == "rl") or (
+        cfg.variant in ("hammer", "random") and cfg.msg_dropout > 0)
+
+
+def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float,
+                idle_exit_s: float | None = None) -> CentralCounters:
+    import torch
+
+    torch.set_num_threads(1)
+    keys = session.keys
+    team = Team(cfg, spec)
+    streams = ActingStreams(cfg.seed, cfg.n_agents)
+    n = cfg.n_agents
+    dims = Dims(num_envs=cfg.num_envs, n_agents=n, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
+                discrete=spec.discrete)
+    state_sub = session.subscribe(keys.state(), GlobalState, dims)
+    w_sub = session.subscribe(keys.weights("central"), Weights) if team.central is not None else None
+    ctl_sub = session.subscribe(keys.ctl("all"), Control)
+    msg_pubs = [session.publisher(keys.msg(i), express=True) for i in range(n)]
+    exp_pub = session.publisher(keys.exp("central"))
+    hb_pub = session.publisher(keys.heartbeat("central"), reliable=False)
+    session.declare_alive("central")
+    record = needs_central_record(cfg)
+
+    c = CentralCounters()
+    version = 0 if team.central is None else -1
+    last_step = -1
+    last_hb = 0.0
+    last_state_t = time.monotonic()
+
+    def take_weights(need: int) -> None:
+        nonlocal version
+        deadline = time.monotonic() + weights_timeout_s
+        while w_sub is not None:
+            wait = 0.0 if version >= need else deadline - time.monotonic()
+            w = w_sub.get(timeout=max(wait, 0.0))
+            if w is not None:
+                if w.version > version:
+                    team.central.load_numpy(load_safetensors(w.blob))
+                    version = w.version
+                    c.weights_loaded += 1
+                continue
+            if version < need and time.monotonic() < deadline:
+                continue
+            if version < need:
+                c.weights_wait_timeouts += 1
+                log.warning("central policy version %d not received in %.0fs; using %d",
+                            need, weights_timeout_s, version)
+            return
+
+    while True:
+        for cmd in ctl_sub.drain():
+            if cmd.command in ("stop", "shutdown") and cmd.target in ("*", "central"):
+                return c
+        now = time.monotonic()
+        if now - last_hb > 1.0:
+            hb_pub.publish(Heartbeat(role="central", pid=os.getpid(), status="running",
+                                     counters={**c.as_dict(), "policy_version": version}))
+            last_hb = now
+        s = state_sub.get(timeout=0.2)
+        if s is None:
+            if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
+                return c
+            continue
+        last_state_t = time.monotonic()
+        if s.step <= last_step:
+            c.states_stale += 1
+            continue
+        take_weights(s.policy_version)
+        state = team.global_state(s.obs, s.prev_actions)
+        out = team.central_messages(state, streams, cfg.msg_dropout)
+        for i in range(n):
+            msg_pubs[i].publish(CentralMsg(step=s.step, env_idx=s.env_idx, agent=i,
+                                           msg=np.ascontiguousarray(out.sent[:, i]), policy_version=max(version, 0)))
+        if record:
+            exp_pub.publish(ExperienceChunk(
+                step=s.step, env_idx=s.env_idx, role="central", policy_version=max(version, 0),
+                arrays={"msg_raw": out.raw.astype(np.float32, copy=False), "c_logp": out.logp,
+                        "c_values": out.value, "keep": out.keep}))
+        last_step = s.step
+        c.steps += 1

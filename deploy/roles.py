@@ -1,0 +1,191 @@
+"""The role commands (`hammer env-host | central | local | learner`), one process each.
+
+Every role reads the run directory written by `hammer up` (config.json: what is trained;
+runtime.json: how the processes talk; env_spec.json: the task's dimensions), opens its own Zenoh
+session (never inherited), declares its liveliness token and serves until told to stop.
+
+On another machine, copy those three files into a directory and pass it as --run-dir, plus
+--connect tcp/<hub-ip>:<port> (or --zenoh-config for router/TLS setups).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
+ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
+ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
+
+
+def _setup(role: str) -> None:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
+    from deploy.supervisor import parent_watchdog
+
+    parent_watchdog()
+
+    def on_term(signum, frame):  # turn SIGTERM into a clean exit so the Zenoh session closes
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+
+
+def write_env_spec(run_dir: Path, spec) -> None:
+    (Path(run_dir) / "env_spec.json").write_text(json.dumps(asdict(spec), indent=1))
+
+
+def read_env_spec(run_dir: Path):
+    from envs.base import EnvSpec
+
+    path = Path(run_dir) / "env_spec.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: pass the --run-dir that `hammer up` created")
+    d = json.loads(path.read_text())
+    d["agent_ids"] = tuple(d["agent_ids"])
+    return EnvSpec(**d)
+
+
+def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None):
+    from deploy.settings import RuntimeSettings
+
+    s = RuntimeSettings.load(run_dir)
+    if zenoh_config is not None:
+        s = s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
+    transport = s.transport()
+    if connect is not None and zenoh_config is None:
+        transport = transport.model_copy(update={"connect": [connect]})
+    return s, transport
+
+
+def _read_config(run_dir: Path):
+    from learning.config import build_config
+
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: pass the --run-dir that `hammer up` created")
+    return build_config(json.loads(path.read_text()))
+
+
+def _fail(msg: str) -> None:
+    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(2)
+
+
+def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="Local agent index i (0-based).")],
+                  connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
+    """A local-agent client: acts on its observation + central message. Runs without torch."""
+    _setup(f"local-{agent}")
+    # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
+    from local_agent.client import AgentSpec, run_local_agent
+    from protocol.session import HammerSession
+
+    try:
+        settings, transport = _settings(run_dir, connect, zenoh_config)
+        cfg = json.loads((Path(run_dir) / "config.json").read_text())
+        spec = read_env_spec(run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    n = int(cfg["n_agents"])
+    if not 0 <= agent < n:
+        _fail(f"--agent {agent}: this run has agents 0..{n - 1}")
+    variant = cfg["variant"]
+    msg_dim = int(cfg["msg_dim"]) if variant in ("hammer", "random") else 0
+    centralized = variant == "centralized"
+    aspec = AgentSpec(agent=agent, n_agents=n, obs_dim=spec.obs_dim * (n if centralized else 1), msg_dim=msg_dim,
+                      discrete=spec.discrete, action_dim=spec.action_dim, seed=int(cfg["seed"]), onehot=centralized)
+    try:
+        with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
+            c = run_local_agent(s, aspec, int(cfg["num_envs"]), settings.fallback, settings.fallback_k,
+                                settings.msg_deadline_ms / 1e3, settings.weights_timeout_s)
+            logging.getLogger("hammer.local").info("stopped: %s", c.as_dict())
+    except KeyboardInterrupt:
+        pass
+
+
+def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
+    """The central-agent server: one batched forward per vector step, a message per local agent."""
+    _setup("central")
+    from central_agent.server import run_central
+    from protocol.session import HammerSession
+
+    try:
+        settings, transport = _settings(run_dir, connect, zenoh_config)
+        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    try:
+        with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
+            c = run_central(s, cfg, spec, settings.weights_timeout_s)
+            logging.getLogger("hammer.central").info("stopped: %s", c.as_dict())
+    except KeyboardInterrupt:
+        pass
+
+
+def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
+    """The env host: steps the K env copies and drives the step loop; writes metrics and the summary."""
+    _setup("env")
+    from env_host.host import EnvHost
+    from learning.rundir import RunDir
+    from learning.trainer import make_env
+    from protocol.schemas import Control
+    from protocol.session import HammerSession
+
+    try:
+        settings, transport = _settings(run_dir, connect, zenoh_config)
+        cfg = _read_config(run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    env = make_env(cfg)
+    rd = RunDir(run_dir)
+    try:
+        with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
+            s.declare_alive("env")
+            host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s)
+            summary = host.run()
+            summary["faults"] = s.fault_report()
+            if summary["completed"]:
+                rd.write_summary(summary)
+            (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
+            # Tell everyone the run is over (the launcher also stops them).
+            s.publish(s.keys.ctl("all"), Control(command="stop"))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rd.close()
+        env.close()
+
+
+def learner_command(run_dir: RunDirOpt,
+                    role: Annotated[str, typer.Option(help="team: trains the local policy and the central agent together "
+                                                          "(needed for backprop mode; the default).")] = "team",
+                    connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
+    """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
+    _setup(f"learner-{role}")
+    from learning.learner_role import run_learner
+    from learning.rundir import RunDir
+    from protocol.session import HammerSession
+
+    if role != "team":
+        _fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
+              "requires); see docs/runtime.md")
+    try:
+        settings, transport = _settings(run_dir, connect, zenoh_config)
+        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    rd = RunDir(run_dir)
+    try:
+        with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
+            run_learner(s, cfg, spec, rd)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rd.close()

@@ -1,0 +1,64 @@
+"""Runtime settings of a distributed run: what the roles need besides the learning config.
+
+The learning config (`learning.config.RunConfig`) decides *what* is trained; these settings
+decide how the processes talk: where the hub listens, per-hop deadlines, fallbacks, faults.
+Both are written into the run directory by `hammer up` (config.json, runtime.json) and every
+role reads them from there, so all roles of a run agree by construction.
+
+Imports stay light (pydantic + protocol): the local-agent edge client reads this too.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.faults import FaultSpec
+from protocol.session import TransportConfig, loopback_endpoint
+
+Fallback = Literal["zeros", "last", "last_k"]
+
+
+class RuntimeSettings(BaseModel):
+    """How the roles of one run talk. Defaults suit one host on loopback."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    run_id: str = Field(description="run id: every key is under hammer/<run_id>/")
+    hub_port: int = Field(0, ge=0, le=65535, description="the launcher's Zenoh listen port on 127.0.0.1")
+    zenoh_config_file: str | None = Field(
+        None, description="Zenoh JSON5 config for multi-machine runs (router/client/TLS); overrides hub_port")
+    msg_deadline_ms: float = Field(
+        50.0, gt=0, description="how long a local agent waits for its central message before a fallback")
+    act_deadline_ms: float = Field(
+        500.0, gt=0, description="how long the env host waits for actions before using default actions")
+    weights_timeout_s: float = Field(60.0, gt=0, description="how long an actor waits for a new policy version")
+    fallback: Fallback = Field("zeros", description="message used when it is late: zeros, last, or last_k")
+    fallback_k: int = Field(3, ge=0, description="last_k: reuse the last message for at most k steps, then zeros")
+    faults: FaultSpec | None = Field(None, description="seeded fault injection on publishes (off when None)")
+    startup_timeout_s: float = Field(60.0, gt=0, description="wait this long for every role to be alive")
+
+    def transport(self) -> TransportConfig:
+        """Each role is a peer connecting to the hub; peers then meet directly (gossip), so the
+        step loop has no extra router hop."""
+        if self.zenoh_config_file:
+            return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
+        return TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)])
+
+    def hub_transport(self) -> TransportConfig:
+        if self.zenoh_config_file:
+            return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
+        return TransportConfig(listen=[loopback_endpoint(self.hub_port)])
+
+    def save(self, run_dir: Path) -> None:
+        (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1))
+
+    @classmethod
+    def load(cls, run_dir: Path) -> RuntimeSettings:
+        path = Path(run_dir) / "runtime.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} is missing: start roles with `hammer up`, or pass --run-dir of a run it made")
+        return cls.model_validate(json.loads(path.read_text()))

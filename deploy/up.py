@@ -1,0 +1,162 @@
+"""`hammer up`: one experiment as separate processes on one host.
+
+The launcher writes the run directory (config.json, runtime.json, env_spec.json), opens the hub
+Zenoh session every role connects to, starts each role as a fresh interpreter, waits until every
+role's liveliness token is up, shows a live dashboard from the roles' heartbeats, restarts local
+agents and the central agent if they die, and stops everything at the end of the budget or on
+Ctrl-C. A role that cannot be kept alive ends the run with a one-line reason.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from deploy.roles import write_env_spec
+from deploy.settings import RuntimeSettings
+from deploy.supervisor import RoleSpec, Supervisor
+from protocol.schemas import Control, Heartbeat
+from protocol.session import HammerSession, free_loopback_port
+
+log = logging.getLogger("hammer.up")
+
+
+class UpError(RuntimeError):
+    """The run could not complete; the message is the one-line reason."""
+
+
+@dataclass
+class UpResult:
+    run_dir: Path
+    summary: dict
+    restarts: dict[str, int]
+    wall_time: float
+
+
+@dataclass
+class Board:
+    """What the dashboard shows, from heartbeats and the supervisor."""
+
+    heartbeats: dict[str, Heartbeat] = field(default_factory=dict)
+    alive: set[str] = field(default_factory=set)
+    restarts: dict[str, int] = field(default_factory=dict)
+    steps_hist: list[tuple[float, int]] = field(default_factory=list)
+
+    def env_rate(self) -> float:
+        if len(self.steps_hist) < 2:
+            return 0.0
+        (t0, s0), (t1, s1) = self.steps_hist[0], self.steps_hist[-1]
+        return (s1 - s0) / max(t1 - t0, 1e-9)
+
+
+def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
+    rd = ["--run-dir", str(run_dir)]
+    specs = [RoleSpec("learner", ["learner", *rd])]
+    if cfg.variant in ("hammer", "random"):
+        specs.append(RoleSpec("central", ["central", *rd], restart=True))
+    specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)]
+    specs.append(RoleSpec("env", ["env-host", *rd]))
+    return specs
+
+
+def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
+    from envs.registry import make_vec_env
+    from learning.rundir import RunDir
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    spec = env.spec
+    env.close()
+    rd = RunDir.create(run_dir, cfg)
+    rd.close()
+    settings.save(run_dir)
+    write_env_spec(run_dir, spec)
+
+
+def _tail(path: Path, lines: int = 3) -> str:
+    try:
+        text = path.read_text(errors="replace").strip().splitlines()
+    except FileNotFoundError:
+        return ""
+    return " | ".join(text[-lines:])
+
+
+def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None) -> UpResult:
+    """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
+    `chaos(sup, board)` may kill/pause roles (fault experiments and tests)."""
+    run_dir = Path(run_dir)
+    if settings.hub_port == 0 and not settings.zenoh_config_file:
+        settings = settings.model_copy(update={"hub_port": free_loopback_port()})
+    prepare_run_dir(cfg, settings, run_dir)
+    specs = role_specs(cfg, run_dir)
+    names = {s.name for s in specs}
+    sup = Supervisor(run_dir / "logs")
+    board = Board(restarts={n: 0 for n in names})
+    t_start = time.monotonic()
+    with HammerSession(settings.run_id, settings.hub_transport(), sender="launcher") as hub:
+        watch = hub.watch_alive()
+        hb_sub = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
+        try:
+            for spec in specs:
+                sup.start(spec)
+            deadline = time.monotonic() + settings.startup_timeout_s
+            while not names <= board.alive:
+                for ev in watch.drain():
+                    (board.alive.add if ev.alive else board.alive.discard)(ev.role)
+                for rp in sup.poll():
+                    raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
+                                  f"{_tail(rp.log_path)} (log: {rp.log_path})")
+                if time.monotonic() > deadline:
+                    missing = ", ".join(sorted(names - board.alive))
+                    raise UpError(f"roles not alive after {settings.startup_timeout_s:.0f}s: {missing} "
+                                  f"(logs in {run_dir / 'logs'})")
+                time.sleep(0.05)
+            log.info("all %d roles alive after %.1fs", len(names), time.monotonic() - t_start)
+            done = False
+            while not done:
+                for ev in watch.drain():
+                    (board.alive.add if ev.alive else board.alive.discard)(ev.role)
+                for h in hb_sub.drain():
+                    board.heartbeats[h.role] = h
+                    if h.role == "env":
+                        board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
+                        board.steps_hist = board.steps_hist[-20:]
+                if chaos is not None:
+                    chaos(sup, board)
+                for rp in sup.poll():
+                    name, code = rp.spec.name, rp.exit_codes[-1]
+                    if name == "env":
+                        if code != 0:
+                            raise UpError(f"env host exited with code {code}: {_tail(rp.log_path)} (log: {rp.log_path})")
+                        done = True
+                    elif code == 0:  # a clean exit: it was told to stop (the run is ending)
+                        continue
+                    elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
+                        rp.restarts += 1
+                        board.restarts[name] = rp.restarts
+                        log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts,
+                                    rp.spec.max_restarts)
+                        sup.start(rp.spec)
+                    else:
+                        raise UpError(f"role {name} exited with code {code} and cannot be restarted: "
+                                      f"{_tail(rp.log_path)} (log: {rp.log_path})")
+                if on_tick is not None:
+                    on_tick(board)
+                time.sleep(0.25)
+        finally:
+            try:
+                hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+            except Exception:  # the hub may be closing; processes are stopped below anyway
+                pass
+            deadline = time.monotonic() + 10.0
+            while any(sup.alive(n) for n in names) and time.monotonic() < deadline:
+                sup.poll()
+                time.sleep(0.1)
+            sup.stop_all()
+    summary_file = run_dir / "env_summary.json"
+    summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
+    if not summary.get("completed"):
+        raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
+    return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start)

@@ -1,0 +1,272 @@
+"""The env host: steps K env copies and drives the distributed step loop.
+
+Per vector step (3 hops): publish the global state to the central agent and each local agent's
+observation; collect every agent's action until all are in or the deadline passes (a missing
+action becomes the env's declared default and is counted); step the env. After T steps it sends
+the rollout to the learner as one ExperienceChunk tagged with the policy version that produced it,
+and waits for the next version's weights before acting again (on-policy synchronisation).
+
+The loop mirrors `learning.trainer.Trainer._collect` step for step (same env seeds, same reset
+points, same episode budget), so without faults a distributed run reproduces the in-process one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envs.base import VecEnv
+from learning.config import RunConfig
+from learning.rundir import RunDir
+from learning.sampling import env_reset_seed
+from learning.team import Team
+from protocol.schemas import (
+    Action,
+    Control,
+    Dims,
+    EpisodeInfo,
+    ExperienceChunk,
+    GlobalState,
+    Heartbeat,
+    LocalObs,
+    StepResult,
+    Weights,
+)
+from protocol.session import HammerSession
+
+log = logging.getLogger("hammer.env_host")
+
+
+@dataclass
+class LinkCounters:
+    """Counts for the local→env action link (per run)."""
+
+    actions_on_time: int = 0
+    actions_late: int = 0  # arrived after the deadline of their step (discarded)
+    actions_duplicate: int = 0
+    default_actions: int = 0  # agent×copy entries that used the declared default
+    msg_fallback_copies: int = 0  # agent×copy entries whose agent acted on a fallback message
+    off_policy_actions: int = 0  # actions produced by another policy version than the rollout's
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class HostState:
+    update: int = 0
+    episodes: int = 0
+    env_steps: int = 0
+    step: int = 0  # global vector-step counter (message header)
+    recent: deque = field(default_factory=lambda: deque(maxlen=500))
+    step_latency_ms: deque = field(default_factory=lambda: deque(maxlen=2000))
+
+
+class EnvHost:
+    def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
+                 act_deadline_s: float, weights_timeout_s: float) -> None:
+        self.s, self.cfg, self.env, self.rd = session, cfg, env, rd
+        self.spec = env.spec
+        self.team = Team(cfg, env.spec)  # for the global-state / action encodings only
+        self.n, self.k = cfg.n_agents, cfg.num_envs
+        self.act_deadline_s, self.weights_timeout_s = act_deadline_s, weights_timeout_s
+        self.uses_central = cfg.variant in ("hammer", "random")
+        keys = session.keys
+        dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
+                    msg_dim=self.team.msg_dim or None)
+        self.act_sub = session.subscribe(keys.act("*"), Action, dims)
+        self.w_sub = session.subscribe(keys.weights("local"), Weights)
+        self.ctl_sub = session.subscribe(keys.ctl("all"), Control)
+        self.obs_pubs = [session.publisher(keys.obs(i), express=True) for i in range(self.n)]
+        self.state_pub = session.publisher(keys.state(), express=True)
+        self.result_pub = session.publisher(keys.result(), reliable=False)
+        self.exp_pub = session.publisher(keys.exp("team"))
+        self.hb_pub = session.publisher(keys.heartbeat("env"), reliable=False)
+        self.c = LinkCounters()
+        self.h = HostState()
+        self.weights_version = -1
+        self.env_idx = np.arange(self.k, dtype=np.int64)
+        self._last_hb = 0.0
+        self._stop = False
+        sh = self.spec
+        t = cfg.rollout_steps
+        a_shape = sh.action_shape
+        self.rollout = {
+            "obs": np.zeros((t, self.k, self.n, sh.obs_dim), np.float32),
+            "prev": np.zeros((t, self.k, self.n, self.team.act_dim), np.float32),
+            "msg": np.zeros((t, self.k, self.n, self.team.msg_dim), np.float32),
+            "actions": np.zeros((t, self.k, self.n, *a_shape), np.int64 if sh.discrete else np.float32),
+            "rewards": np.zeros((t, self.k, self.n), np.float32),
+            "terminated": np.zeros((t, self.k, self.n), bool),
+            "truncated": np.zeros((t, self.k, self.n), bool),
+            "active": np.zeros((t, self.k, self.n), bool),
+            "reset": np.zeros((t, self.k, self.n), bool),
+            "final_obs": np.zeros((t, self.k, self.n, sh.obs_dim), np.float32),
+            "final_prev": np.zeros((t, self.k, self.n, self.team.act_dim), np.float32),
+            "defaulted": np.zeros((t, self.k, self.n), bool),
+            "steps": np.zeros(t, np.int64),
+        }
+
+    # ----- weights / control --------------------------------------------------------------------
+    def _poll_control(self) -> None:
+        for cmd in self.ctl_sub.drain():
+            if cmd.command in ("stop", "shutdown") and cmd.target in ("*", "env"):
+                self._stop = True
+
+    def wait_weights(self, version: int) -> bool:
+        """Block until the learner has published local weights >= version (or stop/timeout)."""
+        deadline = time.monotonic() + self.weights_timeout_s
+        while self.weights_version < version:
+            self._poll_control()
+            self._heartbeat("ready")
+            if self._stop:
+                return False
+            w = self.w_sub.get(timeout=0.2)
+            if w is not None:
+                self.weights_version = max(self.weights_version, w.version)
+            elif time.monotonic() > deadline:
+                raise TimeoutError(f"learner did not publish policy version {version} within "
+                                   f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")
+        return True
+
+    def _heartbeat(self, status: str = "running") -> None:
+        now = time.monotonic()
+        if now - self._last_hb < 0.5:
+            return
+        self._last_hb = now
+        lat = np.array(self.h.step_latency_ms) if self.h.step_latency_ms else np.zeros(1)
+        running = float(np.mean(list(self.h.recent)[-100:])) if self.h.recent else 0.0
+        self.hb_pub.publish(Heartbeat(role="env", pid=os.getpid(), status=status, counters={
+            **self.c.as_dict(), "episodes": self.h.episodes, "env_steps": self.h.env_steps,
+            "update": self.h.update, "policy_version": self.weights_version, "paper_metric_100": running,
+            "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99))}))
+
+    # ----- one vector step ----------------------------------------------------------------------
+    def _collect_actions(self, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All agents' actions for `step` (defaults where missing), messages used, defaulted mask."""
+        n, k = self.n, self.k
+        actions = self.spec.default_actions(k)
+        msgs = np.zeros((k, n, self.team.msg_dim), np.float32)
+        got = np.zeros(n, dtype=bool)
+        deadline = time.monotonic() + self.act_deadline_s
+        while not got.all():
+            a = self.act_sub.get(timeout=max(0.0, deadline - time.monotonic()))
+            if a is None:
+                break
+            if a.step < step:
+                self.c.actions_late += 1
+                continue
+            if a.step > step:  # cannot happen without a bug upstream: we have not published it yet
+                log.warning("action for future step %d (now %d) from agent %d ignored", a.step, step, a.agent)
+                continue
+            if got[a.agent]:
+                self.c.actions_duplicate += 1
+                continue
+            if a.policy_version != self.h.update:
+                self.c.off_policy_actions += 1
+            rows = a.env_idx
+            actions[rows, a.agent] = a.action
+            if a.msg is not None and self.team.msg_dim:
+                msgs[rows, a.agent] = a.msg
+            self.c.msg_fallback_copies += int(a.fallback.sum())
+            got[a.agent] = True
+            self.c.actions_on_time += 1
+        defaulted = np.zeros((k, n), dtype=bool)
+        defaulted[:, ~got] = True
+        self.c.default_actions += int(defaulted.sum())
+        return actions, msgs, defaulted
+
+    def run(self) -> dict:
+        cfg, team, env, h, r = self.cfg, self.team, self.env, self.h, self.rollout
+        t_start = self._t_wall0 = time.perf_counter()
+        obs = prev = active = None
+        if not self.wait_weights(0):
+            return self.summary(t_start)
+        while not self._stop:
+            if h.update % cfg.checkpoint_every == 0:
+                obs, active = env.reset(env_reset_seed(cfg.seed, h.update))
+                prev = team.zero_prev_actions(self.k)
+            r["reset"][:] = False
+            finished = False
+            for t in range(cfg.rollout_steps):
+                self._poll_control()
+                if self._stop:
+                    break
+                self._heartbeat()
+                h.step += 1
+                t0 = time.perf_counter()
+                if self.uses_central:
+                    self.state_pub.publish(GlobalState(step=h.step, env_idx=self.env_idx, obs=obs,
+                                                       prev_actions=prev, active=active, policy_version=h.update))
+                joint = obs.reshape(self.k, -1) if cfg.variant == "centralized" else None
+                for i in range(self.n):
+                    self.obs_pubs[i].publish(LocalObs(step=h.step, env_idx=self.env_idx, agent=i,
+                                                      obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),
+                                                      active=active[:, i], policy_version=h.update))
+                action, msgs, defaulted = self._collect_actions(h.step)
+                # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
+                h.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
+                st = env.step(team.env_action(action))
+                r["obs"][t], r["prev"][t], r["msg"][t], r["actions"][t] = obs, prev, msgs, action
+                r["rewards"][t], r["terminated"][t], r["truncated"][t] = st.reward, st.terminated, st.truncated
+                r["active"][t], r["defaulted"][t], r["steps"][t] = st.active, defaulted, h.step
+                prev = team.encode_actions(action, st.active)
+                if st.done.any():
+                    idx = np.flatnonzero(st.done)
+                    r["reset"][t, idx] = True
+                    r["final_obs"][t, idx] = st.final_obs[idx]
+                    r["final_prev"][t, idx] = prev[idx]
+                    prev[idx] = 0.0
+                obs, active = st.obs, st.next_active
+                h.env_steps += self.k
+                self.result_pub.publish(StepResult(
+                    step=h.step, env_idx=self.env_idx, rewards=st.reward, terminated=st.terminated,
+                    truncated=st.truncated, done=st.done, defaulted=defaulted,
+                    episodes=[EpisodeInfo.from_stats(e) for e in st.episodes]))
+                if st.episodes and self._record_episodes(st.episodes):
+                    finished = True
+                    break
+            if finished or self._stop:
+                break
+            self.exp_pub.publish(ExperienceChunk(
+                step=h.step, env_idx=self.env_idx, role="team", policy_version=h.update,
+                arrays={**r, "last_obs": obs, "last_prev": prev}))
+            h.update += 1
+            if not self.wait_weights(h.update):
+                break
+        self.rd.flush()
+        return self.summary(t_start)
+
+    def _record_episodes(self, episodes: list) -> bool:
+        """Append finished episodes to metrics.csv; True once the budget is spent."""
+        h, cfg = self.h, self.cfg
+        wall = round(time.perf_counter() - self._t_wall0, 3)
+        rows = []
+        for e in episodes:
+            if h.episodes >= cfg.episodes:
+                break
+            h.episodes += 1
+            h.recent.append(e.paper_metric)
+            rows.append((h.episodes, h.env_steps, repr(e.paper_metric), repr(e.team_return), e.length, wall))
+        self.rd.append_episodes(rows)
+        return h.episodes >= cfg.episodes
+
+    def summary(self, t_start: float) -> dict:
+        elapsed = time.perf_counter() - t_start
+        lat = np.array(self.h.step_latency_ms) if self.h.step_latency_ms else np.zeros(1)
+        recent = list(self.h.recent)
+        return {
+            "episodes": self.h.episodes, "env_steps": self.h.env_steps, "updates": self.h.update,
+            "final_paper_metric_last500": float(np.mean(recent)) if recent else None,
+            "env_steps_per_s": self.h.env_steps / max(elapsed, 1e-9),
+            "step_latency_ms_p50": float(np.percentile(lat, 50)),
+            "step_latency_ms_p99": float(np.percentile(lat, 99)),
+            "wall_time": elapsed, "n_agents": self.cfg.n_agents, "episode_length": int(self.spec.max_steps),
+            "variant": self.cfg.variant, "central_mode": self.cfg.central_mode, "env": self.cfg.env,
+            "links": self.c.as_dict(), "completed": self.h.episodes >= self.cfg.episodes,
+        }

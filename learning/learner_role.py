@@ -1,0 +1,210 @@
+"""The distributed learner process: experience in, versioned weights out.
+
+It receives the env host's rollout (one ExperienceChunk per update, tagged with the policy
+version that produced it) and, when the central agent holds information the update needs (rl
+mode: Gaussian samples, their log-densities and the central critic's values; message dropout:
+which messages were dropped), the central agent's per-step records. It rebuilds exactly the
+rollout buffer the in-process trainer would have filled, recomputes the acting-time log-probs and
+values with the same networks (it holds the version that acted), runs the shared
+`TeamLearner.learn`, and publishes the next version's weights as safetensors blobs.
+
+One learner trains both networks ("team"): in backprop mode the local loss flows into the central
+network, so splitting them across processes would need a gradient exchange per minibatch.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.numpy import save as save_safetensors
+
+from envs.base import EnvSpec
+from learning.config import RunConfig
+from learning.learner import TeamLearner
+from learning.rundir import RunDir
+from protocol.schemas import Control, ExperienceChunk, Heartbeat, Weights
+from protocol.session import HammerSession
+
+log = logging.getLogger("hammer.learner")
+_LOG_2PI = float(np.log(2 * np.pi))
+
+
+class ChunkError(ValueError):
+    """An experience chunk whose arrays do not fit this run (named array and what is wrong)."""
+
+
+def expected_arrays(cfg: RunConfig, spec: EnvSpec, act_dim: int, msg_dim: int) -> dict[str, tuple[tuple, str]]:
+    """Name -> (shape, dtype) of the env host's rollout chunk."""
+    t, k, n, d = cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim
+    a_shape = spec.action_shape
+    return {
+        "obs": ((t, k, n, d), "float32"), "prev": ((t, k, n, act_dim), "float32"),
+        "msg": ((t, k, n, msg_dim), "float32"),
+        "actions": ((t, k, n, *a_shape), "int64" if spec.discrete else "float32"),
+        "rewards": ((t, k, n), "float32"), "terminated": ((t, k, n), "bool"), "truncated": ((t, k, n), "bool"),
+        "active": ((t, k, n), "bool"), "reset": ((t, k, n), "bool"),
+        "final_obs": ((t, k, n, d), "float32"), "final_prev": ((t, k, n, act_dim), "float32"),
+        "defaulted": ((t, k, n), "bool"), "steps": ((t,), "int64"),
+        "last_obs": ((k, n, d), "float32"), "last_prev": ((k, n, act_dim), "float32"),
+    }
+
+
+def check_chunk(arrays: dict[str, np.ndarray], expected: dict[str, tuple[tuple, str]]) -> None:
+    missing = sorted(set(expected) - set(arrays))
+    if missing:
+        raise ChunkError(f"experience chunk lacks arrays {missing}")
+    for name, (shape, dtype) in expected.items():
+        a = arrays[name]
+        if a.shape != shape or a.dtype != np.dtype(dtype):
+            raise ChunkError(f"array {name}: got {a.dtype}{a.shape}, expected {dtype}{shape}")
+
+
+def weights_blob(params: dict[str, np.ndarray]) -> bytes:
+    return save_safetensors({k: np.ascontiguousarray(v) for k, v in params.items()})
+
+
+class RemoteRollout:
+    """Fills a TeamLearner's buffer from a rollout chunk (+ central records) as the trainer would."""
+
+    def __init__(self, learner: TeamLearner, spec: EnvSpec) -> None:
+        self.learner, self.spec = learner, spec
+        self.team = learner.team
+
+    @torch.no_grad()
+    def fill(self, r: dict[str, np.ndarray], central: dict[int, dict[str, np.ndarray]] | None) -> int:
+        """Returns how many steps lacked a central record (their messages count as not kept)."""
+        team, buf = self.team, self.learner.buf
+        missing = 0
+        buf.reset[:] = r["reset"]
+        buf.actions[:] = r["actions"]
+        buf.rewards[:], buf.terminated[:], buf.truncated[:] = r["rewards"], r["terminated"], r["truncated"]
+        buf.active[:] = r["active"]
+        buf.final_values[:] = 0.0
+        buf.c_final_values[:] = 0.0
+        for t in range(buf.t):
+            obs, msg = r["obs"][t], r["msg"][t]
+            buf.obs[t], buf.msg[t] = obs, msg
+            buf.state[t] = team.global_state(obs, r["prev"][t])
+            if central is not None:
+                rec = central.get(int(r["steps"][t]))
+                if rec is None:  # the central agent never saw this step: agents acted on fallbacks
+                    missing += 1
+                    buf.msg_raw[t], buf.c_logp[t], buf.c_values[t], buf.keep[t] = msg, 0.0, 0.0, 0.0
+                else:
+                    buf.msg_raw[t], buf.c_logp[t], buf.c_values[t] = rec["msg_raw"], rec["c_logp"], rec["c_values"]
+                    buf.keep[t] = rec["keep"]
+            else:
+                buf.msg_raw[t], buf.keep[t] = msg, 1.0
+                buf.c_logp[t], buf.c_values[t] = 0.0, 0.0
+            x = team.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
+            out = team.local.actor_out(x)
+            buf.values[t] = team.local.value(x).numpy()
+            if self.spec.discrete:
+                logp = torch.log_softmax(out, -1).gather(-1, torch.from_numpy(r["actions"][t])[..., None])[..., 0]
+                buf.logp[t] = logp.numpy()
+            else:
+                log_std = team.local.log_std.numpy()
+                z = (r["actions"][t] - out.numpy()) / np.exp(log_std)
+                buf.logp[t] = (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1)
+            if r["reset"][t].any():
+                idx = np.flatnonzero(r["reset"][t].any(axis=1))
+                fobs = r["final_obs"][t][idx]
+                fstate = team.global_state(fobs, r["final_prev"][t][idx])
+                buf.final_values[t, idx] = team.local_values(fobs, team.bootstrap_messages(fstate))
+                buf.c_final_values[t, idx] = team.central_values(fstate)
+        return missing
+
+
+def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir,
+                central_wait_s: float = 5.0) -> dict[str, Any]:
+    from central_agent.server import needs_central_record
+
+    keys = session.keys
+    learner = TeamLearner(cfg, spec)
+    team = learner.team
+    rollout = RemoteRollout(learner, spec)
+    expected = expected_arrays(cfg, spec, team.act_dim, team.msg_dim)
+    exp_sub = session.subscribe(keys.exp("team"), ExperienceChunk)
+    records = needs_central_record(cfg)
+    c_sub = session.subscribe(keys.exp("central"), ExperienceChunk) if records else None
+    ctl_sub = session.subscribe(keys.ctl("all"), Control)
+    w_local = session.publisher(keys.weights("local"))
+    w_central = session.publisher(keys.weights("central")) if team.central is not None else None
+    hb = session.publisher(keys.heartbeat("learner"), reliable=False)
+    tb = rd.tensorboard()
+    session.declare_alive("learner")
+
+    update = 0
+    stats = {"updates": 0, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0}
+    central_recs: dict[int, dict[str, np.ndarray]] = {}
+
+    def publish_weights() -> None:
+        w_local.publish(Weights.from_blob("local", update, weights_blob(team.local.export_numpy())))
+        if w_central is not None:
+            w_central.publish(Weights.from_blob("central", update, weights_blob(team.central.export_numpy())))
+
+    def take_central() -> None:
+        for rec in c_sub.drain():
+            if rec.policy_version == update:
+                central_recs[rec.step] = rec.arrays
+
+    publish_weights()
+    last_pub = last_hb = time.monotonic()
+    while True:
+        if any(c.command in ("stop", "shutdown") and c.target in ("*", "learner") for c in ctl_sub.drain()):
+            break
+        now = time.monotonic()
+        if now - last_hb > 1.0:
+            hb.publish(Heartbeat(role="learner", pid=os.getpid(), status="running",
+                                 counters={**stats, "policy_version": update}))
+            last_hb = now
+        if c_sub is not None:
+            take_central()
+        chunk = exp_sub.get(timeout=0.2)
+        if chunk is None:
+            if time.monotonic() - last_pub > 1.0:  # late joiners (a restarted agent) get the current policy
+                publish_weights()
+                last_pub = time.monotonic()
+            continue
+        if chunk.policy_version != update:
+            stats["stale_chunks"] += 1
+            log.warning("experience of version %d while at %d: discarded", chunk.policy_version, update)
+            continue
+        try:
+            check_chunk(chunk.arrays, expected)
+        except ChunkError as e:
+            stats["bad_chunks"] += 1
+            log.error("bad experience chunk: %s", e)
+            continue
+        r = chunk.arrays
+        if c_sub is not None:
+            need = {int(s) for s in r["steps"]}
+            deadline = time.monotonic() + central_wait_s
+            while not need <= central_recs.keys() and time.monotonic() < deadline:
+                rec = c_sub.get(timeout=0.05)
+                if rec is not None and rec.policy_version == update:
+                    central_recs[rec.step] = rec.arrays
+        missing = rollout.fill(r, central_recs if c_sub is not None else None)
+        stats["central_steps_missing"] += missing
+        central_recs.clear()
+        logs = learner.learn(r["last_obs"], r["last_prev"], update)
+        update += 1
+        stats["updates"] = update
+        stats["samples"] += int(r["active"].sum())
+        publish_weights()
+        last_pub = time.monotonic()
+        for name, v in logs.items():
+            tb.add_scalar(f"train/{name}", v, update)
+        if update % cfg.checkpoint_every == 0:
+            tensors, meta = learner.state_tensors()
+            meta.update(update=update, config=cfg.model_dump(mode="json"))
+            rd.save_checkpoint(update, tensors, meta)
+    rd.export_policy(team.local.export_numpy(), team.central.export_numpy() if team.central is not None else None,
+                     {"variant": cfg.variant, "central_mode": cfg.central_mode, "version": str(update)})
+    log.info("stopped: %s", stats)
+    return stats
