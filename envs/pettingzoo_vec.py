@@ -19,12 +19,16 @@ from typing import Any
 import numpy as np
 
 from envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
+from envs.registry import EnvConfigError
 
 ParallelEnvFactory = Callable[[], Any]
 
 
-class EnvSpaceError(ValueError):
-    """The env's spaces cannot be expressed as the fixed (K, N, D) arrays of the VecEnv contract."""
+class EnvSpaceError(EnvConfigError):
+    """The env's spaces cannot be expressed as the fixed (K, N, D) arrays of the VecEnv contract.
+
+    A subclass of `EnvConfigError`, so callers that catch configuration mistakes catch this too.
+    """
 
 
 def spec_from_parallel_env(env: Any, name: str, max_steps: int | None = None) -> EnvSpec:
@@ -60,8 +64,9 @@ def spec_from_parallel_env(env: Any, name: str, max_steps: int | None = None) ->
                 "homogeneous (same action space) because they share one policy. Pad the action spaces "
                 "to one size (e.g. supersuit.pad_action_space_v0)."
             )
-    if max_steps is None:
-        max_steps = int(getattr(env.unwrapped, "max_cycles", 0) or 0)
+    if max_steps is None:  # PettingZoo envs keep it as max_cycles, some one level down (multiwalker)
+        raw = env.unwrapped
+        max_steps = int(getattr(raw, "max_cycles", None) or getattr(getattr(raw, "env", None), "max_cycles", 0) or 0)
     if isinstance(a0, spaces.Discrete):
         if int(a0.start) != 0:
             raise EnvSpaceError(f"env {name!r}: Discrete action_space must start at 0, got start={a0.start}")

@@ -104,3 +104,11 @@ def test_cli_envs_list_shows_dims():
     assert rows["mw"] == ["5", "31", "4 in [-1, 1]", "500"]
     assert rows["cn-mpe2"] == ["5", "30", "5 discrete", "25"]
     assert rows["cn"][:2] == ["5", "30"]
+
+
+def test_space_errors_are_config_errors_and_max_steps_is_found():
+    assert issubclass(EnvSpaceError, EnvConfigError)
+    v = make_vec_env("pettingzoo.sisl.multiwalker_v9:parallel_env", 3, 1, env_kwargs={"max_cycles": 77})
+    assert v.spec.max_steps == 77
+    v = make_vec_env("pettingzoo.sisl.multiwalker_v9:parallel_env", 3, 1)
+    assert v.spec.max_steps == 500
