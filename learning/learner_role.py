@@ -14,6 +14,7 @@ network, so splitting them across processes would need a gradient exchange per m
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -206,5 +207,6 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
             rd.save_checkpoint(update, tensors, meta)
     rd.export_policy(team.local.export_numpy(), team.central.export_numpy() if team.central is not None else None,
                      {"variant": cfg.variant, "central_mode": cfg.central_mode, "version": str(update)})
+    (rd.path / "learner_summary.json").write_text(json.dumps({**stats, "policy_version": update}, indent=1))
     log.info("stopped: %s", stats)
     return stats
