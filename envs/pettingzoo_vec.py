@@ -218,6 +218,13 @@ class PettingZooVecEnv(VecEnv):
                     raise RuntimeError(f"env {spec.name!r} copy {k + self.index_offset} has no agents "
                                        "right after reset()")
 
+        if spec.max_steps:
+            # Some envs (multiwalker) report their time limit as a termination; PPO must bootstrap
+            # there, so an episode that ends exactly at max_steps counts as truncated.
+            at_limit = done & (self.tracker.length + 1 >= spec.max_steps)
+            if at_limit.any():
+                truncated[at_limit] |= terminated[at_limit]
+                terminated[at_limit] = False
         episodes = self.tracker.record(reward, active, done)
         if self.index_offset:
             episodes = [type(e)(e.env_index + self.index_offset, e.paper_metric, e.team_return, e.length)

@@ -227,3 +227,17 @@ def test_step_before_reset_and_wrong_action_shape_are_clear_errors():
     v.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(K, N\)"):
         v.step(np.zeros((2, 4), dtype=np.int64))
+
+
+def test_multiwalker_time_limit_is_a_truncation_not_a_termination():
+    """multiwalker marks its max_cycles limit as a termination; the wrapper turns it into a
+    truncation so learners bootstrap there (a fall before the limit stays a termination)."""
+    from envs.registry import make_vec_env
+
+    env = make_vec_env("mw", 3, 1, env_kwargs={"max_cycles": 8, "terminate_on_fall": False})
+    env.reset(0)
+    zero = np.zeros((1, 3, 4), np.float32)
+    for t in range(8):
+        st = env.step(zero)
+    assert st.done[0] and st.truncated[0].all() and not st.terminated[0].any()
+    env.close()
