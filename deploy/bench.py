@@ -1,19 +1,44 @@
-"""`hammer bench runtime`: the distributed runtime against the in-process trainer, same config, same run.
+"""Runtime benchmarks: the distributed runtime against the in-process trainer, same config, same run.
 
-For each preset it trains the same number of episodes twice: in-process (`learning.trainer`) and
-as separate processes over Zenoh (`deploy.up.launch`), and reports env-steps/s of both (PPO updates
-included in both), their ratio, and the control-loop latency of the distributed step (env host
-publishes observations -> every action is back), p50 and p99.
+`bench_runtime` trains the same number of episodes twice per preset: in-process
+(`learning.trainer`) and as separate processes over Zenoh (`deploy.up.launch`), and reports the
+env-steps/s of both (PPO updates included in both), their ratio, the control-loop latency of the
+distributed step (env host publishes observations -> every action is back) p50/p99, and the peak
+resident memory of every role process. `raw_env_steps` measures the environment alone (the
+ceiling).
 """
 
 from __future__ import annotations
 
+import csv
 import os
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
+
+
+def raw_env_steps(env_name: str, n_agents: int, num_envs: int, seconds: float = 2.0) -> float:
+    """Env-copy steps per second of the bare VecEnv with uniform random actions."""
+    from envs.registry import make_vec_env
+
+    env = make_vec_env(env_name, n_agents, num_envs)
+    spec = env.spec
+    rng = np.random.default_rng(0)
+    env.reset(0)
+    if spec.discrete:
+        acts = [rng.integers(0, spec.action_dim, (num_envs, n_agents)) for _ in range(64)]
+    else:
+        acts = [rng.uniform(-1, 1, (num_envs, n_agents, spec.action_dim)).astype(np.float32) for _ in range(64)]
+    steps, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        env.step(acts[steps % 64])
+        steps += 1
+    rate = steps * num_envs / (time.perf_counter() - t0)
+    env.close()
+    return rate
 
 
 def _train(cfg, path: Path) -> dict:
@@ -23,8 +48,35 @@ def _train(cfg, path: Path) -> dict:
     return train(cfg, RunDir.create(path, cfg), tensorboard=False)
 
 
+def _same_metrics(a: Path, b: Path) -> bool:
+    def col(p: Path) -> list[str]:
+        with open(p / "metrics.csv", newline="") as f:
+            return [r["paper_metric"] for r in csv.DictReader(f)]
+
+    return col(a) == col(b)
+
+
+class RssSampler:
+    """Peak RSS (MiB) of every role process, sampled from the launcher's tick."""
+
+    def __init__(self) -> None:
+        self.peak: dict[str, float] = {}
+
+    def __call__(self, sup, board) -> None:
+        for name in list(sup.roles):
+            pid = sup.pid(name)
+            if pid is None:
+                continue
+            try:
+                rss = psutil.Process(pid).memory_info().rss / 2**20
+            except psutil.Error:
+                continue
+            kind = "local" if name.startswith("local-") else name
+            self.peak[kind] = max(self.peak.get(kind, 0.0), rss)
+
+
 def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", central_mode: str = "backprop",
-                  out: Path | None = None) -> list[dict]:
+                  out: Path | None = None, raw: bool = True) -> list[dict]:
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
     from learning.config import merge_config
@@ -36,30 +88,26 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
             cfg = merge_config(preset, overrides=[f"episodes={episodes}", f"variant={variant}",
                                                   f"central_mode={central_mode}"])
             load0 = os.getloadavg()[0]
+            raw_rate = raw_env_steps(cfg.env, cfg.n_agents, cfg.num_envs) if raw else float("nan")
             t0 = time.perf_counter()
             tr = _train(cfg, root / f"{preset}-train")
             t_train = time.perf_counter() - t0
             settings = RuntimeSettings(run_id=f"bench-{preset}-{os.getpid()}")
-            res = launch(cfg, settings, root / f"{preset}-up")
+            rss = RssSampler()
+            res = launch(cfg, settings, root / f"{preset}-up", chaos=rss)
             s = res.summary
+            train_rate = tr["env_steps_per_s_this_session"]
             rows.append({
                 "preset": preset, "variant": variant, "central_mode": central_mode, "episodes": episodes,
-                "num_envs": cfg.num_envs, "n_agents": cfg.n_agents,
-                "train_env_steps_per_s": tr["env_steps_per_s_this_session"], "train_wall_s": t_train,
+                "num_envs": cfg.num_envs, "n_agents": cfg.n_agents, "rollout_steps": cfg.rollout_steps,
+                "raw_env_steps_per_s": raw_rate,
+                "train_env_steps_per_s": train_rate, "train_wall_s": t_train,
                 "up_env_steps_per_s": s["env_steps_per_s"], "up_wall_s": res.wall_time,
-                "ratio_up_over_train": s["env_steps_per_s"] / tr["env_steps_per_s_this_session"],
+                "ratio_train_over_raw": train_rate / raw_rate if raw else float("nan"),
+                "ratio_up_over_train": s["env_steps_per_s"] / train_rate,
                 "step_latency_ms_p50": s["step_latency_ms_p50"], "step_latency_ms_p99": s["step_latency_ms_p99"],
+                "rss_mib": {k: round(v, 1) for k, v in sorted(rss.peak.items())},
                 "same_metrics": _same_metrics(root / f"{preset}-train", root / f"{preset}-up"),
-                "loadavg_1m_before": load0, "cpu_count": psutil.cpu_count(),
+                "loadavg_1m_before": load0, "loadavg_1m_after": os.getloadavg()[0], "cpu_count": psutil.cpu_count(),
             })
     return rows
-
-
-def _same_metrics(a: Path, b: Path) -> bool:
-    import csv
-
-    def col(p: Path) -> list[str]:
-        with open(p / "metrics.csv", newline="") as f:
-            return [r["paper_metric"] for r in csv.DictReader(f)]
-
-    return col(a) == col(b)

@@ -18,9 +18,26 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseline measured in the same run).",
-                    no_args_is_help=True)
+bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseline measured in the same run). "
+                         "Without a subcommand: the whole-system table (raw env, train, up, latency, RSS).",
+                    invoke_without_command=True)
 app.add_typer(bench, name="bench")
+
+
+@bench.callback()
+def bench_all(
+    ctx: typer.Context,
+    episodes: int = typer.Option(320, help="Episodes per runner and preset."),
+    json_dir: str = typer.Option("docs/results", "--json-dir", help="Write bench-<date>.json here ('' to skip)."),
+) -> None:
+    """Whole-system figures in one run; subcommands measure one part each."""
+    if ctx.invoked_subcommand is not None:
+        return
+    from pathlib import Path
+
+    from hammer.bench_suite import run_suite
+
+    run_suite(episodes, Path(json_dir) if json_dir else None)
 
 
 def _register_all() -> None:
