@@ -48,6 +48,9 @@ def _register_all() -> None:
     from learning import cli as learning_cli
     from protocol import cli as protocol_cli
 
+    from deploy.hub import hub_command
+
+    app.command("hub")(hub_command)
     for area in (protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli):
         area.register(app, bench)
 
