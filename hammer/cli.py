@@ -43,12 +43,11 @@ def bench_all(
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
     from deploy import cli as deploy_cli
+    from deploy.hub import hub_command
     from envs import cli as envs_cli
     from experiments import cli as experiments_cli
     from learning import cli as learning_cli
     from protocol import cli as protocol_cli
-
-    from deploy.hub import hub_command
 
     app.command("hub")(hub_command)
     for area in (protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli):
