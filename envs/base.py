@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
 
@@ -101,10 +102,10 @@ class VecEnv(abc.ABC):
     def step(self, actions: np.ndarray) -> VecStep:
         """Step every copy with one action per agent; copies whose episode ends are reset."""
 
-    def close(self) -> None:  # noqa: B027 - optional hook
+    def close(self) -> None:
         """Release workers or simulator resources."""
 
-    def __enter__(self) -> VecEnv:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

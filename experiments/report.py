@@ -51,9 +51,9 @@ def build_rows(runs: list[Run], last: int = 500) -> list[Row]:
 
 def to_markdown(rows: list[Row], last: int) -> str:
     out = [
-        f"Final performance = mean paper metric (average reward per local agent per episode) over each "
-        f"seed's last {last} episodes; mean ± standard error over seeds; p = Welch's t-test against IL "
-        f"in the same setting.",
+        (f"Final performance = mean paper metric (average reward per local agent per episode) over each "
+         f"seed's last {last} episodes; mean ± standard error over seeds; p = Welch's t-test against IL "
+         f"in the same setting."),
         "",
         "| setting | variant | seeds | episodes | final (mean ± s.e.) | p vs IL |",
         "| --- | --- | ---: | ---: | ---: | ---: |",

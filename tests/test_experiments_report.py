@@ -29,7 +29,7 @@ def write_run(root, name, cfg, metric):
 def runs_dir(tmp_path):
     rng = np.random.default_rng(0)
     for seed in range(4):
-        base = dict(env="cn", n_agents=3, seed=seed, msg_dim=4)
+        base = {"env": "cn", "n_agents": 3, "seed": seed, "msg_dim": 4}
         write_run(tmp_path, f"il-s{seed}", {**base, "variant": "il"}, rng.normal(-20, 1, 800))
         write_run(tmp_path, f"hm-s{seed}", {**base, "variant": "hammer", "central_mode": "backprop"},
                   rng.normal(-18, 1, 800) - np.linspace(2, 0, 800))

@@ -37,7 +37,7 @@ def _processes_mentioning(text: str) -> list[psutil.Process]:
 
 
 def _hammer(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hammer.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT, env={**os.environ, "HAMMER_TORCH_THREADS": "1"})
 
 
