@@ -1,0 +1,30 @@
+"""The lightweight edge: local-agent processes of a real `hammer up` run never load torch."""
+
+from __future__ import annotations
+
+import psutil
+
+from deploy.settings import RuntimeSettings
+from deploy.up import launch
+from learning.config import merge_config
+
+
+def _maps_torch(pid: int) -> bool:
+    return any("libtorch" in m.path for m in psutil.Process(pid).memory_maps())
+
+
+def test_local_agents_run_without_torch(tmp_path):
+    cfg = merge_config("cn3", overrides=["episodes=64"])
+    seen: dict[str, bool] = {}
+
+    def inspect(sup, board) -> None:
+        if seen or len(board.heartbeats) < 3:
+            return
+        for name in ("local-0", "local-2", "central"):
+            pid = sup.pid(name)
+            if pid is not None:
+                seen[name] = _maps_torch(pid)
+
+    res = launch(cfg, RuntimeSettings(run_id="edge"), tmp_path / "run", chaos=inspect)
+    assert res.summary["completed"]
+    assert seen == {"local-0": False, "local-2": False, "central": True}  # central is the torch server
