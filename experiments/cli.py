@@ -19,6 +19,19 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
+def _load(paths: list[Path]) -> list:
+    """Every run under `paths`, or a one-line error."""
+    from experiments.runs import find_runs, load_run
+
+    try:
+        loaded = [load_run(p) for p in find_runs(paths)]
+    except FileNotFoundError as e:
+        _fail(str(e))
+    if not loaded:
+        _fail("no run directories (with metrics.csv) found under the given paths")
+    return loaded
+
+
 def sweep(
     out: Annotated[Path, typer.Option(help="Sweep directory; one run directory per grid point inside it.")],
     presets: Annotated[str, typer.Option(help="Comma-separated presets, e.g. cn3,cn5.")] = "cn3",
@@ -64,15 +77,8 @@ def plot(
 ) -> None:
     """Learning curves: paper metric vs episodes, mean over seeds with a standard-error band."""
     from experiments.plot import plot_runs
-    from experiments.runs import find_runs, load_run
 
-    try:
-        loaded = [load_run(p) for p in find_runs(runs)]
-    except FileNotFoundError as e:
-        _fail(str(e))
-    if not loaded:
-        _fail("no run directories (with metrics.csv) found under the given paths")
-    for p in plot_runs(loaded, out, window=window):
+    for p in plot_runs(_load(runs), out, window=window):
         typer.echo(f"wrote {p}")
 
 
@@ -83,15 +89,8 @@ def report(
 ) -> None:
     """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL."""
     from experiments.report import build_rows, to_markdown
-    from experiments.runs import find_runs, load_run
 
-    try:
-        loaded = [load_run(p) for p in find_runs(runs)]
-    except FileNotFoundError as e:
-        _fail(str(e))
-    if not loaded:
-        _fail("no run directories (with metrics.csv) found under the given paths")
-    md = to_markdown(build_rows(loaded, last), last)
+    md = to_markdown(build_rows(_load(runs), last), last)
     typer.echo(md)
     if out:
         out.write_text(md)
