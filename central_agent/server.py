@@ -9,6 +9,10 @@ When the learner needs what only the central agent knows (rl mode: the Gaussian 
 log-density and the central critic's value; any mode with message dropout: which messages were
 dropped), the server publishes a small per-step record to `learn/central/exp`, tagged with the
 step, so the learner can join it with the env host's rollout.
+
+When states queue up (the server was paused, or restarted and waited for weights), only the
+newest is served: messages for steps the local agents have already acted on would be discarded
+as late anyway. Without faults there is never more than one state queued, so this changes nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import numpy as np
 from safetensors.numpy import load as load_safetensors
 
 from envs.base import EnvSpec
+from faults.links import flat_fault_counters
 from learning.config import RunConfig
 from learning.sampling import ActingStreams
 from learning.team import Team
@@ -35,6 +40,7 @@ log = logging.getLogger("hammer.central")
 class CentralCounters:
     steps: int = 0
     states_stale: int = 0  # a state for a step already served (duplicate / reordered)
+    states_skipped: int = 0  # an older state still queued when a newer one was there (after a pause)
     weights_loaded: int = 0
     weights_wait_timeouts: int = 0
 
@@ -100,7 +106,8 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
         now = time.monotonic()
         if now - last_hb > 1.0:
             hb_pub.publish(Heartbeat(role="central", pid=os.getpid(), status="running",
-                                     counters={**c.as_dict(), "policy_version": version}))
+                                     counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
+                                               "policy_version": version}))
             last_hb = now
         s = state_sub.get(timeout=0.2)
         if s is None:
@@ -112,6 +119,12 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
             c.states_stale += 1
             continue
         take_weights(s.policy_version)
+        for newer in state_sub.drain():  # serve the newest queued state only
+            if newer.step > s.step:
+                c.states_skipped += 1
+                s = newer
+            else:
+                c.states_stale += 1
         state = team.global_state(s.obs, s.prev_actions)
         out = team.central_messages(state, streams, cfg.msg_dropout)
         for i in range(n):

@@ -24,9 +24,67 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("central")(roles.central_command)
     app.command("local")(roles.local_command)
     app.command("learner")(roles.learner_command)
+    bench.command("runtime")(bench_runtime_command)
 
 
-def _dashboard_table(board, cfg, started: float):
+def bench_runtime_command(
+    presets: Annotated[str, typer.Option(help="Comma-separated presets to measure.")] = "cn3,cn5",
+    episodes: Annotated[int, typer.Option(help="Episodes per measurement (same for both runners).")] = 320,
+    variant: Annotated[str, typer.Option(help="Variant to run.")] = "hammer",
+    central_mode: Annotated[str, typer.Option(help="Central mode (hammer).")] = "backprop",
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
+    import json
+    import os
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from deploy.bench import bench_runtime
+
+    logging.basicConfig(level=logging.WARNING)
+    rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
+    t = Table(title=f"hammer bench runtime ({variant}/{central_mode}, {episodes} episodes each, "
+                    f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
+    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "loop p50 ms", "loop p99 ms",
+                "same metrics"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
+                  f"{r['ratio_up_over_train']:.2f}", f"{r['step_latency_ms_p50']:.2f}",
+                  f"{r['step_latency_ms_p99']:.2f}", str(r["same_metrics"]))
+    Console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(rows, indent=1))
+
+
+def _links_table(board, cfg, settings):
+    """Configured faults and their live effect per link (from the roles' heartbeats)."""
+    from rich.table import Table
+
+    from faults.links import COLUMNS, collect_role_counters, link_table
+    from faults.spec import LinkFault
+
+    plan = [LinkFault.model_validate(d) for d in settings.fault_links]
+    title = "faults: " + ("; ".join(lf.describe() for lf in plan) if plan else
+                          "custom rules" if settings.faults and settings.faults.enabled else "none")
+    if settings.chaos:
+        title += f" | chaos: {', '.join(settings.chaos)}"
+    t = Table(title=title, show_header=True, expand=False)
+    t.add_column("link")
+    for col in COLUMNS:
+        t.add_column(col, justify="right")
+    roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
+    for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
+        t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+    for ev in board.chaos_log[-3:]:
+        t.add_row("chaos", f"t={ev['t']:.0f}s step {ev['step']}: {ev['event']}", *[""] * (len(COLUMNS) - 1))
+    return t
+
+
+def _dashboard_table(board, cfg, started: float, settings=None):
+    from rich.console import Group
     from rich.table import Table
 
     env = board.heartbeats.get("env")
@@ -48,7 +106,9 @@ def _dashboard_table(board, cfg, started: float):
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
     t.add_row("elapsed", f"{time.monotonic() - started:,.0f} s")
-    return t
+    if settings is None:
+        return t
+    return Group(t, _links_table(board, cfg, settings))
 
 
 def up_command(
@@ -62,6 +122,13 @@ def up_command(
     runtime: Annotated[list[str] | None, typer.Option(
         "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, fallback=last.")] = None,
     faults: Annotated[Path | None, typer.Option(help="JSON/YAML FaultSpec file (seeded drop/delay/duplicate/reorder rules).")] = None,
+    fault: Annotated[list[str] | None, typer.Option(
+        "--fault", help="Link fault, repeatable: LINK:FIELD=VALUE,... with LINK env->central | env->local | "
+                        "central->local | local->env, e.g. 'central->local:agent=1,drop=0.2,delay_ms=5,jitter_ms=2'.")] = None,
+    fault_seed: Annotated[int | None, typer.Option(help="Seed of the link faults (same seed, same faults).")] = None,
+    chaos: Annotated[list[str] | None, typer.Option(
+        "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S] with ACTION kill | pause | "
+                        "resume | restart, e.g. 'kill:central@step=2000' or 'pause:local-1@t=10s,for=3s'.")] = None,
     out: Annotated[str, typer.Option(help="Root directory for run directories.")] = "runs",
     run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/up-<name>-<time>).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
@@ -71,6 +138,10 @@ def up_command(
     Starts the learner, the central agent (hammer/random), one client per local agent and the env
     host, each a fresh interpreter; waits until all are alive; trains to the episode budget;
     stops everything. Ctrl-C stops cleanly. Logs of every process are in RUN_DIR/logs/.
+
+    The YAML file may also hold `faults:` ({seed, links: [...]} with link faults as mappings or
+    --fault strings), `chaos:` (a list of --chaos strings) and `runtime:` (RuntimeSettings fields).
+    Per-link counters end up in RUN_DIR/links.json, per-episode ones in RUN_DIR/episode_links.csv.
     """
     import yaml
     from rich.console import Console
@@ -78,18 +149,41 @@ def up_command(
 
     from deploy.settings import RuntimeSettings
     from deploy.up import UpError, launch
-    from learning.config import ConfigError, merge_config
+    from faults.chaos import ChaosSpecError, parse_chaos
+    from faults.spec import FaultSpecError, build_plan
+    from learning.config import ConfigError, load_yaml, merge_config
     from protocol.faults import FaultSpec
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
     try:
-        cfg = merge_config(preset, config, set_ or [], {"variant": variant or "hammer", "central_mode": central_mode,
-                                                        "seed": seed, "episodes": episodes, "out": out})
+        data = load_yaml(config) if config is not None else {}
+        fault_section, chaos_section = data.pop("faults", None), data.pop("chaos", None) or []
+        runtime_section = data.pop("runtime", None) or {}
+        flags = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes, "out": out}
+        extra = {**data, **{k: v for k, v in flags.items() if v is not None}}
+        extra.setdefault("variant", "hammer")
+        cfg = merge_config(preset, None, set_ or [], extra)
     except ConfigError as e:
         _fail(str(e))
+    try:
+        plan = build_plan(fault, fault_seed, fault_section)
+        chaos_items = [*chaos_section, *(chaos or [])]
+        for c in chaos_items:
+            parse_chaos(c)
+    except (FaultSpecError, ChaosSpecError) as e:
+        _fail(str(e))
+    if not isinstance(runtime_section, dict):
+        _fail(f"{config}: runtime: must be a mapping of RuntimeSettings fields")
     path = run_dir or Path(out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
-    rt: dict = {"run_id": path.name.replace("_", "-")[:64]}
+    rt: dict = {"run_id": path.name.replace("_", "-")[:64], **runtime_section}
+    if plan.links:
+        if faults is not None:
+            _fail("--faults FILE and --fault/faults: link rules cannot be combined; fix: use one of them")
+        rt["faults"] = plan.to_spec()
+        rt["fault_links"] = [lf.model_dump() for lf in plan.links]
+    if chaos_items:
+        rt["chaos"] = chaos_items
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
@@ -105,9 +199,14 @@ def up_command(
     except Exception as e:  # noqa: BLE001
         _fail(f"--runtime: {' '.join(str(e).split())}")
     console.print(f"run dir: {path}")
-    if settings.faults is not None and settings.faults.enabled:
+    if plan.links:
+        for lf in plan.links:
+            console.print(f"fault: {lf.describe()} (seed {plan.seed})")
+    elif settings.faults is not None and settings.faults.enabled:
         for r in settings.faults.rules:
             console.print(f"fault rule: {r.model_dump()}")
+    for c in settings.chaos:
+        console.print(f"chaos: {c}")
     started = time.monotonic()
     live = None
     last_line = [0.0]
@@ -117,7 +216,7 @@ def up_command(
 
     def tick(board) -> None:
         if live is not None:
-            live.update(_dashboard_table(board, cfg, started))
+            live.update(_dashboard_table(board, cfg, started, settings))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
             env = board.heartbeats.get("env")
@@ -125,7 +224,8 @@ def up_command(
             console.print(f"episodes {int(c.get('episodes', 0))}/{cfg.episodes}  "
                           f"env-steps/s {board.env_rate():,.0f}  metric(100) {c.get('paper_metric_100', 0):.2f}  "
                           f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "
-                          f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}")
+                          f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}"
+                          + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
     try:
         res = launch(cfg, settings, path, on_tick=tick)
@@ -144,3 +244,6 @@ def up_command(
     console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-500 paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
+    if settings.faults is not None or settings.chaos:
+        for link, row in res.links.items():
+            console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))

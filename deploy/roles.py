@@ -74,6 +74,24 @@ def _read_config(run_dir: Path):
     return build_config(json.loads(path.read_text()))
 
 
+def _fault_counters(session) -> dict:
+    from faults.links import flat_fault_counters
+
+    return flat_fault_counters(session.fault_report())
+
+
+def _write_counters(run_dir: Path, role: str, counters: dict) -> None:
+    """Final counters of this process for the launcher's per-link table (faults.links)."""
+    import os
+
+    from faults.links import write_role_counters
+
+    try:
+        write_role_counters(run_dir, role, os.getpid(), counters)
+    except OSError as e:  # a remote role without the run dir mounted: heartbeats are all the launcher has
+        logging.getLogger("hammer.deploy").warning("could not write counters: %s", e)
+
+
 def _fail(msg: str) -> None:
     typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
     raise typer.Exit(2)
@@ -106,6 +124,7 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
             c = run_local_agent(s, aspec, int(cfg["num_envs"]), settings.fallback, settings.fallback_k,
                                 settings.msg_deadline_ms / 1e3, settings.weights_timeout_s)
             logging.getLogger("hammer.local").info("stopped: %s", c.as_dict())
+            _write_counters(run_dir, f"local-{agent}", {**c.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
         pass
 
@@ -125,6 +144,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             c = run_central(s, cfg, spec, settings.weights_timeout_s)
             logging.getLogger("hammer.central").info("stopped: %s", c.as_dict())
+            _write_counters(run_dir, "central", {**c.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
         pass
 
@@ -148,9 +168,13 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
             s.declare_alive("env")
-            host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s)
-            summary = host.run()
+            host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
+                           trace=settings.trace)
+            summary = host.run_eval() if settings.mode == "eval" else host.run()
             summary["faults"] = s.fault_report()
+            host.write_episode_links()
+            _write_counters(run_dir, "env", {**host.c.as_dict(), **_fault_counters(s), "step": host.h.step,
+                                             "episodes": host.h.episodes})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
@@ -169,8 +193,6 @@ def learner_command(run_dir: RunDirOpt,
                     connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
     _setup(f"learner-{role}")
-    from learning.learner_role import run_learner
-    from learning.rundir import RunDir
     from protocol.session import HammerSession
 
     if role != "team":
@@ -181,6 +203,20 @@ def learner_command(run_dir: RunDirOpt,
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
+    if settings.mode == "eval":  # serve the frozen policy; no torch, no learning
+        from faults.policy_server import PolicyDirError, serve_frozen_policy
+
+        try:
+            with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
+                serve_frozen_policy(s, Path(settings.policy_dir), cfg.variant == "hammer")
+        except PolicyDirError as e:
+            _fail(str(e))
+        except KeyboardInterrupt:
+            pass
+        return
+    from learning.learner_role import run_learner
+    from learning.rundir import RunDir
+
     rd = RunDir(run_dir)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:

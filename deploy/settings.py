@@ -14,12 +14,13 @@ import json
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.faults import FaultSpec
 from protocol.session import TransportConfig, loopback_endpoint
 
 Fallback = Literal["zeros", "last", "last_k"]
+Mode = Literal["train", "eval"]
 
 
 class RuntimeSettings(BaseModel):
@@ -40,6 +41,18 @@ class RuntimeSettings(BaseModel):
     fallback_k: int = Field(3, ge=0, description="last_k: reuse the last message for at most k steps, then zeros")
     faults: FaultSpec | None = Field(None, description="seeded fault injection on publishes (off when None)")
     startup_timeout_s: float = Field(60.0, gt=0, description="wait this long for every role to be alive")
+    mode: Mode = Field("train", description="train: learn to the budget; eval: run a frozen policy (policy_dir)")
+    policy_dir: str | None = Field(
+        None, description="eval: directory with local.safetensors (+ central.safetensors), e.g. RUN/final")
+    trace: bool = Field(False, description="env host writes trace.npz (obs, messages, actions, masks per step)")
+    chaos: list[str] = Field(default_factory=list, description="process chaos events, e.g. 'kill:central@step=200'")
+    fault_links: list[dict] = Field(default_factory=list, description="the link-level fault plan (for display)")
+
+    @model_validator(mode="after")
+    def _eval_needs_policy(self) -> RuntimeSettings:
+        if self.mode == "eval" and not self.policy_dir:
+            raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
+        return self
 
     def transport(self) -> TransportConfig:
         """Each role is a peer connecting to the hub; peers then meet directly (gossip), so the

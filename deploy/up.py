@@ -34,6 +34,8 @@ class UpResult:
     summary: dict
     restarts: dict[str, int]
     wall_time: float
+    links: dict[str, dict[str, int]] = field(default_factory=dict)  # per-link counters (faults.links)
+    chaos_log: list[dict] = field(default_factory=list)
 
 
 @dataclass
@@ -44,6 +46,9 @@ class Board:
     alive: set[str] = field(default_factory=set)
     restarts: dict[str, int] = field(default_factory=dict)
     steps_hist: list[tuple[float, int]] = field(default_factory=list)
+    held: set[str] = field(default_factory=set)  # killed by chaos: not restarted automatically
+    chaos_log: list[dict] = field(default_factory=list)
+    last_by_pid: dict[tuple[str, int], dict] = field(default_factory=dict)  # last heartbeat counters per process
 
     def env_rate(self) -> float:
         if len(self.steps_hist) < 2:
@@ -85,8 +90,14 @@ def _tail(path: Path, lines: int = 3) -> str:
 
 def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
-    `chaos(sup, board)` may kill/pause roles (fault experiments and tests)."""
+    `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
+    `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`."""
     run_dir = Path(run_dir)
+    if chaos is None and settings.chaos:
+        from faults.chaos import ChaosScheduler
+
+        chaos = ChaosScheduler.from_strings(settings.chaos)
+        chaos.validate_roles({s.name for s in role_specs(cfg, run_dir)})
     if settings.hub_port == 0 and not settings.zenoh_config_file:
         settings = settings.model_copy(update={"hub_port": free_loopback_port()})
     prepare_run_dir(cfg, settings, run_dir)
@@ -120,6 +131,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
                     (board.alive.add if ev.alive else board.alive.discard)(ev.role)
                 for h in hb_sub.drain():
                     board.heartbeats[h.role] = h
+                    board.last_by_pid[(h.role, h.pid)] = dict(h.counters)
                     if h.role == "env":
                         board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
                         board.steps_hist = board.steps_hist[-20:]
@@ -132,6 +144,9 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
                             raise UpError(f"env host exited with code {code}: {_tail(rp.log_path)} (log: {rp.log_path})")
                         done = True
                     elif code == 0:  # a clean exit: it was told to stop (the run is ending)
+                        continue
+                    elif name in board.held:  # killed on purpose by the chaos schedule
+                        log.warning("role %s killed by chaos (code %s); not restarted", name, code)
                         continue
                     elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
                         rp.restarts += 1
@@ -148,8 +163,8 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         finally:
             try:
                 hub.publish(hub.keys.ctl("all"), Control(command="stop"))
-            except Exception:  # the hub may be closing; processes are stopped below anyway
-                pass
+            except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
+                log.debug("could not broadcast stop: %s", e)
             deadline = time.monotonic() + 10.0
             while any(sup.alive(n) for n in names) and time.monotonic() < deadline:
                 sup.poll()
@@ -157,6 +172,19 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
             sup.stop_all()
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
+    links = _write_links(cfg, run_dir, board)
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
-    return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start)
+    return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start, links, list(board.chaos_log))
+
+
+def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:
+    """links.json: per-link counters from every role's final counters (or last heartbeat), plus the
+    chaos events that fired."""
+    from faults.links import collect_role_counters, link_table
+
+    roles = collect_role_counters(run_dir, board.last_by_pid)
+    links = link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random"))
+    (run_dir / "links.json").write_text(json.dumps({"links": links, "roles": roles, "chaos": board.chaos_log},
+                                                   indent=1))
+    return links

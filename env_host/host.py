@@ -8,6 +8,12 @@ and waits for the next version's weights before acting again (on-policy synchron
 
 The loop mirrors `learning.trainer.Trainer._collect` step for step (same env seeds, same reset
 points, same episode budget), so without faults a distributed run reproduces the in-process one.
+
+Evaluation (`run_eval`, RuntimeSettings.mode == "eval"): the same per-step hops with a frozen
+policy (version 0 from the policy server), no experience and no waiting for new versions; episodes
+until the budget. Both modes write `episode_links.csv`: per finished episode, how many agent-steps
+acted on a fallback message and how many used the declared default action (the per-episode view of
+the link counters); `trace.npz` (obs, messages, actions, masks per step) on request.
 """
 
 from __future__ import annotations
@@ -69,7 +75,7 @@ class HostState:
 
 class EnvHost:
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
-                 act_deadline_s: float, weights_timeout_s: float) -> None:
+                 act_deadline_s: float, weights_timeout_s: float, trace: bool = False) -> None:
         self.s, self.cfg, self.env, self.rd = session, cfg, env, rd
         self.spec = env.spec
         self.team = Team(cfg, env.spec)  # for the global-state / action encodings only
@@ -93,6 +99,13 @@ class EnvHost:
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self._last_hb = 0.0
         self._stop = False
+        # Per env copy, since its episode started: agent-steps on a fallback message / default action.
+        self.ep_fallback = np.zeros(self.k, np.int64)
+        self.ep_default = np.zeros(self.k, np.int64)
+        self._ep_rows: list[tuple] = []
+        self._recent_got: dict[int, np.ndarray] = {}  # step -> agents whose action arrived (duplicate detection)
+        self.trace: dict[str, list] | None = {"steps": [], "obs": [], "msgs": [], "actions": [], "fallback": [],
+                                               "defaulted": []} if trace else None
         sh = self.spec
         t = cfg.rollout_steps
         a_shape = sh.action_shape
@@ -142,9 +155,15 @@ class EnvHost:
         lat = np.array(self.h.step_latency_ms) if self.h.step_latency_ms else np.zeros(1)
         running = float(np.mean(list(self.h.recent)[-100:])) if self.h.recent else 0.0
         self.hb_pub.publish(Heartbeat(role="env", pid=os.getpid(), status=status, counters={
-            **self.c.as_dict(), "episodes": self.h.episodes, "env_steps": self.h.env_steps,
+            **self.c.as_dict(), **self.s_fault_counters(), "episodes": self.h.episodes,
+            "env_steps": self.h.env_steps, "step": self.h.step,
             "update": self.h.update, "policy_version": self.weights_version, "paper_metric_100": running,
             "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99))}))
+
+    def s_fault_counters(self) -> dict[str, int]:
+        from faults.links import flat_fault_counters
+
+        return flat_fault_counters(self.s.fault_report())
 
     # ----- one vector step ----------------------------------------------------------------------
     def _collect_actions(self, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -152,6 +171,7 @@ class EnvHost:
         n, k = self.n, self.k
         actions = self.spec.default_actions(k)
         msgs = np.zeros((k, n, self.team.msg_dim), np.float32)
+        fallback = np.zeros((k, n), dtype=bool)
         got = np.zeros(n, dtype=bool)
         deadline = time.monotonic() + self.act_deadline_s
         while not got.all():
@@ -159,7 +179,11 @@ class EnvHost:
             if a is None:
                 break
             if a.step < step:
-                self.c.actions_late += 1
+                prev_got = self._recent_got.get(a.step)
+                if prev_got is not None and prev_got[a.agent]:
+                    self.c.actions_duplicate += 1  # a second copy of an action already applied
+                else:
+                    self.c.actions_late += 1
                 continue
             if a.step > step:  # cannot happen without a bug upstream: we have not published it yet
                 log.warning("action for future step %d (now %d) from agent %d ignored", a.step, step, a.agent)
@@ -174,12 +198,70 @@ class EnvHost:
             if a.msg is not None and self.team.msg_dim:
                 msgs[rows, a.agent] = a.msg
             self.c.msg_fallback_copies += int(a.fallback.sum())
+            fallback[rows, a.agent] = a.fallback
             got[a.agent] = True
             self.c.actions_on_time += 1
         defaulted = np.zeros((k, n), dtype=bool)
         defaulted[:, ~got] = True
         self.c.default_actions += int(defaulted.sum())
+        self._recent_got[step] = got
+        self._recent_got.pop(step - 16, None)
+        self.ep_fallback += fallback.sum(axis=1)
+        self.ep_default += defaulted.sum(axis=1)
+        self._fallback = fallback
         return actions, msgs, defaulted
+
+    def _vector_step(self, obs: np.ndarray, prev: np.ndarray, active: np.ndarray):
+        """One step of the loop: state + observations out, actions in (or defaults), env step,
+        result out. Returns (VecStep, actions, messages used, defaulted mask)."""
+        h, cfg = self.h, self.cfg
+        h.step += 1
+        t0 = time.perf_counter()
+        if self.uses_central:
+            self.state_pub.publish(GlobalState(step=h.step, env_idx=self.env_idx, obs=obs,
+                                               prev_actions=prev, active=active, policy_version=h.update))
+        joint = obs.reshape(self.k, -1) if cfg.variant == "centralized" else None
+        for i in range(self.n):
+            self.obs_pubs[i].publish(LocalObs(step=h.step, env_idx=self.env_idx, agent=i,
+                                              obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),
+                                              active=active[:, i], policy_version=h.update))
+        action, msgs, defaulted = self._collect_actions(h.step)
+        # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
+        h.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
+        st = self.env.step(self.team.env_action(action))
+        if self.trace is not None:
+            for name, v in (("steps", h.step), ("obs", obs), ("msgs", msgs), ("actions", action),
+                            ("fallback", self._fallback), ("defaulted", defaulted)):
+                self.trace[name].append(np.copy(v))
+        self.result_pub.publish(StepResult(
+            step=h.step, env_idx=self.env_idx, rewards=st.reward, terminated=st.terminated,
+            truncated=st.truncated, done=st.done, defaulted=defaulted,
+            episodes=[EpisodeInfo.from_stats(e) for e in st.episodes]))
+        return st, action, msgs, defaulted
+
+    def run_eval(self) -> dict:
+        """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
+        team, env, h = self.team, self.env, self.h
+        t_start = self._t_wall0 = time.perf_counter()
+        if not self.wait_weights(0):
+            return self.summary(t_start)
+        obs, active = env.reset(env_reset_seed(self.cfg.seed, 0))
+        prev = team.zero_prev_actions(self.k)
+        while not self._stop:
+            self._poll_control()
+            if self._stop:
+                break
+            self._heartbeat()
+            st, action, _, _ = self._vector_step(obs, prev, active)
+            prev = team.encode_actions(action, st.active)
+            if st.done.any():
+                prev[np.flatnonzero(st.done)] = 0.0
+            obs, active = st.obs, st.next_active
+            h.env_steps += self.k
+            if st.episodes and self._record_episodes(st.episodes):
+                break
+        self.rd.flush()
+        return self.summary(t_start)
 
     def run(self) -> dict:
         cfg, team, env, h, r = self.cfg, self.team, self.env, self.h, self.rollout
@@ -198,20 +280,7 @@ class EnvHost:
                 if self._stop:
                     break
                 self._heartbeat()
-                h.step += 1
-                t0 = time.perf_counter()
-                if self.uses_central:
-                    self.state_pub.publish(GlobalState(step=h.step, env_idx=self.env_idx, obs=obs,
-                                                       prev_actions=prev, active=active, policy_version=h.update))
-                joint = obs.reshape(self.k, -1) if cfg.variant == "centralized" else None
-                for i in range(self.n):
-                    self.obs_pubs[i].publish(LocalObs(step=h.step, env_idx=self.env_idx, agent=i,
-                                                      obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),
-                                                      active=active[:, i], policy_version=h.update))
-                action, msgs, defaulted = self._collect_actions(h.step)
-                # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
-                h.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
-                st = env.step(team.env_action(action))
+                st, action, msgs, defaulted = self._vector_step(obs, prev, active)
                 r["obs"][t], r["prev"][t], r["msg"][t], r["actions"][t] = obs, prev, msgs, action
                 r["rewards"][t], r["terminated"][t], r["truncated"][t] = st.reward, st.terminated, st.truncated
                 r["active"][t], r["defaulted"][t], r["steps"][t] = st.active, defaulted, h.step
@@ -224,10 +293,6 @@ class EnvHost:
                     prev[idx] = 0.0
                 obs, active = st.obs, st.next_active
                 h.env_steps += self.k
-                self.result_pub.publish(StepResult(
-                    step=h.step, env_idx=self.env_idx, rewards=st.reward, terminated=st.terminated,
-                    truncated=st.truncated, done=st.done, defaulted=defaulted,
-                    episodes=[EpisodeInfo.from_stats(e) for e in st.episodes]))
                 if st.episodes and self._record_episodes(st.episodes):
                     finished = True
                     break
@@ -253,8 +318,20 @@ class EnvHost:
             h.episodes += 1
             h.recent.append(e.paper_metric)
             rows.append((h.episodes, h.env_steps, repr(e.paper_metric), repr(e.team_return), e.length, wall))
+            i = e.env_index
+            self._ep_rows.append((h.episodes, i, e.length, int(self.ep_fallback[i]), int(self.ep_default[i])))
+        for e in episodes:
+            self.ep_fallback[e.env_index] = self.ep_default[e.env_index] = 0
         self.rd.append_episodes(rows)
         return h.episodes >= cfg.episodes
+
+    def write_episode_links(self) -> None:
+        """episode_links.csv: per finished episode, agent-steps on fallback messages / default actions."""
+        with open(self.rd.path / "episode_links.csv", "w") as f:
+            f.write("episode,env_index,length,msg_fallbacks,default_actions\n")
+            f.writelines(",".join(map(str, row)) + "\n" for row in self._ep_rows)
+        if self.trace is not None and self.trace["steps"]:
+            np.savez(self.rd.path / "trace.npz", **{k: np.stack(v) for k, v in self.trace.items()})
 
     def summary(self, t_start: float) -> dict:
         elapsed = time.perf_counter() - t_start
@@ -268,5 +345,5 @@ class EnvHost:
             "step_latency_ms_p99": float(np.percentile(lat, 99)),
             "wall_time": elapsed, "n_agents": self.cfg.n_agents, "episode_length": int(self.spec.max_steps),
             "variant": self.cfg.variant, "central_mode": self.cfg.central_mode, "env": self.cfg.env,
-            "links": self.c.as_dict(), "completed": self.h.episodes >= self.cfg.episodes,
+            "links": self.c.as_dict(), "step": self.h.step, "completed": self.h.episodes >= self.cfg.episodes,
         }

@@ -46,11 +46,12 @@ def _register_all() -> None:
     from deploy.hub import hub_command
     from envs import cli as envs_cli
     from experiments import cli as experiments_cli
+    from faults import cli as faults_cli
     from learning import cli as learning_cli
     from protocol import cli as protocol_cli
 
     app.command("hub")(hub_command)
-    for area in (protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli):
+    for area in (protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli):
         area.register(app, bench)
 
 

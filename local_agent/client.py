@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from safetensors.numpy import load as load_safetensors
 
+from faults.links import flat_fault_counters
 from learning.numpy_policy import NumpyLocalPolicy, softmax
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from protocol.schemas import Action, CentralMsg, Control, Dims, Heartbeat, LocalObs, Weights
@@ -171,13 +172,18 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
                             block_until, weights_timeout_s, agent.version)
             return
 
+    seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
+
     def absorb(m: CentralMsg) -> None:
-        if m.step <= last_step:
-            c.msgs_late += 1
-        elif m.step in pending:
+        if m.step in seen:
             c.msgs_duplicate += 1
+        elif m.step <= last_step:
+            c.msgs_late += 1
         else:
             pending[m.step] = m
+            seen.add(m.step)
+            if len(seen) > 256:
+                seen.difference_update([s for s in seen if s < last_step - 64])
 
     while True:
         for cmd in ctl_sub.drain():
@@ -186,7 +192,8 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
         now = time.monotonic()
         if now - last_hb > 1.0:
             hb_pub.publish(Heartbeat(role=f"local-{me}", pid=os.getpid(), status="running",
-                                     counters={**c.as_dict(), "policy_version": agent.version}))
+                                     counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
+                                               "policy_version": agent.version}))
             last_hb = now
         o = obs_sub.get(timeout=0.2)
         if o is None:

@@ -1,0 +1,121 @@
+"""Per-link counters of a run, assembled from what each role counted.
+
+No single process sees a whole link: the sender's fault layer knows what it dropped, duplicated or
+delayed; the receiver knows what arrived on time, late (for a step it already acted on) or twice,
+and what it did instead (a fallback message, a default action). Each role reports its own counters
+(heartbeats while running, `counters/<role>-<pid>.json` at exit); `link_table` joins them into one
+row per link:
+
+    sent        messages the sender published (before faults)
+    dropped     lost by the fault layer          duplicated  sent twice by the fault layer
+    delayed     held back by delay/jitter/reorder
+    delivered   copies the receiver got (on time + late + duplicate + stale)
+    late        arrived for a step already acted on (never applied)
+    duplicate   second copy of a step's message (never applied twice)
+    fallbacks   central->local: agent x env-copy entries acted on a fallback message
+    defaults    local->env: agent x env-copy entries that used the declared default action
+
+Imports stay light (no torch): the local-agent client uses `flat_fault_counters`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from faults.spec import LINKS
+
+LINK_IDS = {link: link.replace("->", "_") for link in LINKS}
+_FAULT_FIELDS = ("matched", "sent", "dropped", "duplicated", "delayed", "reordered")
+COLUMNS = ("sent", "dropped", "duplicated", "delayed", "delivered", "late", "duplicate", "fallbacks", "defaults")
+
+
+def link_of_pattern(match: str) -> str | None:
+    """Which step-loop link a rule's key pattern belongs to (None: another or several)."""
+    for link, pattern in LINKS.items():
+        head = pattern.split("/{")[0]
+        if match == head or match.startswith(head + "/"):
+            return link
+    return None
+
+
+def flat_fault_counters(report: dict[str, dict[str, int]]) -> dict[str, int]:
+    """A session's fault report ({'i:pattern': counters}) summed per link, as flat heartbeat
+    counters named `fault.<link_id>.<field>` (rules on other keys go under `fault.other`)."""
+    out: dict[str, int] = {}
+    for label, counts in report.items():
+        link = link_of_pattern(label.split(":", 1)[1])
+        lid = LINK_IDS[link] if link else "other"
+        for f in _FAULT_FIELDS:
+            key = f"fault.{lid}.{f}"
+            out[key] = out.get(key, 0) + int(counts.get(f, 0))
+    return out
+
+
+def write_role_counters(run_dir: Path, role: str, pid: int, counters: dict) -> None:
+    """A role's final counters (own counters + its fault layer's), for `collect_role_counters`."""
+    d = Path(run_dir) / "counters"
+    d.mkdir(exist_ok=True)
+    (d / f"{role}-{pid}.json").write_text(json.dumps({"role": role, "pid": pid, "counters": counters}))
+
+
+def collect_role_counters(run_dir: Path, last_heartbeats: dict[tuple[str, int], dict]) -> dict[str, dict]:
+    """Counters per role, summed over its process instances (a restarted role has several): the
+    final file where the process wrote one, else its last heartbeat (a SIGKILLed process)."""
+    per_pid: dict[tuple[str, int], dict] = dict(last_heartbeats)
+    d = Path(run_dir) / "counters"
+    if d.is_dir():
+        for f in d.glob("*.json"):
+            rec = json.loads(f.read_text())
+            per_pid[(rec["role"], int(rec["pid"]))] = rec["counters"]
+    roles: dict[str, dict] = {}
+    for (role, _), counters in per_pid.items():
+        acc = roles.setdefault(role, {})
+        for k, v in counters.items():
+            if isinstance(v, (int, float)) and k not in ("policy_version", "paper_metric_100", "step_p50_ms",
+                                                         "step_p99_ms"):
+                acc[k] = acc.get(k, 0) + v
+    return roles
+
+
+def _fault(c: dict, link: str, field: str) -> int:
+    return int(c.get(f"fault.{LINK_IDS[link]}.{field}", 0))
+
+
+def link_table(roles: dict[str, dict], n_agents: int, uses_central: bool) -> dict[str, dict[str, int]]:
+    """One row of COLUMNS per link from per-role counters (see the module docstring)."""
+    env = roles.get("env", {})
+    central = roles.get("central", {})
+    locals_ = [roles.get(f"local-{i}", {}) for i in range(n_agents)]
+
+    def lsum(key: str) -> int:
+        return int(sum(c.get(key, 0) for c in locals_))
+
+    steps = int(env.get("step", 0))
+    rows: dict[str, dict[str, int]] = {}
+    if uses_central:
+        rows["env->central"] = {"sent": steps, "delivered": int(central.get("steps", 0) + central.get("states_stale", 0)
+                                                                + central.get("states_skipped", 0)),
+                                "late": int(central.get("states_stale", 0) + central.get("states_skipped", 0))}
+    rows["env->local"] = {"sent": steps * n_agents, "delivered": lsum("steps") + lsum("obs_stale"),
+                          "late": lsum("obs_stale")}
+    if uses_central:
+        rows["central->local"] = {"sent": int(central.get("steps", 0)) * n_agents,
+                                  "delivered": lsum("msgs_on_time") + lsum("msgs_late") + lsum("msgs_duplicate"),
+                                  "late": lsum("msgs_late"), "duplicate": lsum("msgs_duplicate"),
+                                  "fallbacks": lsum("fallback_copies")}
+    rows["local->env"] = {"sent": lsum("steps"),
+                          "delivered": int(env.get("actions_on_time", 0) + env.get("actions_late", 0)
+                                           + env.get("actions_duplicate", 0)),
+                          "late": int(env.get("actions_late", 0)), "duplicate": int(env.get("actions_duplicate", 0)),
+                          "defaults": int(env.get("default_actions", 0))}
+    sender = {"env->central": env, "env->local": env, "central->local": central}
+    for link, row in rows.items():
+        snd = sender.get(link)
+        faults = [snd] if snd is not None else locals_
+        for f in ("dropped", "duplicated", "delayed"):
+            row[f] = int(sum(_fault(c, link, f) for c in faults))
+        for col in COLUMNS:
+            row.setdefault(col, 0)
+        rows[link] = {col: row[col] for col in COLUMNS}
+    return rows

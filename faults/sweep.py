@@ -1,0 +1,206 @@
+"""The communication-faults experiment: a trained team under a grid of drop rates and delays.
+
+Every point is a real `hammer up` run in evaluation mode (frozen exported policy served by
+`faults.policy_server`, env host never waiting for updates, every hop over Zenoh) with a seeded
+fault on the central->local link: drop rate p, or a delay d (beyond the message deadline the
+message always comes too late, which must behave like a drop, counted as late). Several seeds per
+point: the seed sets the env resets, the agents' sampling streams and the fault stream. A team
+trained without messages (IL) evaluated without faults is the reference line: a team that does no
+better than it with messages cut has learned nothing robust from them.
+
+Outputs (in `out`): sweep.csv (one row per point and seed), sweep.md (mean ± std over seeds per
+condition and team, plus the fallback rate), sweep.png (paper metric vs drop rate and vs delay).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+log = logging.getLogger("hammer.faults.sweep")
+
+
+@dataclass(frozen=True)
+class Point:
+    team: str  # a label, e.g. "hammer" or "hammer+dropout"
+    run: str  # the trained run directory (its final/ is evaluated)
+    drop: float
+    delay_ms: float
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.team}-drop{self.drop:g}-delay{self.delay_ms:g}-seed{self.seed}".replace("+", "_")
+
+
+@dataclass
+class PointResult:
+    team: str
+    variant: str
+    train_msg_dropout: float
+    drop: float
+    delay_ms: float
+    seed: int
+    episodes: int
+    paper_metric: float
+    msgs_sent: int
+    msgs_dropped: int
+    msgs_late: int
+    msg_fallback_rate: float  # agent x copy entries acted on a fallback message / all entries
+    default_actions: int
+    wall_s: float
+
+
+def eval_config(run: Path, episodes: int, seed: int):
+    """The trained run's config for evaluation: its task and networks, a new seed and budget,
+    no message dropout (the evaluation's faults come from the fault layer)."""
+    from learning.config import build_config
+
+    path = Path(run) / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: pass a run directory made by `hammer train` or `hammer up`")
+    data = json.loads(path.read_text())
+    data.update(episodes=episodes, seed=seed, msg_dropout=0.0)
+    return build_config(data)
+
+
+def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000) -> PointResult:
+    from deploy.settings import RuntimeSettings
+    from deploy.up import launch
+    from faults.spec import FaultPlan, LinkFault
+
+    run = Path(p.run)
+    policy = run / "final"
+    cfg = eval_config(run, episodes, p.seed)
+    links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
+    plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
+    settings = RuntimeSettings(run_id=p.name.replace(".", "_")[:64], mode="eval", policy_dir=str(policy),
+                               msg_deadline_ms=msg_deadline_ms, faults=plan.to_spec(),
+                               fault_links=[lf.model_dump() for lf in links])
+    t0 = time.monotonic()
+    res = launch(cfg, settings, out / "points" / p.name)
+    with open(out / "points" / p.name / "metrics.csv", newline="") as f:
+        metrics = [float(r["paper_metric"]) for r in csv.DictReader(f)]
+    c2l = res.links.get("central->local", {})
+    n_entries = max(int(res.summary.get("step", 0)) * cfg.n_agents * cfg.num_envs, 1)
+    return PointResult(team=p.team, variant=cfg.variant, train_msg_dropout=float(json.loads(
+        (run / "config.json").read_text()).get("msg_dropout", 0.0)), drop=p.drop, delay_ms=p.delay_ms, seed=p.seed,
+        episodes=len(metrics), paper_metric=sum(metrics) / len(metrics), msgs_sent=c2l.get("sent", 0),
+        msgs_dropped=c2l.get("dropped", 0), msgs_late=c2l.get("late", 0),
+        msg_fallback_rate=c2l.get("fallbacks", 0) / n_entries, default_actions=res.links["local->env"]["defaults"],
+        wall_s=round(time.monotonic() - t0, 1))
+
+
+def grid(teams: dict[str, Path], il: Path | None, drops: list[float], delays_ms: list[float],
+         seeds: list[int]) -> list[Point]:
+    pts = []
+    for team, run in teams.items():
+        for s in seeds:
+            pts += [Point(team, str(run), d, 0.0, s) for d in drops]
+            pts += [Point(team, str(run), 0.0, dl, s) for dl in delays_ms if dl > 0]
+    if il is not None:
+        pts += [Point("il", str(il), 0.0, 0.0, s) for s in seeds]
+    return pts
+
+
+def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: float, parallel: int = 2,
+              progress: Callable[[PointResult, int, int], None] | None = None) -> list[PointResult]:
+    """Run every point (`parallel` launches at a time: most of a faulty point is waiting on
+    deadlines, not computing) and write sweep.csv / sweep.md / sweep.png into `out`."""
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[PointResult] = []
+    with ThreadPoolExecutor(max_workers=parallel) as ex:
+        futures = [ex.submit(run_point, p, out, episodes, msg_deadline_ms) for p in points]
+        for f in futures:
+            r = f.result()
+            results.append(r)
+            if progress is not None:
+                progress(r, len(results), len(points))
+    write_outputs(results, out, msg_deadline_ms, episodes)
+    return results
+
+
+def _mean_std(xs: list[float]) -> tuple[float, float]:
+    m = sum(xs) / len(xs)
+    return m, math.sqrt(sum((x - m) ** 2 for x in xs) / max(len(xs) - 1, 1))
+
+
+def aggregate(results: list[PointResult]) -> dict[tuple[str, float, float], dict]:
+    groups: dict[tuple[str, float, float], list[PointResult]] = {}
+    for r in results:
+        groups.setdefault((r.team, r.drop, r.delay_ms), []).append(r)
+    out = {}
+    for key, rs in groups.items():
+        m, s = _mean_std([r.paper_metric for r in rs])
+        out[key] = {"mean": m, "std": s, "n": len(rs), "fallback": sum(r.msg_fallback_rate for r in rs) / len(rs),
+                    "late": sum(r.msgs_late for r in rs), "dropped": sum(r.msgs_dropped for r in rs)}
+    return out
+
+
+def write_outputs(results: list[PointResult], out: Path, msg_deadline_ms: float, episodes: int) -> None:
+    with open(out / "sweep.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(results[0])))
+        w.writeheader()
+        for r in results:
+            w.writerow(asdict(r))
+    agg = aggregate(results)
+    teams = [t for t in dict.fromkeys(r.team for r in results) if t != "il"]
+    conds = sorted({(r.drop, r.delay_ms) for r in results if r.team != "il"}, key=lambda c: (c[1] > 0, c[1], c[0]))
+    seeds = sorted({r.seed for r in results})
+    il = agg.get(("il", 0.0, 0.0))
+    header = (f"Paper metric (mean reward per local agent per episode, higher is better), mean ± std over "
+              f"{len(seeds)} seeds × {episodes} episodes; central→local faults; message deadline "
+              f"{msg_deadline_ms:g} ms; fallback: zeros. In brackets: share of agent-steps acting on a fallback message.")
+    lines = [header, ""]
+    if il is not None:
+        lines += [f"IL reference (no messages, no faults): **{il['mean']:.2f} ± {il['std']:.2f}**", ""]
+    lines += ["| condition | " + " | ".join(teams) + " |", "|---|" + "---|" * len(teams)]
+    for drop, delay in conds:
+        label = f"drop {drop:g}" if delay == 0 else f"delay {delay:g} ms ({'beyond' if delay > msg_deadline_ms else 'within'} deadline)"
+        cells = []
+        for t in teams:
+            a = agg.get((t, drop, delay))
+            cells.append("-" if a is None else f"{a['mean']:.2f} ± {a['std']:.2f} ({a['fallback']:.0%})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    _plot(agg, teams, conds, il, msg_deadline_ms, out / "sweep.png")
+
+
+def _plot(agg, teams, conds, il, msg_deadline_ms, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    drops = sorted({d for d, dl in conds if dl == 0})
+    delays = sorted({dl for d, dl in conds if d == 0})
+    for t in teams:
+        pts = [(d, agg[(t, d, 0.0)]) for d in drops if (t, d, 0.0) in agg]
+        ax1.errorbar([d for d, _ in pts], [a["mean"] for _, a in pts], yerr=[a["std"] for _, a in pts],
+                     marker="o", capsize=3, label=t)
+        pts = [(dl, agg[(t, 0.0, dl)]) for dl in delays if (t, 0.0, dl) in agg]
+        ax2.errorbar([dl for dl, _ in pts], [a["mean"] for _, a in pts], yerr=[a["std"] for _, a in pts],
+                     marker="o", capsize=3, label=t)
+    for ax in (ax1, ax2):
+        if il is not None:
+            ax.axhline(il["mean"], color="gray", linestyle="--", label="IL (no messages)")
+            ax.axhspan(il["mean"] - il["std"], il["mean"] + il["std"], color="gray", alpha=0.15)
+        ax.grid(alpha=0.3)
+    ax2.axvline(msg_deadline_ms, color="red", linestyle=":", label="message deadline")
+    ax1.set_xlabel("central→local drop rate")
+    ax2.set_xlabel("central→local delay (ms)")
+    ax1.set_ylabel("paper metric (mean reward per agent per episode)")
+    ax1.legend(fontsize=8)
+    ax2.legend(fontsize=8)
+    fig.suptitle("Trained HAMMER teams under message faults (cn3)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
