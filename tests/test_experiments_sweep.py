@@ -1,0 +1,43 @@
+"""The sweep runs real `hammer train` processes, skips finished runs and resumes interrupted ones."""
+
+import csv
+import json
+
+import pytest
+
+from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, state_of
+
+
+def _rows(run_dir):
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_grid_expansion_and_parsing():
+    pts = expand(["cn3"], ["hammer-rl", "il"], parse_seeds("0-1"), parse_grid_overrides(["msg_dim=2,4"]))
+    assert len(pts) == 8
+    assert pts[0].name == "cn3-hammer-rl-msg_dim=2-s0"
+    args = pts[0].train_args(pts[0].name, 10)
+    assert args[args.index("--central-mode") + 1] == "rl" and "msg_dim=2" in args
+    with pytest.raises(ValueError, match="seeds"):
+        parse_seeds("a-b")
+    with pytest.raises(ValueError, match="KEY=V1"):
+        parse_grid_overrides(["msg_dim"])
+    with pytest.raises(ValueError, match="variant"):
+        expand(["cn3"], ["hammr"], [0])
+
+
+def test_sweep_skips_finished_and_resumes_interrupted(tmp_path):
+    pts = expand(["cn3"], ["il"], [0, 1], [("num_envs", ["4"]), ("rollout_steps", ["25"]),
+                                           ("checkpoint_every", ["2"])])
+    res = run_sweep(pts, tmp_path, jobs=2, episodes=24)
+    assert sorted(res.done) == sorted(p.name for p in pts) and not res.failed
+    first = tmp_path / pts[0].name
+    assert len(_rows(first)) == 24 and state_of(first) == "done"
+    # Interrupt one run after the fact: drop its summary (as if killed after its last checkpoint).
+    (first / "summary.json").unlink()
+    assert state_of(first) == "resume"
+    res2 = run_sweep(pts, tmp_path, jobs=2, episodes=24)
+    assert res2.skipped == [pts[1].name] and res2.done == [pts[0].name]
+    assert len(_rows(first)) == 24
+    assert json.loads((first / "summary.json").read_text())["episodes"] == 24
