@@ -78,8 +78,9 @@ def _links_table(board, cfg, settings):
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
     for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
-    for ev in board.chaos_log[-3:]:
-        t.add_row("chaos", f"t={ev['t']:.0f}s step {ev['step']}: {ev['event']}", *[""] * (len(COLUMNS) - 1))
+    if board.chaos_log:
+        t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
+                                                for e in board.chaos_log[-3:])
     return t
 
 
