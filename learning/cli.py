@@ -106,3 +106,6 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add this package's commands to the top-level app and its `bench` group."""
     app.command("train")(train_command)
+    from learning.bench import bench_train_command
+
+    bench.command("train")(bench_train_command)

@@ -19,7 +19,7 @@ from learning.config import RunConfig
 from learning.networks import gaussian_logp
 from learning.ppo import (
     PPOUpdater,
-    clipped_policy_loss,
+    clipped_surrogate,
     gae,
     masked_mean,
     minibatch_indices,
@@ -43,6 +43,7 @@ class TeamLearner:
                             if self.team.central is not None else None)
         self.buf = RolloutBuffer(cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim,
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
+        self._full = self._c_full = False  # set by batch(): every agent present / no message dropped
         self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
 
     # ----- state (checkpoints) -------------------------------------------------------------------
@@ -64,6 +65,10 @@ class TeamLearner:
         if self.team.central is not None:
             self.team.central.load_state_dict({k[8:]: v for k, v in tensors.items() if k.startswith("central/")})
             optimizer_from_tensors(self.central_opt.optimizer, "opt_central", tensors, meta["opt_central"])
+        for opt in (self.local_opt, self.central_opt):  # checkpoints from before the fused Adam
+            if opt is not None:
+                for group in opt.optimizer.param_groups:
+                    group.update(fused=True, foreach=None)
 
     def batch(self, obs: np.ndarray, prev: np.ndarray) -> dict[str, torch.Tensor]:
         """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors."""
@@ -80,6 +85,9 @@ class TeamLearner:
         b = {"obs": flat(buf.obs), "state": flat(buf.state), "msg": flat(buf.msg), "keep": flat(buf.keep),
              "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
              "mask": flat(buf.active.astype(np.float32))}
+        # All agents present (and no message dropped): the losses skip their masking ops.
+        self._full = bool(buf.active.all())
+        self._c_full = self._full and bool(buf.keep.all())
         if team.central_rl:
             c_nv = next_values(buf.c_values, team.central_values(last_state), buf.c_final_values, buf.reset)
             c_adv, c_ret = gae(buf.rewards, buf.c_values, c_nv, buf.terminated, dones, cfg.gamma,
@@ -89,65 +97,95 @@ class TeamLearner:
         return b
 
     def losses(self, b: dict[str, torch.Tensor], mb: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, float]]:
-        """(local PPO loss, central PPO loss or None, logs) on the rows `mb`.
+               ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, float]]:
+        """(local PPO loss, central PPO loss or None, logs) on the rows `mb` of the batch `b`.
 
         backprop: the messages are recomputed from the stored global states with grad, so the
         local actor loss flows through u_i into the central heads and encoder (DIAL-style); the
         local critic sees detached messages. rl: the local loss sees the stored (sent) messages,
         the central loss is its own PPO on the Gaussian messages; the two graphs never meet.
         """
+        local_loss, central_loss, stats = self._losses({k: v[mb] for k, v in b.items()})
+        return local_loss, central_loss, dict(zip(self._log_keys(), torch.stack(stats).tolist(), strict=False))
+
+    def _log_keys(self) -> list[str]:
+        keys = ["local/policy_loss", "local/value_loss", "local/entropy", "local/approx_kl", "local/clipfrac"]
+        if self.team.central_rl:
+            keys += ["central/policy_loss", "central/value_loss", "central/approx_kl"]
+        keys.append("local/grad_norm")
+        if self.central_opt is not None:
+            keys.append("central/grad_norm")
+        return keys
+
+    def _losses(self, r: dict[str, torch.Tensor], with_stats: bool = True
+                ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
+        """`losses` on an already selected minibatch `r`; the statistics stay 0-d tensors (an
+        empty list unless `with_stats`)."""
         cfg, team = self.cfg, self.team
-        m = b["mask"][mb]
+        m = None if self._full else r["mask"]
         backprop = team.central is not None and cfg.central_mode == "backprop"
         if backprop:
-            msg = team.central.message_mean(b["state"][mb]) * b["keep"][mb].unsqueeze(-1)
+            msg = team.central.message_mean(r["state"])
+            if cfg.msg_dropout > 0:
+                msg = msg * r["keep"].unsqueeze(-1)
         else:
-            msg = b["msg"][mb]
-        x = team.local_input(b["obs"][mb], msg)
-        new_logp, entropy = team.local.logp_entropy(x, b["act"][mb])
-        new_v = team.local.value(team.local_input(b["obs"][mb], msg.detach()) if backprop else x)
-        a = normalize_advantages(b["adv"][mb], m) if cfg.norm_adv else b["adv"][mb]
-        pg, st = clipped_policy_loss(new_logp, b["logp"][mb], a, cfg.clip, m)
-        vl = value_loss(new_v, b["ret"][mb], m)
+            msg = r["msg"]
+        x = team.local_input(r["obs"], msg)
+        new_logp, entropy = team.local.logp_entropy(x, r["act"])
+        new_v = team.local.value(team.local_input(r["obs"], msg.detach()) if backprop else x)
+        a = normalize_advantages(r["adv"], m) if cfg.norm_adv else r["adv"]
+        pg, kl, clipfrac = clipped_surrogate(new_logp, r["logp"], a, cfg.clip, m, with_stats)
+        vl = value_loss(new_v, r["ret"], m)
         ent = masked_mean(entropy, m)
         local_loss = pg - cfg.ent_coef * ent + cfg.vf_coef * vl
-        logs = {"local/policy_loss": pg.item(), "local/value_loss": vl.item(), "local/entropy": ent.item(),
-                "local/approx_kl": st["approx_kl"], "local/clipfrac": st["clipfrac"]}
+        stats = [pg.detach(), vl.detach(), ent.detach(), kl, clipfrac] if with_stats else []
         central_loss = None
         if team.central_rl:
-            cm = b["c_mask"][mb]
-            mean = team.central.message_mean(b["state"][mb])
-            c_logp = gaussian_logp(b["raw"][mb], mean, self._msg_log_std)
-            ca = normalize_advantages(b["c_adv"][mb], cm) if cfg.norm_adv else b["c_adv"][mb]
-            cpg, cst = clipped_policy_loss(c_logp, b["c_logp"][mb], ca, cfg.clip, cm)
-            cvl = value_loss(team.central.values(b["state"][mb]), b["c_ret"][mb], cm)
+            cm = None if self._c_full else r["c_mask"]
+            mean = team.central.message_mean(r["state"])
+            c_logp = gaussian_logp(r["raw"], mean, self._msg_log_std)
+            ca = normalize_advantages(r["c_adv"], cm) if cfg.norm_adv else r["c_adv"]
+            cpg, ckl, _ = clipped_surrogate(c_logp, r["c_logp"], ca, cfg.clip, cm, with_stats)
+            cvl = value_loss(team.central.values(r["state"]), r["c_ret"], cm)
             central_loss = cpg + cfg.vf_coef * cvl
-            logs.update({"central/policy_loss": cpg.item(), "central/value_loss": cvl.item(),
-                         "central/approx_kl": cst["approx_kl"]})
-        return local_loss, central_loss, logs
+            if with_stats:
+                stats += [cpg.detach(), cvl.detach(), ckl]
+        return local_loss, central_loss, stats
 
     def learn(self, obs: np.ndarray, prev: np.ndarray, update: int) -> dict[str, float]:
         """PPO epochs over shuffled minibatches of rows; one backward over the summed losses,
-        then each network clips its own gradient norm and steps its own optimiser."""
+        then each network clips its own gradient norm and steps its own optimiser.
+
+        Each epoch gathers every field once in that epoch's shuffled row order, so a minibatch is
+        a contiguous slice (a view) instead of one gather per field per minibatch; the rows are
+        exactly those `minibatch_indices` gives. The returned logs are means over the last
+        epoch's minibatches (how far the final policy moved from the rollout policy), kept as
+        tensors and turned into floats once per update.
+        """
         cfg, buf = self.cfg, self.buf
         b = self.batch(obs, prev)
         rng = stream(cfg.seed, MINIBATCH_STREAM, update)
-        sums: dict[str, float] = {}
-        n_mb = 0
-        for _ in range(cfg.epochs):
-            for mb_np in minibatch_indices(buf.t * buf.k, cfg.minibatches, rng):
-                local_loss, central_loss, logs = self.losses(b, torch.from_numpy(mb_np))
+        total: torch.Tensor | None = None
+        for epoch in range(cfg.epochs):
+            last = epoch == cfg.epochs - 1
+            parts = minibatch_indices(buf.t * buf.k, cfg.minibatches, rng)
+            perm = torch.from_numpy(np.concatenate(parts))
+            shuffled = {k: v.index_select(0, perm) for k, v in b.items()}
+            start = 0
+            for part in parts:
+                end = start + len(part)
+                local_loss, central_loss, stats = self._losses({k: v[start:end] for k, v in shuffled.items()}, last)
+                start = end
                 loss = local_loss if central_loss is None else local_loss + central_loss
                 self.local_opt.zero_grad()
                 if self.central_opt is not None:
                     self.central_opt.zero_grad()
                 loss.backward()
-                logs["local/grad_norm"] = self.local_opt.step()
+                norms = [self.local_opt.clip_and_step()]
                 if self.central_opt is not None:
-                    logs["central/grad_norm"] = self.central_opt.step()
-                for key, v in logs.items():
-                    sums[key] = sums.get(key, 0.0) + v
-                n_mb += 1
-        return {key: v / n_mb for key, v in sums.items()}
-
+                    norms.append(self.central_opt.clip_and_step())
+                if last:
+                    st = torch.stack(stats + norms)
+                    total = st if total is None else total + st
+        assert total is not None
+        return dict(zip(self._log_keys(), (total / cfg.minibatches).tolist(), strict=True))

@@ -16,10 +16,11 @@ _CN = {
     "gamma": 0.95,
     "clip": 0.2,
     "episodes": 30_000,
-    # 16 copies x 50 steps = 800 env steps (32 whole 25-step episodes) per update, like the
+    # 32 copies x 25 steps = 800 env steps (32 whole 25-step episodes) per update, like the
     # authors' code's 800-step update; whole episodes make checkpoint points episode boundaries.
-    "num_envs": 16,
-    "rollout_steps": 50,
+    # (16 x 50 learns the same at 3,000 episodes; 32 x 25 halves the per-step acting overhead.)
+    "num_envs": 32,
+    "rollout_steps": 25,
     "epochs": 8,
     "minibatches": 4,
     "lr_central": 3e-4,

@@ -87,7 +87,7 @@ class Team:
         return np.concatenate(parts, axis=1).astype(np.float32, copy=False)
 
     # ----- central agent ------------------------------------------------------------------------
-    @torch.no_grad()
+    @torch.inference_mode()
     def central_messages(self, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0) -> CentralOut:
         """Messages for every agent of every copy from the global state (K, S)."""
         k, n, m = state.shape[0], self.n, self.msg_dim
@@ -115,7 +115,7 @@ class Team:
             sent = sent * keep[..., None]
         return CentralOut(sent.astype(np.float32, copy=False), mean, raw, logp, value, keep)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def bootstrap_messages(self, state: np.ndarray) -> np.ndarray:
         """Messages used only to value a state (no stream draws): central mean, zeros for random."""
         k = state.shape[0]
@@ -123,7 +123,7 @@ class Team:
             return self.central.message_mean(torch.from_numpy(state)).numpy()
         return np.zeros((k, self.n, self.msg_dim), dtype=np.float32)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def central_values(self, state: np.ndarray) -> np.ndarray:
         if not self.central_rl:
             return np.zeros((state.shape[0], self.n), dtype=np.float32)
@@ -140,7 +140,7 @@ class Team:
             return obs
         return torch.cat([obs, msg], dim=-1)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def local_act(self, obs: np.ndarray, msg: np.ndarray, streams: ActingStreams
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All K×N local agents in one forward pass → (action, logp, value).
@@ -150,20 +150,21 @@ class Team:
         """
         k = obs.shape[0]
         x = self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
-        out = self.local.actor_out(x)
+        out = self.local.actor_out(x).numpy()
         value = self.local.value(x).numpy()
         if self.discrete:
             u = streams.local_uniforms(k)
-            action = categorical_inverse_cdf(softmax(out.numpy()), u)
-            logp = torch.log_softmax(out, -1).gather(-1, torch.from_numpy(action)[..., None])[..., 0]
-            return action, logp.numpy(), value
+            probs = softmax(out)  # float64, as the randomness contract specifies
+            action = categorical_inverse_cdf(probs, u)
+            logp = np.log(np.take_along_axis(probs, action[..., None], axis=-1)[..., 0]).astype(np.float32)
+            return action, logp, value
         z = streams.local_normals(k, self.act_dim)
-        log_std = self.local.log_std.numpy()
-        action = (out.numpy() + np.exp(log_std) * z).astype(np.float32)
+        log_std = self.local.log_std.detach().numpy()
+        action = (out + np.exp(log_std) * z).astype(np.float32)
         logp = (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1).astype(np.float32)
         return action, logp, value
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:
         return self.local.value(self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))).numpy()
 

@@ -128,3 +128,17 @@ def test_message_dropout_zeroes_messages(tmp_path):
     assert 0.35 < keep.mean() < 0.65
     msg = b["msg"].numpy()
     assert np.all(msg[~keep] == 0) and np.all(np.abs(msg[keep]).sum(-1) > 0)
+
+
+def test_fast_tanh_matches_tanh_and_its_gradient():
+    from learning.networks import tanh
+
+    x = torch.linspace(-12, 12, 64 * 400).reshape(400, 64).requires_grad_(True)  # above the fast-path size
+    y = tanh(x)
+    torch.testing.assert_close(y, torch.tanh(x), atol=3e-7, rtol=0)
+    g = torch.randn_like(x)
+    (gx,) = torch.autograd.grad(y, x, g)
+    (ref,) = torch.autograd.grad(torch.tanh(x), x, g)
+    torch.testing.assert_close(gx, ref, atol=1e-6, rtol=1e-5)
+    with torch.inference_mode():
+        torch.testing.assert_close(tanh(x.detach()), torch.tanh(x.detach()), atol=3e-7, rtol=0)

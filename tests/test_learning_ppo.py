@@ -83,3 +83,28 @@ def test_minibatches_partition_rows():
     parts = minibatch_indices(10, 3, np.random.default_rng(0))
     assert sorted(np.concatenate(parts).tolist()) == list(range(10))
     assert [len(p) for p in parts] == [4, 3, 3]
+
+
+def test_updater_equals_torch_fused_adam_with_clip():
+    """PPOUpdater's direct fused-Adam call is bit-identical to clip_grad_norm_ + Adam(fused=True).step()."""
+    from learning.ppo import PPOUpdater
+
+    def net():
+        torch.manual_seed(0)
+        return torch.nn.Sequential(torch.nn.Linear(5, 7), torch.nn.Tanh(), torch.nn.Linear(7, 2))
+
+    ours, ref = net(), net()
+    upd = PPOUpdater(ours.parameters(), 1e-2, 0.5)
+    opt = torch.optim.Adam(ref.parameters(), lr=1e-2, eps=1e-5, fused=True)
+    x = torch.randn(64, 5)
+    for i in range(5):
+        for m in (ours, ref):
+            m.zero_grad(set_to_none=True)
+            (m(x) ** 2).sum().mul(1 + i).backward()
+        norm = upd.clip_and_step()
+        ref_norm = torch.nn.utils.clip_grad_norm_(ref.parameters(), 0.5)
+        opt.step()
+        assert float(norm) == float(ref_norm) > 0.5  # the clip was active
+        assert all(torch.equal(p, q) for p, q in zip(ours.parameters(), ref.parameters(), strict=True))
+    st = upd.optimizer.state_dict()["state"]
+    assert float(st[0]["step"]) == 5 and torch.equal(st[0]["exp_avg"], opt.state_dict()["state"][0]["exp_avg"])

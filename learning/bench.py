@@ -1,0 +1,217 @@
+"""`hammer bench train`: how fast the in-process trainer runs, PPO updates included.
+
+Every figure is env-copy steps per second of the real training loop (acting, env stepping, GAE and
+the PPO epochs), measured in this process, next to the 1-min load average when it was taken: the
+machine is shared, and a second busy process on 2 cores roughly halves any figure here.
+
+  cn3     the preset (`hammer train --preset cn3`) on the vectorised `cn` env and on the `cn-mpe2`
+          reference backend (PettingZoo, one copy at a time), same config, same run: the ratio is
+          what the vectorised env buys for whole training.
+  full    wall time of one whole 30,000-episode cn3 `hammer train` process (imports, TensorBoard and
+          checkpoints included): measured with --full, otherwise extrapolated from a measured
+          2,000-episode process (its startup + 15 x its loop time), and labelled so.
+  mw3     a few PPO updates of the mw3 preset with the walkers stepped in-process and in
+          `env_workers=2` subprocesses (envs/workers.py): the speed-up of the worker pool.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from learning.config import RunConfig, merge_config
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def _cfg(preset: str, variant: str, central_mode: str, seed: int, **over: Any) -> RunConfig:
+    sets = [f"{k}={v}" for k, v in over.items()]
+    return merge_config(preset, overrides=sets, extra={"variant": variant, "central_mode": central_mode,
+                                                       "seed": seed})
+
+
+def time_train(cfg: RunConfig) -> dict[str, Any]:
+    """One real `train` run to its episode budget in a temporary run directory (no TensorBoard).
+
+    Returns env-steps/s of the training loop (the trainer's own figure), the whole wall time
+    including startup (env, networks, optimisers, first checkpoint) and the load average.
+    """
+    from learning.rundir import RunDir
+    from learning.trainer import train
+
+    load = _load()
+    with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:
+        t0 = time.perf_counter()
+        rd = RunDir.create(Path(tmp) / "run", cfg)
+        summary = train(cfg, rd, tensorboard=False)
+        wall = time.perf_counter() - t0
+    loop_s = summary["env_steps"] / summary["env_steps_per_s_this_session"]
+    return {"env": cfg.env, "episodes": summary["episodes"], "env_steps": summary["env_steps"],
+            "env_steps_per_s": summary["env_steps_per_s_this_session"], "wall_s": wall,
+            "startup_s": max(wall - loop_s, 0.0), "loop_s": loop_s, "load_before": load, "load_after": _load()}
+
+
+def time_updates(cfg: RunConfig, updates: int, warmup: int = 1) -> dict[str, Any]:
+    """env-steps/s over `updates` rollout+PPO updates after `warmup` ones (for long-episode envs,
+    where an episode budget would make the run length depend on how soon the walkers fall)."""
+    from learning.rundir import RunDir
+    from learning.trainer import Trainer, make_env
+
+    load = _load()
+    t0 = time.perf_counter()
+    env = make_env(cfg)
+    start_s = time.perf_counter() - t0
+    try:
+        with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:
+            tr = Trainer(cfg, RunDir.create(Path(tmp) / "run", cfg.model_copy(update={"episodes": 10**9})),
+                         env=env, tensorboard=False)
+            tr._t0 = time.perf_counter()
+            obs, _ = env.reset(cfg.seed)
+            prev = tr.team.zero_prev_actions(cfg.num_envs)
+            for u in range(warmup):
+                obs, prev, _ = tr._collect(obs, prev)
+                tr.learner.learn(obs, prev, u)
+            steps0, t1 = tr.env_steps, time.perf_counter()
+            for u in range(warmup, warmup + updates):
+                obs, prev, _ = tr._collect(obs, prev)
+                tr.learner.learn(obs, prev, u)
+            dt = time.perf_counter() - t1
+            tr.rd.close()
+    finally:
+        env.close()
+    return {"env": cfg.env, "env_workers": cfg.env_workers, "updates": updates, "warmup": warmup,
+            "steps_per_update": cfg.num_envs * cfg.rollout_steps,
+            "env_steps": tr.env_steps - steps0, "env_steps_per_s": (tr.env_steps - steps0) / dt,
+            "env_start_s": start_s, "load_before": load, "load_after": _load()}
+
+
+def time_cli_train(cfg: RunConfig) -> dict[str, Any]:
+    """Wall time of a whole `hammer train` process (imports, startup, TensorBoard, checkpoints: what a
+    user waits for) with this config's preset fields, and the loop's own env-steps/s from summary.json."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    load = _load()
+    with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:
+        conf = Path(tmp) / "config.yaml"
+        conf.write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
+        cmd = [sys.executable, "-c", "from hammer.cli import app; app()", "train", "--config", str(conf),
+               "--run-dir", str(Path(tmp) / "run"), "--quiet"]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, check=False, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"hammer train failed ({proc.returncode}): {proc.stderr[-2000:]}")
+        summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
+    loop_s = summary["env_steps"] / summary["env_steps_per_s_this_session"]
+    return {"env": cfg.env, "episodes": summary["episodes"], "env_steps": summary["env_steps"],
+            "env_steps_per_s": summary["env_steps_per_s_this_session"], "wall_s": wall,
+            "startup_s": max(wall - loop_s, 0.0), "loop_s": loop_s, "load_before": load, "load_after": _load()}
+
+
+def run_bench(variant: str = "hammer", central_mode: str = "rl", cn_episodes: int = 300,
+              mw_updates: int = 2, full: bool = False, extrapolate_from: int = 2000, seed: int = 0,
+              progress: Any = None, mw_overrides: dict[str, Any] | None = None, mw_warmup: int = 1
+              ) -> dict[str, Any]:
+    """All figures of `hammer bench train` as one dict (see the module docstring).
+
+    mw_overrides / mw_warmup shrink the multiwalker runs (tests only: the figures are then not the
+    preset's)."""
+    say = progress or (lambda msg: None)
+    out: dict[str, Any] = {"variant": variant, "central_mode": central_mode, "cores": os.cpu_count(),
+                           "load_start": _load()}
+    say(f"cn3 on cn, {cn_episodes} episodes")
+    cn = time_train(_cfg("cn3", variant, central_mode, seed, episodes=cn_episodes))
+    say(f"cn3 on cn-mpe2, {cn_episodes} episodes")
+    ref = time_train(_cfg("cn3", variant, central_mode, seed, episodes=cn_episodes, env="cn-mpe2"))
+    out["cn3"] = {"cn": cn, "cn-mpe2": ref, "ratio": cn["env_steps_per_s"] / ref["env_steps_per_s"]}
+    if full:
+        say("cn3 full run, 30,000 episodes (a `hammer train` process)")
+        run = time_cli_train(_cfg("cn3", variant, central_mode, seed))
+        out["full"] = {**run, "extrapolated": False, "full_wall_s": run["wall_s"]}
+    else:
+        say(f"cn3, {extrapolate_from} episodes (a `hammer train` process, for the full-run extrapolation)")
+        run = time_cli_train(_cfg("cn3", variant, central_mode, seed, episodes=extrapolate_from))
+        budget = _cfg("cn3", variant, central_mode, seed).episodes
+        est = run["startup_s"] + run["loop_s"] * budget / run["episodes"]
+        out["full"] = {**run, "extrapolated": True, "full_wall_s": est, "full_episodes": budget}
+    mw: dict[str, Any] = {}
+    for workers in (0, 2):
+        say(f"mw3, {mw_updates} updates, env_workers={workers}")
+        cfg = _cfg("mw3", variant, central_mode, seed, env_workers=workers, **(mw_overrides or {}))
+        mw[f"workers={workers}"] = time_updates(cfg, mw_updates, mw_warmup)
+    mw["speedup"] = mw["workers=2"]["env_steps_per_s"] / mw["workers=0"]["env_steps_per_s"]
+    out["mw3"] = mw
+    out["load_end"] = _load()
+    return out
+
+
+def print_table(r: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    mode = f"/{r['central_mode']}" if r["variant"] == "hammer" else ""
+    t = Table(title=f"hammer train speed ({r['variant']}{mode}; env-steps/s include PPO updates; "
+                    f"{r['cores']} cores)")
+    for col in ("preset", "setting", "env-steps/s", "note", "load 1-min (before/after)"):
+        t.add_column(col, justify="right" if col == "env-steps/s" else "left")
+
+    def ld(x: dict[str, Any]) -> str:
+        return f"{x['load_before']:.2f} / {x['load_after']:.2f}"
+
+    cn, ref = r["cn3"]["cn"], r["cn3"]["cn-mpe2"]
+    t.add_row("cn3", "env cn (vectorised)", f"{cn['env_steps_per_s']:,.0f}", f"{cn['episodes']} episodes", ld(cn))
+    t.add_row("cn3", "env cn-mpe2 (reference)", f"{ref['env_steps_per_s']:,.0f}",
+              f"{ref['episodes']} episodes; cn / cn-mpe2 = {r['cn3']['ratio']:.2f}x", ld(ref))
+    f = r["full"]
+    how = ("measured" if not f["extrapolated"] else
+           f"EXTRAPOLATED from {f['episodes']:,} episodes ({f['wall_s']:.1f} s, startup {f['startup_s']:.1f} s)")
+    t.add_row("cn3", "one full 30,000-episode run", f"{f['env_steps_per_s']:,.0f}",
+              f"wall {f['full_wall_s']:.0f} s = {f['full_wall_s'] / 60:.1f} min, {how}", ld(f))
+    for key in ("workers=0", "workers=2"):
+        m = r["mw3"][key]
+        name = "in-process" if key == "workers=0" else "env_workers=2"
+        note = f"{m['updates']} updates after {m['warmup']} warm-up"
+        if key == "workers=2":
+            note += f"; speed-up {r['mw3']['speedup']:.2f}x over in-process"
+        t.add_row("mw3", name, f"{m['env_steps_per_s']:,.0f}", note, ld(m))
+    console = Console()
+    console.print(t)
+    console.print("The machine is shared: compare figures only with the load average beside them.")
+
+
+def bench_train_command(
+    variant: Annotated[str, typer.Option(help="hammer | il | random | centralized")] = "hammer",
+    central_mode: Annotated[str, typer.Option(help="rl | backprop")] = "rl",
+    cn_episodes: Annotated[int, typer.Option(help="episodes of each cn3 run (cn and cn-mpe2)")] = 300,
+    mw_updates: Annotated[int, typer.Option(help="timed PPO updates of each mw3 run")] = 2,
+    full: Annotated[bool, typer.Option("--full", help="really run the 30,000-episode cn3 run (~minutes)")] = False,
+    extrapolate_from: Annotated[int, typer.Option(help="episodes of the measured run the full run is "
+                                                       "extrapolated from (without --full)")] = 2000,
+    seed: Annotated[int, typer.Option(help="run seed")] = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
+) -> None:
+    """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
+    from rich.console import Console
+
+    err = Console(stderr=True)
+    if min(cn_episodes, mw_updates, extrapolate_from) < 1:
+        typer.secho("error: --cn-episodes, --mw-updates and --extrapolate-from must be >= 1", fg="red", err=True)
+        raise typer.Exit(2)
+    r = run_bench(variant, central_mode, cn_episodes, mw_updates, full, extrapolate_from, seed=seed,
+                  progress=lambda msg: err.print(f"[dim]bench train: {msg} (load {_load():.2f})[/dim]"))
+    print_table(r)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(r, indent=2))
+        err.print(f"wrote {json_out}")
