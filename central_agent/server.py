@@ -111,6 +111,7 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
             last_hb = now
         s = state_sub.get(timeout=0.2)
         if s is None:
+            take_weights(version)  # load weights while idle (never blocks), so the first state is served at once
             if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
                 return c
             continue

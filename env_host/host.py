@@ -243,7 +243,7 @@ class EnvHost:
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
         team, env, h = self.team, self.env, self.h
         t_start = self._t_wall0 = time.perf_counter()
-        if not self.wait_weights(0):
+        if not self.wait_weights(0) or not self._wait_central_ready():
             return self.summary(t_start)
         obs, active = env.reset(env_reset_seed(self.cfg.seed, 0))
         prev = team.zero_prev_actions(self.k)
@@ -262,6 +262,24 @@ class EnvHost:
                 break
         self.rd.flush()
         return self.summary(t_start)
+
+    def _wait_central_ready(self) -> bool:
+        """Eval: start stepping only once the central agent holds the policy (its heartbeat says
+        so), so that a fault-free evaluation has no message missing at start-up."""
+        if not (self.uses_central and self.team.central is not None):
+            return True
+        hb_sub = self.s.subscribe(self.s.keys.heartbeat("central"), Heartbeat)
+        deadline = time.monotonic() + self.weights_timeout_s
+        while time.monotonic() < deadline:
+            self._poll_control()
+            if self._stop:
+                return False
+            hb = hb_sub.get(timeout=0.2)
+            if hb is not None and hb.counters.get("policy_version", -1) >= 0:
+                hb_sub.close()
+                return True
+        raise TimeoutError(f"the central agent did not load the policy within {self.weights_timeout_s:.0f}s "
+                           "(is `hammer central` running?)")
 
     def run(self) -> dict:
         cfg, team, env, h, r = self.cfg, self.team, self.env, self.h, self.rollout
