@@ -78,8 +78,9 @@ def expand(presets: list[str], variants: list[str], seeds: list[int],
     grid = grid or []
     keys = [k for k, _ in grid]
     combos = list(itertools.product(*[vals for _, vals in grid])) or [()]
+    # Seed-major order: a sweep cut short still holds every comparison, at fewer seeds.
     return [SweepPoint(p, v, s, tuple(zip(keys, combo, strict=True)))
-            for p in presets for v in variants for combo in combos for s in seeds]
+            for s in seeds for p in presets for v in variants for combo in combos]
 
 
 def state_of(run_dir: Path) -> str:
