@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean
+.PHONY: setup up test bench lint clean paper paper-report
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,24 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/hammer bench $(ARGS)
+
+# The paper's comparisons (docs/results/): resumable, re-run to continue; hours of CPU in total.
+H := $(VENV)/bin/hammer
+VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
+paper: $(STAMP)
+	$(H) sweep --out runs/paper/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
+	$(H) sweep --out runs/paper/cn3-msglen --presets cn3 --variants hammer-rl,il --seeds 0-2 --grid msg_dim=1,2,4,8
+	$(H) sweep --out runs/paper/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
+	$(H) sweep --out runs/paper/mw3 --presets mw3 --variants hammer-rl,hammer-backprop,il --seeds 0-4
+	$(MAKE) paper-report
+
+paper-report: $(STAMP)
+	for g in cn3 cn3-msglen cn5 mw3; do \
+	  if [ -d runs/paper/$$g ]; then \
+	    $(H) plot runs/paper/$$g --out docs/results/$$g-curves && \
+	    $(H) report runs/paper/$$g --out docs/results/$$g-table.md; \
+	  fi; \
+	done
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
