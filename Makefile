@@ -33,18 +33,20 @@ H := $(VENV)/bin/hammer
 VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
 paper: $(STAMP)
 	$(H) sweep --out runs/paper/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/cn3-msglen --presets cn3 --variants hammer-rl,il --seeds 0-2 --grid msg_dim=1,2,4,8
+	$(H) sweep --out runs/paper/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
 	$(H) sweep --out runs/paper/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
 	$(H) sweep --out runs/paper/mw3 --presets mw3 --variants hammer-rl,hammer-backprop,il --seeds 0-4
 	$(MAKE) paper-report
 
 paper-report: $(STAMP)
-	for g in cn3 cn3-msglen cn5 mw3; do \
-	  if [ -d runs/paper/$$g ]; then \
-	    $(H) plot runs/paper/$$g --out docs/results/$$g-curves && \
-	    $(H) report runs/paper/$$g --out docs/results/$$g-table.md; \
-	  fi; \
-	done
+	$(H) plot runs/paper/cn3 --out docs/results/cn3-curves
+	$(H) report runs/paper/cn3 --out docs/results/cn3-table.md
+	-$(H) plot runs/paper/cn3-msglen runs/paper/cn3/cn3-il-s0 runs/paper/cn3/cn3-il-s1 runs/paper/cn3/cn3-il-s2 --window 2000 --out docs/results/cn3-msglen-curves
+	-$(H) report runs/paper/cn3-msglen runs/paper/cn3/cn3-il-s0 runs/paper/cn3/cn3-il-s1 runs/paper/cn3/cn3-il-s2 --out docs/results/cn3-msglen-table.md
+	-$(H) plot runs/paper/cn5 --out docs/results/cn5-curves
+	-$(H) report runs/paper/cn5 --out docs/results/cn5-table.md
+	-$(H) plot runs/paper/mw3 --out docs/results/mw3-curves
+	-$(H) report runs/paper/mw3 --out docs/results/mw3-table.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
