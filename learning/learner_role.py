@@ -32,7 +32,6 @@ from protocol.schemas import Control, ExperienceChunk, Heartbeat, Weights
 from protocol.session import HammerSession
 
 log = logging.getLogger("hammer.learner")
-_LOG_2PI = float(np.log(2 * np.pi))
 
 
 class ChunkError(ValueError):
@@ -102,16 +101,7 @@ class RemoteRollout:
             else:
                 buf.msg_raw[t], buf.keep[t] = msg, 1.0
                 buf.c_logp[t], buf.c_values[t] = 0.0, 0.0
-            x = team.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
-            out = team.local.actor_out(x)
-            buf.values[t] = team.local.value(x).numpy()
-            if self.spec.discrete:
-                logp = torch.log_softmax(out, -1).gather(-1, torch.from_numpy(r["actions"][t])[..., None])[..., 0]
-                buf.logp[t] = logp.numpy()
-            else:
-                log_std = team.local.log_std.numpy()
-                z = (r["actions"][t] - out.numpy()) / np.exp(log_std)
-                buf.logp[t] = (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1)
+            buf.logp[t], buf.values[t] = team.local_evaluate(obs, msg, r["actions"][t])
             if r["reset"][t].any():
                 idx = np.flatnonzero(r["reset"][t].any(axis=1))
                 fobs = r["final_obs"][t][idx]

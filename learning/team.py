@@ -165,6 +165,20 @@ class Team:
         return action, logp, value
 
     @torch.inference_mode()
+    def local_evaluate(self, obs: np.ndarray, msg: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(logp, value) of given actions, computed as `local_act` computes them: the distributed
+        learner uses this to rebuild exactly the trainer's rollout from remote actions."""
+        x = self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
+        out = self.local.actor_out(x).numpy()
+        value = self.local.value(x).numpy()
+        if self.discrete:
+            probs = softmax(out)
+            return np.log(np.take_along_axis(probs, action[..., None], axis=-1)[..., 0]).astype(np.float32), value
+        log_std = self.local.log_std.detach().numpy()
+        z = (action - out) / np.exp(log_std)  # the Gaussian draw behind the action (to float precision)
+        return (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1).astype(np.float32), value
+
+    @torch.inference_mode()
     def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:
         return self.local.value(self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))).numpy()
 
