@@ -86,11 +86,18 @@ def report(
     runs: Annotated[list[Path], typer.Argument(help="Run directories or folders holding them.")],
     last: Annotated[int, typer.Option(help="Final performance = mean of each run's last N episodes.")] = 500,
     out: Annotated[Path | None, typer.Option(help="Also write the markdown table here.")] = None,
+    export: Annotated[Path | None, typer.Option(
+        help="Also write a compact JSON of every run (config, final figures, downsampled curve).")] = None,
 ) -> None:
     """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL."""
     from experiments.report import build_rows, to_markdown
 
-    md = to_markdown(build_rows(_load(runs), last), last)
+    loaded = _load(runs)
+    md = to_markdown(build_rows(loaded, last), last)
     typer.echo(md)
     if out:
         out.write_text(md)
+    if export:
+        from experiments.export import export_runs
+
+        export_runs(loaded, export)
