@@ -70,6 +70,9 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
     msg_pubs = [session.publisher(keys.msg(i), express=True) for i in range(n)]
     exp_pub = session.publisher(keys.exp("central"))
     hb_pub = session.publisher(keys.heartbeat("central"), reliable=False)
+    # Warm up torch (first-call allocations, kernel selection) before declaring ourselves alive,
+    # so the first real step meets the local agents' message deadline. No random stream is drawn.
+    team.bootstrap_messages(np.zeros((cfg.num_envs, team.state_dim), np.float32))
     session.declare_alive("central")
     record = needs_central_record(cfg)
 
