@@ -54,7 +54,10 @@ def needs_central_record(cfg: RunConfig) -> bool:
 
 
 def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float,
-                idle_exit_s: float | None = None) -> CentralCounters:
+                idle_exit_s: float | None = None, load_when_idle: bool = False) -> CentralCounters:
+    """Serve messages until a stop command. load_when_idle (evaluation, frozen weights): load the
+    policy before the first state arrives so the env host can wait for it (see EnvHost.run_eval);
+    training keeps loading weights only when a state asks for them (up == train equivalence)."""
     import torch
 
     torch.set_num_threads(1)
@@ -114,7 +117,8 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
             last_hb = now
         s = state_sub.get(timeout=0.2)
         if s is None:
-            take_weights(version)  # load weights while idle (never blocks), so the first state is served at once
+            if load_when_idle:
+                take_weights(version)  # never blocks: drains weights already received
             if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
                 return c
             continue

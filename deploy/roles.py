@@ -142,7 +142,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         _fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
-            c = run_central(s, cfg, spec, settings.weights_timeout_s)
+            c = run_central(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval")
             logging.getLogger("hammer.central").info("stopped: %s", c.as_dict())
             _write_counters(run_dir, "central", {**c.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
