@@ -69,11 +69,16 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     """Same config and seed, no faults: the distributed run's episode returns equal hammer train's
     over the first updates (100 episodes = 3 PPO updates of 32 episodes + the start of a 4th)."""
     up, tr = tmp_path / "up", tmp_path / "train"
-    r1 = _hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard")
+    # Generous deadlines: this test is about equality without faults, so a loaded CI machine must
+    # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py).
+    r1 = _hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard",
+                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
     r2 = _hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", mode, "--episodes", "100",
                  "--run-dir", str(tr), "--quiet")
     assert r2.returncode == 0, r2.stderr[-2000:]
+    links = json.loads((up / "summary.json").read_text())["links"]
+    assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
     a, b = _metric_column(up), _metric_column(tr)
     assert len(a) == len(b) == 100
     assert a == pytest.approx(b, abs=1e-5)
