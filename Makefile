@@ -29,24 +29,25 @@ bench: $(STAMP)
 	$(VENV)/bin/hammer bench $(ARGS)
 
 # The paper's comparisons (docs/results/): resumable, re-run to continue; hours of CPU in total.
+# Every finished run is archived under docs/results/runs/ (commit it): archived runs are skipped,
+# so the sweeps continue from a fresh clone; reports read the archive.
 H := $(VENV)/bin/hammer
+A := docs/results/runs
 VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
 paper: $(STAMP)
-	$(H) sweep --out runs/paper/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
-	$(H) sweep --out runs/paper/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/mw3 --presets mw3 --variants hammer-rl,hammer-backprop,il --seeds 0-4
+	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
+	$(H) sweep --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
+	$(H) sweep --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
+	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
 	$(MAKE) paper-report
 
 paper-report: $(STAMP)
-	$(H) plot runs/paper/cn3 --out docs/results/cn3-curves
-	$(H) report runs/paper/cn3 --out docs/results/cn3-table.md
-	-$(H) plot runs/paper/cn3-msglen runs/paper/cn3/cn3-il-s0 runs/paper/cn3/cn3-il-s1 runs/paper/cn3/cn3-il-s2 --window 2000 --out docs/results/cn3-msglen-curves
-	-$(H) report runs/paper/cn3-msglen runs/paper/cn3/cn3-il-s0 runs/paper/cn3/cn3-il-s1 runs/paper/cn3/cn3-il-s2 --out docs/results/cn3-msglen-table.md
-	-$(H) plot runs/paper/cn5 --out docs/results/cn5-curves
-	-$(H) report runs/paper/cn5 --out docs/results/cn5-table.md
-	-$(H) plot runs/paper/mw3 --out docs/results/mw3-curves
-	-$(H) report runs/paper/mw3 --out docs/results/mw3-table.md
+	-$(H) plot $(A)/cn3-msglen --window 2000 --out docs/results/cn3-msglen-curves
+	-$(H) report $(A)/cn3-msglen --out docs/results/cn3-msglen-table.md --export docs/results/cn3-msglen-runs.json
+	-$(H) plot $(A)/cn5 --out docs/results/cn5-curves
+	-$(H) report $(A)/cn5 --out docs/results/cn5-table.md --export docs/results/cn5-runs.json
+	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
+	-$(H) report $(A)/mw3 --out docs/results/mw3-table.md --export docs/results/mw3-runs.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

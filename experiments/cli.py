@@ -28,7 +28,7 @@ def _load(paths: list[Path]) -> list:
     except FileNotFoundError as e:
         _fail(str(e))
     if not loaded:
-        _fail("no run directories (with metrics.csv) found under the given paths")
+        _fail("no run directories (metrics.csv) or archived runs (metrics.npz) found under the given paths")
     return loaded
 
 
@@ -42,6 +42,9 @@ def sweep(
         help="Extra grid axis KEY=V1,V2,... (repeatable), e.g. --grid msg_dim=1,2,4,8.")] = None,
     jobs: Annotated[int | None, typer.Option(help="Runs at once (default: number of cores).")] = None,
     episodes: Annotated[int | None, typer.Option(help="Override the preset's episode budget.")] = None,
+    archive: Annotated[Path | None, typer.Option(
+        help="Also keep a compact copy of each finished run here (commit it: runs archived there are "
+             "skipped, so the sweep continues from a fresh clone). e.g. docs/results/runs/cn5")] = None,
 ) -> None:
     """Run a grid of independent training runs, resumably.
 
@@ -64,7 +67,7 @@ def sweep(
         style = {"done": "green", "fail": "red", "skip": "dim"}.get(kind, "cyan")
         console.print(f"[{style}]{kind:>6}[/] {name}")
 
-    res = run_sweep(points, out, jobs=jobs, episodes=episodes, on_event=event)
+    res = run_sweep(points, out, jobs=jobs, episodes=episodes, on_event=event, archive=archive)
     console.print(f"finished {len(res.done)}, skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.archive import METRICS_NPZ, load_metrics_npz
+
 
 @dataclass
 class Run:
@@ -45,16 +47,17 @@ class Run:
 
 
 def find_runs(paths: list[Path]) -> list[Path]:
-    """Every run directory (holding metrics.csv) at or below the given paths."""
+    """Every run directory (holding metrics.csv) or archived run (metrics.npz, see
+    `experiments.archive`) at or below the given paths."""
     found: list[Path] = []
     for p in paths:
         p = Path(p)
         if not p.exists():
             raise FileNotFoundError(f"run path {p} does not exist")
-        if (p / "metrics.csv").is_file():
+        if (p / "metrics.csv").is_file() or (p / METRICS_NPZ).is_file():
             found.append(p)
         else:
-            found.extend(sorted(m.parent for m in p.rglob("metrics.csv")))
+            found.extend(sorted({m.parent for m in [*p.rglob("metrics.csv"), *p.rglob(METRICS_NPZ)]}))
     return found
 
 
@@ -64,6 +67,10 @@ def load_run(path: Path) -> Run:
     if not cfg_file.is_file():
         raise FileNotFoundError(f"{path} has no config.json: not a hammer run directory")
     config = json.loads(cfg_file.read_text())
+    if not (path / "metrics.csv").is_file() and (path / METRICS_NPZ).is_file():
+        e, m, t = load_metrics_npz(path / METRICS_NPZ)
+        return Run(path=path, config=config, episodes=e, paper_metric=m, team_return=t,
+                   finished=(path / "summary.json").is_file())
     eps: list[float] = []
     metric: list[float] = []
     team: list[float] = []

@@ -16,6 +16,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from experiments.archive import archive_run, is_archived
+
 # Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
 VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
 
@@ -99,8 +101,12 @@ class SweepResult:
 
 
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
-              on_event=None) -> SweepResult:
-    """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress."""
+              on_event=None, archive: Path | None = None) -> SweepResult:
+    """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress.
+
+    With `archive`, a point already archived there counts as finished, and every run that finishes
+    (or is found finished in `out`) is archived (`experiments.archive`): commit the archive and the
+    sweep continues from a fresh clone."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = jobs or max(1, os.cpu_count() or 1)
@@ -110,6 +116,10 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
     for p in points:
         run_dir = out / p.name
         st = state_of(run_dir)
+        if st == "done" and archive is not None and not is_archived(archive, p.name):
+            archive_run(run_dir, archive)
+        if archive is not None and is_archived(archive, p.name):
+            st = "done"
         if st == "done":
             result.skipped.append(p.name)
             if on_event:
@@ -137,6 +147,8 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                 logf.close()
                 del running[name]
                 if proc.returncode == 0:
+                    if archive is not None:
+                        archive_run(out / name, archive)
                     result.done.append(name)
                     if on_event:
                         on_event("done", name)

@@ -67,3 +67,31 @@ def test_plot_writes_png_and_svg(runs_dir, tmp_path):
 def test_missing_run_path_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         find_runs([tmp_path / "nope"])
+
+
+def test_archived_runs_read_like_run_directories(runs_dir, tmp_path):
+    from experiments.archive import archive_run, is_archived
+
+    archive = tmp_path / "archive"
+    for p in find_runs([runs_dir]):
+        archive_run(p, archive)
+    assert is_archived(archive, "il-s0") and not (archive / "il-s0" / "metrics.csv").exists()
+    original = {r.path.name: r for r in (load_run(p) for p in find_runs([runs_dir]))}
+    archived = [load_run(p) for p in find_runs([archive])]
+    assert sorted(r.path.name for r in archived) == sorted(original)
+    for r in archived:
+        o = original[r.path.name]
+        assert r.label == o.label and r.finished
+        np.testing.assert_allclose(r.paper_metric, o.paper_metric, rtol=1e-6)  # float32 on disk
+        np.testing.assert_array_equal(r.episodes, o.episodes)
+    a_rows = {r.label: r.mean for r in build_rows(archived, last=500)}
+    o_rows = {r.label: r.mean for r in build_rows(list(original.values()), last=500)}
+    assert a_rows == pytest.approx(o_rows, abs=1e-5)
+
+
+def test_only_finished_runs_are_archived(runs_dir, tmp_path):
+    from experiments.archive import archive_run
+
+    (runs_dir / "il-s0" / "summary.json").unlink()
+    with pytest.raises(FileNotFoundError, match="only finished runs"):
+        archive_run(runs_dir / "il-s0", tmp_path / "archive")

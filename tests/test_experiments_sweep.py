@@ -41,3 +41,16 @@ def test_sweep_skips_finished_and_resumes_interrupted(tmp_path):
     assert res2.skipped == [pts[1].name] and res2.done == [pts[0].name]
     assert len(_rows(first)) == 24
     assert json.loads((first / "summary.json").read_text())["episodes"] == 24
+
+
+def test_archived_runs_survive_a_fresh_sweep_directory(tmp_path):
+    """A sweep archived into the repository continues from a clean clone (no run directories)."""
+    from experiments.archive import is_archived
+
+    pts = expand(["cn3"], ["il"], [0], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
+    archive = tmp_path / "archive"
+    res = run_sweep(pts, tmp_path / "a", jobs=1, episodes=8, archive=archive)
+    assert res.done == [pts[0].name] and is_archived(archive, pts[0].name)
+    res2 = run_sweep(pts, tmp_path / "fresh", jobs=1, episodes=8, archive=archive)
+    assert res2.skipped == [pts[0].name] and not res2.done
+    assert not (tmp_path / "fresh" / pts[0].name).exists()
