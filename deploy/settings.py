@@ -37,6 +37,11 @@ class RuntimeSettings(BaseModel):
     act_deadline_ms: float = Field(
         500.0, gt=0, description="how long the env host waits for actions before using default actions")
     weights_timeout_s: float = Field(60.0, gt=0, description="how long an actor waits for a new policy version")
+    max_policy_lag: int = Field(
+        0, ge=0, le=4,
+        description="0: synchronous on-policy (actors wait for every update; reproduces `hammer train`). "
+                    "1+: the env host collects the next rollout with the previous version while the learner "
+                    "updates; the learner corrects with that version's log-probs and reports the lag")
     fallback: Fallback = Field("zeros", description="message used when it is late: zeros, last, or last_k")
     fallback_k: int = Field(3, ge=0, description="last_k: reuse the last message for at most k steps, then zeros")
     faults: FaultSpec | None = Field(None, description="seeded fault injection on publishes (off when None)")

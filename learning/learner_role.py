@@ -112,7 +112,13 @@ class RemoteRollout:
 
 
 def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir,
-                central_wait_s: float = 5.0) -> dict[str, Any]:
+                central_wait_s: float = 5.0, max_policy_lag: int = 0) -> dict[str, Any]:
+    """Serve updates until told to stop.
+
+    max_policy_lag L > 0 (asynchronous): a chunk acted by version w with update - L <= w <= update
+    is used; its acting-time log-probs and values are recomputed with the snapshot of version w
+    (the behaviour policy), so PPO's ratio pi_new / pi_w corrects for the lag exactly as it does
+    for the epochs of one update. The lag of every update is reported (stats, tensorboard)."""
     from central_agent.server import needs_central_record
 
     keys = session.keys
@@ -131,20 +137,43 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
     session.declare_alive("learner")
 
     update = 0
-    stats = {"updates": 0, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0}
+    stats = {"updates": 0, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0,
+             "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0}
     central_recs: dict[int, dict[str, np.ndarray]] = {}
+    snapshots: dict[int, list[dict[str, torch.Tensor]]] = {}  # version -> network states (lag > 0)
+    nets = [team.local] + ([team.central] if team.central is not None else [])
 
     def publish_weights() -> None:
         w_local.publish(Weights.from_blob("local", update, weights_blob(team.local.export_numpy())))
         if w_central is not None:
             w_central.publish(Weights.from_blob("central", update, weights_blob(team.central.export_numpy())))
 
+    def snapshot() -> None:
+        if max_policy_lag:
+            snapshots[update] = [{k: v.clone() for k, v in net.state_dict().items()} for net in nets]
+            for v in [v for v in snapshots if v < update - max_policy_lag]:
+                del snapshots[v]
+
+    def fill_as(version: int, r: dict[str, np.ndarray]) -> int:
+        """Fill the buffer with the acting-time quantities of `version` (the behaviour policy)."""
+        if version == update:
+            return rollout.fill(r, central_recs if c_sub is not None else None)
+        current = [{k: v.clone() for k, v in net.state_dict().items()} for net in nets]
+        for net, st in zip(nets, snapshots[version], strict=True):
+            net.load_state_dict(st)
+        try:
+            return rollout.fill(r, central_recs if c_sub is not None else None)
+        finally:
+            for net, st in zip(nets, current, strict=True):
+                net.load_state_dict(st)
+
     def take_central() -> None:
         for rec in c_sub.drain():
-            if rec.policy_version == update:
+            if update - max_policy_lag <= rec.policy_version <= update:
                 central_recs[rec.step] = rec.arrays
 
     publish_weights()
+    snapshot()
     last_pub = last_hb = time.monotonic()
     while True:
         if any(c.command in ("stop", "shutdown") and c.target in ("*", "learner") for c in ctl_sub.drain()):
@@ -162,9 +191,11 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
                 publish_weights()
                 last_pub = time.monotonic()
             continue
-        if chunk.policy_version != update:
+        lag = update - chunk.policy_version
+        if not 0 <= lag <= max_policy_lag:
             stats["stale_chunks"] += 1
-            log.warning("experience of version %d while at %d: discarded", chunk.policy_version, update)
+            log.warning("experience of version %d while at %d (max lag %d): discarded",
+                        chunk.policy_version, update, max_policy_lag)
             continue
         try:
             check_chunk(chunk.arrays, expected)
@@ -178,17 +209,22 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
             deadline = time.monotonic() + central_wait_s
             while not need <= central_recs.keys() and time.monotonic() < deadline:
                 rec = c_sub.get(timeout=0.05)
-                if rec is not None and rec.policy_version == update:
+                if rec is not None and update - max_policy_lag <= rec.policy_version <= update:
                     central_recs[rec.step] = rec.arrays
-        missing = rollout.fill(r, central_recs if c_sub is not None else None)
+        missing = fill_as(chunk.policy_version, r)
         stats["central_steps_missing"] += missing
-        central_recs.clear()
+        for step in [st for st in central_recs if st <= int(r["steps"][-1])]:
+            del central_recs[step]
+        stats["lagged_updates"] += int(lag > 0)
+        stats["policy_lag_max"] = max(stats["policy_lag_max"], lag)
         logs = learner.learn(r["last_obs"], r["last_prev"], update)
         update += 1
         stats["updates"] = update
         stats["samples"] += int(r["active"].sum())
         publish_weights()
+        snapshot()
         last_pub = time.monotonic()
+        logs["policy_lag"] = lag
         for name, v in logs.items():
             tb.add_scalar(f"train/{name}", v, update)
         if update % cfg.checkpoint_every == 0:
