@@ -76,7 +76,9 @@ class RssSampler:
 
 
 def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", central_mode: str = "backprop",
-                  out: Path | None = None, raw: bool = True) -> list[dict]:
+                  out: Path | None = None, raw: bool = True, lagged: bool = True) -> list[dict]:
+    """One row per preset. `lagged`: also run `hammer up` with max_policy_lag=1 (the env host
+    collects the next rollout while the learner updates), reported as up_lag1_*."""
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
     from learning.config import merge_config
@@ -97,6 +99,16 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
             res = launch(cfg, settings, root / f"{preset}-up", chaos=rss)
             s = res.summary
             train_rate = tr["env_steps_per_s_this_session"]
+            lag = {}
+            if lagged:
+                settings = RuntimeSettings(run_id=f"bench-{preset}-lag1-{os.getpid()}", max_policy_lag=1)
+                res1 = launch(cfg, settings, root / f"{preset}-up-lag1")
+                s1 = res1.summary
+                lag = {"up_lag1_env_steps_per_s": s1["env_steps_per_s"],
+                       "ratio_up_lag1_over_train": s1["env_steps_per_s"] / train_rate,
+                       "up_lag1_step_latency_ms_p50": s1["step_latency_ms_p50"],
+                       "up_lag1_step_latency_ms_p99": s1["step_latency_ms_p99"],
+                       "up_lag1_final_paper_metric": s1.get("final_paper_metric_last500")}
             rows.append({
                 "preset": preset, "variant": variant, "central_mode": central_mode, "episodes": episodes,
                 "num_envs": cfg.num_envs, "n_agents": cfg.n_agents, "rollout_steps": cfg.rollout_steps,
@@ -106,6 +118,7 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
                 "ratio_train_over_raw": train_rate / raw_rate if raw else float("nan"),
                 "ratio_up_over_train": s["env_steps_per_s"] / train_rate,
                 "step_latency_ms_p50": s["step_latency_ms_p50"], "step_latency_ms_p99": s["step_latency_ms_p99"],
+                **lag,
                 "rss_mib": {k: round(v, 1) for k, v in sorted(rss.peak.items())},
                 "same_metrics": _same_metrics(root / f"{preset}-train", root / f"{preset}-up"),
                 "loadavg_1m_before": load0, "loadavg_1m_after": os.getloadavg()[0], "cpu_count": psutil.cpu_count(),

@@ -47,13 +47,13 @@ def bench_runtime_command(
     rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
     t = Table(title=f"hammer bench runtime ({variant}/{central_mode}, {episodes} episodes each, "
                     f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
-    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "loop p50 ms", "loop p99 ms",
-                "same metrics"):
+    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "up lag-1 / train", "loop p50 ms",
+                "loop p99 ms", "same metrics"):
         t.add_column(col, justify="right")
     for r in rows:
         t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
-                  f"{r['ratio_up_over_train']:.2f}", f"{r['step_latency_ms_p50']:.2f}",
-                  f"{r['step_latency_ms_p99']:.2f}", str(r["same_metrics"]))
+                  f"{r['ratio_up_over_train']:.2f}", f"{r.get('ratio_up_lag1_over_train', float('nan')):.2f}",
+                  f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}", str(r["same_metrics"]))
     Console().print(t)
     if json_out is not None:
         json_out.write_text(json.dumps(rows, indent=1))

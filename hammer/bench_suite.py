@@ -31,20 +31,22 @@ def run_suite(episodes: int, out_dir: Path | None) -> dict:
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     rows = bench_runtime(["cn3", "cn5"], episodes)
     t = Table(title=f"hammer bench ({episodes} episodes per runner, hammer/backprop, {os.cpu_count()} cores)")
-    for col in ("preset", "raw env", "train", "up", "train/raw", "up/train", "loop p50 ms", "loop p99 ms",
-                "RSS MiB (local/central/env/learner)", "up==train"):
+    for col in ("preset", "raw env", "train", "up", "up lag-1", "train/raw", "up/train", "up lag-1/train",
+                "loop p50 ms", "loop p99 ms", "RSS MiB (local/central/env/learner)", "up==train"):
         t.add_column(col, justify="right")
     for r in rows:
         rss = r["rss_mib"]
         t.add_row(r["preset"], f"{r['raw_env_steps_per_s']:,.0f}", f"{r['train_env_steps_per_s']:,.0f}",
-                  f"{r['up_env_steps_per_s']:,.0f}", f"{r['ratio_train_over_raw']:.3f}",
-                  f"{r['ratio_up_over_train']:.2f}", f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}",
+                  f"{r['up_env_steps_per_s']:,.0f}", f"{r['up_lag1_env_steps_per_s']:,.0f}",
+                  f"{r['ratio_train_over_raw']:.3f}", f"{r['ratio_up_over_train']:.2f}",
+                  f"{r['ratio_up_lag1_over_train']:.2f}", f"{r['step_latency_ms_p50']:.2f}",
+                  f"{r['step_latency_ms_p99']:.2f}",
                   " / ".join(f"{rss.get(k, float('nan')):.0f}" for k in ("local", "central", "env", "learner")),
                   str(r["same_metrics"]))
     console = Console(width=180)
     console.print(t)
     console.print("env-steps/s = env-copy steps per second, PPO updates included for train and up; "
-                    "loop latency = observations out -> every action back, per vector step.")
+                    "up lag-1 = `hammer up --runtime max_policy_lag=1`; loop latency = observations out -> every action back, per vector step.")
     result = {"started": started, "machine": machine(), "episodes": episodes, "rows": rows}
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import time
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,7 @@ from envs.base import EnvSpec
 from learning.config import RunConfig
 from learning.learner import TeamLearner
 from learning.rundir import RunDir
+from learning.team import Team
 from protocol.schemas import Control, ExperienceChunk, Heartbeat, Weights
 from protocol.session import HammerSession
 
@@ -111,6 +113,46 @@ class RemoteRollout:
         return missing
 
 
+class BehaviourSnapshots:
+    """The network states of the last `max_lag` + 1 policy versions, so experience acted by an
+    older version can be evaluated with exactly that version (its log-probs and values)."""
+
+    def __init__(self, team: Team, max_lag: int) -> None:
+        self.max_lag = max_lag
+        self.nets = [team.local] + ([team.central] if team.central is not None else [])
+        self.states: dict[int, list[dict[str, torch.Tensor]]] = {}
+
+    def _state(self) -> list[dict[str, torch.Tensor]]:
+        return [{k: v.detach().clone() for k, v in net.state_dict().items()} for net in self.nets]
+
+    def _load(self, states: list[dict[str, torch.Tensor]]) -> None:
+        for net, st in zip(self.nets, states, strict=True):
+            net.load_state_dict(st)
+
+    def keep(self, version: int) -> None:
+        """Remember the current weights as `version` (a no-op when synchronous)."""
+        if not self.max_lag:
+            return
+        self.states[version] = self._state()
+        for v in [v for v in self.states if v < version - self.max_lag]:
+            del self.states[v]
+
+    @contextmanager
+    def acting_as(self, version: int, current: int):
+        """Within the block the networks hold `version`; the current weights come back after."""
+        if version == current:
+            yield
+            return
+        if version not in self.states:
+            raise KeyError(f"no snapshot of policy version {version} (kept: {sorted(self.states)})")
+        now = self._state()
+        self._load(self.states[version])
+        try:
+            yield
+        finally:
+            self._load(now)
+
+
 def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir,
                 central_wait_s: float = 5.0, max_policy_lag: int = 0) -> dict[str, Any]:
     """Serve updates until told to stop.
@@ -140,8 +182,7 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
     stats = {"updates": 0, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0,
              "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0}
     central_recs: dict[int, dict[str, np.ndarray]] = {}
-    snapshots: dict[int, list[dict[str, torch.Tensor]]] = {}  # version -> network states (lag > 0)
-    nets = [team.local] + ([team.central] if team.central is not None else [])
+    behaviour = BehaviourSnapshots(team, max_policy_lag)
 
     def publish_weights() -> None:
         w_local.publish(Weights.from_blob("local", update, weights_blob(team.local.export_numpy())))
@@ -149,23 +190,12 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
             w_central.publish(Weights.from_blob("central", update, weights_blob(team.central.export_numpy())))
 
     def snapshot() -> None:
-        if max_policy_lag:
-            snapshots[update] = [{k: v.clone() for k, v in net.state_dict().items()} for net in nets]
-            for v in [v for v in snapshots if v < update - max_policy_lag]:
-                del snapshots[v]
+        behaviour.keep(update)
 
     def fill_as(version: int, r: dict[str, np.ndarray]) -> int:
         """Fill the buffer with the acting-time quantities of `version` (the behaviour policy)."""
-        if version == update:
+        with behaviour.acting_as(version, update):
             return rollout.fill(r, central_recs if c_sub is not None else None)
-        current = [{k: v.clone() for k, v in net.state_dict().items()} for net in nets]
-        for net, st in zip(nets, snapshots[version], strict=True):
-            net.load_state_dict(st)
-        try:
-            return rollout.fill(r, central_recs if c_sub is not None else None)
-        finally:
-            for net, st in zip(nets, current, strict=True):
-                net.load_state_dict(st)
 
     def take_central() -> None:
         for rec in c_sub.drain():
