@@ -54,21 +54,25 @@ def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300
     t0 = time.perf_counter()
     sub = make_vec_env("mw", n_agents, num_envs, workers=workers)
     start_s = time.perf_counter() - t0
+    shared = make_vec_env("mw", n_agents, num_envs, workers=workers, parent_slice=True)
+    names = {"in-process": local, f"{workers} workers": sub, f"{workers} slices, parent steps one": shared}
     try:
-        _phase(local, 30, 0)  # warm-up (imports, allocator, first terrain)
-        _phase(sub, 30, 0)
-        res: dict[str, list[tuple[float, float]]] = {"in-process": [], f"{workers} workers": []}
+        for v in names.values():
+            _phase(v, 30, 0)  # warm-up (imports, allocator, first terrain)
+        res: dict[str, list[tuple[float, float, float]]] = {k: [] for k in names}
         for r in range(repeats):
-            res["in-process"].append(_phase(local, steps, 100 + r))
-            res[f"{workers} workers"].append(_phase(sub, steps, 100 + r))
+            for k, v in names.items():
+                res[k].append(_phase(v, steps, 100 + r))
     finally:
-        local.close()
-        sub.close()
+        for v in names.values():
+            v.close()
     best = {k: max(v) for k, v in res.items()}
     speedup = best[f"{workers} workers"][0] / best["in-process"][0]
+    speedup_parent = best[f"{workers} slices, parent steps one"][0] / best["in-process"][0]
     return {"num_envs": num_envs, "workers": workers, "n_agents": n_agents, "steps": steps,
             "cores": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0],
-            "worker_start_s": start_s, "phases": res, "best": best, "speedup": speedup}
+            "worker_start_s": start_s, "phases": res, "best": best, "speedup": speedup,
+            "speedup_parent_slice": speedup_parent}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -85,8 +89,9 @@ def main(argv: list[str] | None = None) -> None:
           f"workers started in {r['worker_start_s']:.2f} s")
     for name, phases in r["phases"].items():
         runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% busy, {own:.2f} cores ours)" for sps, cpu, own in phases)
-        print(f"  {name:>12}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
-    print(f"speed-up (best workers / best in-process): {r['speedup']:.2f}x")
+        print(f"  {name:>30}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
+    print(f"speed-up over in-process (best phases): {r['workers']} workers {r['speedup']:.2f}x, "
+          f"{r['workers']} slices with the parent stepping one {r['speedup_parent_slice']:.2f}x")
     per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items()}
     ratio = per_core[f"{r['workers']} workers"] / per_core["in-process"]
     print("env-steps per core-second our processes used: " + ", ".join(f"{k} {v:,.0f}" for k, v in per_core.items())

@@ -186,11 +186,13 @@ def _make_cn(n_agents: int, num_envs: int, kwargs: dict[str, Any], workers: int)
 
 # -- the public entry point ------------------------------------------------------------------------
 def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str, Any] | None = None,
-                 workers: int = 0) -> VecEnv:
+                 workers: int = 0, parent_slice: bool = False) -> VecEnv:
     """Build K = num_envs copies of the N = n_agents env `env` (see module docstring for the names).
 
     Seeding happens in `reset(seed)` (copy k gets seed + k). `workers=0` runs in-process;
-    `workers>=1` runs the copies in that many subprocesses with identical results.
+    `workers>=1` splits the copies into that many slices stepped in parallel subprocesses, with
+    identical results; `parent_slice=True` steps slice 0 in this process instead (W-1 subprocesses;
+    workers=1 is then simply in-process).
     """
     if not isinstance(env, str) or not env:
         raise EnvConfigError(f"env: expected a name, got {env!r}; valid names: {_valid_names()}")
@@ -206,8 +208,8 @@ def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str
         return _make_cn(n_agents, num_envs, kwargs, workers)
     desc = EnvDescription(env, n_agents, kwargs)
     parallel_env_factory(desc)  # validate the name and kwargs here, before any process starts
-    if workers == 0:
+    if workers == 0 or (workers == 1 and parent_slice):
         return build_local(desc, num_envs)
     from envs.workers import SubprocVecEnv
 
-    return SubprocVecEnv(desc, num_envs, workers)
+    return SubprocVecEnv(desc, num_envs, workers, parent_slice=parent_slice)

@@ -134,9 +134,15 @@ class WorkerError(RuntimeError):
 
 
 class SubprocVecEnv(VecEnv):
-    """`VecEnv` over W spawn-context workers, each stepping a contiguous slice of the K copies."""
+    """`VecEnv` over W contiguous slices of the K copies, each stepped by a spawn-context worker.
 
-    def __init__(self, desc: EnvDescription, num_envs: int, workers: int, *, start_timeout: float = 120.0) -> None:
+    parent_slice=True: the calling process steps slice 0 itself while the W-1 workers step theirs.
+    Stepping is synchronous, so the caller would otherwise sit idle until the slowest worker
+    replies; doing a share of the work instead saves one process's IPC and lets W slices use W
+    cores with only W-1 extra processes (on 2 cores: the trainer + one worker)."""
+
+    def __init__(self, desc: EnvDescription, num_envs: int, workers: int, *, start_timeout: float = 120.0,
+                 parent_slice: bool = False) -> None:
         if not 1 <= workers <= num_envs:
             raise ValueError(f"workers must be in [1, num_envs={num_envs}], got {workers}")
         # The spec sizes the shared arrays: take it from one copy built here (also validates early).
@@ -156,9 +162,16 @@ class SubprocVecEnv(VecEnv):
         self.slices = list(zip(offsets, counts))
         self._procs: list[Any] = []
         self._conns: list[Any] = []
+        self._parent: VecEnv | None = None  # slice 0 when parent_slice
+        self._w0 = 1 if parent_slice else 0  # slice index of the first subprocess worker
         # Registered before the first start so that a failure half-way still stops what was started.
         self._finalizer = weakref.finalize(self, _shutdown, self._procs, self._conns)
+        if parent_slice:
+            off, cnt = self.slices[0]
+            self._parent = build_local(desc, cnt, index_offset=off)
         for w, (off, cnt) in enumerate(self.slices):
+            if w < self._w0:
+                continue
             parent_end, child_end = ctx.Pipe(duplex=True)
             p = ctx.Process(target=_worker_main, name=f"hammer-env-worker-{w}", daemon=True,
                             args=(child_end, desc, off, cnt, self.spec, num_envs, raw, os.getpid()))
@@ -167,10 +180,10 @@ class SubprocVecEnv(VecEnv):
             self._procs.append(p)
             self._conns.append(parent_end)
         try:
-            for w, c in enumerate(self._conns):
+            for i, c in enumerate(self._conns):
                 if not c.poll(start_timeout):
-                    raise WorkerError(f"env worker {w} did not start within {start_timeout:.0f} s")
-                self._reply(w, expect="ready")
+                    raise WorkerError(f"env worker {i + self._w0} did not start within {start_timeout:.0f} s")
+                self._reply(i, expect="ready")
         except BaseException:
             self.close()
             raise
@@ -181,11 +194,13 @@ class SubprocVecEnv(VecEnv):
         """Process ids of the workers (for tests and monitoring)."""
         return [p.pid for p in self._procs]
 
-    def _reply(self, w: int, expect: str = "ok") -> Any:
+    def _reply(self, i: int, expect: str = "ok") -> Any:
+        """Reply of the i-th subprocess (slice i + self._w0)."""
+        w = i + self._w0
         try:
-            kind, payload = msgpack.unpackb(self._conns[w].recv_bytes(), raw=False)
+            kind, payload = msgpack.unpackb(self._conns[i].recv_bytes(), raw=False)
         except (EOFError, OSError) as e:
-            p = self._procs[w]
+            p = self._procs[i]
             p.join(1.0)
             raise WorkerError(f"env worker {w} (pid {p.pid}, envs {self.slices[w]}) exited unexpectedly "
                               f"with exit code {p.exitcode}") from e
@@ -195,18 +210,36 @@ class SubprocVecEnv(VecEnv):
             raise WorkerError(f"env worker {w}: expected {expect!r}, got {kind!r}")
         return payload
 
-    def _broadcast(self, cmd: str, arg: Any) -> list[Any]:
+    def _broadcast(self, cmd: str, arg: Any, parent_work=None) -> list[Any]:
+        """Send `cmd` to every worker, run `parent_work()` (the parent's slice) meanwhile, gather."""
         if not self._finalizer.alive:
             raise RuntimeError("SubprocVecEnv is closed")
         msg = _pack(cmd, arg)
         for c in self._conns:
             c.send_bytes(msg)
-        return [self._reply(w) for w in range(len(self._conns))]
+        try:
+            mine = [parent_work()] if parent_work is not None else []
+        finally:  # even if the parent's slice failed: read every reply, so the pipes stay in step
+            theirs = [self._reply(i) for i in range(len(self._conns))]
+        return mine + theirs
 
     def reset(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        self._broadcast("reset", int(seed))
+        def parent_reset() -> None:
+            off, cnt = self.slices[0]
+            obs, active = self._parent.reset(int(seed))
+            self._buf["obs"][off:off + cnt] = obs
+            self._buf["next_active"][off:off + cnt] = active
+
+        self._broadcast("reset", int(seed), parent_reset if self._parent is not None else None)
         self._seeded = True
         return self._buf["obs"].copy(), self._buf["next_active"].copy()
+
+    def _parent_step(self) -> list[list]:
+        off, cnt = self.slices[0]
+        s = self._parent.step(self._buf["actions"][off:off + cnt])
+        for name in ("obs", "final_obs", "reward", "terminated", "truncated", "active", "next_active", "done"):
+            self._buf[name][off:off + cnt] = getattr(s, name)
+        return [[e.env_index, e.paper_metric, e.team_return, e.length] for e in s.episodes]
 
     def step(self, actions: np.ndarray) -> VecStep:
         if not self._seeded:
@@ -216,7 +249,7 @@ class SubprocVecEnv(VecEnv):
         if actions.shape != buf["actions"].shape:
             raise ValueError(f"actions must have shape {buf['actions'].shape}, got {actions.shape}")
         np.copyto(buf["actions"], actions, casting="unsafe")
-        replies = self._broadcast("step", None)
+        replies = self._broadcast("step", None, self._parent_step if self._parent is not None else None)
         episodes = [EpisodeStats(int(i), float(p), float(t), int(n)) for eps in replies for i, p, t, n in eps]
         return VecStep(obs=buf["obs"].copy(), reward=buf["reward"].copy(), terminated=buf["terminated"].copy(),
                        truncated=buf["truncated"].copy(), active=buf["active"].copy(),
@@ -225,3 +258,6 @@ class SubprocVecEnv(VecEnv):
 
     def close(self) -> None:
         self._finalizer()
+        if self._parent is not None:
+            self._parent.close()
+            self._parent = None

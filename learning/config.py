@@ -32,7 +32,10 @@ class RunConfig(BaseModel):
     env: str = Field("cn", description="registry name: cn, cn-mpe2, mw or module:factory")
     n_agents: int = Field(3, ge=1, description="number of local agents N")
     env_kwargs: dict[str, Any] = Field(default_factory=dict, description="extra env constructor kwargs")
-    env_workers: int = Field(0, ge=0, description="subprocess workers for the env (0 = in-process)")
+    env_workers: int = Field(0, ge=0, description="env slices stepped in parallel processes (0 = in-process)")
+    env_parent_slice: bool = Field(
+        True, description="with env_workers=W: this process steps one slice itself (W-1 subprocesses) "
+                          "instead of idling while W subprocesses step")
     num_envs: int = Field(16, ge=1, description="K env copies stepped as one batch")
 
     # --- method ------------------------------------------------------------------------------

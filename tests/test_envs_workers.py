@@ -46,12 +46,14 @@ def wait_gone(pids: list[int], timeout: float = 10.0) -> bool:
     return False
 
 
+@pytest.mark.parametrize("parent_slice", [False, True])
 @pytest.mark.parametrize(("name", "kwargs"), [("mw", {"terminate_on_fall": False}), ("cn-mpe2", {})])
-def test_workers_match_in_process_exactly(name, kwargs):
+def test_workers_match_in_process_exactly(name, kwargs, parent_slice):
     K, T = 5, 110
     local = make_vec_env(name, 3, K, env_kwargs=kwargs)
-    with make_vec_env(name, 3, K, env_kwargs=kwargs, workers=2) as sub:
+    with make_vec_env(name, 3, K, env_kwargs=kwargs, workers=2, parent_slice=parent_slice) as sub:
         assert isinstance(sub, SubprocVecEnv) and sub.slices == [(0, 3), (3, 2)]
+        assert len(sub.pids) == (1 if parent_slice else 2)
         assert sub.spec == local.spec
         for a, b in zip(local.reset(seed=21), sub.reset(seed=21)):
             np.testing.assert_array_equal(a, b)
@@ -134,5 +136,13 @@ def test_dead_worker_is_reported_not_hung():
     with make_vec_env("cn-mpe2", 3, 2, workers=2) as sub:
         sub.reset(seed=0)
         os.kill(sub.pids[1], signal.SIGKILL)
+        with pytest.raises(WorkerError, match="worker 1 .* exited unexpectedly"):
+            sub.step(np.zeros((2, 3), dtype=np.int64))
+
+
+def test_dead_worker_is_reported_with_a_parent_slice():
+    with make_vec_env("cn-mpe2", 3, 2, workers=2, parent_slice=True) as sub:
+        sub.reset(seed=0)
+        os.kill(sub.pids[0], signal.SIGKILL)
         with pytest.raises(WorkerError, match="worker 1 .* exited unexpectedly"):
             sub.step(np.zeros((2, 3), dtype=np.int64))
