@@ -21,12 +21,14 @@ import logging
 import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from safetensors.numpy import load as load_safetensors
 
 from envs.base import EnvSpec
 from faults.links import flat_fault_counters
+from faults.steplog import LoggedPublisher, StepLog, column
 from learning.config import RunConfig
 from learning.sampling import ActingStreams
 from learning.team import Team
@@ -54,10 +56,12 @@ def needs_central_record(cfg: RunConfig) -> bool:
 
 
 def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float,
-                idle_exit_s: float | None = None, load_when_idle: bool = False) -> CentralCounters:
+                idle_exit_s: float | None = None, load_when_idle: bool = False,
+                step_log_dir: Path | None = None) -> CentralCounters:
     """Serve messages until a stop command. load_when_idle (evaluation, frozen weights): load the
     policy before the first state arrives so the env host can wait for it (see EnvHost.run_eval);
-    training keeps loading weights only when a state asks for them (up == train equivalence)."""
+    training keeps loading weights only when a state asks for them (up == train equivalence).
+    step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
     import torch
 
     torch.set_num_threads(1)
@@ -70,7 +74,11 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
     state_sub = session.subscribe(keys.state(), GlobalState, dims)
     w_sub = session.subscribe(keys.weights("central"), Weights) if team.central is not None else None
     ctl_sub = session.subscribe(keys.ctl("all"), Control)
-    msg_pubs = [session.publisher(keys.msg(i), express=True) for i in range(n)]
+    delivered, late = column("env->central", "delivered"), column("env->central", "late")
+    slog = StepLog(step_log_dir, "central", [delivered, late, *(column("central->local", e) for e in
+                                                                ("sent", "dropped", "duplicated"))])
+    msg_pubs = [LoggedPublisher(session.publisher(keys.msg(i), express=True), session, slog, "central->local")
+                for i in range(n)]
     exp_pub = session.publisher(keys.exp("central"))
     hb_pub = session.publisher(keys.heartbeat("central"), reliable=False)
     # Warm up torch (first-call allocations, kernel selection) before declaring ourselves alive,
@@ -108,26 +116,34 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
     while True:
         for cmd in ctl_sub.drain():
             if cmd.command in ("stop", "shutdown") and cmd.target in ("*", "central"):
+                slog.flush()
                 return c
         now = time.monotonic()
         if now - last_hb > 1.0:
             hb_pub.publish(Heartbeat(role="central", pid=os.getpid(), status="running",
                                      counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
                                                "policy_version": version}))
+            slog.flush()  # with the heartbeat: a killed server's step log and last counters agree
             last_hb = now
         s = state_sub.get(timeout=0.2)
         if s is None:
             if load_when_idle:
                 take_weights(version)  # never blocks: drains weights already received
             if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
+                slog.flush()
                 return c
             continue
         last_state_t = time.monotonic()
         if s.step <= last_step:
             c.states_stale += 1
+            slog.add(s.step, delivered)
+            slog.add(s.step, late)
             continue
         take_weights(s.policy_version)
         for newer in state_sub.drain():  # serve the newest queued state only
+            old = s if newer.step > s.step else newer
+            slog.add(old.step, delivered)
+            slog.add(old.step, late)
             if newer.step > s.step:
                 c.states_skipped += 1
                 s = newer
@@ -145,3 +161,4 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
                         "c_values": out.value, "keep": out.keep}))
         last_step = s.step
         c.steps += 1
+        slog.add(s.step, delivered)

@@ -92,6 +92,19 @@ def _write_counters(run_dir: Path, role: str, counters: dict) -> None:
         logging.getLogger("hammer.deploy").warning("could not write counters: %s", e)
 
 
+def _step_log_dir(run_dir: Path) -> Path | None:
+    """Where this process logs its link events per step (faults.steplog), if the run dir is writable."""
+    from faults.steplog import STEP_LOG_DIR
+
+    d = Path(run_dir) / STEP_LOG_DIR
+    try:
+        d.mkdir(exist_ok=True)
+    except OSError as e:  # a remote role with a read-only copy of the run files: no per-episode counters
+        logging.getLogger("hammer.deploy").warning("no step log: %s", e)
+        return None
+    return d
+
+
 def _fail(msg: str) -> None:
     typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
     raise typer.Exit(2)
@@ -122,7 +135,8 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
             c = run_local_agent(s, aspec, int(cfg["num_envs"]), settings.fallback, settings.fallback_k,
-                                settings.msg_deadline_ms / 1e3, settings.weights_timeout_s)
+                                settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
+                                step_log_dir=_step_log_dir(run_dir))
             logging.getLogger("hammer.local").info("stopped: %s", c.as_dict())
             _write_counters(run_dir, f"local-{agent}", {**c.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
@@ -142,7 +156,8 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         _fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
-            c = run_central(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval")
+            c = run_central(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
+                            step_log_dir=_step_log_dir(run_dir))
             logging.getLogger("hammer.central").info("stopped: %s", c.as_dict())
             _write_counters(run_dir, "central", {**c.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:

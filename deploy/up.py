@@ -173,6 +173,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
     links = _write_links(cfg, run_dir, board)
+    _write_episode_links(run_dir, list(links))
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
     return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start, links, list(board.chaos_log))
@@ -188,3 +189,14 @@ def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:
     (run_dir / "links.json").write_text(json.dumps({"links": links, "roles": roles, "chaos": board.chaos_log},
                                                    indent=1))
     return links
+
+
+def _write_episode_links(run_dir: Path, links: list[str]) -> None:
+    """episode_links.csv gets the per-episode link columns: the roles' step logs (RUN/linksteps)
+    summed over each episode's steps (faults.episode_links). Every role has stopped by now."""
+    from faults.episode_links import write_episode_links
+
+    try:
+        write_episode_links(run_dir, links)
+    except (OSError, ValueError) as e:  # the run's own results stand without the per-episode view
+        log.warning("episode_links.csv: per-link columns not added: %s", e)

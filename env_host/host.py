@@ -11,9 +11,12 @@ points, same episode budget), so without faults a distributed run reproduces the
 
 Evaluation (`run_eval`, RuntimeSettings.mode == "eval"): the same per-step hops with a frozen
 policy (version 0 from the policy server), no experience and no waiting for new versions; episodes
-until the budget. Both modes write `episode_links.csv`: per finished episode, how many agent-steps
-acted on a fallback message and how many used the declared default action (the per-episode view of
-the link counters); `trace.npz` (obs, messages, actions, masks per step) on request.
+until the budget. Both modes write `episode_links.csv`: per finished episode, its env copy, length
+and span of global steps (`start_step..end_step`), and how many agent x copy entries of that copy
+acted on a fallback message and used the declared default action; `hammer up` adds the per-link
+columns from the roles' step logs (this process logs the state / observations it sent and the
+actions it received, `RUN/linksteps/env-<pid>.csv`; see faults/episode_links.py and
+docs/faults.md). `trace.npz` (obs, messages, actions, masks per step) on request.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envs.base import VecEnv
+from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
 from learning.config import RunConfig
 from learning.rundir import RunDir
 from learning.sampling import env_reset_seed
@@ -75,7 +79,8 @@ class HostState:
 
 class EnvHost:
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
-                 act_deadline_s: float, weights_timeout_s: float, trace: bool = False) -> None:
+                 act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
+                 max_policy_lag: int = 0) -> None:
         self.s, self.cfg, self.env, self.rd = session, cfg, env, rd
         self.spec = env.spec
         self.team = Team(cfg, env.spec)  # for the global-state / action encodings only
@@ -96,13 +101,24 @@ class EnvHost:
         self.c = LinkCounters()
         self.h = HostState()
         self.weights_version = -1
+        self.max_policy_lag = max_policy_lag
+        self.rollout_version = 0  # the policy version the current rollout is acted with
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self._last_hb = 0.0
         self._stop = False
-        # Per env copy, since its episode started: agent-steps on a fallback message / default action.
-        self.ep_fallback = np.zeros(self.k, np.int64)
-        self.ep_default = np.zeros(self.k, np.int64)
+        # Per step of the episodes still running: per env copy, the agents that acted on a fallback
+        # message and the agents given the default action (summed over an episode's span when it ends).
+        self._copy_steps: dict[int, np.ndarray] = {}
+        self._ep_end = np.zeros(self.k, np.int64)  # per copy: the step its last episode ended
         self._ep_rows: list[tuple] = []
+        # Link events per step (faults.steplog), joined with the episodes' spans by `hammer up`.
+        links = (["env->central"] if self.uses_central else []) + ["env->local"]
+        self.step_log = StepLog(rd.path / STEP_LOG_DIR, "env", [
+            *(column(lk, e) for lk in links for e in ("sent", "dropped", "duplicated")),
+            *(column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults"))])
+        self.state_pub = LoggedPublisher(self.state_pub, session, self.step_log, "env->central")
+        self.obs_pubs = [LoggedPublisher(p, session, self.step_log, "env->local") for p in self.obs_pubs]
+        self._act_cols = {e: column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults")}
         self._recent_got: dict[int, np.ndarray] = {}  # step -> agents whose action arrived (duplicate detection)
         self.trace: dict[str, list] | None = {"steps": [], "obs": [], "msgs": [], "actions": [], "fallback": [],
                                                "defaulted": []} if trace else None
@@ -173,25 +189,30 @@ class EnvHost:
         msgs = np.zeros((k, n, self.team.msg_dim), np.float32)
         fallback = np.zeros((k, n), dtype=bool)
         got = np.zeros(n, dtype=bool)
+        cols = self._act_cols
         deadline = time.monotonic() + self.act_deadline_s
         while not got.all():
             a = self.act_sub.get(timeout=max(0.0, deadline - time.monotonic()))
             if a is None:
                 break
+            if a.step > step:  # cannot happen without a bug upstream: we have not published it yet
+                log.warning("action for future step %d (now %d) from agent %d ignored", a.step, step, a.agent)
+                continue
+            self.step_log.add(a.step, cols["delivered"])
             if a.step < step:
                 prev_got = self._recent_got.get(a.step)
                 if prev_got is not None and prev_got[a.agent]:
                     self.c.actions_duplicate += 1  # a second copy of an action already applied
+                    self.step_log.add(a.step, cols["duplicate"])
                 else:
                     self.c.actions_late += 1
-                continue
-            if a.step > step:  # cannot happen without a bug upstream: we have not published it yet
-                log.warning("action for future step %d (now %d) from agent %d ignored", a.step, step, a.agent)
+                    self.step_log.add(a.step, cols["late"])
                 continue
             if got[a.agent]:
                 self.c.actions_duplicate += 1
+                self.step_log.add(step, cols["duplicate"])
                 continue
-            if a.policy_version != self.h.update:
+            if a.policy_version != self.rollout_version:
                 self.c.off_policy_actions += 1
             rows = a.env_idx
             actions[rows, a.agent] = a.action
@@ -204,10 +225,11 @@ class EnvHost:
         defaulted = np.zeros((k, n), dtype=bool)
         defaulted[:, ~got] = True
         self.c.default_actions += int(defaulted.sum())
+        self.step_log.add(step, cols["defaults"], int(defaulted.sum()))
+        self.step_log.maybe_flush()
         self._recent_got[step] = got
         self._recent_got.pop(step - 16, None)
-        self.ep_fallback += fallback.sum(axis=1)
-        self.ep_default += defaulted.sum(axis=1)
+        self._copy_steps[step] = np.stack([fallback.sum(axis=1), defaulted.sum(axis=1)])
         self._fallback = fallback
         return actions, msgs, defaulted
 
@@ -219,12 +241,12 @@ class EnvHost:
         t0 = time.perf_counter()
         if self.uses_central:
             self.state_pub.publish(GlobalState(step=h.step, env_idx=self.env_idx, obs=obs,
-                                               prev_actions=prev, active=active, policy_version=h.update))
+                                               prev_actions=prev, active=active, policy_version=self.rollout_version))
         joint = obs.reshape(self.k, -1) if cfg.variant == "centralized" else None
         for i in range(self.n):
             self.obs_pubs[i].publish(LocalObs(step=h.step, env_idx=self.env_idx, agent=i,
                                               obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),
-                                              active=active[:, i], policy_version=h.update))
+                                              active=active[:, i], policy_version=self.rollout_version))
         action, msgs, defaulted = self._collect_actions(h.step)
         # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
         h.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
@@ -317,11 +339,14 @@ class EnvHost:
             if finished or self._stop:
                 break
             self.exp_pub.publish(ExperienceChunk(
-                step=h.step, env_idx=self.env_idx, role="team", policy_version=h.update,
+                step=h.step, env_idx=self.env_idx, role="team", policy_version=self.rollout_version,
                 arrays={**r, "last_obs": obs, "last_prev": prev}))
             h.update += 1
-            if not self.wait_weights(h.update):
+            # Synchronous (lag 0): wait for the version this rollout trains. With a lag L, go on
+            # with the newest version we hold as long as it is at most L updates behind.
+            if not self.wait_weights(h.update - self.max_policy_lag):
                 break
+            self.rollout_version = self.weights_version if self.max_policy_lag else h.update
         self.rd.flush()
         return self.summary(t_start)
 
@@ -336,17 +361,24 @@ class EnvHost:
             h.episodes += 1
             h.recent.append(e.paper_metric)
             rows.append((h.episodes, h.env_steps, repr(e.paper_metric), repr(e.team_return), e.length, wall))
-            i = e.env_index
-            self._ep_rows.append((h.episodes, i, e.length, int(self.ep_fallback[i]), int(self.ep_default[i])))
+            i, start = e.env_index, h.step - e.length + 1
+            fb, df = sum((self._copy_steps[t][:, i] for t in range(start, h.step + 1) if t in self._copy_steps),
+                         np.zeros(2, np.int64))
+            self._ep_rows.append((h.episodes, i, e.length, start, h.step, int(fb), int(df)))
         for e in episodes:
-            self.ep_fallback[e.env_index] = self.ep_default[e.env_index] = 0
+            self._ep_end[e.env_index] = h.step
+        for t in [t for t in self._copy_steps if t <= self._ep_end.min()]:  # no running episode spans them
+            del self._copy_steps[t]
         self.rd.append_episodes(rows)
         return h.episodes >= cfg.episodes
 
     def write_episode_links(self) -> None:
-        """episode_links.csv: per finished episode, agent-steps on fallback messages / default actions."""
+        """episode_links.csv: per finished episode, its span of global steps and the agent x copy
+        entries that acted on a fallback message / used the default action (`hammer up` then adds
+        the per-link columns, faults.episode_links); also flushes this process's step log."""
+        self.step_log.flush()
         with open(self.rd.path / "episode_links.csv", "w") as f:
-            f.write("episode,env_index,length,msg_fallbacks,default_actions\n")
+            f.write("episode,env_index,length,start_step,end_step,msg_fallbacks,default_actions\n")
             f.writelines(",".join(map(str, row)) + "\n" for row in self._ep_rows)
         if self.trace is not None and self.trace["steps"]:
             np.savez(self.rd.path / "trace.npz", **{k: np.stack(v) for k, v in self.trace.items()})

@@ -45,6 +45,10 @@ class TeamLearner:
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
         self._full = self._c_full = False  # set by batch(): every agent present / no message dropped
         self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
+        if cfg.compile:
+            # The update is hundreds of tiny kernels per minibatch; fusing them is what pays. Shapes
+            # are static (equal minibatches), so one graph per flag combination (_full, stats).
+            self._losses = torch.compile(self._losses, dynamic=False)
 
     # ----- state (checkpoints) -------------------------------------------------------------------
     def state_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

@@ -17,11 +17,13 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from safetensors.numpy import load as load_safetensors
 
 from faults.links import flat_fault_counters
+from faults.steplog import LoggedPublisher, StepLog, column
 from learning.numpy_policy import NumpyLocalPolicy, softmax
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from protocol.schemas import Action, CentralMsg, Control, Dims, Heartbeat, LocalObs, Weights
@@ -133,8 +135,10 @@ def load_policy_file(path: str) -> tuple[NumpyLocalPolicy, dict]:
 
 
 def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
-                    msg_deadline_s: float, weights_timeout_s: float, idle_exit_s: float | None = None) -> LocalCounters:
-    """Serve one local agent until a stop command (or `idle_exit_s` without observations)."""
+                    msg_deadline_s: float, weights_timeout_s: float, idle_exit_s: float | None = None,
+                    step_log_dir: Path | None = None) -> LocalCounters:
+    """Serve one local agent until a stop command (or `idle_exit_s` without observations).
+    step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
     keys, me = session.keys, spec.agent
     dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
                 msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
@@ -142,7 +146,12 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
     msg_sub = session.subscribe(keys.msg(me), CentralMsg, dims) if spec.msg_dim else None
     w_sub = session.subscribe(keys.weights("local"), Weights)
     ctl_sub = session.subscribe(keys.ctl("all"), Control)
-    act_pub = session.publisher(keys.act(me), express=True)
+    ev = {(link, e): column(link, e) for link, events in (
+        ("env->local", ("delivered", "late")), ("central->local", ("delivered", "late", "duplicate", "fallbacks")))
+        for e in events}
+    slog = StepLog(step_log_dir, f"local-{me}", [*ev.values(), *(column("local->env", e) for e in
+                                                                  ("sent", "dropped", "duplicated"))])
+    act_pub = LoggedPublisher(session.publisher(keys.act(me), express=True), session, slog, "local->env")
     hb_pub = session.publisher(keys.heartbeat(f"local-{me}"), reliable=False)
     session.declare_alive(f"local-{me}")
 
@@ -174,11 +183,19 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
 
     seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
 
+    def log_msg(step: int, event: str | None) -> None:
+        """A message for `step` is counted (on time: event None; late; duplicate): it was delivered."""
+        slog.add(step, ev["central->local", "delivered"])
+        if event is not None:
+            slog.add(step, ev["central->local", event])
+
     def absorb(m: CentralMsg) -> None:
         if m.step in seen:
             c.msgs_duplicate += 1
+            log_msg(m.step, "duplicate")
         elif m.step <= last_step:
             c.msgs_late += 1
+            log_msg(m.step, "late")
         else:
             pending[m.step] = m
             seen.add(m.step)
@@ -188,21 +205,26 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
     while True:
         for cmd in ctl_sub.drain():
             if cmd.command in ("stop", "shutdown") and cmd.target in ("*", f"local-{me}"):
+                slog.flush()
                 return c
         now = time.monotonic()
         if now - last_hb > 1.0:
             hb_pub.publish(Heartbeat(role=f"local-{me}", pid=os.getpid(), status="running",
                                      counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
                                                "policy_version": agent.version}))
+            slog.flush()  # with the heartbeat: a killed agent's step log and last counters agree
             last_hb = now
         o = obs_sub.get(timeout=0.2)
         if o is None:
             if idle_exit_s is not None and time.monotonic() - last_obs_t > idle_exit_s:
+                slog.flush()
                 return c
             continue
         last_obs_t = time.monotonic()
         if o.step <= last_step:
             c.obs_stale += 1
+            slog.add(o.step, ev["env->local", "delivered"])
+            slog.add(o.step, ev["env->local", "late"])
             continue
         take_weights(o.policy_version)
         msg = None
@@ -219,6 +241,7 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
             for s in [s for s in pending if s < o.step]:  # older than this step: never usable
                 del pending[s]
                 c.msgs_late += 1
+                log_msg(s, "late")
             fallback_mask = np.ones(o.k, dtype=bool)
             msg = np.zeros((o.k, spec.msg_dim), np.float32)
             if m is not None:
@@ -233,9 +256,11 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
                 fallback_mask = ~have
                 fb.received(o.env_idx[have], msg[have])
                 c.msgs_on_time += 1
+                log_msg(o.step, None)
             if fallback_mask.any():
                 msg[fallback_mask] = fb.fill(o.env_idx[fallback_mask])
                 c.fallback_copies += int(fallback_mask.sum())
+                slog.add(o.step, ev["central->local", "fallbacks"], int(fallback_mask.sum()))
         else:
             fallback_mask = np.zeros(o.k, dtype=bool)
         action = agent.act(o.obs, msg)
@@ -244,3 +269,4 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
                                msg=msg if msg is not None else None))
         last_step = o.step
         c.steps += 1
+        slog.add(o.step, ev["env->local", "delivered"])

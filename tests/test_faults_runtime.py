@@ -136,3 +136,69 @@ def test_killed_central_agents_fall_back_and_restart_resumes_messages(tmp_path, 
     assert res.links["local->env"]["defaults"] == 0  # no agent stopped acting
     assert res.restarts["central"] == 0  # chaos restarted it, not the launcher's crash handling
     assert not [p for p in psutil.process_iter(["cmdline"]) if str(tmp_path) in " ".join(p.info["cmdline"] or [])]
+
+
+def _episode_counts(run_dir: Path) -> tuple[list[dict], dict[str, np.ndarray]]:
+    from faults.episode_links import read_episodes, read_step_logs
+    from faults.steplog import STEP_LOG_DIR
+
+    return read_episodes(run_dir / "episode_links.csv"), read_step_logs(run_dir / STEP_LOG_DIR)
+
+
+def test_per_episode_link_counters_add_up_to_the_run_and_repeat_with_the_seed(tmp_path, team_policy):
+    """Per-episode columns (RUN/episode_links.csv) from the roles' step logs: the step logs add up
+    to links.json, the episode sums to the step logs weighted by how many recorded episodes cover
+    each step, they agree with the env host's own per-copy counts, and repeat with the fault seed."""
+    import json
+
+    from faults.episode_links import EPISODE_EVENTS, step_totals
+    from faults.links import LINK_IDS
+
+    policy, cfg, _ = team_policy
+    faults = ["central->local:drop=0.3", "local->env:drop=0.1"]
+    # 40 episodes of 16 copies x 25 steps: steps 51..75 carry only the 8 episodes still in budget.
+    runs = [_eval(tmp_path, f"ep{j}", policy, cfg, 40, faults, fault_seed=3, msg_deadline_ms=40,
+                  act_deadline_ms=80)[0] for j in range(2)]
+    n = cfg.n_agents
+    per_run = []
+    for res in runs:
+        episodes, counts = _episode_counts(res.run_dir)
+        assert len(episodes) == 40
+        links = json.loads((res.run_dir / "links.json").read_text())["links"]
+        assert list(links) == list(LINK_IDS)  # variant hammer: all four links
+        # 1. The step logs hold every counted event once: their totals are the run's link table.
+        totals = step_totals(counts)
+        for link, row in links.items():
+            for event, want in row.items():
+                if event != "delayed":  # not logged per step (see faults.steplog.LoggedPublisher)
+                    assert totals.get(link, {}).get(event, 0) == want, (link, event)
+        # 2. Summed over episodes, a step's events count once per recorded episode running then.
+        top = max(len(a) for a in counts.values())
+        cover = np.zeros(top, np.int64)
+        for e in episodes:
+            cover[e["start_step"]:e["end_step"] + 1] += 1
+        assert cover.max() == cfg.num_envs and cover.min() == 0  # the unrecorded tail is not counted
+        for link, lid in LINK_IDS.items():
+            for event in EPISODE_EVENTS:
+                a = counts.get(f"{lid}_{event}", np.zeros(top, np.int64))
+                assert sum(e[f"{lid}_{event}"] for e in episodes) == int((a * cover[:len(a)]).sum()), (link, event)
+        # 3. Per episode, against what the env host counted for that env copy itself.
+        for e in episodes:
+            length = e["length"]
+            assert e["end_step"] - e["start_step"] + 1 == length == 25
+            assert e["env_central_sent"] == length and e["env_local_sent"] == n * length
+            assert e["local_env_sent"] == n * length  # every agent acted on every observation
+            on_time_actions = e["local_env_delivered"] - e["local_env_late"] - e["local_env_duplicate"]
+            assert e["default_actions"] == n * length - on_time_actions
+            on_time_msgs = e["central_local_delivered"] - e["central_local_late"] - e["central_local_duplicate"]
+            missing = n * length - on_time_msgs  # agent-steps acted on a fallback message
+            assert missing - e["default_actions"] <= e["msg_fallbacks"] <= missing
+        c2l = sum(e["central_local_dropped"] for e in episodes) / sum(e["central_local_sent"] for e in episodes)
+        l2e = sum(e["local_env_dropped"] for e in episodes) / sum(e["local_env_sent"] for e in episodes)
+        assert 0.2 < c2l < 0.4 and 0.03 < l2e < 0.2
+        per_run.append(episodes)
+    # 4. Same fault seed: the same faults on the same episodes (what the senders decided).
+    sender = ["episode", "env_index", "start_step", "end_step",
+              *(f"{lid}_{e}" for lid in LINK_IDS.values() for e in ("sent", "dropped", "duplicated"))]
+    a, b = ([{c: e[c] for c in sender} for e in eps] for eps in per_run)
+    assert a == b
