@@ -1,4 +1,9 @@
-"""`hammer bench transport`: what the typed protocol costs over raw Zenoh bytes of the same size.
+"""`hammer bench transport` and `hammer bench codec`.
+
+`hammer bench codec`: build / encode / decode+validate time per message of the control loop
+(K=32 env copies, cn N=3 and N=5 sizes), fast path vs the pydantic reference in the same run.
+
+`hammer bench transport`: what the typed protocol costs over raw Zenoh bytes of the same size.
 
 The echo peer runs in a separate spawned process (as every hammer role does), connected over
 tcp/127.0.0.1. For each typical payload we measure, in the same run:
@@ -22,7 +27,17 @@ import msgpack
 import numpy as np
 
 from protocol.codec import decode, encode
-from protocol.schemas import Control, GlobalState, LocalObs, Message
+from protocol.schemas import (
+    Action,
+    CentralMsg,
+    Control,
+    Dims,
+    EpisodeInfo,
+    GlobalState,
+    LocalObs,
+    Message,
+    StepResult,
+)
 from protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
 _STOP = "stop"
@@ -223,3 +238,126 @@ def bench_meta(rounds: int, flood: int) -> dict:
 
 def rows_as_dicts(rows: list[BenchRow]) -> list[dict]:
     return [dict(asdict(r), rate_ratio=r.rate_ratio, rtt_ratio=r.rtt_ratio) for r in rows]
+
+
+# --------------------------------------------------------------------------------------------
+# hammer bench codec
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class CodecRow:
+    """Microseconds per message; *_ref = pydantic reference path, *_fast = fast path."""
+
+    payload: str
+    bytes: int
+    build_ref_us: float
+    build_fast_us: float
+    encode_ref_us: float
+    encode_fast_us: float
+    decode_ref_us: float
+    decode_fast_us: float
+
+    @property
+    def total_ref_us(self) -> float:
+        return self.build_ref_us + self.encode_ref_us + self.decode_ref_us
+
+    @property
+    def total_fast_us(self) -> float:
+        return self.build_fast_us + self.encode_fast_us + self.decode_fast_us
+
+    @property
+    def speedup(self) -> float:
+        return self.total_ref_us / self.total_fast_us
+
+
+def loop_messages(k: int = 32, n: int = 3, d: int = 18, m: int = 4, a: int = 5,
+                  seed: int = 0) -> list[tuple[str, type[Message], dict, Dims]]:
+    """The messages of one vector step of the hammer control loop, as (label, type, constructor
+    keyword arguments, receiver Dims): what env host, central agent and local agents build and decode."""
+    rng = np.random.default_rng(seed)
+    idx = np.arange(k, dtype=np.int64)
+    obs = rng.standard_normal((k, n, d)).astype(np.float32)
+    active = np.ones((k, n), bool)
+    dims = Dims(num_envs=k, n_agents=n, obs_dim=d, msg_dim=m, action_dim=a, discrete=True)
+    msg = np.tanh(rng.standard_normal((k, m))).astype(np.float32)
+    eps = [EpisodeInfo(env_index=i, paper_metric=-20.5, team_return=-61.5, length=25) for i in range(k)]
+    head = {"step": 7, "env_idx": idx, "policy_version": 3}
+    step = {"step": 7, "env_idx": idx, "rewards": rng.standard_normal((k, n)).astype(np.float32),
+            "terminated": np.zeros((k, n), bool), "truncated": np.zeros((k, n), bool),
+            "done": np.zeros(k, bool), "defaulted": np.zeros((k, n), bool)}
+    return [
+        ("global_state", GlobalState, {**head, "obs": obs, "prev_actions": np.zeros((k, n, a), np.float32),
+                                       "active": active}, dims),
+        ("local_obs", LocalObs, {**head, "agent": 1, "obs": np.ascontiguousarray(obs[:, 1]),
+                                 "active": active[:, 1]}, dims),
+        ("central_msg", CentralMsg, {**head, "agent": 1, "msg": msg}, dims),
+        ("action", Action, {**head, "agent": 1, "action": rng.integers(0, a, k),
+                            "fallback": np.zeros(k, bool), "msg": msg}, dims),
+        ("step_result", StepResult, {**step, "episodes": []}, dims),
+        (f"step_result +{k} episodes", StepResult, {**step, "done": np.ones(k, bool), "episodes": eps}, dims),
+    ]
+
+
+def _best_us(fns: dict[str, object], number: int, repeat: int) -> dict[str, float]:
+    """Min time per call of each function, their repeats interleaved so load drifts hit all alike."""
+    best = dict.fromkeys(fns, float("inf"))
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            best[name] = min(best[name], timeit.timeit(fn, number=number) / number * 1e6)
+    return best
+
+
+def codec_bench(k: int = 32, sizes: tuple[tuple[int, int, int], ...] = ((3, 18, 4), (5, 30, 8)),
+                number: int = 500, repeat: int = 7) -> list[CodecRow]:
+    """Fast path vs pydantic reference, per message of the control loop, for each (N, D, M)."""
+    stamp = {"run": "bench", "ts": time.time_ns(), "seq": 1, "sender": "bench"}
+    rows = []
+    for n, d, m in sizes:
+        for label, cls, kw, dims in loop_messages(k, n, d, m):
+            msg = cls(**kw)
+            data = encode(msg, stamp=stamp)
+            if encode(msg, stamp=stamp, fast=False) != data:
+                raise RuntimeError(f"{label}: fast and reference encodings differ")
+            t = _best_us({
+                "build_ref": lambda cls=cls, kw=kw: cls.model_validate(kw),
+                "build_fast": lambda cls=cls, kw=kw: cls(**kw),
+                "encode_ref": lambda msg=msg: encode(msg, stamp=stamp, fast=False),
+                "encode_fast": lambda msg=msg: encode(msg, stamp=stamp),
+                "decode_ref": lambda c=cls, b=data, dm=dims: decode(b, c, dm, run="bench", fast=False),
+                "decode_fast": lambda c=cls, b=data, dm=dims: decode(b, c, dm, run="bench"),
+            }, number, repeat)
+            rows.append(CodecRow(f"{label} K={k} N={n} D={d} M={m}", len(data), t["build_ref"], t["build_fast"],
+                                 t["encode_ref"], t["encode_fast"], t["decode_ref"], t["decode_fast"]))
+    return rows
+
+
+def codec_rows_as_dicts(rows: list[CodecRow]) -> list[dict]:
+    return [dict(asdict(r), total_ref_us=r.total_ref_us, total_fast_us=r.total_fast_us, speedup=r.speedup)
+            for r in rows]
+
+
+def role_costs(rows: list[CodecRow], k: int, n: int) -> dict[str, tuple[float, float]]:
+    """Codec microseconds per vector step and role, (reference, fast), from the rows of one N:
+    env host builds+encodes the state, N local obs and the step result and decodes N actions;
+    the central agent decodes the state and builds+encodes N messages; a local agent decodes its
+    obs and message and builds+encodes its action."""
+    by = {r.payload.split(f" K={k} ")[0]: r for r in rows if f" K={k} N={n} " in r.payload}
+
+    def send(name: str, ref: bool) -> float:
+        r = by[name]
+        return r.build_ref_us + r.encode_ref_us if ref else r.build_fast_us + r.encode_fast_us
+
+    def recv(name: str, ref: bool) -> float:
+        return by[name].decode_ref_us if ref else by[name].decode_fast_us
+
+    def roles(ref: bool) -> dict[str, float]:
+        return {
+            "env host": send("global_state", ref) + n * send("local_obs", ref) + send("step_result", ref)
+            + n * recv("action", ref),
+            "central agent": recv("global_state", ref) + n * send("central_msg", ref),
+            "local agent": recv("local_obs", ref) + recv("central_msg", ref) + send("action", ref),
+        }
+
+    ref, fast = roles(True), roles(False)
+    return {role: (ref[role], fast[role]) for role in ref}

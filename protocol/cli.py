@@ -2,6 +2,7 @@
 
   hammer protocol schema [--out FILE]    JSON Schema of every message
   hammer bench transport [--json FILE]   typed protocol vs raw Zenoh bytes: msgs/s and round trips
+  hammer bench codec [--json FILE]       build/encode/decode us per message: fast path vs pydantic
 """
 
 from __future__ import annotations
@@ -66,4 +67,55 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
             json_out.write_text(json.dumps({"meta": bench_meta(rounds, flood), "rows": rows_as_dicts(rows)},
                                            indent=2) + "\n")
+            typer.echo(f"wrote {json_out}")
+
+    @bench.command("codec")
+    def codec(
+        k: Annotated[int, typer.Option(min=1, help="env copies per message (K)")] = 32,
+        number: Annotated[int, typer.Option(min=10, help="calls per timing")] = 500,
+        repeat: Annotated[int, typer.Option(min=1, help="timings per figure (the best is kept)")] = 7,
+        json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+    ) -> None:
+        """Microseconds to build (validate), encode and decode (validate) each message of the
+        control loop, fast path vs the pydantic reference measured in the same run."""
+        import os
+        import platform
+
+        from rich.console import Console
+        from rich.table import Table
+
+        from protocol.bench import codec_bench, codec_rows_as_dicts, role_costs
+
+        sizes = ((3, 18, 4), (5, 30, 8))
+        rows = codec_bench(k=k, sizes=sizes, number=number, repeat=repeat)
+        load = os.getloadavg()
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=170)
+        table = Table(title=f"hammer bench codec (us per message; ref = pydantic, fast = fast path; "
+                            f"load {load[0]:.2f})")
+        for col in ("payload", "bytes", "build ref/fast", "encode ref/fast", "decode ref/fast", "total ref/fast",
+                    "speedup"):
+            table.add_column(col, justify="left" if col == "payload" else "right")
+        for r in rows:
+            table.add_row(r.payload, str(r.bytes), f"{r.build_ref_us:.1f} / {r.build_fast_us:.1f}",
+                          f"{r.encode_ref_us:.1f} / {r.encode_fast_us:.1f}",
+                          f"{r.decode_ref_us:.1f} / {r.decode_fast_us:.1f}",
+                          f"{r.total_ref_us:.1f} / {r.total_fast_us:.1f}", f"{r.speedup:.2f}x")
+        console.print(table)
+        roles = Table(title="codec time per vector step and role (us)")
+        for col in ("N", "role", "reference", "fast", "speedup"):
+            roles.add_column(col, justify="left" if col == "role" else "right")
+        per_role = {}
+        for n, _, _ in sizes:
+            per_role[n] = role_costs(rows, k, n)
+            for role, (ref, fast) in per_role[n].items():
+                roles.add_row(str(n), role, f"{ref:.0f}", f"{fast:.0f}", f"{ref / fast:.2f}x")
+        console.print(roles)
+        if json_out is not None:
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            meta = {"python": platform.python_version(), "cpus": os.cpu_count(), "loadavg": load, "k": k,
+                    "number": number, "repeat": repeat}
+            json_out.write_text(json.dumps({"meta": meta, "rows": codec_rows_as_dicts(rows),
+                                            "roles": {str(n): r for n, r in per_role.items()}}, indent=2) + "\n")
             typer.echo(f"wrote {json_out}")

@@ -6,10 +6,13 @@ msgpack library in any language can read and write it.
 
 `decode` is the trust boundary: it never returns a message that failed a check, and every
 failure is a `ProtocolError` subclass naming the field, so a subscriber can count and skip it.
+The hot message types are validated by the hand-written fast path of `protocol.schemas` first;
+whatever it declines is validated by the pydantic models, which also produce every error.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import msgpack
@@ -27,7 +30,15 @@ from protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from protocol.schemas import MESSAGE_TYPES, SCHEMA_VERSION, Dims, Message, array_to_wire
+from protocol.schemas import (
+    _NAME_OF,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    Dims,
+    Message,
+    array_to_wire,
+    fast_from_wire,
+)
 
 Expected = type[Message] | tuple[type[Message], ...] | None
 
@@ -57,8 +68,36 @@ def _field_names(cls: type[BaseModel]) -> tuple[str, ...]:
     return names
 
 
+def _wire_value(v: Any) -> Any:
+    """`_to_wire` with the common cases inlined (equal output, tested)."""
+    t = type(v)
+    if t in _PLAIN:
+        return v
+    if t is np.ndarray and (dtype := _NAME_OF.get(v.dtype)) is not None:
+        # A whitelisted little-endian dtype: array_to_wire without its checks and lookups.
+        return {"dtype": dtype, "shape": list(v.shape), "data": v.tobytes()}
+    if t is list:
+        return [_wire_value(x) for x in v]
+    if isinstance(v, BaseModel):  # e.g. EpisodeInfo
+        values = v.__dict__
+        return {n: x if type(x := values[n]) in _PLAIN else _wire_value(x) for n in _field_names(t)}
+    return _to_wire(v)
+
+
 def to_wire_dict(msg: Message, stamp: dict[str, Any] | None = None) -> dict[str, Any]:
     """The msgpack-ready map of a message; `stamp` overrides header fields (run, ts, seq, sender)."""
+    values = msg.__dict__
+    d = {}
+    for name in _field_names(type(msg)):
+        v = values[name]
+        d[name] = v if type(v) in _PLAIN else _wire_value(v)
+    if stamp:
+        d.update(stamp)
+    return d
+
+
+def to_wire_dict_reference(msg: Message, stamp: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The generic walk `to_wire_dict` must equal (kept for tests and `hammer bench codec`)."""
     d = {}
     for name in _field_names(type(msg)):
         v = getattr(msg, name)
@@ -68,11 +107,31 @@ def to_wire_dict(msg: Message, stamp: dict[str, Any] | None = None) -> dict[str,
     return d
 
 
-def encode(msg: Message, *, stamp: dict[str, Any] | None = None, max_bytes: int | None = None) -> bytes:
-    """Encode a validated message. Raises SizeError if it exceeds its type's cap (fail at the sender)."""
+_packers = threading.local()
+
+
+def _packb(obj: Any) -> bytes:
+    """msgpack.packb with one reused Packer per thread (a Packer is not thread-safe)."""
+    packer = getattr(_packers, "packer", None)
+    if packer is None:
+        packer = _packers.packer = msgpack.Packer(use_bin_type=True)
+    try:
+        return packer.pack(obj)
+    except BaseException:
+        _packers.packer = None  # never reuse a packer whose buffer an error may have left dirty
+        raise
+
+
+def encode(msg: Message, *, stamp: dict[str, Any] | None = None, max_bytes: int | None = None,
+           fast: bool = True) -> bytes:
+    """Encode a validated message. Raises SizeError if it exceeds its type's cap (fail at the sender).
+    fast=False: the generic walk and a fresh packer (the reference, for tests and the bench)."""
     if not isinstance(msg, Message):
         raise TypeTagError(f"can only encode protocol messages, got {type(msg).__name__}")
-    data = msgpack.packb(to_wire_dict(msg, stamp), use_bin_type=True)
+    if fast:
+        data = _packb(to_wire_dict(msg, stamp))
+    else:
+        data = msgpack.packb(to_wire_dict_reference(msg, stamp), use_bin_type=True)
     cap = max_bytes if max_bytes is not None else type(msg).MAX_BYTES
     if len(data) > cap:
         raise SizeError(f"{type(msg).__name__} encodes to {len(data)} bytes, over the cap of {cap}")
@@ -123,11 +182,13 @@ def decode(
     *,
     max_bytes: int | None = None,
     run: str | None = None,
+    fast: bool = True,
 ) -> Message:
     """Decode and validate one message.
 
     expected: the message type(s) accepted (None = any); dims: declared dimensions to check;
-    max_bytes: size cap overriding the per-type caps; run: reject messages of another run id.
+    max_bytes: size cap overriding the per-type caps; run: reject messages of another run id;
+    fast=False: pydantic only (the reference the fast path is tested and benchmarked against).
     Raises a ProtocolError subclass on any failure.
     """
     types = _expected_types(expected)
@@ -169,10 +230,12 @@ def decode(
     if max_bytes is None and len(data) > cls.MAX_BYTES:
         raise SizeError(f"{tag} payload of {len(data)} bytes is over its cap of {cls.MAX_BYTES}")
 
-    try:
-        msg = cls.model_validate(d)
-    except ValidationError as e:
-        raise _from_validation_error(e) from None
+    msg = fast_from_wire(cls, d) if fast else None
+    if msg is None:  # not a hot type, or the fast path declined: pydantic accepts it or names the error
+        try:
+            msg = cls.model_validate(d)
+        except ValidationError as e:
+            raise _from_validation_error(e) from None
     if not msg.run:
         raise FieldError("is empty: messages on the wire must carry their run id", "run")
     if run is not None and msg.run != run:

@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import hashlib
 import re
+import sys
+import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -35,6 +38,7 @@ from pydantic import (
     StrictBool,
     StrictInt,
     StrictStr,
+    TypeAdapter,
     field_validator,
     model_validator,
 )
@@ -255,6 +259,20 @@ class Message(BaseModel):
     seq: NonNegInt = Field(0, description="sequence number of this sender on this key, from 0")
     sender: Annotated[str, Strict(), Field(max_length=128)] = Field("", description="sender name")
 
+    def __init__(self, /, **data: Any) -> None:
+        # Hot types first try their hand-written validator (see "Fast path" at the end of this
+        # module); whatever it declines goes to pydantic, which accepts it or raises the reference
+        # error, so building a message behaves exactly as with pydantic alone, only faster.
+        state = _fast_state(type(self), data)
+        if state is None:
+            super().__init__(**data)
+        else:
+            _set_state(self, *state)
+
+    # Mark this __init__ as pydantic's base one, otherwise pydantic would route `model_validate`
+    # through it: `model_validate` must stay the pure pydantic reference the fast path is tested against.
+    __init__.__pydantic_base_init__ = True  # type: ignore[attr-defined]
+
     @field_validator("v")
     @classmethod
     def _check_version(cls, v: int) -> int:
@@ -265,10 +283,12 @@ class Message(BaseModel):
     @field_validator("env_idx")
     @classmethod
     def _check_env_idx(cls, a: np.ndarray) -> np.ndarray:
-        if a.size and (a[0] if a.size == 1 else a.min()) < 0:
-            raise _err("range", "env_idx", "env indices must be >= 0")
-        if a.size > 1 and np.unique(a).size != a.size:
-            raise _err("shape", "env_idx", "env indices must be unique")
+        if a.size:
+            idx = a.tolist()  # a Python set beats np.unique ~5x at K <= a few thousand
+            if min(idx) < 0:
+                raise _err("range", "env_idx", "env indices must be >= 0")
+            if len(set(idx)) != len(idx):
+                raise _err("shape", "env_idx", "env indices must be unique")
         return a
 
     @property
@@ -567,3 +587,267 @@ def json_schemas() -> dict[str, Any]:
         "schema_version": SCHEMA_VERSION,
         "messages": {tag: cls.model_json_schema() for tag, cls in MESSAGE_TYPES.items()},
     }
+
+
+# --------------------------------------------------------------------------------------------
+# Fast path
+# --------------------------------------------------------------------------------------------
+#
+# Why: pydantic costs 40-150 us to validate one K=32 message of the control loop (core schema
+# walk, one Python validator call per array, np.unique, model validators), and every vector step
+# builds and decodes a dozen of them. The hot types below get a second, hand-written validator
+# that accepts a message only when every check of the pydantic model passes (dtypes, ranks,
+# shapes, byte counts, bool bytes, finiteness, ranges, unique env indices, strict ints and
+# strings, no unknown or missing fields). It never raises its own errors: whenever it declines,
+# the caller runs the pydantic model, which either accepts (then its result is used) or raises
+# the reference error. So errors are exactly pydantic's by construction, and the only way the
+# two can differ is the fast path accepting what pydantic rejects; tests/test_protocol_fastpath.py
+# checks they agree on a corpus of good and deliberately broken messages plus fuzzing.
+#
+# It takes the same inputs as the models: wire maps straight from msgpack (decode) and numpy
+# arrays / Python values (building a message), and it reads dtypes, ranks and defaults from the
+# model fields, so the schema itself is still declared once, above.
+
+
+class _Decline(Exception):
+    """The fast path does not vouch for this input; pydantic decides."""
+
+
+_setattr = object.__setattr__
+_FAST_OK = sys.byteorder == "little"  # wire arrays are little-endian: decode them without a swap
+try:  # the C function behind np.count_nonzero, without its ~1 us dispatch wrapper (numpy >= 2)
+    from numpy._core.multiarray import count_nonzero as _count_nonzero
+except ImportError:  # pragma: no cover - numpy 1.x
+    _count_nonzero = np.count_nonzero
+# env_idx is almost always 0..K-1: comparing its bytes with these proves "unique and >= 0" at once.
+_ARANGE_BYTES = np.arange(4096, dtype="<i8").tobytes()
+_RUN_MATCH = re.compile(NAME_RE.pattern.removeprefix("^").removesuffix("$")).fullmatch
+
+
+def _set_state(obj: BaseModel, values: dict[str, Any], fields_set: set[str]) -> None:
+    """What pydantic's `model_construct` sets on a model (extra="forbid", no private attributes)."""
+    _setattr(obj, "__dict__", values)
+    _setattr(obj, "__pydantic_fields_set__", fields_set)
+    _setattr(obj, "__pydantic_extra__", None)
+    _setattr(obj, "__pydantic_private__", None)
+
+
+def _nonneg_int(v: Any) -> int:
+    if type(v) is not int or v < 0:
+        raise _Decline
+    return v
+
+
+def _version(v: Any) -> int:
+    if type(v) is not int or v != SCHEMA_VERSION:
+        raise _Decline
+    return v
+
+
+def _run(v: Any) -> str:
+    if type(v) is not str or (v and _RUN_MATCH(v) is None):
+        raise _Decline
+    return v
+
+
+def _sender(v: Any) -> str:
+    if type(v) is not str or len(v) > 128:
+        raise _Decline
+    return v
+
+
+# Episodes arrive a few times per episode length, not every step; for them pydantic's compiled
+# list validator is faster than Python, so the fast path uses it (declines on its errors).
+_EPISODES = TypeAdapter(Annotated[list[EpisodeInfo], *StepResult.model_fields["episodes"].metadata])
+
+
+def _episodes(v: Any) -> list:
+    if type(v) is list and not v:
+        return []
+    return _EPISODES.validate_python(v)
+
+
+def _array_check(spec: _ArrayField, optional: bool) -> Callable[[Any], np.ndarray | None]:
+    """The checks of `_ArrayField.validate` (plus _array_from_wire) for one field."""
+    names = frozenset(spec.dtypes)
+    by_dtype = {WIRE_DTYPES[n]: n for n in spec.dtypes}  # little-endian = native here
+    ndims = frozenset(spec.ndims if spec.ndims is not None else range(MAX_NDIM + 1))
+
+    def check(v: Any) -> np.ndarray | None:
+        if type(v) is np.ndarray:
+            if v.dtype not in by_dtype or v.ndim not in ndims:
+                raise _Decline
+            a = v
+        elif type(v) is dict:
+            name, shape, data = v.get("dtype"), v.get("shape"), v.get("data")
+            if (len(v) != 3 or type(name) is not str or name not in names or type(shape) is not list
+                    or len(shape) not in ndims or type(data) is not bytes):
+                raise _Decline
+            count = 1
+            for n in shape:
+                if type(n) is not int or n < 0:
+                    raise _Decline
+                count *= n
+            dtype = WIRE_DTYPES[name]
+            if count * dtype.itemsize != len(data):
+                raise _Decline
+            if name == "bool" and data.translate(None, b"\x00\x01"):  # any byte other than 0 / 1 left
+                raise _Decline
+            # A copy into a bytearray: writable, native (little-endian) and does not pin the payload.
+            a = np.frombuffer(bytearray(data), dtype).reshape(shape)
+        elif v is None and optional:
+            return None
+        else:
+            raise _Decline
+        if a.dtype.kind == "f" and _count_nonzero(np.isfinite(a)) != a.size:
+            raise _Decline
+        return a
+
+    return check
+
+
+def _env_idx(check: Callable[[Any], np.ndarray | None]) -> Callable[[Any], np.ndarray]:
+    def env_idx(v: Any) -> np.ndarray:
+        a = check(v)
+        if a.size and not _ARANGE_BYTES.startswith(a.tobytes()):  # int64 native = little-endian here
+            idx = a.tolist()
+            if min(idx) < 0 or len(set(idx)) != len(idx):
+                raise _Decline
+        return a
+
+    return env_idx
+
+
+def _field_check(cls: type[Message], name: str, info: Any) -> Callable[[Any], Any]:
+    """The fast check of one model field, from its declaration where it is an array."""
+    if name == "type":
+        tag = cls.TYPE
+
+        def type_tag(v: Any) -> str:
+            if type(v) is not str or v != tag:
+                raise _Decline
+            return v
+
+        return type_tag
+    scalar = {"v": _version, "run": _run, "sender": _sender, "step": _nonneg_int, "ts": _nonneg_int,
+              "seq": _nonneg_int, "agent": _nonneg_int, "policy_version": _nonneg_int, "episodes": _episodes}
+    if name in scalar:
+        return scalar[name]
+    for meta in info.metadata:
+        if isinstance(meta, _ArrayField):
+            check = _array_check(meta, optional=False)
+            return _env_idx(check) if name == "env_idx" else check
+    args = typing.get_args(info.annotation)
+    if type(None) in args:
+        for arg in args:
+            for meta in getattr(arg, "__metadata__", ()):
+                if isinstance(meta, _ArrayField):
+                    return _array_check(meta, optional=True)
+    raise TypeError(f"{cls.__name__}.{name}: no fast-path check for this field; add one in protocol/schemas.py")
+
+
+def _local_obs_shapes(v: dict, k: int) -> None:
+    if v["obs"].shape[0] != k or v["active"].shape[0] != k:
+        raise _Decline
+
+
+def _global_state_shapes(v: dict, k: int) -> None:
+    obs, prev = v["obs"].shape, v["prev_actions"].shape
+    if obs[0] != k or prev[0] != k or prev[1] != obs[1] or v["active"].shape != obs[:2]:
+        raise _Decline
+
+
+def _central_msg_shapes(v: dict, k: int) -> None:
+    m = v["msg"]
+    if m.shape[0] != k or _count_nonzero(np.abs(m) <= 1.0) != m.size:
+        raise _Decline
+
+
+def _action_shapes(v: dict, k: int) -> str | None:
+    a = v["action"]
+    if a.shape[0] != k or a.ndim != (1 if a.dtype == np.int64 else 2):
+        raise _Decline
+    for name in ("logp", "value", "fallback", "msg"):
+        x = v[name]
+        if x is not None and x.shape[0] != k:
+            raise _Decline
+    if v["fallback"] is None:
+        v["fallback"] = np.zeros(k, dtype=bool)
+        return "fallback"
+    return None
+
+
+def _step_result_shapes(v: dict, k: int) -> str | None:
+    kn = v["rewards"].shape
+    if kn[0] != k or v["terminated"].shape != kn or v["truncated"].shape != kn or v["done"].shape[0] != k:
+        raise _Decline
+    if v["defaulted"] is None:
+        v["defaulted"] = np.zeros(kn, dtype=bool)
+        return "defaulted"
+    if v["defaulted"].shape != kn:
+        raise _Decline
+    return None
+
+
+def _fast_validator(cls: type[Message], shapes: Callable[[dict, int], str | None]) -> Callable:
+    """validate(data) -> (field values, fields set) exactly as pydantic would produce them, or raise."""
+    fields = []
+    for name, info in cls.model_fields.items():
+        if info.default_factory is not None:
+            default, factory = None, info.default_factory
+        else:
+            default, factory = (_Decline if info.is_required() else info.default), None
+        fields.append((name, _field_check(cls, name, info), default, factory))
+    known = frozenset(cls.model_fields)
+
+    def validate(data: dict) -> tuple[dict[str, Any], set[str]]:
+        if not _FAST_OK or not known.issuperset(data):  # unknown field (or a non-str key)
+            raise _Decline
+        values = {}
+        for name, check, default, factory in fields:
+            if name in data:
+                values[name] = check(data[name])
+            elif factory is not None:
+                values[name] = factory()
+            elif default is _Decline:  # required and missing
+                raise _Decline
+            else:
+                values[name] = default
+        fields_set = set(data)
+        added = shapes(values, values["env_idx"].shape[0])
+        if added is not None:  # the pydantic model validator assigned it, which marks it set
+            fields_set.add(added)
+        return values, fields_set
+
+    return validate
+
+
+_FAST: dict[type[Message], Callable[[dict], tuple[dict[str, Any], set[str]]]] = {
+    cls: _fast_validator(cls, shapes)
+    for cls, shapes in ((LocalObs, _local_obs_shapes), (GlobalState, _global_state_shapes),
+                        (CentralMsg, _central_msg_shapes), (Action, _action_shapes),
+                        (StepResult, _step_result_shapes))
+}
+FAST_TYPES = frozenset(_FAST)
+
+
+def _fast_state(cls: type[Message], data: dict) -> tuple[dict[str, Any], set[str]] | None:
+    """(field values, fields set) of `data` by the fast path, or None when it declines or `cls`
+    has none: then pydantic must validate `data`."""
+    fast = _FAST.get(cls)
+    if fast is None:
+        return None
+    try:
+        return fast(data)
+    except Exception:  # noqa: BLE001 - any failure of the fast path means "let pydantic decide"
+        return None
+
+
+def fast_from_wire(cls: type[Message], d: dict) -> Message | None:
+    """The message of wire map `d` built by the fast path, or None (then validate with pydantic)."""
+    state = _fast_state(cls, d)
+    if state is None:
+        return None
+    msg = cls.__new__(cls)
+    _set_state(msg, *state)
+    return msg

@@ -1,4 +1,5 @@
-"""`hammer protocol schema` and `hammer bench transport` (tiny counts: it must run, not be fast)."""
+"""`hammer protocol schema`, `hammer bench transport` and `hammer bench codec` (tiny counts: they must
+run, not be fast)."""
 
 from __future__ import annotations
 
@@ -34,3 +35,21 @@ def test_bench_transport_runs_and_writes_json(tmp_path):
     # The K=64 batch carries 64x the data of one copy in one message.
     assert data["rows"][3]["bytes"] > 30 * data["rows"][1]["bytes"] // 2
     assert "typed" in result.output and "raw" in result.output
+
+
+def test_bench_codec_runs_and_writes_json(tmp_path):
+    out = tmp_path / "codec.json"
+    result = CliRunner().invoke(app, ["bench", "codec", "--k", "4", "--number", "10", "--repeat", "1",
+                                      "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    names = [r["payload"] for r in data["rows"]]
+    assert len(names) == 12 and names[0] == "global_state K=4 N=3 D=18 M=4" and names[6].endswith("N=5 D=30 M=8")
+    for r in data["rows"]:
+        for col in ("build", "encode", "decode"):
+            assert r[f"{col}_ref_us"] > 0 and r[f"{col}_fast_us"] > 0
+        assert r["speedup"] == r["total_ref_us"] / r["total_fast_us"]
+    assert set(data["roles"]) == {"3", "5"}
+    for roles in data["roles"].values():
+        assert set(roles) == {"env host", "central agent", "local agent"}
+    assert "speedup" in result.output and "local agent" in result.output
