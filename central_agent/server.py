@@ -30,6 +30,7 @@ from envs.base import EnvSpec
 from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
 from learning.config import RunConfig
+from learning.policy_versions import WeightsInbox
 from learning.sampling import ActingStreams
 from learning.team import Team
 from protocol.schemas import CentralMsg, Control, Dims, ExperienceChunk, GlobalState, Heartbeat, Weights
@@ -93,18 +94,27 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
     last_hb = 0.0
     last_state_t = time.monotonic()
 
-    def take_weights(need: int) -> None:
+    def _load(blob: bytes, v: int) -> None:
         nonlocal version
+        team.central.load_numpy(load_safetensors(blob))
+        version = v
+
+    inbox = WeightsInbox(_load, version)
+
+    def take_weights(need: int | None) -> None:
+        """Load the policy version the step asks for, never a newer one (see WeightsInbox);
+        need=None: load the newest received, without waiting."""
         deadline = time.monotonic() + weights_timeout_s
         while w_sub is not None:
-            wait = 0.0 if version >= need else deadline - time.monotonic()
+            wait = 0.0 if need is None or version >= need else deadline - time.monotonic()
             w = w_sub.get(timeout=max(wait, 0.0))
             if w is not None:
-                if w.version > version:
-                    team.central.load_numpy(load_safetensors(w.blob))
-                    version = w.version
+                inbox.offer(w.version, w.blob)
+                if inbox.select(need):
                     c.weights_loaded += 1
                 continue
+            if need is None:
+                return
             if version < need and time.monotonic() < deadline:
                 continue
             if version < need:
@@ -128,7 +138,7 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
         s = state_sub.get(timeout=0.2)
         if s is None:
             if load_when_idle:
-                take_weights(version)  # never blocks: drains weights already received
+                take_weights(None)  # never blocks: loads the newest weights already received
             if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
                 slog.flush()
                 return c

@@ -25,6 +25,7 @@ from safetensors.numpy import load as load_safetensors
 from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
 from learning.numpy_policy import NumpyLocalPolicy, softmax
+from learning.policy_versions import WeightsInbox
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from protocol.schemas import Action, CentralMsg, Control, Dims, Heartbeat, LocalObs, Weights
 from protocol.session import HammerSession
@@ -163,14 +164,17 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
     last_hb = 0.0
     last_obs_t = time.monotonic()
 
+    inbox = WeightsInbox(agent.load_weights)
+
     def take_weights(block_until: int | None) -> None:
+        """Load the policy version the step asks for (never a newer one: see WeightsInbox)."""
         deadline = time.monotonic() + weights_timeout_s
         while True:
             timeout = 0.0 if block_until is None or agent.version >= block_until else deadline - time.monotonic()
             w = w_sub.get(timeout=max(timeout, 0.0))
             if w is not None:
-                if w.version > agent.version:
-                    agent.load_weights(w.blob, w.version)
+                inbox.offer(w.version, w.blob)
+                if inbox.select(block_until):
                     c.weights_loaded += 1
                 continue
             if block_until is not None and agent.version < block_until and time.monotonic() < deadline:

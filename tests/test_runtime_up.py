@@ -85,6 +85,28 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     assert len(set(a)) > 50  # real, varied episodes, not a constant
 
 
+def test_policy_lag_pipelines_rollouts_with_one_version_each(tmp_path):
+    """max_policy_lag=1: the env host steps on while the learner updates. Every rollout is still
+    acted by one version (no off-policy action), the learner evaluates lagged chunks with that
+    version, and nothing is lost or counted twice."""
+    run = tmp_path / "lag"
+    res = _hammer("up", "--episodes", "160", "--central-mode", "rl", "--run-dir", str(run), "--no-dashboard",
+                  "--runtime", "max_policy_lag=1", "--runtime", "msg_deadline_ms=5000",
+                  "--runtime", "act_deadline_ms=10000")
+    assert res.returncode == 0, res.stderr[-2000:]
+    summary = json.loads((run / "summary.json").read_text())
+    learner = json.loads((run / "learner_summary.json").read_text())
+    cfg = json.loads((run / "config.json").read_text())
+    per_update = cfg["rollout_steps"] * cfg["num_envs"] * cfg["n_agents"]
+    assert learner["max_policy_lag"] == 1 and learner["lagged_updates"] >= 1 and learner["policy_lag_max"] == 1
+    assert learner["samples"] == learner["updates"] * per_update and learner["updates"] >= 3
+    assert learner["stale_chunks"] == learner["bad_chunks"] == learner["central_steps_missing"] == 0
+    links = summary["links"]
+    assert links["off_policy_actions"] == 0 and links["default_actions"] == 0 and links["msg_fallback_copies"] == 0
+    assert len(_metric_column(run)) == 160
+    assert _processes_mentioning(str(run)) == []
+
+
 def test_sigkilled_local_agent_is_restarted_and_the_run_completes(tmp_path):
     cfg = merge_config("cn3", overrides=["episodes=160", "variant=il"])
     settings = RuntimeSettings(run_id="killtest", act_deadline_ms=100)
