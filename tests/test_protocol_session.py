@@ -14,7 +14,7 @@ from protocol.bench import echo_main
 from protocol.codec import encode
 from protocol.errors import RunMismatchError
 from protocol.samples import sample_messages
-from protocol.schemas import SCHEMA_VERSION, Dims, GlobalState, LocalObs, Message
+from protocol.schemas import SCHEMA_VERSION, Control, Dims, GlobalState, LocalObs, Message
 from protocol.session import HammerSession, TransportConfig
 
 HEADER_STAMPS = {"run", "ts", "seq", "sender"}
@@ -63,6 +63,25 @@ def test_every_message_type_through_zenoh(pair):
         assert g.run == "r1" and g.sender == "a" and g.ts > 0
     assert [g.seq for g in got] == seqs
     assert sub.stats.delivered == len(sent) and sub.stats.rejected_total == 0
+
+
+def test_bounded_queue_counts_overflow_and_keeps_the_oldest(pair):
+    a, b = pair
+    typed = b.subscribe(b.keys.bench("bounded"), Control, maxsize=3)
+    raw = b.subscribe_raw(b.keys.bench("bounded"), maxsize=5)
+    free = b.subscribe_raw(b.keys.bench("bounded"))
+    _settle()
+    seqs = [a.publish(a.keys.bench("bounded"), Control(command="ping")) for _ in range(10)]
+    deadline = time.monotonic() + 5.0
+    while free.pending() < 10 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert free.pending() == 10 and free.stats.overflow == 0
+    assert typed.pending() == 3 and typed.stats.overflow == 7
+    assert raw.pending() == 5 and raw.stats.overflow == 5
+    assert [m.seq for m in typed.drain()] == seqs[:3] and typed.get(0) is None
+    assert len([raw.get(0) for _ in range(5)]) == 5 and raw.get(0) is None and raw.get(0.05) is None
+    a.publish(a.keys.bench("bounded"), Control(command="ping"))  # room again once drained
+    assert typed.get(5.0) is not None and typed.stats.overflow == 7
 
 
 def test_malformed_input_is_counted_and_never_stops_delivery(pair):
