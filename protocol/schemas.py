@@ -224,6 +224,15 @@ class Dims:
         return cls(num_envs, spec.n_agents, spec.obs_dim, msg_dim, spec.action_dim, spec.discrete)
 
 
+def _min_max(a: np.ndarray) -> tuple[int, int]:
+    """Min and max of a non-empty int array. Small arrays go through a list: a process that just
+    woke up runs numpy's reduction machinery cache-cold, ~60 us for min+max at K=32 vs ~35 us."""
+    if a.size <= 1024:
+        values = a.ravel().tolist()
+        return min(values), max(values)
+    return int(a.min()), int(a.max())
+
+
 def _expect(field: str, what: str, actual: int, expected: int | None) -> None:
     if expected is not None and actual != expected:
         raise ShapeError(f"{what} is {actual}, expected {expected} (declared Dims)", field)
@@ -311,8 +320,8 @@ class Message(BaseModel):
         if dims.num_envs is not None:
             if self.k > dims.num_envs:
                 raise ShapeError(f"{self.k} env copies but num_envs is {dims.num_envs}", "env_idx")
-            if self.k and int(self.env_idx.max()) >= dims.num_envs:
-                raise RangeError(f"env index {int(self.env_idx.max())} >= num_envs {dims.num_envs}", "env_idx")
+            if self.k and (hi := _min_max(self.env_idx)[1]) >= dims.num_envs:
+                raise RangeError(f"env index {hi} >= num_envs {dims.num_envs}", "env_idx")
         self._check_dims(dims)
 
     def _check_dims(self, dims: Dims) -> None:
@@ -445,8 +454,10 @@ class Action(Message):
         if dims.action_dim is None:
             return
         if self.discrete:
-            if self.action.size and (self.action.min() < 0 or self.action.max() >= dims.action_dim):
-                raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
+            if self.action.size:
+                lo, hi = _min_max(self.action)
+                if lo < 0 or hi >= dims.action_dim:
+                    raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
         else:
             _expect("action", "action vector length", self.action.shape[1], dims.action_dim)
 
