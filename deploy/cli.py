@@ -114,7 +114,7 @@ def _dashboard_table(board, cfg, started: float, settings=None):
 
 def up_command(
     config: Annotated[Path | None, typer.Argument(help="Optional YAML file of RunConfig fields.")] = None,
-    preset: Annotated[str, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings).")] = "cn3",
+    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings; default cn3).")] = None,
     variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized (default hammer).")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code).")] = None,
     seed: Annotated[int | None, typer.Option(help="Run seed.")] = None,
@@ -130,8 +130,10 @@ def up_command(
     chaos: Annotated[list[str] | None, typer.Option(
         "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S] with ACTION kill | pause | "
                         "resume | restart, e.g. 'kill:central@step=2000' or 'pause:local-1@t=10s,for=3s'.")] = None,
-    out: Annotated[str, typer.Option(help="Root directory for run directories.")] = "runs",
+    out: Annotated[str | None, typer.Option(help="Root directory for run directories (default runs).")] = None,
     run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/up-<name>-<time>).")] = None,
+    resume: Annotated[Path | None, typer.Option(
+        help="Continue this `hammer up` run directory from its latest checkpoint (only --episodes may change).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
@@ -143,13 +145,14 @@ def up_command(
     The YAML file may also hold `faults:` ({seed, links: [...]} with link faults as mappings or
     --fault strings), `chaos:` (a list of --chaos strings) and `runtime:` (RuntimeSettings fields).
     Per-link counters end up in RUN_DIR/links.json, per-episode ones in RUN_DIR/episode_links.csv.
+
+    `--resume RUN_DIR` continues a run whose session died (machine, Ctrl-C, kill) from the latest
+    update with both a learner checkpoint and the env host's state (every checkpoint_every updates).
     """
     import yaml
     from rich.console import Console
-    from rich.live import Live
 
     from deploy.settings import RuntimeSettings
-    from deploy.up import UpError, launch
     from faults.chaos import ChaosSpecError, parse_chaos
     from faults.spec import FaultSpecError, build_plan
     from learning.config import ConfigError, load_yaml, merge_config
@@ -157,6 +160,17 @@ def up_command(
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
+    if resume is not None:
+        given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
+                 "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
+                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
+        bad = [k for k, v in given.items() if v is not None]
+        if bad:
+            _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
+                  "fix: drop the other options")
+        cfg, settings = _resume_inputs(resume, episodes)
+        _run_up(cfg, settings, resume, dashboard, console, resume=True)
+        return
     try:
         data = load_yaml(config) if config is not None else {}
         fault_section, chaos_section = data.pop("faults", None), data.pop("chaos", None) or []
@@ -164,7 +178,8 @@ def up_command(
         flags = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes, "out": out}
         extra = {**data, **{k: v for k, v in flags.items() if v is not None}}
         extra.setdefault("variant", "hammer")
-        cfg = merge_config(preset, None, set_ or [], extra)
+        extra.setdefault("out", "runs")
+        cfg = merge_config(preset or "cn3", None, set_ or [], extra)
     except ConfigError as e:
         _fail(str(e))
     try:
@@ -176,7 +191,7 @@ def up_command(
         _fail(str(e))
     if not isinstance(runtime_section, dict):
         _fail(f"{config}: runtime: must be a mapping of RuntimeSettings fields")
-    path = run_dir or Path(out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
+    path = run_dir or Path(cfg.out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
     rt: dict = {"run_id": path.name.replace("_", "-")[:64], **runtime_section}
     if plan.links:
         if faults is not None:
@@ -208,6 +223,39 @@ def up_command(
             console.print(f"fault rule: {r.model_dump()}")
     for c in settings.chaos:
         console.print(f"chaos: {c}")
+    _run_up(cfg, settings, path, dashboard, console)
+
+
+def _resume_inputs(run_dir: Path, episodes: int | None):
+    """config.json and runtime.json of a `hammer up` run directory (episodes possibly changed)."""
+    import json
+
+    from deploy.settings import RuntimeSettings
+    from learning.config import ConfigError, build_config
+
+    missing = [f for f in ("config.json", "runtime.json", "env_spec.json") if not (run_dir / f).is_file()]
+    if missing:
+        _fail(f"--resume '{run_dir}': no {', '.join(missing)} there; fix: pass a run directory made by `hammer up` "
+              "(a `hammer train` run continues with `hammer train --resume`)")
+    try:
+        cfg = build_config(json.loads((run_dir / "config.json").read_text()))
+        if episodes is not None:
+            cfg = build_config({**cfg.model_dump(), "episodes": episodes})
+        settings = RuntimeSettings.load(run_dir)
+    except ConfigError as e:
+        _fail(str(e))
+    except Exception as e:  # noqa: BLE001 - a hand-edited runtime.json: say what is wrong in one line
+        _fail(f"--resume '{run_dir}': runtime.json: {' '.join(str(e).split())}")
+    return cfg, settings
+
+
+def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False) -> None:
+    from rich.live import Live
+
+    from deploy.up import UpError, launch
+
+    if resume:
+        console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
     started = time.monotonic()
     live = None
     last_line = [0.0]
@@ -229,7 +277,7 @@ def up_command(
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
     try:
-        res = launch(cfg, settings, path, on_tick=tick)
+        res = launch(cfg, settings, path, on_tick=tick, resume=resume)
     except UpError as e:
         if live is not None:
             live.stop()
@@ -242,6 +290,8 @@ def up_command(
     if live is not None:
         live.stop()
     s = res.summary
+    if s.get("resumed_from") is not None:
+        console.print(f"resumed at update {s['resumed_from']}; this session ran {res.wall_time:.0f}s")
     console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-500 paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")

@@ -184,7 +184,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
             s.declare_alive("env")
             host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
-                           trace=settings.trace, max_policy_lag=settings.max_policy_lag)
+                           trace=settings.trace, max_policy_lag=settings.max_policy_lag,
+                           resume_from=settings.resume_from, resume_step=settings.resume_step)
             summary = host.run_eval() if settings.mode == "eval" else host.run()
             summary["faults"] = s.fault_report()
             host.write_episode_links()
@@ -235,7 +236,7 @@ def learner_command(run_dir: RunDirOpt,
     rd = RunDir(run_dir)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-            run_learner(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag)
+            run_learner(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag, resume_from=settings.resume_from)
     except KeyboardInterrupt:
         pass
     finally:

@@ -52,11 +52,25 @@ class RuntimeSettings(BaseModel):
     trace: bool = Field(False, description="env host writes trace.npz (obs, messages, actions, masks per step)")
     chaos: list[str] = Field(default_factory=list, description="process chaos events, e.g. 'kill:central@step=200'")
     fault_links: list[dict] = Field(default_factory=list, description="the link-level fault plan (for display)")
+    resume_from: int | None = Field(
+        None, ge=0, description="continue from this update: the learner loads checkpoints/ckpt_<U>, the env host "
+                                "host_state/ckpt_<U>.json (set by `hammer up --resume`, never by hand)")
+    resume_step: int | None = Field(
+        None, ge=0, description="resume: the env host's step counter starts after this, above every step number "
+                                "an earlier session may have used (step logs are joined to episodes by step)")
 
     @model_validator(mode="after")
     def _eval_needs_policy(self) -> RuntimeSettings:
         if self.mode == "eval" and not self.policy_dir:
             raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
+        return self
+
+    @model_validator(mode="after")
+    def _resume_is_complete(self) -> RuntimeSettings:
+        if (self.resume_from is None) != (self.resume_step is None):
+            raise ValueError("resume_from and resume_step go together (both set by `hammer up --resume`)")
+        if self.resume_from is not None and self.mode != "train":
+            raise ValueError("resume_from: only a training run (mode=train) can be resumed")
         return self
 
     def transport(self) -> TransportConfig:

@@ -5,12 +5,17 @@ Zenoh session every role connects to, starts each role as a fresh interpreter, w
 role's liveliness token is up, shows a live dashboard from the roles' heartbeats, restarts local
 agents and the central agent if they die, and stops everything at the end of the budget or on
 Ctrl-C. A role that cannot be kept alive ends the run with a one-line reason.
+
+`launch(..., resume=True)` continues a run directory whose session died (`hammer up --resume`):
+see `prepare_resume` and docs/runtime.md ("Resuming a run").
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
+import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,17 +72,103 @@ def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
     return specs
 
 
+# What a session leaves besides the learning results; an earlier attempt's copies must not mix
+# into a fresh run started in the same directory (RunDir.create accepts a dir without checkpoint).
+SESSION_LEFTOVERS = ("host_state", "linksteps", "counters")
+
+
 def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
+    import shutil
+
     from envs.registry import make_vec_env
+    from learning.config import ConfigError
     from learning.rundir import RunDir
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     spec = env.spec
     env.close()
-    rd = RunDir.create(run_dir, cfg)
+    try:
+        rd = RunDir.create(run_dir, cfg)
+    except ConfigError as e:
+        raise UpError(str(e)) from None
     rd.close()
+    for name in SESSION_LEFTOVERS:
+        shutil.rmtree(run_dir / name, ignore_errors=True)
+    for name in ("env_summary.json", "learner_summary.json", "episode_links.csv", "links.json"):
+        (run_dir / name).unlink(missing_ok=True)
     settings.save(run_dir)
     write_env_spec(run_dir, spec)
+
+
+def resume_point(run_dir: Path) -> int:
+    """The latest update with both a learner checkpoint and the env host's state. The two are
+    written at the same points (every checkpoint_every updates) by different processes, so a kill
+    between them leaves one without the other."""
+    from env_host.host import host_state_updates
+
+    ckpt_dir = Path(run_dir) / "checkpoints"
+    learner = {int(p.stem[5:]) for p in ckpt_dir.glob("ckpt_*.json")} if ckpt_dir.is_dir() else set()
+    both = learner & set(host_state_updates(run_dir))
+    if not both:
+        raise UpError(f"{run_dir} has no checkpoint yet; start it again (hammer up --run-dir {run_dir})")
+    return max(both)
+
+
+def prepare_resume(cfg, settings: RuntimeSettings, run_dir: Path) -> RuntimeSettings:
+    """Make `run_dir` ready to continue at its resume point U; returns the new session's settings.
+
+    Keeps every file; drops only what lies beyond U (learner checkpoints and host states of later
+    updates, the run's summaries), so the new session rewrites it. The new session gets a fresh
+    run id (no message of a killed session's surviving process can mix in), a fresh hub port, and
+    a step counter above any step the killed session can have reached: at most checkpoint_every x
+    rollout_steps vector steps after its latest host state (an env host writes one at every
+    checkpoint point, including the one it resumes from, before stepping)."""
+    from env_host.host import host_state_updates, read_host_state
+    from faults.chaos import parse_chaos
+    from faults.steplog import STEP_LOG_DIR
+    from learning.rundir import RunDir
+
+    if settings.mode != "train":
+        raise UpError(f"{run_dir}: only a training run can be resumed (runtime.json has mode={settings.mode})")
+    done = run_dir / "summary.json"
+    # Complete = the env host spent the budget AND the learner exported final/ (it writes its
+    # summary last); a session killed between the two is resumed like any other.
+    if done.is_file() and (run_dir / "learner_summary.json").is_file():
+        have = int(json.loads(done.read_text()).get("episodes", 0))
+        if have >= cfg.episodes:
+            raise UpError(f"{run_dir} is already complete ({have} episodes); fix: pass a larger --episodes "
+                          "to continue it")
+    u = resume_point(run_dir)
+    state = read_host_state(run_dir, u)
+    if state["episodes"] >= cfg.episodes:
+        raise UpError(f"--episodes {cfg.episodes}: the checkpoint of update {u} already has {state['episodes']} "
+                      "episodes; fix: pass a larger --episodes")
+    step = max(int(read_host_state(run_dir, v)["step"]) for v in host_state_updates(run_dir))
+    step += cfg.checkpoint_every * cfg.rollout_steps
+    rd = RunDir(run_dir)
+    for v in host_state_updates(run_dir):
+        if v > u:
+            (run_dir / "host_state" / f"ckpt_{v:07d}.json").unlink()
+    for p in rd.ckpt_dir.glob("ckpt_*"):
+        if int(p.name[5:12]) > u:
+            p.unlink()
+    for name in ("summary.json", "env_summary.json", "learner_summary.json"):
+        (run_dir / name).unlink(missing_ok=True)
+    # Step logs are named <role>-<pid>.csv and opened for writing: a new process that got an old
+    # pid would truncate the earlier session's log, so those are renamed (readers take every *.csv).
+    tag = time.strftime("%Y%m%d%H%M%S")
+    for p in sorted((run_dir / STEP_LOG_DIR).glob("*.csv")):
+        p.rename(p.with_name(f"s{tag}-{p.name}"))
+    rd.write_config(cfg)  # --episodes may have changed
+    # Chaos events at a step the run has passed already happened (or were lost with the session).
+    chaos = [c for c in settings.chaos if (ev := parse_chaos(c)).at_step is None or ev.at_step > step]
+    base = re.sub(r"-r\d+-[0-9a-f]{6}$", "", settings.run_id)[:50]
+    new = settings.model_copy(update={
+        "run_id": f"{base}-r{u}-{secrets.token_hex(3)}", "resume_from": u, "resume_step": step, "chaos": chaos,
+        "hub_port": 0 if not settings.zenoh_config_file else settings.hub_port})
+    new = RuntimeSettings.model_validate(new.model_dump())
+    log.info("resuming %s at update %d (%d episodes), step counter from %d", run_dir, u, state["episodes"], step + 1)
+    return new
 
 
 def _tail(path: Path, lines: int = 3) -> str:
@@ -88,11 +179,15 @@ def _tail(path: Path, lines: int = 3) -> str:
     return " | ".join(text[-lines:])
 
 
-def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None) -> UpResult:
+def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
-    `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`."""
+    `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
+    `resume=True`: continue `run_dir` (its config.json / runtime.json as `cfg` / `settings`) from
+    its latest checkpoint instead of starting a new run."""
     run_dir = Path(run_dir)
+    if resume:
+        settings = prepare_resume(cfg, settings, run_dir)
     if chaos is None and settings.chaos:
         from faults.chaos import ChaosScheduler
 
@@ -100,7 +195,10 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         chaos.validate_roles({s.name for s in role_specs(cfg, run_dir)})
     if settings.hub_port == 0 and not settings.zenoh_config_file:
         settings = settings.model_copy(update={"hub_port": free_loopback_port()})
-    prepare_run_dir(cfg, settings, run_dir)
+    if resume:
+        settings.save(run_dir)
+    else:
+        prepare_run_dir(cfg, settings, run_dir)
     specs = role_specs(cfg, run_dir)
     names = {s.name for s in specs}
     sup = Supervisor(run_dir / "logs")

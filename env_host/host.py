@@ -17,22 +17,30 @@ acted on a fallback message and used the declared default action; `hammer up` ad
 columns from the roles' step logs (this process logs the state / observations it sent and the
 actions it received, `RUN/linksteps/env-<pid>.csv`; see faults/episode_links.py and
 docs/faults.md). `trace.npz` (obs, messages, actions, masks per step) on request.
+
+Resuming (`hammer up --resume`): at every checkpoint point (update % checkpoint_every == 0, where
+the env copies are reseeded anyway) the host writes `host_state/ckpt_<update>.json` (its counters,
+recent metrics, wall clock) after flushing metrics.csv and the episode rows, so a run killed later
+can continue from the latest update that has both this file and the learner's checkpoint.
 """
 
 from __future__ import annotations
 
+import csv
+import json
 import logging
 import os
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from envs.base import VecEnv
 from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
 from learning.config import RunConfig
-from learning.rundir import RunDir
+from learning.rundir import RunDir, fsync_file
 from learning.sampling import env_reset_seed
 from learning.team import Team
 from protocol.schemas import (
@@ -67,6 +75,37 @@ class LinkCounters:
         return dict(self.__dict__)
 
 
+HOST_STATE_DIR = "host_state"
+EPISODE_ROW_COLUMNS = ("episode", "env_index", "length", "start_step", "end_step", "msg_fallbacks", "default_actions")
+
+
+def host_state_path(run_dir: Path, update: int) -> Path:
+    return Path(run_dir) / HOST_STATE_DIR / f"ckpt_{update:07d}.json"
+
+
+def host_state_updates(run_dir: Path) -> list[int]:
+    """The updates with a saved host state, ascending."""
+    d = Path(run_dir) / HOST_STATE_DIR
+    return sorted(int(p.stem[5:]) for p in d.glob("ckpt_*.json")) if d.is_dir() else []
+
+
+def read_host_state(run_dir: Path, update: int) -> dict:
+    return json.loads(host_state_path(run_dir, update).read_text())
+
+
+def write_host_state(run_dir: Path, state: dict, keep: int = 5) -> Path:
+    """Atomic (tmp + fsync + rename); keeps the `keep` latest (the learner keeps 3 checkpoints)."""
+    path = host_state_path(run_dir, int(state["update"]))
+    path.parent.mkdir(exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(state))
+    fsync_file(tmp)
+    tmp.replace(path)
+    for old in host_state_updates(run_dir)[:-keep]:
+        host_state_path(run_dir, old).unlink(missing_ok=True)
+    return path
+
+
 @dataclass
 class HostState:
     update: int = 0
@@ -80,7 +119,7 @@ class HostState:
 class EnvHost:
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
                  act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
-                 max_policy_lag: int = 0) -> None:
+                 max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None) -> None:
         self.s, self.cfg, self.env, self.rd = session, cfg, env, rd
         self.spec = env.spec
         self.team = Team(cfg, env.spec)  # for the global-state / action encodings only
@@ -102,6 +141,9 @@ class EnvHost:
         self.h = HostState()
         self.weights_version = -1
         self.max_policy_lag = max_policy_lag
+        if (resume_from is None) != (resume_step is None):
+            raise ValueError("resume_from and resume_step go together")
+        self.resume_from, self.resume_step = resume_from, resume_step
         self.rollout_version = 0  # the policy version the current rollout is acted with
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self._last_hb = 0.0
@@ -111,6 +153,8 @@ class EnvHost:
         self._copy_steps: dict[int, np.ndarray] = {}
         self._ep_end = np.zeros(self.k, np.int64)  # per copy: the step its last episode ended
         self._ep_rows: list[tuple] = []
+        self._ep_rows_saved = 0  # rows already in episode_links.csv (written at checkpoint points)
+        self._steps0 = 0  # env steps before this session (resume)
         # Link events per step (faults.steplog), joined with the episodes' spans by `hammer up`.
         links = (["env->central"] if self.uses_central else []) + ["env->local"]
         self.step_log = StepLog(rd.path / STEP_LOG_DIR, "env", [
@@ -307,10 +351,15 @@ class EnvHost:
         cfg, team, env, h, r = self.cfg, self.team, self.env, self.h, self.rollout
         t_start = self._t_wall0 = time.perf_counter()
         obs = prev = active = None
-        if not self.wait_weights(0):
+        if self.resume_from is not None:
+            self._restore(self.resume_from, self.resume_step)
+        else:  # rows of an earlier attempt in this directory must not precede ours (_save_state appends)
+            (self.rd.path / "episode_links.csv").unlink(missing_ok=True)
+        if not self.wait_weights(h.update):
             return self.summary(t_start)
         while not self._stop:
             if h.update % cfg.checkpoint_every == 0:
+                self._save_state()
                 obs, active = env.reset(env_reset_seed(cfg.seed, h.update))
                 prev = team.zero_prev_actions(self.k)
             r["reset"][:] = False
@@ -350,6 +399,73 @@ class EnvHost:
         self.rd.flush()
         return self.summary(t_start)
 
+    # ----- resume -------------------------------------------------------------------------------
+    def _save_state(self) -> None:
+        """At a checkpoint point: metrics.csv and the episode rows on disk first, then the host
+        state that vouches for them (so every count in it is backed by rows on disk)."""
+        self.rd.flush()
+        if self.rd.metrics_path.is_file():
+            fsync_file(self.rd.metrics_path)
+        path = self.rd.path / "episode_links.csv"
+        new = self._ep_rows[self._ep_rows_saved:]
+        if new or not path.is_file():
+            with open(path, "a") as f:
+                if f.tell() == 0:
+                    f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
+                f.writelines(",".join(map(str, row)) + "\n" for row in new)
+            fsync_file(path)
+            self._ep_rows_saved = len(self._ep_rows)
+        h = self.h
+        write_host_state(self.rd.path, {
+            "update": h.update, "episodes": h.episodes, "env_steps": h.env_steps, "step": h.step,
+            "wall_time": time.perf_counter() - self._t_wall0, "recent": list(h.recent),
+            "episode_rows": len(self._ep_rows)})
+
+    def _restore(self, update: int, step: int) -> None:
+        """Continue from host_state/ckpt_<update>.json: counters, recent metrics and wall clock;
+        metrics.csv and episode_links.csv cut back to the episodes it counted.
+
+        The step counter does not continue from the saved value but from `step`, which the
+        launcher puts above every step the killed session may have reached (its latest host
+        state + checkpoint_every x rollout_steps): the roles' per-step link logs (RUN/linksteps/)
+        of that session stay on disk and are joined to episodes by step number
+        (faults.episode_links), so reusing a number would add the lost rollouts' link events to
+        the new episodes."""
+        h = self.h
+        path = host_state_path(self.rd.path, update)
+        st = read_host_state(self.rd.path, update)
+        if int(st["update"]) != update or int(st["episode_rows"]) != int(st["episodes"]):
+            raise ValueError(f"{path}: inconsistent host state (update {st['update']}, "
+                             f"{st['episodes']} episodes, {st['episode_rows']} episode rows)")
+        if step < int(st["step"]):
+            raise ValueError(f"resume_step {step} is below the saved step counter {st['step']} ({path})")
+        h.update, h.episodes, h.env_steps, h.step = update, int(st["episodes"]), int(st["env_steps"]), step
+        h.recent = deque((float(x) for x in st["recent"]), maxlen=h.recent.maxlen)
+        self._steps0 = h.env_steps
+        self._t_wall0 = time.perf_counter() - float(st["wall_time"])
+        self.rollout_version = update
+        self.rd.truncate_metrics(h.episodes)
+        self._ep_rows = self._read_episode_rows(h.episodes)
+        self._ep_rows_saved = 0  # _save_state rewrites the file with exactly these rows
+        (self.rd.path / "episode_links.csv").unlink(missing_ok=True)
+        self._ep_end[:] = h.step
+        log.info("resumed at update %d: %d episodes, %d env steps, step counter %d (saved %d)",
+                 update, h.episodes, h.env_steps, step, st["step"])
+
+    def _read_episode_rows(self, n: int) -> list[tuple]:
+        """The first n rows of episode_links.csv (base columns; a torn last line is never among them)."""
+        path = self.rd.path / "episode_links.csv"
+        rows: list[tuple] = []
+        if n:
+            with open(path, newline="") as f:
+                for row in csv.DictReader(f):
+                    if len(rows) == n:
+                        break
+                    rows.append(tuple(int(row[c]) for c in EPISODE_ROW_COLUMNS))
+        if len(rows) != n or [r[0] for r in rows] != list(range(1, n + 1)):
+            raise ValueError(f"{path}: expected episodes 1..{n}, found {len(rows)} rows")
+        return rows
+
     def _record_episodes(self, episodes: list) -> bool:
         """Append finished episodes to metrics.csv; True once the budget is spent."""
         h, cfg = self.h, self.cfg
@@ -378,22 +494,25 @@ class EnvHost:
         the per-link columns, faults.episode_links); also flushes this process's step log."""
         self.step_log.flush()
         with open(self.rd.path / "episode_links.csv", "w") as f:
-            f.write("episode,env_index,length,start_step,end_step,msg_fallbacks,default_actions\n")
+            f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
             f.writelines(",".join(map(str, row)) + "\n" for row in self._ep_rows)
         if self.trace is not None and self.trace["steps"]:
             np.savez(self.rd.path / "trace.npz", **{k: np.stack(v) for k, v in self.trace.items()})
 
     def summary(self, t_start: float) -> dict:
+        """`wall_time` covers the whole run (it continues across resumes, like metrics.csv's
+        wall_time column); `env_steps_per_s` is this session's rate."""
         elapsed = time.perf_counter() - t_start
         lat = np.array(self.h.step_latency_ms) if self.h.step_latency_ms else np.zeros(1)
         recent = list(self.h.recent)
         return {
             "episodes": self.h.episodes, "env_steps": self.h.env_steps, "updates": self.h.update,
             "final_paper_metric_last500": float(np.mean(recent)) if recent else None,
-            "env_steps_per_s": self.h.env_steps / max(elapsed, 1e-9),
+            "env_steps_per_s": (self.h.env_steps - self._steps0) / max(elapsed, 1e-9),
             "step_latency_ms_p50": float(np.percentile(lat, 50)),
             "step_latency_ms_p99": float(np.percentile(lat, 99)),
-            "wall_time": elapsed, "n_agents": self.cfg.n_agents, "episode_length": int(self.spec.max_steps),
+            "wall_time": time.perf_counter() - getattr(self, "_t_wall0", t_start), "session_wall_time": elapsed,
+            "resumed_from": self.resume_from, "n_agents": self.cfg.n_agents, "episode_length": int(self.spec.max_steps),
             "variant": self.cfg.variant, "central_mode": self.cfg.central_mode, "env": self.cfg.env,
             "links": self.c.as_dict(), "step": self.h.step, "completed": self.h.episodes >= self.cfg.episodes,
         }

@@ -10,6 +10,11 @@ values with the same networks (it holds the version that acted), runs the shared
 
 One learner trains both networks ("team"): in backprop mode the local loss flows into the central
 network, so splitting them across processes would need a gradient exchange per minibatch.
+
+Resuming (`hammer up --resume`, `resume_from=U`): the learner loads checkpoints/ckpt_<U> (networks
+and optimisers, as `hammer train --resume` does) and serves version U; the env host continues from
+its own state of the same update. `learner_summary.json` then says `resumed_from: U`; `updates`
+and `policy_version` count the whole run, `samples` only the updates of this session.
 """
 
 from __future__ import annotations
@@ -153,8 +158,22 @@ class BehaviourSnapshots:
             self._load(now)
 
 
+def load_checkpoint(learner: TeamLearner, rd: RunDir, update: int) -> int:
+    """Networks and optimisers of checkpoints/ckpt_<update> into `learner`; returns the update."""
+    stem = rd.ckpt_dir / f"ckpt_{update:07d}"
+    if not stem.with_suffix(".json").is_file():
+        raise FileNotFoundError(f"{stem}.json is missing: no learner checkpoint of update {update} to resume from")
+    tensors, meta = RunDir.load_checkpoint(stem)
+    if int(meta.get("update", -1)) != update:
+        raise ValueError(f"{stem}.json: holds update {meta.get('update')}, expected {update}")
+    learner.load_state(tensors, meta)
+    log.info("resumed from %s", stem)
+    return update
+
+
 def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir,
-                central_wait_s: float = 5.0, max_policy_lag: int = 0) -> dict[str, Any]:
+                central_wait_s: float = 5.0, max_policy_lag: int = 0,
+                resume_from: int | None = None) -> dict[str, Any]:
     """Serve updates until told to stop.
 
     max_policy_lag L > 0 (asynchronous): a chunk acted by version w with update - L <= w <= update
@@ -175,11 +194,14 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
     w_local = session.publisher(keys.weights("local"))
     w_central = session.publisher(keys.weights("central")) if team.central is not None else None
     hb = session.publisher(keys.heartbeat("learner"), reliable=False)
-    tb = rd.tensorboard()
+    update = 0
+    if resume_from is not None:
+        update = load_checkpoint(learner, rd, resume_from)
+    # A resumed run drops the killed session's TensorBoard points after the checkpoint.
+    tb = rd.tensorboard(purge_step=update + 1 if resume_from is not None else None)
     session.declare_alive("learner")
 
-    update = 0
-    stats = {"updates": 0, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0,
+    stats = {"updates": update, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0,
              "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0}
     central_recs: dict[int, dict[str, np.ndarray]] = {}
     behaviour = BehaviourSnapshots(team, max_policy_lag)
@@ -263,6 +285,7 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
             rd.save_checkpoint(update, tensors, meta)
     rd.export_policy(team.local.export_numpy(), team.central.export_numpy() if team.central is not None else None,
                      {"variant": cfg.variant, "central_mode": cfg.central_mode, "version": str(update)})
-    (rd.path / "learner_summary.json").write_text(json.dumps({**stats, "policy_version": update}, indent=1))
+    (rd.path / "learner_summary.json").write_text(json.dumps({**stats, "policy_version": update,
+                                                                      "resumed_from": resume_from}, indent=1))
     log.info("stopped: %s", stats)
     return stats

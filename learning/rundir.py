@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,15 @@ def optimizer_from_tensors(opt: torch.optim.Optimizer, prefix: str, tensors: dic
              for pid, names in meta["state_keys"].items()}
     groups = [dict(g, betas=tuple(g["betas"])) if "betas" in g else g for g in meta["param_groups"]]
     opt.load_state_dict({"state": state, "param_groups": groups})
+
+
+def fsync_file(path: Path) -> None:
+    """Flush a written file to the disk (any fd of the file will do on Linux)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 class RunDir:
@@ -124,12 +134,16 @@ class RunDir:
     # ----- checkpoints --------------------------------------------------------------------------
     def save_checkpoint(self, update: int, tensors: dict[str, torch.Tensor], meta: dict[str, Any],
                         keep: int = 3) -> Path:
-        """Atomic-ish: the JSON (which marks a checkpoint as complete) is written last."""
+        """Atomic-ish: the JSON (which marks a checkpoint as complete) is written last, and both
+        reach the disk first (fsync), so a machine that dies cannot leave a JSON vouching for a
+        lost tensor file."""
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         stem = self.ckpt_dir / f"ckpt_{update:07d}"
         save_file({k: v.contiguous() for k, v in tensors.items()}, str(stem) + ".safetensors")
+        fsync_file(Path(str(stem) + ".safetensors"))
         tmp = Path(str(stem) + ".json.tmp")
         tmp.write_text(json.dumps(meta))
+        fsync_file(tmp)
         tmp.replace(str(stem) + ".json")
         for old in sorted(self.ckpt_dir.glob("ckpt_*.json"))[:-keep]:
             old.unlink()
