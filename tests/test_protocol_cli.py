@@ -53,3 +53,13 @@ def test_bench_codec_runs_and_writes_json(tmp_path):
     for roles in data["roles"].values():
         assert set(roles) == {"env host", "central agent", "local agent"}
     assert "speedup" in result.output and "local agent" in result.output
+
+
+def test_bench_codec_cold_mode_runs(tmp_path):
+    out = tmp_path / "cold.json"
+    result = CliRunner().invoke(app, ["bench", "codec", "--k", "2", "--number", "2", "--cold", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(out.read_text())
+    assert data["meta"]["cold"] is True and len(data["rows"]) == 12
+    assert all(r["decode_fast_us"] > 0 and r["decode_ref_us"] > 0 for r in data["rows"])
+    assert "cache-cold" in result.output
