@@ -41,7 +41,8 @@ def sweep(
     grid: Annotated[list[str] | None, typer.Option(
         help="Extra grid axis KEY=V1,V2,... (repeatable), e.g. --grid msg_dim=1,2,4,8.")] = None,
     jobs: Annotated[int | None, typer.Option(help="Runs at once (default: number of cores).")] = None,
-    episodes: Annotated[int | None, typer.Option(help="Override the preset's episode budget.")] = None,
+    episodes: Annotated[int | None, typer.Option(
+        help="Override the preset's episode budget (the run names then say so, e.g. mw3-il-ep2000-s0).")] = None,
     archive: Annotated[Path | None, typer.Option(
         help="Also keep a compact copy of each finished run here (commit it: runs archived there are "
              "skipped, so the sweep continues from a fresh clone). e.g. docs/results/runs/cn5")] = None,
@@ -58,7 +59,7 @@ def sweep(
     console = Console()
     try:
         points = expand(presets.split(","), variants.split(","), parse_seeds(seeds),
-                        parse_grid_overrides(grid or []))
+                        parse_grid_overrides(grid or []), episodes=episodes)
     except ValueError as e:
         _fail(str(e))
     console.print(f"sweep: {len(points)} runs into {out}")
@@ -67,7 +68,7 @@ def sweep(
         style = {"done": "green", "fail": "red", "skip": "dim"}.get(kind, "cyan")
         console.print(f"[{style}]{kind:>6}[/] {name}")
 
-    res = run_sweep(points, out, jobs=jobs, episodes=episodes, on_event=event, archive=archive)
+    res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive)
     console.print(f"finished {len(res.done)}, skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))

@@ -28,11 +28,15 @@ class SweepPoint:
     variant: str
     seed: int
     overrides: tuple[tuple[str, str], ...] = ()
+    episodes: int | None = None  # a budget other than the preset's: part of the name, so that a
+    # shortened run is never mistaken for (or archived as) the full-budget run of the same point
 
     @property
     def name(self) -> str:
         parts = [self.preset, self.variant]
         parts += [f"{k.replace('.', '_')}={v}" for k, v in self.overrides]
+        if self.episodes is not None:
+            parts.append(f"ep{self.episodes}")
         parts.append(f"s{self.seed}")
         return "-".join(parts)
 
@@ -73,7 +77,7 @@ def parse_grid_overrides(items: list[str]) -> list[tuple[str, list[str]]]:
 
 
 def expand(presets: list[str], variants: list[str], seeds: list[int],
-           grid: list[tuple[str, list[str]]] | None = None) -> list[SweepPoint]:
+           grid: list[tuple[str, list[str]]] | None = None, episodes: int | None = None) -> list[SweepPoint]:
     for v in variants:
         if v not in VARIANTS:
             raise ValueError(f"variant {v!r} is not one of {', '.join(VARIANTS)}")
@@ -81,7 +85,7 @@ def expand(presets: list[str], variants: list[str], seeds: list[int],
     keys = [k for k, _ in grid]
     combos = list(itertools.product(*[vals for _, vals in grid])) or [()]
     # Seed-major order: a sweep cut short still holds every comparison, at fewer seeds.
-    return [SweepPoint(p, v, s, tuple(zip(keys, combo, strict=True)))
+    return [SweepPoint(p, v, s, tuple(zip(keys, combo, strict=True)), episodes)
             for s in seeds for p in presets for v in variants for combo in combos]
 
 
@@ -133,7 +137,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                 p, run_dir, st = queue.pop(0)
                 run_dir.mkdir(parents=True, exist_ok=True)
                 args = (["train", "--resume", str(run_dir)] if st == "resume"
-                        else p.train_args(run_dir, episodes))
+                        else p.train_args(run_dir, episodes if episodes is not None else p.episodes))
                 logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
                 proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], stdout=logf,
                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)

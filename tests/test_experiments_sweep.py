@@ -17,6 +17,8 @@ def test_grid_expansion_and_parsing():
     pts = expand(["cn3"], ["hammer-rl", "il"], parse_seeds("0-1"), parse_grid_overrides(["msg_dim=2,4"]))
     assert len(pts) == 8
     assert pts[0].name == "cn3-hammer-rl-msg_dim=2-s0"
+    short = expand(["mw3"], ["il"], [1], episodes=2000)[0]
+    assert short.name == "mw3-il-ep2000-s1" and "2000" in short.train_args("d", short.episodes)
     args = pts[0].train_args(pts[0].name, 10)
     assert args[args.index("--central-mode") + 1] == "rl" and "msg_dim=2" in args
     with pytest.raises(ValueError, match="seeds"):
