@@ -12,31 +12,16 @@ import sys
 import time
 from pathlib import Path
 
-import psutil
-
 from deploy.settings import RuntimeSettings
 from deploy.up import prepare_run_dir
 from learning.config import merge_config
+from tests.runtime_helpers import ENV, ROOT, hammer, processes_mentioning
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "HAMMER_TORCH_THREADS": "1"}
 BUDGET = 256  # 8 updates of 32 cn3 episodes: the kill lands after update 2, well before the end
 
 
-def _hammer(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env=ENV)
 
 
-def _processes_mentioning(text: str) -> list[psutil.Process]:
-    found = []
-    for p in psutil.process_iter(["cmdline"]):
-        try:
-            if any(text in part for part in (p.info["cmdline"] or [])):
-                found.append(p)
-        except (psutil.NoSuchProcess, psutil.AccessDenied):
-            pass
-    return found
 
 
 def _updates(d: Path) -> set[int]:
@@ -85,11 +70,11 @@ def _kill_group_when_checkpointed(run: Path, log: Path) -> None:
         proc.wait(10)
         # The roles share the launcher's process group; anything that escaped it is killed here.
         deadline = time.monotonic() + 10
-        while (left := _processes_mentioning(str(run))) and time.monotonic() < deadline:
+        while (left := processes_mentioning(str(run))) and time.monotonic() < deadline:
             for p in left:
                 p.kill()
             time.sleep(0.2)
-    assert _processes_mentioning(str(run)) == []
+    assert processes_mentioning(str(run)) == []
 
 
 def test_sigkilled_up_run_resumes_to_its_budget(tmp_path):
@@ -104,12 +89,12 @@ def test_sigkilled_up_run_resumes_to_its_budget(tmp_path):
     assert 0 < saved["episodes"] < BUDGET and old_step_top > saved["step"]
 
     # Starting it afresh is refused (it holds a run); only --episodes may change on resume.
-    fresh = _hammer("up", "--run-dir", str(run), "--no-dashboard")
+    fresh = hammer("up", "--run-dir", str(run), "--no-dashboard")
     assert fresh.returncode == 1 and "--resume" in fresh.stderr, fresh.stderr[-1500:]
-    other = _hammer("up", "--resume", str(run), "--set", "checkpoint_every=3")
+    other = hammer("up", "--resume", str(run), "--set", "checkpoint_every=3")
     assert other.returncode == 2 and "only --episodes may be changed" in other.stderr and "--set" in other.stderr
 
-    res = _hammer("up", "--resume", str(run), "--no-dashboard")
+    res = hammer("up", "--resume", str(run), "--no-dashboard")
     assert res.returncode == 0, res.stderr[-2000:]
     assert f"resumed at update {u}" in res.stderr
 
@@ -140,9 +125,9 @@ def test_sigkilled_up_run_resumes_to_its_budget(tmp_path):
     # The per-link columns count each resumed episode's own steps only: one state message per step.
     assert all(int(r["env_central_sent"]) == int(r["length"]) for r in new)
 
-    again = _hammer("up", "--resume", str(run), "--no-dashboard")
+    again = hammer("up", "--resume", str(run), "--no-dashboard")
     assert again.returncode == 1 and "already complete" in again.stderr
-    assert _processes_mentioning(str(run)) == []
+    assert processes_mentioning(str(run)) == []
 
 
 def test_resume_without_checkpoint_or_with_other_options_is_refused(tmp_path):
@@ -151,18 +136,18 @@ def test_resume_without_checkpoint_or_with_other_options_is_refused(tmp_path):
     prepare_run_dir(cfg, RuntimeSettings(run_id="young"), run)  # what `hammer up` writes before any role starts
     before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
 
-    res = _hammer("up", "--resume", str(run), "--no-dashboard")
+    res = hammer("up", "--resume", str(run), "--no-dashboard")
     assert res.returncode == 1
     lines = res.stderr.strip().splitlines()
     assert lines[-1] == f"error: {run} has no checkpoint yet; start it again (hammer up --run-dir {run})"
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before  # nothing touched
 
     for extra in (["--seed", "3"], ["--runtime", "fallback=last"], ["--preset", "cn5"], ["--chaos", "kill:central@t=1s"]):
-        res = _hammer("up", "--resume", str(run), *extra)
+        res = hammer("up", "--resume", str(run), *extra)
         assert res.returncode == 2 and "only --episodes may be changed" in res.stderr and extra[0] in res.stderr
 
     train_run = tmp_path / "train"
     train_run.mkdir()
     (train_run / "config.json").write_text((run / "config.json").read_text())
-    res = _hammer("up", "--resume", str(train_run))
+    res = hammer("up", "--resume", str(train_run))
     assert res.returncode == 2 and "hammer train --resume" in res.stderr

@@ -6,8 +6,6 @@ import csv
 import json
 import os
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import psutil
@@ -16,8 +14,7 @@ import pytest
 from deploy.settings import RuntimeSettings
 from deploy.up import launch
 from learning.config import merge_config
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.runtime_helpers import hammer, processes_mentioning
 
 
 def _metric_column(run_dir: Path) -> list[float]:
@@ -25,25 +22,13 @@ def _metric_column(run_dir: Path) -> list[float]:
         return [float(r["paper_metric"]) for r in csv.DictReader(f)]
 
 
-def _processes_mentioning(text: str) -> list[psutil.Process]:
-    found = []
-    for p in psutil.process_iter(["cmdline"]):
-        try:
-            if any(text in part for part in (p.info["cmdline"] or [])):
-                found.append(p)
-        except (psutil.NoSuchProcess, psutil.AccessDenied):
-            pass
-    return found
 
 
-def _hammer(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env={**os.environ, "HAMMER_TORCH_THREADS": "1"})
 
 
 def test_short_up_run_completes_writes_metrics_and_leaves_no_process(tmp_path):
     run = tmp_path / "up"
-    res = _hammer("up", "--episodes", "80", "--run-dir", str(run), "--no-dashboard")
+    res = hammer("up", "--episodes", "80", "--run-dir", str(run), "--no-dashboard")
     assert res.returncode == 0, res.stderr[-2000:]
     assert "done: 80 episodes" in res.stderr
     assert len(_metric_column(run)) == 80
@@ -61,7 +46,7 @@ def test_short_up_run_completes_writes_metrics_and_leaves_no_process(tmp_path):
     links = summary["links"]
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
     assert (run / "final" / "local.safetensors").is_file()
-    assert _processes_mentioning(str(run)) == []
+    assert processes_mentioning(str(run)) == []
 
 
 @pytest.mark.parametrize("mode", ["backprop", "rl"])
@@ -71,10 +56,10 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     up, tr = tmp_path / "up", tmp_path / "train"
     # Generous deadlines: this test is about equality without faults, so a loaded CI machine must
     # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py).
-    r1 = _hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard",
+    r1 = hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard",
                  "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = _hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", mode, "--episodes", "100",
+    r2 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", mode, "--episodes", "100",
                  "--run-dir", str(tr), "--quiet")
     assert r2.returncode == 0, r2.stderr[-2000:]
     links = json.loads((up / "summary.json").read_text())["links"]
@@ -90,7 +75,7 @@ def test_policy_lag_pipelines_rollouts_with_one_version_each(tmp_path):
     acted by one version (no off-policy action), the learner evaluates lagged chunks with that
     version, and nothing is lost or counted twice."""
     run = tmp_path / "lag"
-    res = _hammer("up", "--episodes", "160", "--central-mode", "rl", "--run-dir", str(run), "--no-dashboard",
+    res = hammer("up", "--episodes", "160", "--central-mode", "rl", "--run-dir", str(run), "--no-dashboard",
                   "--runtime", "max_policy_lag=1", "--runtime", "msg_deadline_ms=5000",
                   "--runtime", "act_deadline_ms=10000")
     assert res.returncode == 0, res.stderr[-2000:]
@@ -104,7 +89,7 @@ def test_policy_lag_pipelines_rollouts_with_one_version_each(tmp_path):
     links = summary["links"]
     assert links["off_policy_actions"] == 0 and links["default_actions"] == 0 and links["msg_fallback_copies"] == 0
     assert len(_metric_column(run)) == 160
-    assert _processes_mentioning(str(run)) == []
+    assert processes_mentioning(str(run)) == []
 
 
 def test_sigkilled_local_agent_is_restarted_and_the_run_completes(tmp_path):
@@ -126,4 +111,4 @@ def test_sigkilled_local_agent_is_restarted_and_the_run_completes(tmp_path):
     # While local-1 was down the env host kept stepping on its declared default action.
     assert res.summary["links"]["default_actions"] > 0
     assert not psutil.pid_exists(killed[0]) or psutil.Process(killed[0]).status() == psutil.STATUS_ZOMBIE
-    assert _processes_mentioning(str(tmp_path / "run")) == []
+    assert processes_mentioning(str(tmp_path / "run")) == []
