@@ -4,6 +4,8 @@ A sweep is a directory; every point of the grid (preset × variant × seed × ov
 directory inside it with a deterministic name. Re-running the same sweep command skips finished
 runs (they have summary.json), resumes interrupted ones from their last checkpoint, and starts the
 rest, at most `jobs` at a time, each a fresh `hammer train` process with one torch thread.
+Several sweep processes may work on one directory at once (say, one per core): a lock file per
+run directory (pids of the sweep and its child) keeps them from running the same point twice.
 """
 
 from __future__ import annotations
@@ -134,13 +136,26 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
     try:
         while queue or running:
             while queue and len(running) < jobs:
-                p, run_dir, st = queue.pop(0)
+                p, run_dir, _ = queue.pop(0)
                 run_dir.mkdir(parents=True, exist_ok=True)
+                if not _lock(run_dir):  # another sweep process is running this point right now
+                    result.skipped.append(p.name)
+                    if on_event:
+                        on_event("busy", p.name)
+                    continue
+                st = state_of(run_dir)  # again: another sweep may have finished it meanwhile
+                if st == "done" or (archive is not None and is_archived(archive, p.name)):
+                    _unlock(run_dir)
+                    result.skipped.append(p.name)
+                    if on_event:
+                        on_event("skip", p.name)
+                    continue
                 args = (["train", "--resume", str(run_dir)] if st == "resume"
                         else p.train_args(run_dir, episodes if episodes is not None else p.episodes))
                 logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
                 proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], stdout=logf,
                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+                _lock(run_dir, child=proc.pid)
                 running[p.name] = (proc, logf)
                 if on_event:
                     on_event("resume" if st == "resume" else "start", p.name)
@@ -150,6 +165,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                     continue
                 logf.close()
                 del running[name]
+                _unlock(out / name)
                 if proc.returncode == 0:
                     if archive is not None:
                         archive_run(out / name, archive)
@@ -161,11 +177,57 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                     if on_event:
                         on_event("fail", name)
     finally:
-        for proc, logf in running.values():
+        for name, (proc, logf) in running.items():
             proc.terminate()
             try:
                 proc.wait(10)
             except subprocess.TimeoutExpired:
                 proc.kill()
             logf.close()
+            _unlock(out / name)
     return result
+
+
+LOCK = ".sweep.lock"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _lock(run_dir: Path, child: int | None = None) -> bool:
+    """Claim a run directory for this sweep process (and, once started, its `hammer train` child),
+    so that several sweeps over one directory (e.g. one per core, or a restarted one next to a
+    still-running child) never run the same point twice. A lock whose processes are all gone is
+    stale and taken over. Returns False if a live process holds it."""
+    path = run_dir / LOCK
+    me = f"{os.getpid()} {child or ''}".strip()
+    if child is not None:  # we hold it already: record the child too
+        path.write_text(me)
+        return True
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                holders = [int(x) for x in path.read_text().split()]
+            except (OSError, ValueError):
+                holders = []
+            if any(_alive(pid) for pid in holders):
+                return False
+            path.unlink(missing_ok=True)  # stale: its sweep and child are gone
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(me)
+        return True
+    return False
+
+
+def _unlock(run_dir: Path) -> None:
+    (run_dir / LOCK).unlink(missing_ok=True)

@@ -56,3 +56,26 @@ def test_archived_runs_survive_a_fresh_sweep_directory(tmp_path):
     res2 = run_sweep(pts, tmp_path / "fresh", jobs=1, episodes=8, archive=archive)
     assert res2.skipped == [pts[0].name] and not res2.done
     assert not (tmp_path / "fresh" / pts[0].name).exists()
+
+
+def test_a_point_held_by_a_live_sweep_is_not_run_twice(tmp_path):
+    """Two sweeps on one directory: a point locked by a live process is skipped as busy; a lock
+    whose processes are gone is stale and taken over."""
+    import subprocess
+    import sys
+
+    from experiments.sweep import LOCK
+
+    pts = expand(["cn3"], ["il"], [0], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
+    run_dir = tmp_path / pts[0].name
+    run_dir.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (run_dir / LOCK).write_text(str(holder.pid))
+        res = run_sweep(pts, tmp_path, jobs=1, episodes=8)
+        assert res.skipped == [pts[0].name] and not res.done and not (run_dir / "metrics.csv").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    res = run_sweep(pts, tmp_path, jobs=1, episodes=8)  # the holder is gone: a stale lock
+    assert res.done == [pts[0].name] and not (run_dir / LOCK).exists()
