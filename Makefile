@@ -39,7 +39,7 @@ VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
 paper: $(STAMP)
 	$(H) sweep --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
 	$(H) sweep --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000
+	$(H) sweep --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000
 	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
 	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
 	$(MAKE) paper-report
@@ -49,6 +49,8 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/cn3-msglen --out docs/results/cn3-msglen-table.md --export docs/results/cn3-msglen-runs.json
 	-$(H) plot $(A)/cn5 --out docs/results/cn5-curves
 	-$(H) report $(A)/cn5 --out docs/results/cn5-table.md --export docs/results/cn5-runs.json
+	-$(H) plot $(A)/mw3-pilot --out docs/results/mw3-pilot-curves
+	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
 	-$(H) report $(A)/mw3 --out docs/results/mw3-table.md --export docs/results/mw3-runs.json
 
