@@ -202,7 +202,10 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
     session.declare_alive("learner")
 
     stats = {"updates": update, "stale_chunks": 0, "bad_chunks": 0, "central_steps_missing": 0, "samples": 0,
-             "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0}
+             "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0,
+             # where the learner's time goes (seconds, summed over updates): rebuilding the
+             # buffer from a chunk, the PPO epochs, encoding + publishing the new weights
+             "time_fill_s": 0.0, "time_learn_s": 0.0, "time_publish_s": 0.0}
     central_recs: dict[int, dict[str, np.ndarray]] = {}
     behaviour = BehaviourSnapshots(team, max_policy_lag)
 
@@ -263,17 +266,23 @@ def run_learner(session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDi
                 rec = c_sub.get(timeout=0.05)
                 if rec is not None and update - max_policy_lag <= rec.policy_version <= update:
                     central_recs[rec.step] = rec.arrays
+        t0 = time.perf_counter()
         missing = fill_as(chunk.policy_version, r)
+        t1 = time.perf_counter()
         stats["central_steps_missing"] += missing
         for step in [st for st in central_recs if st <= int(r["steps"][-1])]:
             del central_recs[step]
         stats["lagged_updates"] += int(lag > 0)
         stats["policy_lag_max"] = max(stats["policy_lag_max"], lag)
         logs = learner.learn(r["last_obs"], r["last_prev"], update)
+        t2 = time.perf_counter()
         update += 1
         stats["updates"] = update
         stats["samples"] += int(r["active"].sum())
         publish_weights()
+        stats["time_fill_s"] += t1 - t0
+        stats["time_learn_s"] += t2 - t1
+        stats["time_publish_s"] += time.perf_counter() - t2
         snapshot()
         last_pub = time.monotonic()
         logs["policy_lag"] = lag
