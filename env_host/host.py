@@ -148,10 +148,10 @@ class EnvHost:
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self._last_hb = 0.0
         self._stop = False
-        # Per step of the episodes still running: per env copy, the agents that acted on a fallback
-        # message and the agents given the default action (summed over an episode's span when it ends).
-        self._copy_steps: dict[int, np.ndarray] = {}
-        self._ep_end = np.zeros(self.k, np.int64)  # per copy: the step its last episode ended
+        # Per env copy, since its current episode started: agent-steps on a fallback message / on the
+        # default action. Zeroed where an episode starts: after it ends, and at every env reset.
+        self.ep_fallback = np.zeros(self.k, np.int64)
+        self.ep_default = np.zeros(self.k, np.int64)
         self._ep_rows: list[tuple] = []
         self._ep_rows_saved = 0  # rows already in episode_links.csv (written at checkpoint points)
         self._steps0 = 0  # env steps before this session (resume)
@@ -273,7 +273,8 @@ class EnvHost:
         self.step_log.maybe_flush()
         self._recent_got[step] = got
         self._recent_got.pop(step - 16, None)
-        self._copy_steps[step] = np.stack([fallback.sum(axis=1), defaulted.sum(axis=1)])
+        self.ep_fallback += fallback.sum(axis=1)
+        self.ep_default += defaulted.sum(axis=1)
         self._fallback = fallback
         return actions, msgs, defaulted
 
@@ -307,11 +308,11 @@ class EnvHost:
 
     def run_eval(self) -> dict:
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
-        team, env, h = self.team, self.env, self.h
+        team, h = self.team, self.h
         t_start = self._t_wall0 = time.perf_counter()
         if not self.wait_weights(0) or not self._wait_central_ready():
             return self.summary(t_start)
-        obs, active = env.reset(env_reset_seed(self.cfg.seed, 0))
+        obs, active = self._reset_env(0)
         prev = team.zero_prev_actions(self.k)
         while not self._stop:
             self._poll_control()
@@ -348,7 +349,7 @@ class EnvHost:
                            "(is `hammer central` running?)")
 
     def run(self) -> dict:
-        cfg, team, env, h, r = self.cfg, self.team, self.env, self.h, self.rollout
+        cfg, team, h, r = self.cfg, self.team, self.h, self.rollout
         t_start = self._t_wall0 = time.perf_counter()
         obs = prev = active = None
         if self.resume_from is not None:
@@ -360,7 +361,7 @@ class EnvHost:
         while not self._stop:
             if h.update % cfg.checkpoint_every == 0:
                 self._save_state()
-                obs, active = env.reset(env_reset_seed(cfg.seed, h.update))
+                obs, active = self._reset_env(h.update)
                 prev = team.zero_prev_actions(self.k)
             r["reset"][:] = False
             finished = False
@@ -448,7 +449,6 @@ class EnvHost:
         self._ep_rows = self._read_episode_rows(h.episodes)
         self._ep_rows_saved = 0  # _save_state rewrites the file with exactly these rows
         (self.rd.path / "episode_links.csv").unlink(missing_ok=True)
-        self._ep_end[:] = h.step
         log.info("resumed at update %d: %d episodes, %d env steps, step counter %d (saved %d)",
                  update, h.episodes, h.env_steps, step, st["step"])
 
@@ -466,6 +466,12 @@ class EnvHost:
             raise ValueError(f"{path}: expected episodes 1..{n}, found {len(rows)} rows")
         return rows
 
+    def _reset_env(self, update: int) -> tuple[np.ndarray, np.ndarray]:
+        """Reseed every env copy (the points shared with `hammer train`); running episodes are
+        dropped unrecorded, so their fallback/default counts go with them."""
+        self.ep_fallback[:] = self.ep_default[:] = 0
+        return self.env.reset(env_reset_seed(self.cfg.seed, update))
+
     def _record_episodes(self, episodes: list) -> bool:
         """Append finished episodes to metrics.csv; True once the budget is spent."""
         h, cfg = self.h, self.cfg
@@ -477,14 +483,11 @@ class EnvHost:
             h.episodes += 1
             h.recent.append(e.paper_metric)
             rows.append((h.episodes, h.env_steps, repr(e.paper_metric), repr(e.team_return), e.length, wall))
-            i, start = e.env_index, h.step - e.length + 1
-            fb, df = sum((self._copy_steps[t][:, i] for t in range(start, h.step + 1) if t in self._copy_steps),
-                         np.zeros(2, np.int64))
-            self._ep_rows.append((h.episodes, i, e.length, start, h.step, int(fb), int(df)))
+            i = e.env_index
+            self._ep_rows.append((h.episodes, i, e.length, h.step - e.length + 1, h.step,
+                                  int(self.ep_fallback[i]), int(self.ep_default[i])))
         for e in episodes:
-            self._ep_end[e.env_index] = h.step
-        for t in [t for t in self._copy_steps if t <= self._ep_end.min()]:  # no running episode spans them
-            del self._copy_steps[t]
+            self.ep_fallback[e.env_index] = self.ep_default[e.env_index] = 0
         self.rd.append_episodes(rows)
         return h.episodes >= cfg.episodes
 

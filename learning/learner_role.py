@@ -150,7 +150,7 @@ class BehaviourSnapshots:
             return
         if version not in self.states:
             raise KeyError(f"no snapshot of policy version {version} (kept: {sorted(self.states)})")
-        now = self._state()
+        now = self.states.get(current) or self._state()  # keep(current) ran after its publish
         self._load(self.states[version])
         try:
             yield
