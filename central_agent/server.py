@@ -1,9 +1,11 @@
 """The central-agent server: one batched forward pass per vector step, one message per local agent.
 
-It runs the same `learning.team.Team.central_messages` as the in-process trainer (same torch
-code, same random stream), so with the same weights and no faults it sends exactly the messages
-the trainer would. Weights come from the learner (`learn/central/weights`); for variant `random`
-there are no weights, only the central random stream.
+It runs the same sampling as the in-process trainer (`learning.central_acting.CentralActing`,
+same random stream) after a numpy forward of the central network (`learning.numpy_policy`), so
+with the same weights and no faults it sends the trainer's messages to float32 tolerance, and the
+process never loads torch: it sits on the critical path of every vector step. Weights come from
+the learner (`learn/central/weights`, safetensors of `CentralAgent.export_numpy()`); for variant
+`random` there are no weights, only the central random stream.
 
 When the learner needs what only the central agent knows (rl mode: the Gaussian sample, its
 log-density and the central critic's value; any mode with message dropout: which messages were
@@ -29,10 +31,11 @@ from safetensors.numpy import load as load_safetensors
 from envs.base import EnvSpec
 from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
+from learning.central_acting import CentralActing
 from learning.config import RunConfig
+from learning.numpy_policy import NumpyCentralAgent
 from learning.policy_versions import WeightsInbox
 from learning.sampling import ActingStreams
-from learning.team import Team
 from protocol.schemas import CentralMsg, Control, Dims, ExperienceChunk, GlobalState, Heartbeat, Weights
 from protocol.session import HammerSession
 
@@ -46,6 +49,7 @@ class CentralCounters:
     states_skipped: int = 0  # an older state still queued when a newer one was there (after a pause)
     weights_loaded: int = 0
     weights_wait_timeouts: int = 0
+    states_no_policy: int = 0  # not served: no central weights received yet (local agents fall back)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -63,17 +67,15 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
     policy before the first state arrives so the env host can wait for it (see EnvHost.run_eval);
     training keeps loading weights only when a state asks for them (up == train equivalence).
     step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
-    import torch
-
-    torch.set_num_threads(1)
     keys = session.keys
-    team = Team(cfg, spec)
+    acting = CentralActing.from_config(cfg)
+    net: NumpyCentralAgent | None = None
     streams = ActingStreams(cfg.seed, cfg.n_agents)
     n = cfg.n_agents
     dims = Dims(num_envs=cfg.num_envs, n_agents=n, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                 discrete=spec.discrete)
     state_sub = session.subscribe(keys.state(), GlobalState, dims)
-    w_sub = session.subscribe(keys.weights("central"), Weights) if team.central is not None else None
+    w_sub = session.subscribe(keys.weights("central"), Weights) if acting.has_network else None
     ctl_sub = session.subscribe(keys.ctl("all"), Control)
     delivered, late = column("env->central", "delivered"), column("env->central", "late")
     slog = StepLog(step_log_dir, "central", [delivered, late, *(column("central->local", e) for e in
@@ -82,21 +84,26 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
                 for i in range(n)]
     exp_pub = session.publisher(keys.exp("central"))
     hb_pub = session.publisher(keys.heartbeat("central"), reliable=False)
-    # Warm up torch (first-call allocations, kernel selection) before declaring ourselves alive,
-    # so the first real step meets the local agents' message deadline. No random stream is drawn.
-    team.bootstrap_messages(np.zeros((cfg.num_envs, team.state_dim), np.float32))
     session.declare_alive("central")
     record = needs_central_record(cfg)
 
     c = CentralCounters()
-    version = 0 if team.central is None else -1
+    version = -1 if acting.has_network else 0
     last_step = -1
     last_hb = 0.0
     last_state_t = time.monotonic()
 
+    state_dim = n * spec.obs_dim + (n * spec.action_dim if cfg.use_prev_actions else 0)
+
     def _load(blob: bytes, v: int) -> None:
-        nonlocal version
-        team.central.load_numpy(load_safetensors(blob))
+        nonlocal version, net
+        new = NumpyCentralAgent(load_safetensors(blob))
+        got = (new.state_dim, new.n_agents, new.msg_dim, new.critic is not None)
+        want = (state_dim, n, acting.msg_dim, acting.rl)
+        if got != want:  # fail here, not on the first forward (a learner of another run's config)
+            raise ValueError(f"central weights v{v} have (state_dim, n_agents, msg_dim, critic) = {got}, "
+                             f"this run needs {want}: start the learner from the same config.json")
+        net = new
         version = v
 
     inbox = WeightsInbox(_load, version)
@@ -159,8 +166,17 @@ def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_t
                 s = newer
             else:
                 c.states_stale += 1
-        state = team.global_state(s.obs, s.prev_actions)
-        out = team.central_messages(state, streams, cfg.msg_dropout)
+        if acting.has_network and net is None:
+            # Only after a weights timeout: no policy to act with. Sending nothing lets the local
+            # agents act on their fallback, as for any missing message; no stream is drawn.
+            if c.states_no_policy == 0:
+                log.warning("no central weights received yet: step %d not served", s.step)
+            c.states_no_policy += 1
+            slog.add(s.step, delivered)
+            continue
+        state = acting.global_state(s.obs, s.prev_actions)
+        out = acting.messages(state, streams, cfg.msg_dropout, net.message_mean if net is not None else None,
+                              net.values if acting.rl else None)
         for i in range(n):
             msg_pubs[i].publish(CentralMsg(step=s.step, env_idx=s.env_idx, agent=i,
                                            msg=np.ascontiguousarray(out.sent[:, i]), policy_version=max(version, 0)))

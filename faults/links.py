@@ -95,7 +95,8 @@ def link_table(roles: dict[str, dict], n_agents: int, uses_central: bool) -> dic
     rows: dict[str, dict[str, int]] = {}
     if uses_central:
         rows["env->central"] = {"sent": steps, "delivered": int(central.get("steps", 0) + central.get("states_stale", 0)
-                                                                + central.get("states_skipped", 0)),
+                                                                + central.get("states_skipped", 0)
+                                                                + central.get("states_no_policy", 0)),
                                 "late": int(central.get("states_stale", 0) + central.get("states_skipped", 0))}
     rows["env->local"] = {"sent": steps * n_agents, "delivered": lsum("steps") + lsum("obs_stale"),
                           "late": lsum("obs_stale")}

@@ -11,30 +11,16 @@ All acting randomness goes through `learning.sampling.ActingStreams` (the random
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from envs.base import EnvSpec
+from learning.central_acting import LOG_2PI as _LOG_2PI
+from learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from learning.config import RunConfig
 from learning.networks import CentralAgent, LocalPolicy
 from learning.numpy_policy import softmax
 from learning.sampling import ActingStreams, categorical_inverse_cdf
-
-_LOG_2PI = float(np.log(2 * np.pi))
-
-
-@dataclass
-class CentralOut:
-    """One vector step of central messages, all numpy."""
-
-    sent: np.ndarray  # (K, N, M) float32: what each local agent receives (clipped, after dropout)
-    mean: np.ndarray  # (K, N, M) float32: tanh mean of the message policy
-    raw: np.ndarray  # (K, N, M) float32: the unclipped Gaussian sample (rl); its logp is trained
-    logp: np.ndarray  # (K, N) float32: log-density of raw (rl), else 0
-    value: np.ndarray  # (K, N) float32: central critic per message stream (rl), else 0
-    keep: np.ndarray  # (K, N) bool: message not dropped
 
 
 class Team:
@@ -60,6 +46,7 @@ class Team:
             self.central = CentralAgent(self.state_dim, self.n, self.msg_dim, cfg.central_hidden,
                                         cfg.critic_hidden if cfg.central_mode == "rl" else None)
         self._eye = torch.eye(self.n)
+        self.acting = CentralActing.from_config(cfg)
 
     @property
     def central_rl(self) -> bool:
@@ -67,67 +54,41 @@ class Team:
 
     # ----- global state -------------------------------------------------------------------------
     def encode_actions(self, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
-        """Actions as the central agent sees them: one-hot (discrete) or raw, zero if absent. (K, N, A)."""
-        if self.discrete:
-            enc = np.zeros((*actions.shape, self.act_dim), dtype=np.float32)
-            np.put_along_axis(enc, actions[..., None].astype(np.int64), 1.0, axis=-1)
-        else:
-            enc = np.clip(actions, self.spec.action_low, self.spec.action_high).astype(np.float32)
-        return enc * active[..., None]
+        return encode_actions(self.spec, actions, active)
 
     def zero_prev_actions(self, k: int) -> np.ndarray:
-        return np.zeros((k, self.n, self.act_dim), dtype=np.float32)
+        return zero_prev_actions(self.spec, k)
 
     def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
-        """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32."""
-        k = obs.shape[0]
-        parts = [obs.reshape(k, -1)]
-        if self.cfg.use_prev_actions:
-            parts.append(prev_actions.reshape(k, -1))
-        return np.concatenate(parts, axis=1).astype(np.float32, copy=False)
+        return self.acting.global_state(obs, prev_actions)
 
     # ----- central agent ------------------------------------------------------------------------
+    def _message_mean(self, state: np.ndarray) -> np.ndarray:
+        return self.central.message_mean(torch.from_numpy(state)).numpy()
+
+    def _values(self, state: np.ndarray) -> np.ndarray:
+        return self.central.values(torch.from_numpy(state)).numpy()
+
     @torch.inference_mode()
     def central_messages(self, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0) -> CentralOut:
-        """Messages for every agent of every copy from the global state (K, S)."""
-        k, n, m = state.shape[0], self.n, self.msg_dim
-        zeros_kn = np.zeros((k, n), dtype=np.float32)
-        value = zeros_kn
-        if self.variant == "random":
-            mean = raw = streams.central_uniform_messages(k, n, m)
-            sent, logp = raw, zeros_kn
-        elif self.central is not None:
-            st = torch.from_numpy(state)
-            mean = self.central.message_mean(st).numpy()
-            if self.cfg.central_mode == "rl":
-                z = streams.central_normals(k, n, m)
-                raw = (mean + self.cfg.msg_std * z).astype(np.float32)
-                logp = (-0.5 * z**2 - np.log(self.cfg.msg_std) - 0.5 * _LOG_2PI).sum(-1).astype(np.float32)
-                sent = np.clip(raw, -1.0, 1.0)
-                value = self.central.values(st).numpy()
-            else:  # backprop: act on the deterministic message, recomputed with grad at update time
-                raw, sent, logp = mean, mean, zeros_kn
-        else:
-            mean = raw = sent = np.zeros((k, n, 0), dtype=np.float32)
-            logp = zeros_kn
-        keep = streams.dropout_keep(k, n, dropout) if m else np.ones((k, n), dtype=bool)
-        if not keep.all():
-            sent = sent * keep[..., None]
-        return CentralOut(sent.astype(np.float32, copy=False), mean, raw, logp, value, keep)
+        """Messages for every agent of every copy from the global state (K, S): the torch forward,
+        then the sampling the central server runs after its numpy forward (`CentralActing`)."""
+        net = self.central is not None
+        return self.acting.messages(state, streams, dropout, self._message_mean if net else None,
+                                    self._values if self.central_rl else None)
 
     @torch.inference_mode()
     def bootstrap_messages(self, state: np.ndarray) -> np.ndarray:
         """Messages used only to value a state (no stream draws): central mean, zeros for random."""
-        k = state.shape[0]
         if self.central is not None:
-            return self.central.message_mean(torch.from_numpy(state)).numpy()
-        return np.zeros((k, self.n, self.msg_dim), dtype=np.float32)
+            return self._message_mean(state)
+        return np.zeros((state.shape[0], self.n, self.msg_dim), dtype=np.float32)
 
     @torch.inference_mode()
     def central_values(self, state: np.ndarray) -> np.ndarray:
         if not self.central_rl:
             return np.zeros((state.shape[0], self.n), dtype=np.float32)
-        return self.central.values(torch.from_numpy(state)).numpy()
+        return self._values(state)
 
     # ----- local agents -------------------------------------------------------------------------
     def local_input(self, obs: torch.Tensor, msg: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,117 @@
+"""The central agent's acting maths (global state, message sampling), without torch.
+
+Two callers run it: `Team.central_messages` (in-process trainer, torch forward) and the central
+server (`central_agent/server.py`, numpy forward from `learning.numpy_policy`), which sits on the
+critical path of every vector step and must stay light. The forward pass is passed in as
+functions of the numpy state, so the sampling below — and the order and shapes of the stream
+draws the randomness contract (`learning.sampling`) pins — exists once for both.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.base import EnvSpec
+from learning.config import RunConfig
+from learning.sampling import ActingStreams
+
+LOG_2PI = float(np.log(2 * np.pi))
+
+Forward = Callable[[np.ndarray], np.ndarray]
+
+
+def encode_actions(spec: EnvSpec, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """Actions as the central agent sees them: one-hot (discrete) or raw, zero if absent. (K, N, A)."""
+    if spec.discrete:
+        enc = np.zeros((*actions.shape, spec.action_dim), dtype=np.float32)
+        np.put_along_axis(enc, actions[..., None].astype(np.int64), 1.0, axis=-1)
+    else:
+        enc = np.clip(actions, spec.action_low, spec.action_high).astype(np.float32)
+    return enc * active[..., None]
+
+
+def zero_prev_actions(spec: EnvSpec, k: int) -> np.ndarray:
+    """The previous actions of a first step: none. (K, N, A)."""
+    return np.zeros((k, spec.n_agents, spec.action_dim), dtype=np.float32)
+
+
+@dataclass
+class CentralOut:
+    """One vector step of central messages, all numpy."""
+
+    sent: np.ndarray  # (K, N, M) float32: what each local agent receives (clipped, after dropout)
+    mean: np.ndarray  # (K, N, M) float32: tanh mean of the message policy
+    raw: np.ndarray  # (K, N, M) float32: the unclipped Gaussian sample (rl); its logp is trained
+    logp: np.ndarray  # (K, N) float32: log-density of raw (rl), else 0
+    value: np.ndarray  # (K, N) float32: central critic per message stream (rl), else 0
+    keep: np.ndarray  # (K, N) bool: message not dropped
+
+
+@dataclass(frozen=True)
+class CentralActing:
+    """The part of a RunConfig the central acting path reads, and the maths it runs."""
+
+    variant: str
+    central_mode: str
+    n_agents: int
+    msg_dim: int  # effective: 0 for il and centralized
+    msg_std: float
+    use_prev_actions: bool
+
+    @classmethod
+    def from_config(cls, cfg: RunConfig) -> CentralActing:
+        return cls(cfg.variant, cfg.central_mode, cfg.n_agents, cfg.effective_msg_dim, cfg.msg_std,
+                   cfg.use_prev_actions)
+
+    @property
+    def has_network(self) -> bool:
+        return self.variant == "hammer"
+
+    @property
+    def rl(self) -> bool:
+        return self.has_network and self.central_mode == "rl"
+
+    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
+        """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32."""
+        k = obs.shape[0]
+        parts = [obs.reshape(k, -1)]
+        if self.use_prev_actions:
+            parts.append(prev_actions.reshape(k, -1))
+        return np.concatenate(parts, axis=1).astype(np.float32, copy=False)
+
+    def messages(self, state: np.ndarray, streams: ActingStreams, dropout: float,
+                 message_mean: Forward | None, values: Forward | None) -> CentralOut:
+        """Messages for every agent of every copy from the global state (K, S).
+
+        message_mean: state → (K, N, M) tanh means (variant hammer); values: state → (K, N)
+        central critic (rl mode). Neither draws from a stream, so the draws are the same whichever
+        network computes them.
+        """
+        k, n, m = state.shape[0], self.n_agents, self.msg_dim
+        zeros_kn = np.zeros((k, n), dtype=np.float32)
+        value = zeros_kn
+        if self.variant == "random":
+            mean = raw = streams.central_uniform_messages(k, n, m)
+            sent, logp = raw, zeros_kn
+        elif self.has_network:
+            if message_mean is None or (self.rl and values is None):
+                raise ValueError(f"variant hammer ({self.central_mode}) needs the central network's forward")
+            mean = message_mean(state)
+            if self.central_mode == "rl":
+                z = streams.central_normals(k, n, m)
+                raw = (mean + self.msg_std * z).astype(np.float32)
+                logp = (-0.5 * z**2 - np.log(self.msg_std) - 0.5 * LOG_2PI).sum(-1).astype(np.float32)
+                sent = np.clip(raw, -1.0, 1.0)
+                value = values(state)
+            else:  # backprop: act on the deterministic message, recomputed with grad at update time
+                raw, sent, logp = mean, mean, zeros_kn
+        else:
+            mean = raw = sent = np.zeros((k, n, 0), dtype=np.float32)
+            logp = zeros_kn
+        keep = streams.dropout_keep(k, n, dropout) if m else np.ones((k, n), dtype=bool)
+        if not keep.all():
+            sent = sent * keep[..., None]
+        return CentralOut(sent.astype(np.float32, copy=False), mean, raw, logp, value, keep)

@@ -1,0 +1,174 @@
+"""The central server acts in numpy, without torch, and sends what the trainer's torch Team sends.
+
+Both paths share `learning.central_acting.CentralActing` (the sampling and its stream draws); only
+the forward pass differs (torch `CentralAgent` vs `NumpyCentralAgent` loaded from the safetensors
+blob the learner publishes), so messages agree to float32 tolerance and every stream ends at the
+same position.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from safetensors.numpy import load as load_safetensors
+
+from envs.registry import make_vec_env
+from learning.config import merge_config
+from learning.learner_role import weights_blob
+from learning.numpy_policy import NumpyCentralAgent
+from learning.sampling import ActingStreams
+from learning.team import Team
+from protocol.schemas import CentralMsg, Control, ExperienceChunk, GlobalState, Weights
+from protocol.session import HammerSession, TransportConfig
+from tests.runtime_helpers import ROOT
+
+STEPS = 6
+K = 8
+
+
+def _cfg(n: int, variant: str, mode: str, dropout: float):
+    return merge_config(f"cn{n}", overrides=[f"num_envs={K}", f"msg_dropout={dropout}"],
+                        extra={"variant": variant, "central_mode": mode, "seed": 7})
+
+
+def _states(team: Team, n: int, steps: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(obs, prev_actions) of a real cn env driven by random actions, as the env host sends them."""
+    env = make_vec_env("cn", n, K)
+    obs, _ = env.reset(3)
+    prev = team.zero_prev_actions(K)
+    rng = np.random.default_rng(0)
+    out = []
+    for _ in range(steps):
+        out.append((obs.astype(np.float32), prev))
+        action = rng.integers(0, team.act_dim, (K, n))
+        st = env.step(action)
+        obs, prev = st.obs, team.encode_actions(action, st.active)
+    return out
+
+
+def _team(cfg) -> Team:
+    """A Team whose central weights are all nonzero (fresh biases are zero: a bias bug would hide)."""
+    import torch
+
+    team = Team(cfg, make_vec_env("cn", cfg.n_agents, 1).spec)
+    if team.central is not None:
+        g = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            for p in team.central.parameters():
+                p.add_(0.1 * torch.randn(p.shape, generator=g))
+    return team
+
+
+def _numpy_net(team: Team) -> NumpyCentralAgent | None:
+    if team.central is None:
+        return None
+    return NumpyCentralAgent(load_safetensors(weights_blob(team.central.export_numpy())))
+
+
+CASES = [("hammer", "rl", 0.0), ("hammer", "backprop", 0.0), ("random", "rl", 0.0), ("hammer", "rl", 0.3),
+         ("hammer", "backprop", 0.3), ("random", "rl", 0.3), ("il", "rl", 0.0), ("centralized", "rl", 0.0)]
+
+
+@pytest.mark.parametrize("n", [3, 5])
+@pytest.mark.parametrize(("variant", "mode", "dropout"), CASES)
+def test_numpy_acting_equals_the_torch_team(n, variant, mode, dropout):
+    cfg = _cfg(n, variant, mode, dropout)
+    team = _team(cfg)
+    net = _numpy_net(team)
+    torch_streams, np_streams = ActingStreams(cfg.seed, n), ActingStreams(cfg.seed, n)
+    dropped = 0
+    for obs, prev in _states(team, n, STEPS):
+        state = team.global_state(obs, prev)
+        np.testing.assert_array_equal(team.acting.global_state(obs, prev), state)
+        a = team.central_messages(state, torch_streams, cfg.msg_dropout)
+        b = team.acting.messages(state, np_streams, cfg.msg_dropout, net.message_mean if net else None,
+                                 net.values if team.central_rl else None)
+        for field in ("sent", "mean", "raw", "logp", "value"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert x.shape == y.shape and x.dtype == y.dtype == np.float32, field
+            np.testing.assert_allclose(y, x, atol=2e-5, rtol=0, err_msg=field)
+        np.testing.assert_array_equal(b.keep, a.keep)
+        dropped += int((~a.keep).sum())
+        m = cfg.effective_msg_dim
+        assert a.sent.shape == (K, n, m)
+        if m and variant == "hammer":
+            assert np.abs(a.mean).max() > 0.01  # a real forward, not zeros on both sides
+        if team.central_rl:
+            assert np.abs(a.value).max() > 0 and not np.allclose(a.raw, a.mean)
+    assert (dropped > 0) == (dropout > 0 and cfg.effective_msg_dim > 0)
+    assert json.dumps(np_streams.state()) == json.dumps(torch_streams.state())
+
+
+_SERVER = """
+import json, sys
+from envs.base import EnvSpec
+from learning.config import build_config
+from protocol.session import HammerSession, TransportConfig
+from central_agent.server import run_central
+
+args = json.loads(sys.argv[1])
+cfg = build_config(args["cfg"])
+spec = args["spec"]
+spec["agent_ids"] = tuple(spec["agent_ids"])
+with HammerSession(args["run"], TransportConfig.connector(args["port"]), sender="central") as s:
+    c = run_central(s, cfg, EnvSpec(**spec), weights_timeout_s=30.0, idle_exit_s=30.0)
+print(json.dumps({"torch": "torch" in sys.modules, "counters": c.as_dict()}))
+"""
+
+
+@pytest.mark.parametrize("mode", ["rl", "backprop"])
+def test_the_server_process_acts_without_torch_and_matches_the_team(mode):
+    """The real server loop in a fresh interpreter, over real Zenoh on 127.0.0.1: it never imports
+    torch, and the messages and records it publishes are the torch Team's for the same weights."""
+    from dataclasses import asdict
+
+    n = 3
+    cfg = _cfg(n, "hammer", mode, 0.25)
+    team = _team(cfg)
+    spec = team.spec
+    t = TransportConfig.listener()
+    port = int(t.listen[0].rsplit(":", 1)[1])
+    arg = json.dumps({"cfg": cfg.model_dump(mode="json"), "spec": asdict(spec), "run": "cnp", "port": port})
+    with HammerSession("cnp", t, sender="test") as s:
+        watch = s.watch_alive()
+        msg_subs = [s.subscribe(s.keys.msg(i), CentralMsg) for i in range(n)]
+        exp_sub = s.subscribe(s.keys.exp("central"), ExperienceChunk)
+        proc = subprocess.Popen([sys.executable, "-c", _SERVER, arg], cwd=ROOT, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            ev = watch.get(60.0)
+            assert ev is not None and ev.role == "central" and ev.alive
+            time.sleep(0.3)  # let the server's subscriptions reach this session
+            s.publish(s.keys.weights("central"), Weights.from_blob("central", 0,
+                                                                   weights_blob(team.central.export_numpy())))
+            streams = ActingStreams(cfg.seed, n)
+            env_idx = np.arange(K, dtype=np.int64)
+            for step, (obs, prev) in enumerate(_states(team, n, STEPS)):
+                s.publish(s.keys.state(), GlobalState(step=step, env_idx=env_idx, obs=obs, prev_actions=prev,
+                                                      active=np.ones((K, n), bool), policy_version=0))
+                want = team.central_messages(team.global_state(obs, prev), streams, cfg.msg_dropout)
+                for i, sub in enumerate(msg_subs):
+                    m = sub.get(30.0)
+                    assert m is not None and m.step == step and m.agent == i
+                    np.testing.assert_allclose(m.msg, want.sent[:, i], atol=2e-5, rtol=0)
+                rec = exp_sub.get(30.0)
+                assert rec is not None and rec.step == step
+                np.testing.assert_array_equal(rec.arrays["keep"], want.keep)
+                np.testing.assert_allclose(rec.arrays["msg_raw"], want.raw, atol=2e-5, rtol=0)
+                np.testing.assert_allclose(rec.arrays["c_logp"], want.logp, atol=2e-5, rtol=0)
+                np.testing.assert_allclose(rec.arrays["c_values"], want.value, atol=2e-5, rtol=0)
+            s.publish(s.keys.ctl("all"), Control(command="stop", target="central"))
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, err[-2000:]
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["torch"] is False
+    assert res["counters"]["steps"] == STEPS and res["counters"]["weights_loaded"] == 1
