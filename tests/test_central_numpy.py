@@ -116,59 +116,108 @@ cfg = build_config(args["cfg"])
 spec = args["spec"]
 spec["agent_ids"] = tuple(spec["agent_ids"])
 with HammerSession(args["run"], TransportConfig.connector(args["port"]), sender="central") as s:
-    c = run_central(s, cfg, EnvSpec(**spec), weights_timeout_s=30.0, idle_exit_s=30.0)
+    c = run_central(s, cfg, EnvSpec(**spec), weights_timeout_s=args["weights_timeout_s"], idle_exit_s=30.0)
 print(json.dumps({"torch": "torch" in sys.modules, "counters": c.as_dict()}))
 """
+
+
+class _Server:
+    """`run_central` in a fresh interpreter connected to this test's Zenoh session on 127.0.0.1."""
+
+    def __init__(self, cfg, spec, weights_timeout_s: float = 30.0) -> None:
+        from dataclasses import asdict
+
+        t = TransportConfig.listener()
+        port = int(t.listen[0].rsplit(":", 1)[1])
+        self.arg = json.dumps({"cfg": cfg.model_dump(mode="json"), "spec": asdict(spec), "run": "cnp",
+                               "port": port, "weights_timeout_s": weights_timeout_s})
+        self.session = HammerSession("cnp", t, sender="test")
+        self.n = cfg.n_agents
+
+    def __enter__(self):
+        s = self.session.__enter__()
+        watch = s.watch_alive()
+        self.msg_subs = [s.subscribe(s.keys.msg(i), CentralMsg) for i in range(self.n)]
+        self.exp_sub = s.subscribe(s.keys.exp("central"), ExperienceChunk)
+        self.proc = subprocess.Popen([sys.executable, "-c", _SERVER, self.arg], cwd=ROOT, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        ev = watch.get(60.0)
+        if ev is None or ev.role != "central" or not ev.alive:
+            self.__exit__(None, None, None)
+            raise AssertionError(f"the central server did not come up: {ev}")
+        time.sleep(0.3)  # let the server's subscriptions reach this session
+        return self
+
+    def weights(self, team: Team, version: int) -> None:
+        blob = weights_blob(team.central.export_numpy())
+        self.session.publish(self.session.keys.weights("central"), Weights.from_blob("central", version, blob))
+
+    def state(self, step: int, obs: np.ndarray, prev: np.ndarray, version: int) -> None:
+        self.session.publish(self.session.keys.state(), GlobalState(
+            step=step, env_idx=np.arange(K, dtype=np.int64), obs=obs, prev_actions=prev,
+            active=np.ones((K, self.n), bool), policy_version=version))
+
+    def stop(self) -> dict:
+        """Stop the server; returns whether it had imported torch and its counters."""
+        self.session.publish(self.session.keys.ctl("all"), Control(command="stop", target="central"))
+        out, err = self.proc.communicate(timeout=60)
+        assert self.proc.returncode == 0, err[-2000:]
+        return json.loads(out.strip().splitlines()[-1])
+
+    def __exit__(self, *exc) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate()
+        self.session.__exit__(*exc)
 
 
 @pytest.mark.parametrize("mode", ["rl", "backprop"])
 def test_the_server_process_acts_without_torch_and_matches_the_team(mode):
     """The real server loop in a fresh interpreter, over real Zenoh on 127.0.0.1: it never imports
     torch, and the messages and records it publishes are the torch Team's for the same weights."""
-    from dataclasses import asdict
-
     n = 3
     cfg = _cfg(n, "hammer", mode, 0.25)
     team = _team(cfg)
-    spec = team.spec
-    t = TransportConfig.listener()
-    port = int(t.listen[0].rsplit(":", 1)[1])
-    arg = json.dumps({"cfg": cfg.model_dump(mode="json"), "spec": asdict(spec), "run": "cnp", "port": port})
-    with HammerSession("cnp", t, sender="test") as s:
-        watch = s.watch_alive()
-        msg_subs = [s.subscribe(s.keys.msg(i), CentralMsg) for i in range(n)]
-        exp_sub = s.subscribe(s.keys.exp("central"), ExperienceChunk)
-        proc = subprocess.Popen([sys.executable, "-c", _SERVER, arg], cwd=ROOT, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
-        try:
-            ev = watch.get(60.0)
-            assert ev is not None and ev.role == "central" and ev.alive
-            time.sleep(0.3)  # let the server's subscriptions reach this session
-            s.publish(s.keys.weights("central"), Weights.from_blob("central", 0,
-                                                                   weights_blob(team.central.export_numpy())))
-            streams = ActingStreams(cfg.seed, n)
-            env_idx = np.arange(K, dtype=np.int64)
-            for step, (obs, prev) in enumerate(_states(team, n, STEPS)):
-                s.publish(s.keys.state(), GlobalState(step=step, env_idx=env_idx, obs=obs, prev_actions=prev,
-                                                      active=np.ones((K, n), bool), policy_version=0))
-                want = team.central_messages(team.global_state(obs, prev), streams, cfg.msg_dropout)
-                for i, sub in enumerate(msg_subs):
-                    m = sub.get(30.0)
-                    assert m is not None and m.step == step and m.agent == i
-                    np.testing.assert_allclose(m.msg, want.sent[:, i], atol=2e-5, rtol=0)
-                rec = exp_sub.get(30.0)
-                assert rec is not None and rec.step == step
-                np.testing.assert_array_equal(rec.arrays["keep"], want.keep)
-                np.testing.assert_allclose(rec.arrays["msg_raw"], want.raw, atol=2e-5, rtol=0)
-                np.testing.assert_allclose(rec.arrays["c_logp"], want.logp, atol=2e-5, rtol=0)
-                np.testing.assert_allclose(rec.arrays["c_values"], want.value, atol=2e-5, rtol=0)
-            s.publish(s.keys.ctl("all"), Control(command="stop", target="central"))
-            out, err = proc.communicate(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-    assert proc.returncode == 0, err[-2000:]
-    res = json.loads(out.strip().splitlines()[-1])
+    with _Server(cfg, team.spec) as srv:
+        srv.weights(team, 0)
+        streams = ActingStreams(cfg.seed, n)
+        for step, (obs, prev) in enumerate(_states(team, n, STEPS)):
+            srv.state(step, obs, prev, 0)
+            want = team.central_messages(team.global_state(obs, prev), streams, cfg.msg_dropout)
+            for i, sub in enumerate(srv.msg_subs):
+                m = sub.get(30.0)
+                assert m is not None and m.step == step and m.agent == i
+                np.testing.assert_allclose(m.msg, want.sent[:, i], atol=2e-5, rtol=0)
+            rec = srv.exp_sub.get(30.0)
+            assert rec is not None and rec.step == step
+            np.testing.assert_array_equal(rec.arrays["keep"], want.keep)
+            np.testing.assert_allclose(rec.arrays["msg_raw"], want.raw, atol=2e-5, rtol=0)
+            np.testing.assert_allclose(rec.arrays["c_logp"], want.logp, atol=2e-5, rtol=0)
+            np.testing.assert_allclose(rec.arrays["c_values"], want.value, atol=2e-5, rtol=0)
+        res = srv.stop()
     assert res["torch"] is False
     assert res["counters"]["steps"] == STEPS and res["counters"]["weights_loaded"] == 1
+
+
+def test_the_server_without_weights_sends_nothing_then_serves_once_they_come():
+    """No central weights after the wait (a learner that never published): the step is not served,
+    so the local agents act on their fallback, and the server keeps running; the first weights
+    that arrive are used, and the unserved step drew nothing from the central stream."""
+    n = 3
+    cfg = _cfg(n, "hammer", "rl", 0.0)
+    team = _team(cfg)
+    (obs0, prev0), (obs1, prev1) = _states(team, n, 2)
+    with _Server(cfg, team.spec, weights_timeout_s=0.5) as srv:
+        srv.state(0, obs0, prev0, 0)
+        time.sleep(1.5)  # > the weights wait: the server gave up on step 0
+        assert all(sub.get(0.0) is None for sub in srv.msg_subs) and srv.exp_sub.get(0.0) is None
+        srv.weights(team, 1)
+        srv.state(1, obs1, prev1, 1)
+        want = team.central_messages(team.global_state(obs1, prev1), ActingStreams(cfg.seed, n))
+        for i, sub in enumerate(srv.msg_subs):
+            m = sub.get(30.0)
+            assert m is not None and m.step == 1 and m.policy_version == 1
+            np.testing.assert_allclose(m.msg, want.sent[:, i], atol=2e-5, rtol=0)
+        res = srv.stop()
+    c = res["counters"]
+    assert (c["states_no_policy"], c["weights_wait_timeouts"], c["steps"], c["weights_loaded"]) == (1, 1, 1, 1)
