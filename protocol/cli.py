@@ -123,3 +123,41 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             json_out.write_text(json.dumps({"meta": meta, "rows": codec_rows_as_dicts(rows),
                                             "roles": {str(n): r for n, r in per_role.items()}}, indent=2) + "\n")
             typer.echo(f"wrote {json_out}")
+
+    @bench.command("loop-floor")
+    def loop_floor(
+        steps: Annotated[int, typer.Option(min=50, help="timed vector steps per topology and mode")] = 1000,
+        k: Annotated[int, typer.Option(min=1, help="env copies per message (K)")] = 32,
+        json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+    ) -> None:
+        """Latency floor of the step loop: env -> central -> local agents -> env with every role's
+        work removed (same keys, publishers and subscriptions as `hammer up`), typed messages vs raw
+        bytes, one process per local agent vs one for all. Compare with `hammer bench runtime`."""
+        import os
+        import platform
+
+        from rich.console import Console
+        from rich.table import Table
+
+        from protocol.loopfloor import rows_as_dicts as floor_dicts
+        from protocol.loopfloor import run_floor
+
+        rows = run_floor(k=k, steps=steps)
+        load = os.getloadavg()
+        table = Table(title=f"hammer bench loop-floor (us per vector step, K={k}, loopback, no work in any role; "
+                            f"load {load[0]:.2f})")
+        for col in ("N", "local agents", "payload", "processes", "p50 us", "p99 us", "steps"):
+            table.add_column(col, justify="left" if col in ("local agents", "payload") else "right")
+        for n, r in rows:
+            table.add_row(str(n), "one process each" if r.topology == "split" else "one process for all",
+                          r.mode, str(r.processes), f"{r.p50_us:.0f}", f"{r.p99_us:.0f}", str(r.steps))
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=170)
+        console.print(table)
+        if json_out is not None:
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            meta = {"python": platform.python_version(), "cpus": os.cpu_count(), "loadavg": load, "k": k,
+                    "steps": steps}
+            json_out.write_text(json.dumps({"meta": meta, "rows": floor_dicts(rows)}, indent=2) + "\n")
+            typer.echo(f"wrote {json_out}")
