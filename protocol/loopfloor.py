@@ -41,6 +41,16 @@ def _role_transport(connect: list[str]) -> TransportConfig:
     return TransportConfig(listen=["tcp/127.0.0.1:0"], connect=connect)
 
 
+class _Orphaned:
+    """True once the benchmark process is gone (its quit message will never come): roles exit."""
+
+    def __init__(self) -> None:
+        self.parent = os.getppid()
+
+    def __bool__(self) -> bool:
+        return os.getppid() != self.parent
+
+
 def _raw(step: int, size: int) -> bytes:
     return _STEP.pack(step) + bytes(max(size - _STEP.size, 0))
 
@@ -73,7 +83,8 @@ def central_main(run_id: str, connect: list[str], k: int, n: int, d: int, m: int
         pubs = [s.publisher(keys.msg(i), express=True) for i in range(n)]
         quit_sub = s.subscribe_raw(keys.bench("quit"))
         s.declare_alive("central")
-        while quit_sub.get(0) is None:
+        orphaned = _Orphaned()
+        while quit_sub.get(0) is None and not orphaned:
             got = state.get(timeout=0.2)
             if got is None:
                 continue
@@ -102,7 +113,8 @@ def local_main(run_id: str, connect: list[str], agents: list[int], k: int, n: in
         quit_sub = s.subscribe_raw(keys.bench("quit"))
         for i in agents:
             s.declare_alive(f"local-{i}")
-        while quit_sub.get(0) is None:
+        orphaned = _Orphaned()
+        while quit_sub.get(0) is None and not orphaned:
             first = obs[0].get(timeout=0.2)
             if first is None:
                 continue
