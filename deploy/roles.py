@@ -168,8 +168,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     """The env host: steps the K env copies and drives the step loop; writes metrics and the summary."""
     _setup("env")
     from env_host.host import EnvHost
+    from learning.run_env import make_env
     from learning.rundir import RunDir
-    from learning.trainer import make_env
     from protocol.schemas import Control
     from protocol.session import HammerSession
 

@@ -39,10 +39,10 @@ import numpy as np
 
 from envs.base import VecEnv
 from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
+from learning.central_acting import encode_actions, zero_prev_actions
 from learning.config import RunConfig
 from learning.rundir import RunDir, fsync_file
 from learning.sampling import env_reset_seed
-from learning.team import Team
 from protocol.schemas import (
     Action,
     Control,
@@ -116,13 +116,33 @@ class HostState:
     step_latency_ms: deque = field(default_factory=lambda: deque(maxlen=2000))
 
 
+class _Wiring:
+    """What the env host needs of the team's wiring: action encodings for the global state, the
+    message width, whether a central network exists. Torch-free (`learning.central_acting`), so
+    the env host process does not load torch."""
+
+    def __init__(self, cfg: RunConfig, spec) -> None:
+        self.spec = spec
+        self.act_dim, self.msg_dim = spec.action_dim, cfg.effective_msg_dim
+        self.has_central_network = cfg.variant == "hammer"
+
+    def encode_actions(self, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
+        return encode_actions(self.spec, actions, active)
+
+    def zero_prev_actions(self, k: int) -> np.ndarray:
+        return zero_prev_actions(self.spec, k)
+
+    def env_action(self, action: np.ndarray) -> np.ndarray:
+        return self.spec.env_action(action)
+
+
 class EnvHost:
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
                  act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
                  max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None) -> None:
         self.s, self.cfg, self.env, self.rd = session, cfg, env, rd
         self.spec = env.spec
-        self.team = Team(cfg, env.spec)  # for the global-state / action encodings only
+        self.team = _Wiring(cfg, env.spec)
         self.n, self.k = cfg.n_agents, cfg.num_envs
         self.act_deadline_s, self.weights_timeout_s = act_deadline_s, weights_timeout_s
         self.uses_central = cfg.variant in ("hammer", "random")
@@ -333,7 +353,7 @@ class EnvHost:
     def _wait_central_ready(self) -> bool:
         """Eval: start stepping only once the central agent holds the policy (its heartbeat says
         so), so that a fault-free evaluation has no message missing at start-up."""
-        if not (self.uses_central and self.team.central is not None):
+        if not (self.uses_central and self.team.has_central_network):
             return True
         hb_sub = self.s.subscribe(self.s.keys.heartbeat("central"), Heartbeat)
         deadline = time.monotonic() + self.weights_timeout_s

@@ -48,6 +48,13 @@ class EnvSpec:
             return np.full((num_envs, self.n_agents), self.default_action, dtype=np.int64)
         return np.zeros((num_envs, self.n_agents, self.action_dim), dtype=np.float32)
 
+    def env_action(self, action: np.ndarray) -> np.ndarray:
+        """What the env is given for a sampled action: discrete as is, continuous clipped to the
+        action box (PPO trains the unclipped Gaussian sample; the env only accepts the box)."""
+        if self.discrete:
+            return action
+        return np.clip(action, self.action_low, self.action_high).astype(np.float32)
+
 
 @dataclass(frozen=True)
 class EpisodeStats:

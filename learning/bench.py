@@ -62,8 +62,9 @@ def time_train(cfg: RunConfig) -> dict[str, Any]:
 def time_updates(cfg: RunConfig, updates: int, warmup: int = 1) -> dict[str, Any]:
     """env-steps/s over `updates` rollout+PPO updates after `warmup` ones (for long-episode envs,
     where an episode budget would make the run length depend on how soon the walkers fall)."""
+    from learning.run_env import make_env
     from learning.rundir import RunDir
-    from learning.trainer import Trainer, make_env
+    from learning.trainer import Trainer
 
     load = _load()
     t0 = time.perf_counter()

@@ -50,7 +50,7 @@ def train_command(
                 extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
             cfg = merge_config(preset, config, set_ or [], extra)
         from envs.registry import EnvConfigError
-        from learning.trainer import make_env
+        from learning.run_env import make_env
 
         try:  # build the env first so a bad env name/kwarg fails before any file is written
             env = make_env(cfg)

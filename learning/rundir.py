@@ -19,20 +19,23 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from safetensors.numpy import save_file as save_numpy
-from safetensors.torch import load_file, save_file
 
 from learning.config import ConfigError, RunConfig, build_config, save_yaml
+
+if TYPE_CHECKING:  # torch is imported where checkpoints are made: the env host never needs it
+    import torch
 
 CSV_HEADER = ["episode", "env_steps", "paper_metric", "team_return", "length", "wall_time"]
 
 
 def optimizer_to_tensors(opt: torch.optim.Optimizer, prefix: str) -> tuple[dict[str, torch.Tensor], dict]:
     """Split an optimiser state dict into tensors (safetensors) and JSON-able hyper-parameters."""
+    import torch
+
     sd = opt.state_dict()
     tensors, keys = {}, {}
     for pid, st in sd["state"].items():
@@ -137,6 +140,8 @@ class RunDir:
         """Atomic-ish: the JSON (which marks a checkpoint as complete) is written last, and both
         reach the disk first (fsync), so a machine that dies cannot leave a JSON vouching for a
         lost tensor file."""
+        from safetensors.torch import save_file
+
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         stem = self.ckpt_dir / f"ckpt_{update:07d}"
         save_file({k: v.contiguous() for k, v in tensors.items()}, str(stem) + ".safetensors")
@@ -156,6 +161,8 @@ class RunDir:
 
     @staticmethod
     def load_checkpoint(stem: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        from safetensors.torch import load_file
+
         return load_file(str(stem) + ".safetensors"), json.loads(Path(str(stem) + ".json").read_text())
 
     # ----- results ------------------------------------------------------------------------------

@@ -144,6 +144,4 @@ class Team:
         return self.local.value(self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))).numpy()
 
     def env_action(self, action: np.ndarray) -> np.ndarray:
-        if self.discrete:
-            return action
-        return np.clip(action, self.spec.action_low, self.spec.action_high).astype(np.float32)
+        return self.spec.env_action(action)

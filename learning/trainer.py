@@ -25,16 +25,9 @@ import torch
 from envs.base import VecEnv
 from learning.config import RunConfig
 from learning.learner import TeamLearner
+from learning.run_env import make_env
 from learning.rundir import RunDir
 from learning.sampling import ActingStreams, env_reset_seed
-
-
-def make_env(cfg: RunConfig) -> VecEnv:
-    from envs.registry import make_vec_env
-
-    return make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs or None,
-                        workers=cfg.env_workers,
-                        parent_slice=cfg.env_parent_slice)
 
 
 @dataclass

@@ -1,5 +1,6 @@
 """The lightweight roles: local agents and the central server of a real `hammer up` run never load torch
-(the central acts with a numpy forward; only the learner and the env host hold torch)."""
+(the central acts with a numpy forward), nor does the env host: only the learner holds torch (which
+also shows the check can see torch in a process that has it)."""
 
 from __future__ import annotations
 
@@ -14,18 +15,18 @@ def _maps_torch(pid: int) -> bool:
     return any("libtorch" in m.path for m in psutil.Process(pid).memory_maps())
 
 
-def test_local_agents_and_central_run_without_torch(tmp_path):
+def test_only_the_learner_runs_torch(tmp_path):
     cfg = merge_config("cn3", overrides=["episodes=64"])
     seen: dict[str, bool] = {}
 
     def inspect(sup, board) -> None:
         if seen or len(board.heartbeats) < 3:
             return
-        for name in ("local-0", "local-2", "central"):
+        for name in ("local-0", "local-2", "central", "env", "learner"):
             pid = sup.pid(name)
             if pid is not None:
                 seen[name] = _maps_torch(pid)
 
     res = launch(cfg, RuntimeSettings(run_id="edge"), tmp_path / "run", chaos=inspect)
     assert res.summary["completed"]
-    assert seen == {"local-0": False, "local-2": False, "central": False}
+    assert seen == {"local-0": False, "local-2": False, "central": False, "env": False, "learner": True}
