@@ -30,10 +30,13 @@ class _SigmoidTanh(torch.autograd.Function):
     """tanh(x) = 2σ(2x) − 1 with tanh's own backward (1 − y²)·g."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        y = (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
-        ctx.save_for_backward(y)
-        return y
+    def forward(x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple[torch.Tensor], output: torch.Tensor) -> None:  # type: ignore[override]
+        # A separate setup_context (not ctx in forward) is what torch.func.grad needs (compile=true).
+        ctx.save_for_backward(output)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
@@ -51,11 +54,21 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
     expensive op of a PPO update (more than the matmuls), so large tensors use 2σ(2x) − 1, which
     is tanh up to ~2e-7 absolute (float32 rounding; numpy_policy's np.tanh matches to 1e-6).
     """
+    if torch.compiler.is_compiling():
+        return _traced_tanh(x)
     if x.numel() < _FAST_TANH_MIN:
         return torch.tanh(x)
     if x.requires_grad:
         return _SigmoidTanh.apply(x)
     return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
+
+
+def _traced_tanh(x: torch.Tensor) -> torch.Tensor:
+    """tanh inside a torch.compile graph (compile=true) as plain ops, which inductor fuses into
+    its kernels and AOTAutograd differentiates itself: the custom autograd.Function would keep the
+    graph out of AOTAutograd's cache (5 s more compile in every run). 2σ(2x) − 1 here too: inductor's
+    tanh made the whole update ~1.1x slower."""
+    return (x * 2.0).sigmoid() * 2.0 - 1.0
 
 
 class TanhMLP(nn.Module):

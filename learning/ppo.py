@@ -14,6 +14,7 @@ from collections.abc import Iterable
 
 import numpy as np
 import torch
+from torch.optim.adam import adam as functional_adam
 
 
 def next_values(values: np.ndarray, last_values: np.ndarray, final_values: np.ndarray,
@@ -99,6 +100,18 @@ def value_loss(new_values: torch.Tensor, returns: torch.Tensor, mask: torch.Tens
     return 0.5 * masked_mean((new_values - returns) ** 2, mask)
 
 
+def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """`PPOUpdater.clip_and_step`'s clip (clip_grad_norm_'s rule: scale by min(1, max/(norm + 1e-6)))
+    for a torch.compile graph; returns the clipped gradients and the norm before clipping.
+
+    The norm is a sum of squares instead of `_foreach_norm`: inductor fuses the sums into its own
+    kernels, while `_foreach_norm` stays a loop of one library call per tensor inside the graph.
+    """
+    norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
+    coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+    return [g * coef for g in grads], norm
+
+
 def minibatch_indices(n_rows: int, minibatches: int, rng: np.random.Generator) -> list[np.ndarray]:
     """One epoch's shuffled split of rows 0..n_rows-1 into `minibatches` near-equal parts."""
     return np.array_split(rng.permutation(n_rows), minibatches)
@@ -148,6 +161,39 @@ class PPOUpdater:
         torch._fused_adam_(params, grads, [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [],
                            steps, amsgrad=False, lr=float(group["lr"]), beta1=beta1, beta2=beta2, weight_decay=0.0,
                            eps=group["eps"], maximize=False)
+
+    def adam_state(self) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+        """(exp_avgs, exp_avg_sqs, steps) of every parameter, created as Adam's first step creates
+        them (zeros, a float32 0-d step) where missing. The compiled update steps these tensors in
+        place, so the `torch.optim.Adam` object keeps owning the state (checkpoints unchanged)."""
+        group = self.optimizer.param_groups[0]
+        for p in self.params:
+            if p not in self.optimizer.state:
+                self.optimizer.state[p] = {"step": torch.zeros((), dtype=torch.float32),
+                                           "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+                                           "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
+        if (len(self.optimizer.param_groups) != 1 or group["amsgrad"] or group["weight_decay"]
+                or group["maximize"]):
+            raise ValueError("compile=true supports plain Adam only (no amsgrad, weight decay, maximize)")
+        states = [self.optimizer.state[p] for p in self.params]
+        return [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [s["step"] for s in states]
+
+    def traced_clip_and_step(self, params: list[torch.Tensor], grads: list[torch.Tensor],
+                             exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
+                             steps: list[torch.Tensor]) -> torch.Tensor:
+        """`clip_and_step` written to be traced into a torch.compile graph (compile=true): the
+        clip as `clip_by_total_norm`, then torch's own Adam maths in its foreach/capturable form
+        (what torch traces when it compiles an Adam optimiser), stepping the state from
+        `adam_state` in place. Returns the norm before clipping."""
+        group = self.optimizer.param_groups[0]
+        grads, norm = clip_by_total_norm(grads, self.max_grad_norm)
+        beta1, beta2 = group["betas"]
+        # capturable: the step count stays a tensor inside the graph (torch allows it on CPU only
+        # while compiling; run eagerly, e.g. under set_stance("force_eager"), the plain form runs).
+        functional_adam(params, grads, exp_avgs, exp_avg_sqs, [], steps, foreach=True,
+                        capturable=torch.compiler.is_compiling(), amsgrad=False, beta1=beta1, beta2=beta2,
+                        lr=group["lr"], weight_decay=0.0, eps=group["eps"], maximize=False)
+        return norm
 
     def step(self) -> float:
         """Clip this network's gradient norm, step; returns the norm before clipping."""
