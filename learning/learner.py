@@ -237,23 +237,24 @@ class TeamLearner:
         params = [p for opt in self._updaters for p in opt.params]
         exp_avgs, exp_avg_sqs, steps = ([t for opt in self._updaters for t in opt.adam_state()[i]] for i in range(3))
         keys = tuple(b)
+        n_rows = buf.t * buf.k
+        graphs = {(len(part), self._full, self._c_full, keys)
+                  for part in np.array_split(np.arange(n_rows), cfg.minibatches)}
         total: torch.Tensor | None = None
-        for epoch in range(cfg.epochs):
-            last = epoch == cfg.epochs - 1
-            parts = minibatch_indices(buf.t * buf.k, cfg.minibatches, rng)
-            perm = torch.from_numpy(np.concatenate(parts))
-            shuffled = [b[k].index_select(0, perm) for k in keys]
-            start = 0
-            for part in parts:
-                end = start + len(part)
-                fields = [v[start:end] for v in shuffled]
-                key = (len(part), self._full, self._c_full, keys)
-                with _skip_guards(key in self._compiled):
-                    st = self._step(params, exp_avgs, exp_avg_sqs, steps, keys, fields)
-                self._compiled.add(key)
-                start = end
-                if last:
-                    total = st if total is None else total + st
+        with _skip_guards(graphs <= self._compiled):
+            for epoch in range(cfg.epochs):
+                last = epoch == cfg.epochs - 1
+                parts = minibatch_indices(n_rows, cfg.minibatches, rng)
+                perm = torch.from_numpy(np.concatenate(parts))
+                shuffled = [b[k].index_select(0, perm) for k in keys]
+                start = 0
+                for part in parts:
+                    end = start + len(part)
+                    st = self._step(params, exp_avgs, exp_avg_sqs, steps, keys, [v[start:end] for v in shuffled])
+                    start = end
+                    if last:
+                        total = st if total is None else total + st
+        self._compiled |= graphs
         assert total is not None
         return dict(zip(self._log_keys(), (total / cfg.minibatches).tolist(), strict=True))
 
@@ -265,7 +266,7 @@ SKIP_GUARDS = True
 
 
 def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
-    """Once a step with this key has run, its graph exists, so dynamo need not re-check its guards
+    """Once every step graph an update needs exists, dynamo need not re-check their guards
     (~100 tensors and the config) on every call: ~8% of a compiled update. Under this stance
     dynamo would run a stale graph if a Python value the trace read had changed, so the key holds
     every such value that can change between calls (minibatch size, `_full`, `_c_full`, the batch
