@@ -46,6 +46,10 @@ def sweep(
     archive: Annotated[Path | None, typer.Option(
         help="Also keep a compact copy of each finished run here (commit it: runs archived there are "
              "skipped, so the sweep continues from a fresh clone). e.g. docs/results/runs/cn5")] = None,
+    snapshot: Annotated[bool, typer.Option(
+        help="Run nothing: copy each unfinished run of OUT that has a checkpoint to ARCHIVE/_partial/ "
+             "(commit it before the session ends; the next sweep restores and resumes it). Needs --archive; "
+             "safe while the sweep runs.")] = False,
 ) -> None:
     """Run a grid of independent training runs, resumably.
 
@@ -54,7 +58,7 @@ def sweep(
     """
     from rich.console import Console
 
-    from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep
+    from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, snapshot_sweep
 
     console = Console()
     try:
@@ -62,14 +66,24 @@ def sweep(
                         parse_grid_overrides(grid or []), episodes=episodes)
     except ValueError as e:
         _fail(str(e))
-    console.print(f"sweep: {len(points)} runs into {out}")
 
     def event(kind: str, name: str) -> None:
-        style = {"done": "green", "fail": "red", "skip": "dim"}.get(kind, "cyan")
-        console.print(f"[{style}]{kind:>6}[/] {name}")
+        style = {"done": "green", "fail": "red", "skip": "dim", "broken": "yellow", "same": "dim"}.get(kind, "cyan")
+        console.print(f"[{style}]{kind:>7}[/] {name}", highlight=False)
+
+    if snapshot:
+        if archive is None:
+            _fail("--snapshot writes into the archive; fix: pass --archive DIR too")
+        if not out.is_dir():
+            _fail(f"--out {out} does not exist: nothing to snapshot")
+        taken = snapshot_sweep(points, out, archive, on_event=event)
+        console.print(f"snapshot: {len(taken)} runs in progress -> {archive / '_partial'}")
+        return
+    console.print(f"sweep: {len(points)} runs into {out}")
 
     res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive)
-    console.print(f"finished {len(res.done)}, skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
+    console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "
+                  f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.archive import METRICS_NPZ, load_metrics_npz
+from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
 
 
 @dataclass
@@ -48,16 +48,20 @@ class Run:
 
 def find_runs(paths: list[Path]) -> list[Path]:
     """Every run directory (holding metrics.csv) or archived run (metrics.npz, see
-    `experiments.archive`) at or below the given paths."""
+    `experiments.archive`) at or below the given paths. Snapshots of runs in progress
+    (`<archive>/_partial/`) are never results: they are skipped, even when named directly."""
     found: list[Path] = []
     for p in paths:
         p = Path(p)
         if not p.exists():
             raise FileNotFoundError(f"run path {p} does not exist")
+        if PARTIAL in p.resolve().parts:
+            continue
         if (p / "metrics.csv").is_file() or (p / METRICS_NPZ).is_file():
             found.append(p)
         else:
-            found.extend(sorted({m.parent for m in [*p.rglob("metrics.csv"), *p.rglob(METRICS_NPZ)]}))
+            found.extend(sorted({m.parent for m in [*p.rglob("metrics.csv"), *p.rglob(METRICS_NPZ)]
+                                 if PARTIAL not in m.relative_to(p).parts}))
     return found
 
 

@@ -6,6 +6,9 @@ runs (they have summary.json), resumes interrupted ones from their last checkpoi
 rest, at most `jobs` at a time, each a fresh `hammer train` process with one torch thread.
 Several sweep processes may work on one directory at once (say, one per core): a lock file per
 run directory (pids of the sweep and its child) keeps them from running the same point twice.
+With an archive (`experiments.archive`), finished runs and snapshots of runs in progress are
+committed to git, so a sweep continues from a fresh clone: archived runs are skipped, and a
+point with no run directory but a partial snapshot is restored from it and resumed.
 """
 
 from __future__ import annotations
@@ -18,7 +21,15 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from experiments.archive import archive_run, is_archived
+from experiments.archive import (
+    Snapshot,
+    archive_run,
+    drop_partial,
+    is_archived,
+    partial_dir,
+    restore_partial,
+    snapshot_run,
+)
 
 # Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
 VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
@@ -53,6 +64,15 @@ class SweepPoint:
         if episodes is not None:
             args += ["--episodes", str(episodes)]
         return args
+
+    def expected_config(self, episodes: int | None) -> dict:
+        """The RunConfig `hammer train` resolves for this point (as `train_args` would pass it)."""
+        from learning.config import merge_config
+
+        variant, _, mode = self.variant.partition("-")
+        return merge_config(self.preset, None, [f"{k}={v}" for k, v in self.overrides],
+                            {"variant": variant, "central_mode": mode or None, "seed": self.seed,
+                             "episodes": episodes}).model_dump(mode="json")
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -104,6 +124,8 @@ class SweepResult:
     done: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     failed: list[tuple[str, int]] = field(default_factory=list)
+    restored: list[str] = field(default_factory=list)  # resumed from a partial snapshot in the archive
+    broken: list[tuple[str, str]] = field(default_factory=list)  # (name, reason): snapshot unusable, ran fresh
 
 
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
@@ -112,7 +134,9 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
 
     With `archive`, a point already archived there counts as finished, and every run that finishes
     (or is found finished in `out`) is archived (`experiments.archive`): commit the archive and the
-    sweep continues from a fresh clone."""
+    sweep continues from a fresh clone. A point whose run directory holds neither a summary nor a
+    checkpoint is restored from `archive/_partial/<name>` if a valid snapshot is there (event
+    "restore"); a broken snapshot is reported (event "broken", name + reason) and the run starts fresh."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = jobs or max(1, os.cpu_count() or 1)
@@ -126,6 +150,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
             archive_run(run_dir, archive)
         if archive is not None and is_archived(archive, p.name):
             st = "done"
+            drop_partial(archive, p.name)  # an archived finished run wins over a snapshot of it
         if st == "done":
             result.skipped.append(p.name)
             if on_event:
@@ -150,15 +175,26 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                     if on_event:
                         on_event("skip", p.name)
                     continue
+                budget = episodes if episodes is not None else p.episodes
+                restored = False
+                if st == "new" and archive is not None and partial_dir(archive, p.name).is_dir():
+                    try:
+                        restore_partial(partial_dir(archive, p.name), run_dir, p.expected_config(budget))
+                        st, restored = "resume", True
+                        result.restored.append(p.name)
+                    except ValueError as e:
+                        result.broken.append((p.name, str(e)))
+                        if on_event:
+                            on_event("broken", f"{p.name}: snapshot unusable ({e}); starting fresh")
                 args = (["train", "--resume", str(run_dir)] if st == "resume"
-                        else p.train_args(run_dir, episodes if episodes is not None else p.episodes))
+                        else p.train_args(run_dir, budget))
                 logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
                 proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], stdout=logf,
                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
                 _lock(run_dir, child=proc.pid)
                 running[p.name] = (proc, logf)
                 if on_event:
-                    on_event("resume" if st == "resume" else "start", p.name)
+                    on_event("restore" if restored else "resume" if st == "resume" else "start", p.name)
             time.sleep(0.2)
             for name, (proc, logf) in list(running.items()):
                 if proc.poll() is None:
@@ -169,6 +205,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                 if proc.returncode == 0:
                     if archive is not None:
                         archive_run(out / name, archive)
+                        drop_partial(archive, name)
                     result.done.append(name)
                     if on_event:
                         on_event("done", name)
@@ -186,6 +223,30 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
             logf.close()
             _unlock(out / name)
     return result
+
+
+def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=None) -> list[Snapshot]:
+    """Snapshot every unfinished point of `out` that has a checkpoint into `archive/_partial/`
+    (and archive finished ones not archived yet), so a session can commit the hours of a run in
+    progress before its machine goes. Safe while the sweep is running."""
+    out, taken = Path(out), []
+    for p in points:
+        run_dir = out / p.name
+        st = state_of(run_dir)
+        if st == "done":
+            if not is_archived(archive, p.name):
+                archive_run(run_dir, archive)
+                if on_event:
+                    on_event("archive", p.name)
+            drop_partial(archive, p.name)
+        elif st == "resume" and not is_archived(archive, p.name):
+            snap = snapshot_run(run_dir, archive)
+            if snap is not None:
+                taken.append(snap)
+                if on_event:
+                    on_event("same" if snap.unchanged else "snap",
+                             f"{p.name}  update {snap.update}, {snap.episodes} episodes")
+    return taken
 
 
 LOCK = ".sweep.lock"

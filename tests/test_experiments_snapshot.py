@@ -1,0 +1,115 @@
+"""A run in progress survives a lost machine through a committed partial snapshot: a real
+`hammer train` is killed mid-run, snapshotted, its run directory deleted, and a sweep in a fresh
+directory restores and finishes it with exactly the metrics of an uninterrupted run."""
+
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from experiments.archive import PARTIAL, check_partial, is_archived, partial_dir
+from experiments.runs import find_runs
+from experiments.sweep import expand, run_sweep, snapshot_sweep, state_of
+
+EPISODES = 120  # 30 updates of 4 episodes; checkpoints every 2 updates
+
+
+def _metrics(run_dir):
+    """Every column but wall_time (the only one that may differ between two runs of one point)."""
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return [{k: v for k, v in row.items() if k != "wall_time"} for row in csv.DictReader(f)]
+
+
+def _interrupted_run(point, run_dir, at_update: int, while_running=None) -> None:
+    """Start the point's real `hammer train`, call `while_running()` once its first checkpoint after
+    update 0 exists, and SIGKILL it once checkpoint `at_update` is complete."""
+    run_dir.mkdir(parents=True)
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", HAMMER_TORCH_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *point.train_args(run_dir, EPISODES), "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    first = run_dir / "checkpoints" / "ckpt_0000002.json"
+    deadline = time.monotonic() + 60
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    if while_running is not None:
+        while_running()
+    marker = run_dir / "checkpoints" / f"ckpt_{at_update:07d}.json"
+    deadline = time.monotonic() + 60
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert marker.exists() and state_of(run_dir) == "resume", "the run finished before it could be interrupted"
+
+
+@pytest.fixture(scope="module")
+def snapshotted(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("snap")
+    pts = expand(["cn3"], ["il"], [0], [("num_envs", ["4"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["2"])],
+                 episodes=EPISODES)
+    live = []
+
+    def snapshot_while_training():  # the trainer keeps writing checkpoints and rows meanwhile
+        live.extend(snapshot_sweep(pts, tmp / "out", tmp / "archive"))
+        check_partial(partial_dir(tmp / "archive", pts[0].name), pts[0].expected_config(EPISODES))
+
+    _interrupted_run(pts[0], tmp / "out" / pts[0].name, at_update=6, while_running=snapshot_while_training)
+    assert len(live) == 1 and live[0].update >= 2
+    events = []
+    snaps = snapshot_sweep(pts, tmp / "out", tmp / "archive", on_event=lambda k, n: events.append((k, n)))
+    assert len(snaps) == 1 and snaps[0].update >= 6 and snaps[0].episodes == 4 * snaps[0].update
+    assert events[0][0] == "snap" and f"update {snaps[0].update}" in events[0][1]
+    # Taking it again while nothing changed rewrites nothing.
+    again = snapshot_sweep(pts, tmp / "out", tmp / "archive")
+    assert again[0].unchanged and again[0].update == snaps[0].update
+    shutil.rmtree(tmp / "out")  # the session's machine is gone; only the archive (git) remains
+    return tmp, pts, snaps[0]
+
+
+def test_snapshot_holds_one_checkpoint_and_no_tensorboard(snapshotted):
+    tmp, pts, snap = snapshotted
+    src = partial_dir(tmp / "archive", pts[0].name)
+    files = sorted(str(p.relative_to(src)) for p in src.rglob("*") if p.is_file())
+    stem = f"checkpoints/ckpt_{snap.update:07d}"
+    assert files == sorted(["config.json", "config.yaml", "metrics.csv.gz", stem + ".json", stem + ".safetensors"])
+    check_partial(src, pts[0].expected_config(EPISODES))
+    other = expand(["cn3"], ["il"], [1], [("num_envs", ["4"]), ("rollout_steps", ["25"]),
+                                          ("checkpoint_every", ["2"])], episodes=EPISODES)[0]
+    with pytest.raises(ValueError, match="seed"):
+        check_partial(src, other.expected_config(EPISODES))
+    # A partial run is never a result: plot/report find nothing in an archive holding only snapshots.
+    assert find_runs([tmp / "archive"]) == [] and find_runs([src]) == []
+    assert not is_archived(tmp / "archive", pts[0].name)
+
+
+def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fresh(snapshotted):
+    tmp, pts, snap = snapshotted
+    name = pts[0].name
+    # A copy of the archive with a truncated safetensors file: the sweep must say why and start fresh.
+    shutil.copytree(tmp / "archive", tmp / "broken")
+    st = partial_dir(tmp / "broken", name) / "checkpoints" / f"ckpt_{snap.update:07d}.safetensors"
+    st.write_bytes(st.read_bytes()[: st.stat().st_size // 2])
+    events = []
+    fresh = run_sweep(pts, tmp / "fresh", jobs=1, archive=tmp / "broken",
+                      on_event=lambda k, n: events.append((k, n)))
+    assert fresh.done == [name] and not fresh.restored and fresh.broken[0][0] == name
+    assert "safetensors does not load" in fresh.broken[0][1]
+    assert [k for k, _ in events] == ["broken", "start", "done"]
+    assert "starting fresh" in events[0][1] and "\n" not in events[0][1]
+
+    events = []
+    res = run_sweep(pts, tmp / "restored", jobs=1, archive=tmp / "archive",
+                    on_event=lambda k, n: events.append((k, n)))
+    assert res.done == [name] and res.restored == [name] and not res.broken
+    assert [k for k, _ in events] == ["restore", "done"]
+    restored = _metrics(tmp / "restored" / name)
+    assert len(restored) == EPISODES
+    assert restored == _metrics(tmp / "fresh" / name)
+    # Finished and archived: the snapshot is gone, the archive holds one finished result.
+    assert is_archived(tmp / "archive", name) and not (tmp / "archive" / PARTIAL / name).exists()
+    assert find_runs([tmp / "archive"]) == [tmp / "archive" / name]
