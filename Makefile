@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report
+.PHONY: setup up test bench lint clean paper paper-report snapshot
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,17 @@ paper: $(STAMP)
 	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
 	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
 	$(MAKE) paper-report
+
+# Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
+# gzipped metrics) to $(A)/<grid>/_partial/ and commit it; `make paper` on a fresh clone restores
+# and resumes those runs. Safe while `make paper` is running. Same grids as `paper`, mw3 (4-5 h a
+# run) first.
+snapshot: $(STAMP)
+	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4 --snapshot
+	$(H) sweep --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000 --snapshot
+	$(H) sweep --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4 --snapshot
+	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4 --snapshot
+	$(H) sweep --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8 --snapshot
 
 paper-report: $(STAMP)
 	-$(H) plot $(A)/cn3-msglen --window 2000 --out docs/results/cn3-msglen-curves

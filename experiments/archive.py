@@ -107,7 +107,8 @@ def _csv_head(text: str, n_rows: int) -> str:
 
 def snapshot_run(run_dir: Path, archive: Path) -> Snapshot | None:
     """Copy an unfinished run's latest complete checkpoint, config and metrics into
-    `archive/_partial/<run name>/`; None if it has no checkpoint yet. Safe while the run is
+    `archive/_partial/<run name>/`; None if it has no checkpoint yet, ValueError (one-line reason)
+    if it cannot be snapshotted. Safe while the run is
     writing: a checkpoint counts only once its JSON exists, the safetensors of that same update
     is copied, and a checkpoint pruned under our feet is retried with the next latest one."""
     run_dir = Path(run_dir)
@@ -130,8 +131,10 @@ def snapshot_run(run_dir: Path, archive: Path) -> Snapshot | None:
             shutil.copyfile(str(stem) + ".safetensors", tmp / "checkpoints" / (stem.name + ".safetensors"))
             with open(run_dir / "metrics.csv", newline="") as f:
                 metrics = _csv_head(f.read(), episodes)
-        except FileNotFoundError:  # pruned by the running trainer meanwhile: take the new latest
-            continue
+        except FileNotFoundError as e:
+            if not Path(str(stem) + ".json").is_file():  # pruned by the running trainer: take the new latest
+                continue
+            raise ValueError(f"{Path(e.filename).name} is missing") from None
         # mtime=0: the same checkpoint always gives the same bytes (no noise in git)
         with open(tmp / "metrics.csv.gz", "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as gz:
             gz.write(metrics.encode())

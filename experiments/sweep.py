@@ -240,7 +240,12 @@ def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=
                     on_event("archive", p.name)
             drop_partial(archive, p.name)
         elif st == "resume" and not is_archived(archive, p.name):
-            snap = snapshot_run(run_dir, archive)
+            try:
+                snap = snapshot_run(run_dir, archive)
+            except (ValueError, RuntimeError) as e:  # one bad run must not cost the others their snapshot
+                if on_event:
+                    on_event("fail", f"{p.name}: not snapshotted ({e})")
+                continue
             if snap is not None:
                 taken.append(snap)
                 if on_event:

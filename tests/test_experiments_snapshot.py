@@ -3,6 +3,7 @@
 directory restores and finishes it with exactly the metrics of an uninterrupted run."""
 
 import csv
+import gzip
 import os
 import shutil
 import signal
@@ -87,6 +88,34 @@ def test_snapshot_holds_one_checkpoint_and_no_tensorboard(snapshotted):
     assert not is_archived(tmp / "archive", pts[0].name)
 
 
+def test_snapshot_cli(snapshotted, tmp_path):
+    """(Runs before the restore test, which consumes the snapshot.) `hammer sweep --snapshot` needs --archive, is a no-op for a grid never run here, and names
+    the snapshots it took (here: the kept one, unchanged)."""
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    tmp, pts, snap = snapshotted
+    grid = ["--presets", "cn3", "--variants", "il", "--seeds", "0", "--episodes", str(EPISODES),
+            "--grid", "num_envs=4", "--grid", "rollout_steps=25", "--grid", "checkpoint_every=2"]
+    res = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "o"), *grid, "--snapshot"])
+    assert res.exit_code == 2 and "--archive" in res.output
+    res = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "o"), "--archive", str(tmp_path / "a"),
+                                   *grid, "--snapshot"])
+    assert res.exit_code == 0 and "nothing to snapshot" in res.output and not (tmp_path / "a").exists()
+    out = tmp_path / "o"
+    run_dir = out / pts[0].name
+    shutil.copytree(tmp / "archive" / PARTIAL / pts[0].name, run_dir)  # a run dir at that checkpoint...
+    res = CliRunner().invoke(app, ["sweep", "--out", str(out), "--archive", str(tmp_path / "a"), *grid, "--snapshot"])
+    assert res.exit_code == 0 and "not snapshotted (metrics.csv is missing)" in res.output  # ...once its CSV is back
+    with gzip.open(run_dir / "metrics.csv.gz", "rt", newline="") as f, open(run_dir / "metrics.csv", "w", newline="") as g:
+        g.write(f.read())
+    res = CliRunner().invoke(app, ["sweep", "--out", str(out), "--archive", str(tmp_path / "a"), *grid, "--snapshot"])
+    assert res.exit_code == 0, res.output
+    assert f"{pts[0].name}  update {snap.update}, {snap.episodes} episodes" in res.output
+    assert partial_dir(tmp_path / "a", pts[0].name).is_dir()
+
+
 def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fresh(snapshotted):
     tmp, pts, snap = snapshotted
     name = pts[0].name
@@ -113,3 +142,4 @@ def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fr
     # Finished and archived: the snapshot is gone, the archive holds one finished result.
     assert is_archived(tmp / "archive", name) and not (tmp / "archive" / PARTIAL / name).exists()
     assert find_runs([tmp / "archive"]) == [tmp / "archive" / name]
+
