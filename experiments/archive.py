@@ -196,7 +196,7 @@ def check_partial(src: Path, expected: dict | None = None) -> tuple[Path, str]:
         load_file(str(stem) + ".safetensors")
     except FileNotFoundError:
         raise ValueError(f"{stem.name}.safetensors is missing") from None
-    except (SafetensorError, ValueError, OSError) as e:
+    except (SafetensorError, ValueError, TypeError, OSError) as e:
         raise ValueError(f"{stem.name}.safetensors does not load ({str(e).splitlines()[0][:80]})") from None
     try:
         with gzip.open(src / "metrics.csv.gz", "rt", newline="") as f:
