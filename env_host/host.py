@@ -330,7 +330,7 @@ class EnvHost:
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
         team, h = self.team, self.h
         t_start = self._t_wall0 = time.perf_counter()
-        if not self.wait_weights(0) or not self._wait_central_ready():
+        if not self.wait_weights(0) or not self._wait_actors_ready():
             return self.summary(t_start)
         obs, active = self._reset_env(0)
         prev = team.zero_prev_actions(self.k)
@@ -350,23 +350,34 @@ class EnvHost:
         self.rd.flush()
         return self.summary(t_start)
 
-    def _wait_central_ready(self) -> bool:
-        """Eval: start stepping only once the central agent holds the policy (its heartbeat says
-        so), so that a fault-free evaluation has no message missing at start-up."""
-        if not (self.uses_central and self.team.has_central_network):
-            return True
-        hb_sub = self.s.subscribe(self.s.keys.heartbeat("central"), Heartbeat)
+    def _wait_actors_ready(self) -> bool:
+        """Eval: start stepping only once the central agent and every local agent hold the policy
+        (their heartbeats say so), so that a fault-free evaluation has no message missing at
+        start-up and no first step slowed by an agent still loading its weights."""
+        roles = [f"local-{i}" for i in range(self.n)]
+        if self.uses_central and self.team.has_central_network:
+            roles.insert(0, "central")
+        subs = {r: self.s.subscribe(self.s.keys.heartbeat(r), Heartbeat) for r in roles}
         deadline = time.monotonic() + self.weights_timeout_s
-        while time.monotonic() < deadline:
-            self._poll_control()
-            if self._stop:
-                return False
-            hb = hb_sub.get(timeout=0.2)
-            if hb is not None and hb.counters.get("policy_version", -1) >= 0:
-                hb_sub.close()
-                return True
-        raise TimeoutError(f"the central agent did not load the policy within {self.weights_timeout_s:.0f}s "
-                           "(is `hammer central` running?)")
+        try:
+            while subs and time.monotonic() < deadline:
+                self._poll_control()
+                if self._stop:
+                    return False
+                for r, sub in list(subs.items()):
+                    for hb in sub.drain():
+                        if hb.counters.get("policy_version", -1) >= 0:
+                            del subs[r]
+                            break
+                if subs:
+                    time.sleep(0.005)
+        finally:
+            for sub in subs.values():
+                sub.close()
+        if subs:
+            raise TimeoutError(f"{', '.join(subs)} did not load the policy within {self.weights_timeout_s:.0f}s "
+                               "(are `hammer central` / `hammer local` running?)")
+        return True
 
     def run(self) -> dict:
         cfg, team, h, r = self.cfg, self.team, self.h, self.rollout

@@ -185,6 +185,16 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
                             block_until, weights_timeout_s, agent.version)
             return
 
+    def preload_first_weights() -> bool:
+        """While idle with no policy: load the oldest version held, so the first step is not slowed by
+        loading weights (a step never asks for a version older than the learner's first broadcast)."""
+        for w in w_sub.drain():
+            inbox.offer(w.version, w.blob)
+        if inbox.held and inbox.select(min(inbox.held)):
+            c.weights_loaded += 1
+            return True
+        return False
+
     seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
 
     def log_msg(step: int, event: str | None) -> None:
@@ -220,6 +230,8 @@ def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fall
             last_hb = now
         o = obs_sub.get(timeout=0.2)
         if o is None:
+            if agent.version < 0 and preload_first_weights():
+                last_hb = 0.0  # say at once that this agent holds a policy (the env host may wait for it)
             if idle_exit_s is not None and time.monotonic() - last_obs_t > idle_exit_s:
                 slog.flush()
                 return c
