@@ -21,7 +21,10 @@ import time
 import numpy as np
 import psutil
 
+from envs.parallel_ceiling import ceiling
 from envs.registry import make_vec_env
+
+CEIL = "ceiling: independent processes, no IPC"
 
 
 def _own_cpu_seconds() -> float:
@@ -60,19 +63,22 @@ def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300
         for v in names.values():
             _phase(v, 30, 0)  # warm-up (imports, allocator, first terrain)
         res: dict[str, list[tuple[float, float, float]]] = {k: [] for k in names}
+        res[CEIL] = []
         for r in range(repeats):
             for k, v in names.items():
                 res[k].append(_phase(v, steps, 100 + r))
+            res[CEIL].append((ceiling(n_agents, num_envs, workers, steps, 100 + r), float("nan"), float("nan")))
     finally:
         for v in names.values():
             v.close()
     best = {k: max(v) for k, v in res.items()}
     speedup = best[f"{workers} workers"][0] / best["in-process"][0]
     speedup_parent = best[f"{workers} slices, parent steps one"][0] / best["in-process"][0]
+    speedup_ceiling = best[CEIL][0] / best["in-process"][0]
     return {"num_envs": num_envs, "workers": workers, "n_agents": n_agents, "steps": steps,
             "cores": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0],
             "worker_start_s": start_s, "phases": res, "best": best, "speedup": speedup,
-            "speedup_parent_slice": speedup_parent}
+            "speedup_parent_slice": speedup_parent, "speedup_ceiling": speedup_ceiling}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -88,11 +94,14 @@ def main(argv: list[str] | None = None) -> None:
           f"{r['cores']} cores; 1-min load average {r['load_before']:.2f} before, {r['load_after']:.2f} after; "
           f"workers started in {r['worker_start_s']:.2f} s")
     for name, phases in r["phases"].items():
-        runs = ", ".join(f"{sps:,.0f} ({cpu:.0f}% busy, {own:.2f} cores ours)" for sps, cpu, own in phases)
+        runs = ", ".join(f"{sps:,.0f}" + ("" if name == CEIL else f" ({cpu:.0f}% busy, {own:.2f} cores ours)")
+                         for sps, cpu, own in phases)
         print(f"  {name:>30}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
     print(f"speed-up over in-process (best phases): {r['workers']} workers {r['speedup']:.2f}x, "
           f"{r['workers']} slices with the parent stepping one {r['speedup_parent_slice']:.2f}x")
-    per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items()}
+    print(f"ceiling: {r['workers']} independent processes with no IPC {r['speedup_ceiling']:.2f}x in-process "
+          "(what this machine's cores give two busy processes at once; no worker design can beat it)")
+    per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items() if name != CEIL}
     ratio = per_core[f"{r['workers']} workers"] / per_core["in-process"]
     print("env-steps per core-second our processes used: " + ", ".join(f"{k} {v:,.0f}" for k, v in per_core.items())
           + f" (workers/in-process {ratio:.2f}: below 1 is IPC and load-imbalance overhead; the speed-up can"

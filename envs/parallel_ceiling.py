@@ -1,0 +1,59 @@
+"""The most any design of env workers could reach on this machine (`benchmarks/bench_workers.py`).
+
+Two busy processes on a 2-core VM need not get 2x one: cores share caches and memory bandwidth,
+and the host may be busy. So a worker pool's speed-up is measured against this ceiling too:
+`workers` independent processes, each stepping the in-process benchmark's exact workload (same
+copies, seed and actions) with no pipes, shared memory or waiting on each other, started together.
+A module of its own because spawned processes must import their target.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+
+import numpy as np
+
+from envs.registry import make_vec_env
+
+
+def _independent(env: str, n_agents: int, num_envs: int, steps: int, seed: int, ready, go, out) -> None:
+    v = make_vec_env(env, n_agents, num_envs)
+    try:
+        shape = (num_envs, n_agents, v.spec.action_dim)
+        warm = np.random.default_rng(0)
+        v.reset(0)
+        for _ in range(30):  # imports, allocator, first terrain: as the benchmark's warm-up
+            v.step(warm.uniform(-1, 1, shape).astype(np.float32))
+        v.reset(seed)
+        rng = np.random.default_rng(seed)
+        acts = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(steps)]
+        ready.wait()
+        go.wait()
+        t0 = time.perf_counter()
+        for a in acts:
+            v.step(a)
+        out.put(time.perf_counter() - t0)
+    finally:
+        v.close()
+
+
+def ceiling(n_agents: int, num_envs: int, workers: int, steps: int, seed: int, env: str = "mw") -> float:
+    """env-steps/s of `workers` independent processes stepping num_envs copies each, with the same
+    seeded uniform actions as the benchmark's in-process phase of this seed."""
+    ctx = mp.get_context("spawn")
+    ready, go, out = ctx.Barrier(workers + 1), ctx.Barrier(workers + 1), ctx.Queue()
+    procs = [ctx.Process(target=_independent, args=(env, n_agents, num_envs, steps, seed, ready, go, out))
+             for _ in range(workers)]
+    for pr in procs:
+        pr.start()
+    try:
+        ready.wait(timeout=300)
+        go.wait(timeout=60)
+        walls = [out.get(timeout=600) for _ in procs]
+    finally:
+        for pr in procs:
+            pr.join(timeout=30)
+            if pr.is_alive():
+                pr.kill()
+    return workers * num_envs * steps / max(walls)

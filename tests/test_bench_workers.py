@@ -1,0 +1,20 @@
+"""`benchmarks/bench_workers.py` runs end to end on a tiny budget: every design, including the
+ceiling of independent processes, steps real multiwalker copies and reports a finite speed."""
+
+from __future__ import annotations
+
+import math
+import runpy
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_workers.py"
+
+
+def test_every_design_steps_and_reports_a_speed():
+    mod = runpy.run_path(str(BENCH), run_name="bench_workers")
+    r = mod["run"](num_envs=2, workers=2, n_agents=3, steps=5, repeats=1)
+    assert set(r["phases"]) == {"in-process", "2 workers", "2 slices, parent steps one", mod["CEIL"]}
+    for name, phases in r["phases"].items():
+        assert len(phases) == 1 and phases[0][0] > 0, name
+    for key in ("speedup", "speedup_parent_slice", "speedup_ceiling"):
+        assert math.isfinite(r[key]) and r[key] > 0, key
