@@ -45,7 +45,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         n_agents: int = typer.Option(3, help="walkers"),
         steps: int = typer.Option(300, help="batched steps per timed phase"),
     ) -> None:
-        """Multiwalker env-steps/s in-process vs SubprocVecEnv, same run; prints the speed-up and load."""
+        """Multiwalker env-steps/s in-process vs SubprocVecEnv vs the ceiling of independent processes (no IPC), same run; prints the speed-ups and load."""
         script = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_workers.py"
         if not script.exists():
             raise typer.BadParameter(f"{script} not found: run from a source checkout of hammer")
