@@ -50,6 +50,10 @@ def sweep(
         help="Run nothing: copy each unfinished run of OUT that has a checkpoint to ARCHIVE/_partial/ "
              "(commit it before the session ends; the next sweep restores and resumes it). Needs --archive; "
              "safe while the sweep runs.")] = False,
+    snapshot_every: Annotated[float, typer.Option(
+        help="With --archive: also snapshot the runs in progress every this many minutes while the sweep "
+             "runs, so a session cut off without warning still leaves them in ARCHIVE/_partial/. 0: never.",
+        min=0.0)] = 30.0,
 ) -> None:
     """Run a grid of independent training runs, resumably.
 
@@ -82,7 +86,8 @@ def sweep(
         return
     console.print(f"sweep: {len(points)} runs into {out}")
 
-    res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive)
+    res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive,
+                    snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None)
     console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "
                   f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:

@@ -129,14 +129,18 @@ class SweepResult:
 
 
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
-              on_event=None, archive: Path | None = None) -> SweepResult:
+              on_event=None, archive: Path | None = None, snapshot_every_s: float | None = None) -> SweepResult:
     """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress.
 
     With `archive`, a point already archived there counts as finished, and every run that finishes
     (or is found finished in `out`) is archived (`experiments.archive`): commit the archive and the
     sweep continues from a fresh clone. A point whose run directory holds neither a summary nor a
     checkpoint is restored from `archive/_partial/<name>` if a valid snapshot is there (event
-    "restore"); a broken snapshot is reported (event "broken", name + reason) and the run starts fresh."""
+    "restore"); a broken snapshot is reported (event "broken", name + reason) and the run starts fresh.
+
+    `snapshot_every_s` (with `archive`): every so often, snapshot the runs in progress into
+    `archive/_partial/` too (event "snap"), so a session that ends without warning still leaves its
+    progress in the working tree, where the next session can find it even if nothing was committed."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = jobs or max(1, os.cpu_count() or 1)
@@ -158,6 +162,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
         else:
             queue.append((p, run_dir, st))
     running: dict[str, tuple[subprocess.Popen, object]] = {}
+    last_snap = time.monotonic()
     try:
         while queue or running:
             while queue and len(running) < jobs:
@@ -196,6 +201,9 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                 if on_event:
                     on_event("restore" if restored else "resume" if st == "resume" else "start", p.name)
             time.sleep(0.2)
+            if archive is not None and snapshot_every_s and time.monotonic() - last_snap >= snapshot_every_s:
+                last_snap = time.monotonic()
+                _snapshot_running(list(running), out, archive, on_event)
             for name, (proc, logf) in list(running.items()):
                 if proc.poll() is None:
                     continue
@@ -223,6 +231,22 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
             logf.close()
             _unlock(out / name)
     return result
+
+
+def _snapshot_running(names: list[str], out: Path, archive: Path, on_event=None) -> None:
+    """The periodic snapshot of `run_sweep`: runs in progress that have a checkpoint; a failure is
+    reported and never stops the sweep."""
+    for name in names:
+        if state_of(out / name) != "resume":
+            continue  # no checkpoint yet
+        try:
+            snap = snapshot_run(out / name, archive)
+        except (ValueError, RuntimeError, OSError) as e:
+            if on_event:
+                on_event("fail", f"{name}: not snapshotted ({e})")
+            continue
+        if snap is not None and not snap.unchanged and on_event:
+            on_event("snap", f"{name}  update {snap.update}, {snap.episodes} episodes")
 
 
 def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=None) -> list[Snapshot]:

@@ -143,3 +143,23 @@ def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fr
     assert is_archived(tmp / "archive", name) and not (tmp / "archive" / PARTIAL / name).exists()
     assert find_runs([tmp / "archive"]) == [tmp / "archive" / name]
 
+
+
+def test_sweep_snapshots_runs_in_progress_by_itself(tmp_path):
+    """`run_sweep(snapshot_every_s=...)`: while a run trains, valid snapshots appear in the archive
+    without anyone calling `--snapshot`; once the run is archived its snapshot is gone."""
+    pts = expand(["cn3"], ["il"], [1], [("num_envs", ["4"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["2"])],
+                 episodes=EPISODES)
+    name, archive = pts[0].name, tmp_path / "archive"
+    events, checked = [], []
+
+    def on_event(kind, text):
+        events.append(kind)
+        if kind == "snap":  # the snapshot is complete when the event fires: it must restore
+            check_partial(partial_dir(archive, name), pts[0].expected_config(EPISODES))
+            checked.append(int(text.split("update ")[1].split(",")[0]))
+
+    res = run_sweep(pts, tmp_path / "out", jobs=1, archive=archive, on_event=on_event, snapshot_every_s=0.2)
+    assert res.done == [name] and events[0] == "start" and events[-1] == "done"
+    assert checked and checked == sorted(checked)
+    assert is_archived(archive, name) and not partial_dir(archive, name).exists()
