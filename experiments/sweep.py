@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,6 +165,11 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
             queue.append((p, run_dir, st))
     running: dict[str, tuple[subprocess.Popen, object]] = {}
     last_snap = time.monotonic()
+    # SIGTERM (a session ending, `kill`) must stop the runs too, not orphan them: turn it into an
+    # exit through the `finally` below, as Ctrl-C already does.
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         while queue or running:
             while queue and len(running) < jobs:
@@ -230,7 +237,13 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                 proc.kill()
             logf.close()
             _unlock(out / name)
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
     return result
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
 
 
 def _snapshot_running(names: list[str], out: Path, archive: Path, on_event=None) -> None:

@@ -163,3 +163,27 @@ def test_sweep_snapshots_runs_in_progress_by_itself(tmp_path):
     assert res.done == [name] and events[0] == "start" and events[-1] == "done"
     assert checked and checked == sorted(checked)
     assert is_archived(archive, name) and not partial_dir(archive, name).exists()
+
+
+def test_sigterm_to_a_sweep_stops_its_runs(tmp_path):
+    """A sweep killed with SIGTERM (how a session's end or `kill` stops it) takes its `hammer train`
+    children with it instead of leaving them running unowned."""
+    import psutil
+
+    out = tmp_path / "out"
+    sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--presets", "cn3",
+                              "--variants", "il", "--seeds", "0", "--jobs", "1"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    children = []
+    while not children and time.monotonic() < deadline and sweep.poll() is None:
+        children = psutil.Process(sweep.pid).children()
+        time.sleep(0.05)
+    assert children, "the sweep never started its run"
+    time.sleep(1.0)  # the child is up (its interpreter running), the sweep is in its wait loop
+    sweep.send_signal(signal.SIGTERM)
+    sweep.wait(30)
+    _gone, alive = psutil.wait_procs(children, timeout=15)
+    for p in alive:  # do not leave them running if the test fails
+        p.kill()
+    assert not alive, f"runs left behind: {[p.pid for p in alive]}"
