@@ -21,10 +21,13 @@ import time
 import numpy as np
 import psutil
 
-from envs.parallel_ceiling import ceiling
+from envs.parallel_ceiling import ceiling, slices
 from envs.registry import make_vec_env
 
 CEIL = "ceiling: independent processes, no IPC"
+FREE = "the slices alone, no IPC"
+LOCK = "the slices in lockstep, no IPC"
+NO_CPU = (CEIL, FREE, LOCK)  # phases run in other processes: no CPU accounting of ours
 
 
 def _own_cpu_seconds() -> float:
@@ -63,11 +66,16 @@ def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300
         for v in names.values():
             _phase(v, 30, 0)  # warm-up (imports, allocator, first terrain)
         res: dict[str, list[tuple[float, float, float]]] = {k: [] for k in names}
-        res[CEIL] = []
+        for k in NO_CPU:
+            res[k] = []
+        nan = float("nan")
         for r in range(repeats):
             for k, v in names.items():
                 res[k].append(_phase(v, steps, 100 + r))
-            res[CEIL].append((ceiling(n_agents, num_envs, workers, steps, 100 + r), float("nan"), float("nan")))
+            res[CEIL].append((ceiling(n_agents, num_envs, workers, steps, 100 + r), nan, nan))
+            free, lock = slices(n_agents, num_envs, workers, steps, 100 + r)
+            res[FREE].append((free, nan, nan))
+            res[LOCK].append((lock, nan, nan))
     finally:
         for v in names.values():
             v.close()
@@ -75,10 +83,15 @@ def run(num_envs: int = 8, workers: int = 2, n_agents: int = 3, steps: int = 300
     speedup = best[f"{workers} workers"][0] / best["in-process"][0]
     speedup_parent = best[f"{workers} slices, parent steps one"][0] / best["in-process"][0]
     speedup_ceiling = best[CEIL][0] / best["in-process"][0]
+    # The machine's speed drifts between phases (in-process alone moves by +-25 % within a run), so
+    # also pair each repeat's phases with that repeat's in-process phase and take the median ratio.
+    paired = {k: float(np.median([p[0] / b[0] for p, b in zip(v, res["in-process"])]))
+              for k, v in res.items() if k != "in-process"}
     return {"num_envs": num_envs, "workers": workers, "n_agents": n_agents, "steps": steps,
             "cores": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0],
             "worker_start_s": start_s, "phases": res, "best": best, "speedup": speedup,
-            "speedup_parent_slice": speedup_parent, "speedup_ceiling": speedup_ceiling}
+            "speedup_parent_slice": speedup_parent, "speedup_ceiling": speedup_ceiling,
+            "median_paired_speedup": paired}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -94,14 +107,20 @@ def main(argv: list[str] | None = None) -> None:
           f"{r['cores']} cores; 1-min load average {r['load_before']:.2f} before, {r['load_after']:.2f} after; "
           f"workers started in {r['worker_start_s']:.2f} s")
     for name, phases in r["phases"].items():
-        runs = ", ".join(f"{sps:,.0f}" + ("" if name == CEIL else f" ({cpu:.0f}% busy, {own:.2f} cores ours)")
+        runs = ", ".join(f"{sps:,.0f}" + ("" if name in NO_CPU else f" ({cpu:.0f}% busy, {own:.2f} cores ours)")
                          for sps, cpu, own in phases)
         print(f"  {name:>30}: env-steps/s per phase (system cpu busy, cores our processes got): {runs}")
     print(f"speed-up over in-process (best phases): {r['workers']} workers {r['speedup']:.2f}x, "
           f"{r['workers']} slices with the parent stepping one {r['speedup_parent_slice']:.2f}x")
     print(f"ceiling: {r['workers']} independent processes with no IPC {r['speedup_ceiling']:.2f}x in-process "
           "(what this machine's cores give two busy processes at once; no worker design can beat it)")
-    per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items() if name != CEIL}
+    print("median over repeats of (phase / the same repeat's in-process phase): "
+          + ", ".join(f"{k} {v:.2f}x" for k, v in r["median_paired_speedup"].items()))
+    print(f"  ({FREE!r} is each worker's slice stepped alone in its own process; {LOCK!r} charges every "
+          "batched step its slower slice, i.e. a lockstep pool with free IPC: the gap to the worker phases is IPC"
+          " and wake-ups, the gap to the ceiling is uneven slices)")
+    per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items()
+                if name not in NO_CPU}
     ratio = per_core[f"{r['workers']} workers"] / per_core["in-process"]
     print("env-steps per core-second our processes used: " + ", ".join(f"{k} {v:,.0f}" for k, v in per_core.items())
           + f" (workers/in-process {ratio:.2f}: below 1 is IPC and load-imbalance overhead; the speed-up can"

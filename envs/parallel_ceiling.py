@@ -5,6 +5,11 @@ and the host may be busy. So a worker pool's speed-up is measured against this c
 `workers` independent processes, each stepping the in-process benchmark's exact workload (same
 copies, seed and actions) with no pipes, shared memory or waiting on each other, started together.
 A module of its own because spawned processes must import their target.
+
+`slices` splits the same gap in two: each process steps only *its* slice of that workload (the
+copies a worker would own, with their global seeds), still with no IPC, and times every step. Its
+throughput is what the slices cost without pipes or waiting; the sum over steps of the slower
+slice's time is what a lockstep batch of those slices would take if IPC were free.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import time
 import numpy as np
 
 from envs.registry import make_vec_env
+from envs.workers import slice_counts
 
 
 def _independent(env: str, n_agents: int, num_envs: int, steps: int, seed: int, ready, go, out) -> None:
@@ -36,6 +42,57 @@ def _independent(env: str, n_agents: int, num_envs: int, steps: int, seed: int, 
         out.put(time.perf_counter() - t0)
     finally:
         v.close()
+
+
+def _one_slice(env: str, n_agents: int, num_envs: int, offset: int, count: int, steps: int, seed: int,
+               ready, go, out) -> None:
+    from envs.registry import EnvDescription, build_local
+
+    v = build_local(EnvDescription(env, n_agents), count, index_offset=offset)
+    try:
+        shape = (num_envs, n_agents, v.spec.action_dim)
+        warm = np.random.default_rng(0)
+        v.reset(0)
+        for _ in range(30):
+            v.step(warm.uniform(-1, 1, shape).astype(np.float32)[offset:offset + count])
+        v.reset(seed)
+        rng = np.random.default_rng(seed)  # the whole batch's draws, as the in-process phase makes them
+        acts = [rng.uniform(-1, 1, shape).astype(np.float32)[offset:offset + count] for _ in range(steps)]
+        times = np.empty(steps)
+        ready.wait()
+        go.wait()
+        for t, a in enumerate(acts):
+            t0 = time.perf_counter()
+            v.step(a)
+            times[t] = time.perf_counter() - t0
+        out.put((offset, times.tolist()))
+    finally:
+        v.close()
+
+
+def slices(n_agents: int, num_envs: int, workers: int, steps: int, seed: int,
+           env: str = "mw") -> tuple[float, float]:
+    """(independent, lockstep) env-steps/s of the worker slices stepped in separate processes with
+    no IPC: `independent` lets each slice run freely (total steps / slowest slice's wall time),
+    `lockstep` charges every batched step the slowest slice's time at that step."""
+    ctx = mp.get_context("spawn")
+    parts = slice_counts(num_envs, workers)
+    ready, go, out = ctx.Barrier(len(parts) + 1), ctx.Barrier(len(parts) + 1), ctx.Queue()
+    procs = [ctx.Process(target=_one_slice, args=(env, n_agents, num_envs, off, cnt, steps, seed, ready, go, out))
+             for off, cnt in parts]
+    for pr in procs:
+        pr.start()
+    try:
+        ready.wait(timeout=300)
+        go.wait(timeout=60)
+        times = np.array([t for _, t in sorted(out.get(timeout=600) for _ in procs)])  # (W, steps)
+    finally:
+        for pr in procs:
+            pr.join(timeout=30)
+            if pr.is_alive():
+                pr.kill()
+    total = num_envs * steps
+    return total / times.sum(axis=1).max(), total / times.max(axis=0).sum()
 
 
 def ceiling(n_agents: int, num_envs: int, workers: int, steps: int, seed: int, env: str = "mw") -> float:

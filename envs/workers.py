@@ -129,6 +129,13 @@ def _shutdown(procs: list[Any], conns: list[Any], timeout: float = 3.0) -> None:
             c.close()
 
 
+def slice_counts(num_envs: int, workers: int) -> list[tuple[int, int]]:
+    """(offset, count) of each worker's contiguous slice of the K copies; the first K mod W get one more."""
+    base, extra = divmod(num_envs, workers)
+    counts = [base + (1 if w < extra else 0) for w in range(workers)]
+    return [(sum(counts[:w]), c) for w, c in enumerate(counts)]
+
+
 class WorkerError(RuntimeError):
     """A worker failed to build its envs, crashed, or raised while stepping; carries its traceback."""
 
@@ -156,10 +163,7 @@ class SubprocVecEnv(VecEnv):
         raw = {name: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
                for name, (shape, dtype) in fields.items()}
         self._buf = _views(raw, fields)
-        base, extra = divmod(num_envs, workers)
-        counts = [base + (1 if w < extra else 0) for w in range(workers)]
-        offsets = [sum(counts[:w]) for w in range(workers)]
-        self.slices = list(zip(offsets, counts))
+        self.slices = slice_counts(num_envs, workers)
         self._procs: list[Any] = []
         self._conns: list[Any] = []
         self._parent: VecEnv | None = None  # slice 0 when parent_slice
