@@ -117,8 +117,8 @@ def main(argv: list[str] | None = None) -> None:
     print("median over repeats of (phase / the same repeat's in-process phase): "
           + ", ".join(f"{k} {v:.2f}x" for k, v in r["median_paired_speedup"].items()))
     print(f"  ({FREE!r} is each worker's slice stepped alone in its own process; {LOCK!r} charges every "
-          "batched step its slower slice, i.e. a lockstep pool with free IPC: the gap to the worker phases is IPC"
-          " and wake-ups, the gap to the ceiling is uneven slices)")
+          "batched step its slower slice, i.e. a lockstep pool with free IPC: from alone to lockstep costs the uneven"
+          " slices, from lockstep to the worker phases costs the IPC and hand-off)")
     per_core = {name: max(sps / own for sps, _, own in phases) for name, phases in r["phases"].items()
                 if name not in NO_CPU}
     ratio = per_core[f"{r['workers']} workers"] / per_core["in-process"]

@@ -19,41 +19,19 @@ import time
 
 import numpy as np
 
-from envs.registry import make_vec_env
+from envs.registry import EnvDescription, build_local
 from envs.workers import slice_counts
-
-
-def _independent(env: str, n_agents: int, num_envs: int, steps: int, seed: int, ready, go, out) -> None:
-    v = make_vec_env(env, n_agents, num_envs)
-    try:
-        shape = (num_envs, n_agents, v.spec.action_dim)
-        warm = np.random.default_rng(0)
-        v.reset(0)
-        for _ in range(30):  # imports, allocator, first terrain: as the benchmark's warm-up
-            v.step(warm.uniform(-1, 1, shape).astype(np.float32))
-        v.reset(seed)
-        rng = np.random.default_rng(seed)
-        acts = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(steps)]
-        ready.wait()
-        go.wait()
-        t0 = time.perf_counter()
-        for a in acts:
-            v.step(a)
-        out.put(time.perf_counter() - t0)
-    finally:
-        v.close()
 
 
 def _one_slice(env: str, n_agents: int, num_envs: int, offset: int, count: int, steps: int, seed: int,
                ready, go, out) -> None:
-    from envs.registry import EnvDescription, build_local
-
+    """Step copies offset..offset+count of the benchmark's workload in this process; put the step times."""
     v = build_local(EnvDescription(env, n_agents), count, index_offset=offset)
     try:
         shape = (num_envs, n_agents, v.spec.action_dim)
         warm = np.random.default_rng(0)
         v.reset(0)
-        for _ in range(30):
+        for _ in range(30):  # imports, allocator, first terrain: as the benchmark's warm-up
             v.step(warm.uniform(-1, 1, shape).astype(np.float32)[offset:offset + count])
         v.reset(seed)
         rng = np.random.default_rng(seed)  # the whole batch's draws, as the in-process phase makes them
@@ -70,13 +48,10 @@ def _one_slice(env: str, n_agents: int, num_envs: int, offset: int, count: int, 
         v.close()
 
 
-def slices(n_agents: int, num_envs: int, workers: int, steps: int, seed: int,
-           env: str = "mw") -> tuple[float, float]:
-    """(independent, lockstep) env-steps/s of the worker slices stepped in separate processes with
-    no IPC: `independent` lets each slice run freely (total steps / slowest slice's wall time),
-    `lockstep` charges every batched step the slowest slice's time at that step."""
+def _run_together(env: str, n_agents: int, num_envs: int, parts: list[tuple[int, int]], steps: int,
+                  seed: int) -> np.ndarray:
+    """Start one process per (offset, count) part, release them together; their step times (P, steps)."""
     ctx = mp.get_context("spawn")
-    parts = slice_counts(num_envs, workers)
     ready, go, out = ctx.Barrier(len(parts) + 1), ctx.Barrier(len(parts) + 1), ctx.Queue()
     procs = [ctx.Process(target=_one_slice, args=(env, n_agents, num_envs, off, cnt, steps, seed, ready, go, out))
              for off, cnt in parts]
@@ -85,12 +60,20 @@ def slices(n_agents: int, num_envs: int, workers: int, steps: int, seed: int,
     try:
         ready.wait(timeout=300)
         go.wait(timeout=60)
-        times = np.array([t for _, t in sorted(out.get(timeout=600) for _ in procs)])  # (W, steps)
+        return np.array([t for _, t in sorted(out.get(timeout=600) for _ in procs)])
     finally:
         for pr in procs:
             pr.join(timeout=30)
             if pr.is_alive():
                 pr.kill()
+
+
+def slices(n_agents: int, num_envs: int, workers: int, steps: int, seed: int,
+           env: str = "mw") -> tuple[float, float]:
+    """(independent, lockstep) env-steps/s of the worker slices stepped in separate processes with
+    no IPC: `independent` lets each slice run freely (total steps / slowest slice's wall time),
+    `lockstep` charges every batched step the slowest slice's time at that step."""
+    times = _run_together(env, n_agents, num_envs, slice_counts(num_envs, workers), steps, seed)  # (W, steps)
     total = num_envs * steps
     return total / times.sum(axis=1).max(), total / times.max(axis=0).sum()
 
@@ -98,19 +81,5 @@ def slices(n_agents: int, num_envs: int, workers: int, steps: int, seed: int,
 def ceiling(n_agents: int, num_envs: int, workers: int, steps: int, seed: int, env: str = "mw") -> float:
     """env-steps/s of `workers` independent processes stepping num_envs copies each, with the same
     seeded uniform actions as the benchmark's in-process phase of this seed."""
-    ctx = mp.get_context("spawn")
-    ready, go, out = ctx.Barrier(workers + 1), ctx.Barrier(workers + 1), ctx.Queue()
-    procs = [ctx.Process(target=_independent, args=(env, n_agents, num_envs, steps, seed, ready, go, out))
-             for _ in range(workers)]
-    for pr in procs:
-        pr.start()
-    try:
-        ready.wait(timeout=300)
-        go.wait(timeout=60)
-        walls = [out.get(timeout=600) for _ in procs]
-    finally:
-        for pr in procs:
-            pr.join(timeout=30)
-            if pr.is_alive():
-                pr.kill()
-    return workers * num_envs * steps / max(walls)
+    times = _run_together(env, n_agents, num_envs, [(0, num_envs)] * workers, steps, seed)
+    return workers * num_envs * steps / times.sum(axis=1).max()
