@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report snapshot
+.PHONY: setup up test bench lint clean paper paper-report snapshot status
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,25 +34,38 @@ bench: $(STAMP)
 H := $(VENV)/bin/hammer
 A := docs/results/runs
 VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
+# The grids, each as its sweep arguments (one place for `paper`, `snapshot` and `status`).
+G_CN3_MSGLEN := --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
+G_CN5 := --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
+G_MW3_PILOT := --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000
+G_CN3 := --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
+G_MW3 := --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
-	$(H) sweep --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8
-	$(H) sweep --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000
-	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
-	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
+	$(H) sweep $(G_CN3_MSGLEN)
+	$(H) sweep $(G_CN5)
+	$(H) sweep $(G_MW3_PILOT)
+	$(H) sweep $(G_CN3)
+	$(H) sweep $(G_MW3)
 	$(MAKE) paper-report
 
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
 # gzipped metrics) to $(A)/<grid>/_partial/ and commit it; `make paper` on a fresh clone restores
-# and resumes those runs. Safe while `make paper` is running. Same grids as `paper`, mw3 (4-5 h a
-# run) first.
+# and resumes those runs. Safe while `make paper` is running. mw3 (4-5 h a run) first.
 snapshot: $(STAMP)
-	$(H) sweep --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4 --snapshot
-	$(H) sweep --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000 --snapshot
-	$(H) sweep --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARIANTS) --seeds 0-4 --snapshot
-	$(H) sweep --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4 --snapshot
-	$(H) sweep --out runs/paper/cn3-msglen --archive $(A)/cn3-msglen --presets cn3 --variants hammer-rl --seeds 0-2 --grid msg_dim=1,2,4,8 --snapshot
+	$(H) sweep $(G_MW3) --snapshot
+	$(H) sweep $(G_MW3_PILOT) --snapshot
+	$(H) sweep $(G_CN5) --snapshot
+	$(H) sweep $(G_CN3) --snapshot
+	$(H) sweep $(G_CN3_MSGLEN) --snapshot
+
+# Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
+status: $(STAMP)
+	@$(H) sweep $(G_MW3) --status
+	@$(H) sweep $(G_MW3_PILOT) --status
+	@$(H) sweep $(G_CN5) --status
+	@$(H) sweep $(G_CN3) --status
+	@$(H) sweep $(G_CN3_MSGLEN) --status
 
 paper-report: $(STAMP)
 	-$(H) plot $(A)/cn3 --out docs/results/cn3-curves

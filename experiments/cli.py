@@ -50,6 +50,9 @@ def sweep(
         help="Run nothing: copy each unfinished run of OUT that has a checkpoint to ARCHIVE/_partial/ "
              "(commit it before the session ends; the next sweep restores and resumes it). Needs --archive; "
              "safe while the sweep runs.")] = False,
+    status: Annotated[bool, typer.Option(
+        help="Run nothing: print where every point of the grid stands (archived, done, running, "
+             "resumable, snapshot, not started) with its episodes and final metric. Safe while the sweep runs.")] = False,
     snapshot_every: Annotated[float, typer.Option(
         help="With --archive: also snapshot the runs in progress every this many minutes while the sweep "
              "runs, so a session cut off without warning still leaves them in ARCHIVE/_partial/. 0: never.",
@@ -75,6 +78,9 @@ def sweep(
         style = {"done": "green", "fail": "red", "skip": "dim", "broken": "yellow", "same": "dim"}.get(kind, "cyan")
         console.print(f"[{style}]{kind:>7}[/] {name}", highlight=False, soft_wrap=True)
 
+    if status:
+        _print_status(console, points, out, archive)
+        return
     if snapshot:
         if archive is None:
             _fail("--snapshot writes into the archive; fix: pass --archive DIR too")
@@ -92,6 +98,31 @@ def sweep(
                   f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
+
+
+def _print_status(console, points, out: Path, archive: Path | None) -> None:
+    from rich.table import Table
+
+    from experiments.sweep import sweep_status
+
+    rows = sweep_status(points, out, archive)
+    table = Table(title=f"{out}" + (f" (archive {archive})" if archive else ""), title_justify="left")
+    for col, kw in (("run", {"no_wrap": True}), ("state", {"no_wrap": True}),
+                    ("episodes", {"justify": "right", "no_wrap": True}),
+                    ("final", {"justify": "right", "no_wrap": True}), ("note", {})):
+        table.add_column(col, **kw)
+    style = {"archived": "green", "done": "green", "running": "cyan", "resumable": "yellow",
+             "snapshot": "yellow", "started": "yellow"}
+    for r in rows:
+        eps = f"{r.episodes:,} / {r.budget:,}" if r.episodes is not None else f"- / {r.budget:,}"
+        final = f"{r.final:.2f}" if r.final is not None else ""
+        table.add_row(r.name, f"[{style.get(r.state, 'dim')}]{r.state}[/]", eps, final, r.note)
+    console.print(table)
+    console.print("final = mean paper metric of the last 500 episodes (finished runs only)", style="dim")
+    counts: dict[str, int] = {}
+    for r in rows:
+        counts[r.state] = counts.get(r.state, 0) + 1
+    console.print(", ".join(f"{n} {k}" for k, n in counts.items()) + f" of {len(rows)}")
 
 
 def plot(

@@ -14,6 +14,7 @@ point with no run directory but a partial snapshot is restored from it and resum
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import signal
 import subprocess
@@ -289,6 +290,79 @@ def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=
                     on_event("same" if snap.unchanged else "snap",
                              f"{p.name}  update {snap.update}, {snap.episodes} episodes")
     return taken
+
+
+@dataclass(frozen=True)
+class PointStatus:
+    """Where one grid point stands, read from the sweep directory and the archive only."""
+
+    name: str
+    state: str  # archived | done | running | resumable | snapshot | started | not started
+    episodes: int | None  # episodes recorded so far (finished: all of them)
+    budget: int
+    final: float | None = None  # mean paper metric of the last 500 episodes, finished runs only
+    note: str = ""
+
+
+def _json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _latest_checkpoint_episodes(run_dir: Path) -> int | None:
+    metas = sorted((run_dir / "checkpoints").glob("ckpt_*.json")) if (run_dir / "checkpoints").is_dir() else []
+    meta = _json(metas[-1]) if metas else None
+    return int(meta["episodes"]) if meta and "episodes" in meta else None
+
+
+def _rows(csv_path: Path) -> int | None:
+    try:
+        with open(csv_path, "rb") as f:
+            return max(sum(1 for _ in f) - 1, 0)
+    except OSError:
+        return None
+
+
+def sweep_status(points: list[SweepPoint], out: Path, archive: Path | None = None) -> list[PointStatus]:
+    """The state of every point, without running or changing anything (safe while sweeps run)."""
+    out, rows = Path(out), []
+    for p in points:
+        run_dir = out / p.name
+        budget = p.episodes if p.episodes is not None else int(p.expected_config(None)["episodes"])
+        if archive is not None and is_archived(archive, p.name):
+            summ = _json(Path(archive) / p.name / "summary.json") or {}
+            rows.append(PointStatus(p.name, "archived", summ.get("episodes"), budget,
+                                    summ.get("final_paper_metric_last500")))
+            continue
+        st = state_of(run_dir)
+        if st == "done":
+            summ = _json(run_dir / "summary.json") or {}
+            rows.append(PointStatus(p.name, "done", summ.get("episodes"), budget,
+                                    summ.get("final_paper_metric_last500"),
+                                    "not archived yet" if archive is not None else ""))
+            continue
+        lock = run_dir / LOCK
+        try:
+            holders = [int(x) for x in lock.read_text().split()] if lock.is_file() else []
+        except (OSError, ValueError):
+            holders = []
+        ckpt = _latest_checkpoint_episodes(run_dir) if st == "resume" else None
+        if any(_alive(pid) for pid in holders):
+            rows.append(PointStatus(p.name, "running", _rows(run_dir / "metrics.csv"), budget,
+                                    note=f"checkpoint at {ckpt:,}" if ckpt is not None else ""))
+        elif st == "resume":
+            rows.append(PointStatus(p.name, "resumable", ckpt, budget, note="resumes from its last checkpoint"))
+        elif archive is not None and (partial_dir(archive, p.name) / "checkpoints").is_dir():
+            rows.append(PointStatus(p.name, "snapshot", _latest_checkpoint_episodes(partial_dir(archive, p.name)),
+                                    budget, note="restored from the archive's _partial/ and resumed"))
+        elif run_dir.is_dir():
+            rows.append(PointStatus(p.name, "started", _rows(run_dir / "metrics.csv"), budget,
+                                    note="no checkpoint yet: starts over"))
+        else:
+            rows.append(PointStatus(p.name, "not started", None, budget))
+    return rows
 
 
 LOCK = ".sweep.lock"

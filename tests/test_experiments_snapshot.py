@@ -4,6 +4,7 @@ directory restores and finishes it with exactly the metrics of an uninterrupted 
 
 import csv
 import gzip
+import json
 import os
 import shutil
 import signal
@@ -15,7 +16,7 @@ import pytest
 
 from experiments.archive import PARTIAL, check_partial, is_archived, partial_dir
 from experiments.runs import find_runs
-from experiments.sweep import expand, run_sweep, snapshot_sweep, state_of
+from experiments.sweep import LOCK, expand, run_sweep, snapshot_sweep, state_of, sweep_status
 
 EPISODES = 120  # 30 updates of 4 episodes; checkpoints every 2 updates
 
@@ -116,6 +117,48 @@ def test_snapshot_cli(snapshotted, tmp_path):
     assert partial_dir(tmp_path / "a", pts[0].name).is_dir()
 
 
+def test_status_reads_every_state_without_changing_anything(snapshotted, tmp_path):
+    """`hammer sweep --status`: one real snapshot (seed 0) placed in the states a grid point can be in."""
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    tmp, pts, snap = snapshotted
+    grid = [("num_envs", ["4"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["2"])]
+    points = expand(["cn3"], ["il"], [0, 1, 2, 3, 4, 5], grid, episodes=EPISODES)
+    out, src = tmp_path / "out", partial_dir(tmp / "archive", pts[0].name)
+    for p in points[1:3]:  # seeds 1, 2: a run directory at the snapshot's checkpoint
+        shutil.copytree(src, out / p.name)
+        with gzip.open(src / "metrics.csv.gz", "rt", newline="") as f:
+            (out / p.name / "metrics.csv").write_text(f.read() + "9999,1,-1.0,-3.0,25,1.0\n")
+    (out / points[2].name / LOCK).write_text(f"{os.getpid()}")  # seed 2: held by a live process
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], check=True, capture_output=True,
+                          text=True)
+    (out / points[1].name / LOCK).write_text(dead.stdout.strip())  # seed 1: a stale lock
+    (out / points[3].name).mkdir()  # seed 3: started, no checkpoint yet
+    summary = {"episodes": EPISODES, "final_paper_metric_last500": -12.5}
+    (out / points[4].name).mkdir()  # seed 4: finished here, not archived
+    (out / points[4].name / "summary.json").write_text(json.dumps(summary))
+    before = sorted((str(p), p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
+
+    rows = sweep_status(points, out, tmp / "archive")
+    got = [(r.state, r.episodes, r.budget) for r in rows]
+    assert got == [("snapshot", snap.episodes, EPISODES), ("resumable", snap.episodes, EPISODES),
+                   ("running", snap.episodes + 1, EPISODES), ("started", None, EPISODES),
+                   ("done", EPISODES, EPISODES), ("not started", None, EPISODES)]
+    assert rows[4].final == -12.5 and rows[4].note == "not archived yet"
+    assert f"checkpoint at {snap.episodes:,}" in rows[2].note
+    assert sorted((str(p), p.stat().st_mtime_ns) for p in tmp_path.rglob("*")) == before  # read-only
+
+    args = ["--presets", "cn3", "--variants", "il", "--seeds", "0-5", "--episodes", str(EPISODES),
+            *[x for k, v in grid for x in ("--grid", f"{k}={v[0]}")]]
+    res = CliRunner().invoke(app, ["sweep", "--out", str(out), "--archive", str(tmp / "archive"), *args,
+                                   "--status"], terminal_width=200)
+    assert res.exit_code == 0, res.output
+    assert "1 snapshot, 1 resumable, 1 running, 1 started, 1 done, 1 not started of 6" in res.output
+    assert not (out / points[5].name).exists()  # status ran nothing
+
+
 def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fresh(snapshotted):
     tmp, pts, snap = snapshotted
     name = pts[0].name
@@ -142,6 +185,9 @@ def test_restored_run_matches_an_uninterrupted_one_and_broken_snapshot_starts_fr
     # Finished and archived: the snapshot is gone, the archive holds one finished result.
     assert is_archived(tmp / "archive", name) and not (tmp / "archive" / PARTIAL / name).exists()
     assert find_runs([tmp / "archive"]) == [tmp / "archive" / name]
+    (st,) = sweep_status(pts, tmp / "restored", tmp / "archive")
+    summary = json.loads((tmp / "archive" / name / "summary.json").read_text())
+    assert (st.state, st.episodes, st.final) == ("archived", EPISODES, summary["final_paper_metric_last500"])
 
 
 
