@@ -6,7 +6,10 @@ Names:
   cn-mpe2   the same task through PettingZoo: mpe2 simple_spread_v3, discrete actions, 25 steps,
             local_ratio 0.5 (the reference the vectorised version is checked against).
   mw        SISL multiwalker_v9 with the paper's settings (individual rewards, fallen walkers
-            removed, terrain 200, 500 steps).
+            removed, terrain 200, 500 steps), stepped without PettingZoo's AEC wrappers where that
+            is exact (`envs.multiwalker_direct`: terminate_on_fall=True, the paper's setting).
+  mw-pettingzoo
+            the same env through PettingZoo's parallel wrapper all the way (the reference).
   module:factory
             any PettingZoo parallel env, e.g. `pettingzoo.sisl.pursuit_v4:parallel_env`; env_kwargs
             are passed to the factory and n_agents must match its possible_agents.
@@ -43,7 +46,13 @@ class _Entry:
     defaults: dict[str, Any]
     signature_of: str  # "module:attr" whose __init__/call signature lists the valid kwargs
     about: str
+    direct: bool = False  # step multiwalker without the AEC wrappers where exact (envs.multiwalker_direct)
 
+
+_MW_DEFAULTS: dict[str, Any] = {
+    "position_noise": 1e-3, "angle_noise": 1e-3, "forward_reward": 1.0, "terminate_reward": -100.0,
+    "fall_reward": -10.0, "terminate_on_fall": True, "remove_on_fall": True, "terrain_length": 200,
+    "shared_reward": False, "max_cycles": 500}
 
 _PETTINGZOO: dict[str, _Entry] = {
     "cn-mpe2": _Entry(
@@ -53,12 +62,15 @@ _PETTINGZOO: dict[str, _Entry] = {
         "cooperative navigation via PettingZoo mpe2 simple_spread_v3 (discrete, 25 steps)",
     ),
     "mw": _Entry(
-        "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers",
-        {"position_noise": 1e-3, "angle_noise": 1e-3, "forward_reward": 1.0, "terminate_reward": -100.0,
-             "fall_reward": -10.0, "terminate_on_fall": True, "remove_on_fall": True, "terrain_length": 200,
-             "shared_reward": False, "max_cycles": 500},
+        "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
         "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
         "SISL multiwalker_v9, paper settings (continuous, 500 steps, fallen walkers removed)",
+        direct=True,
+    ),
+    "mw-pettingzoo": _Entry(
+        "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
+        "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
+        "the same multiwalker stepped through PettingZoo's AEC wrappers (the reference for 'mw')",
     ),
 }
 _CN_DEFAULTS: dict[str, Any] = {"local_ratio": 0.5, "max_steps": 25}
@@ -134,6 +146,11 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
         _check_kwargs(desc.name, kwargs, _kwarg_names(_import_attr(entry.signature_of, desc.name)), entry.n_key)
         full = {**entry.defaults, **kwargs, entry.n_key: desc.n_agents}
         fn = _import_attr(f"{entry.module}:{entry.factory}", desc.name)
+        if entry.direct:
+            from envs.multiwalker_direct import DirectMultiwalker, direct_applies
+
+            if direct_applies(full):
+                return (lambda: DirectMultiwalker(fn(**full))), desc.name, int(full["max_cycles"])
         return (lambda: fn(**full)), desc.name, int(full["max_cycles"])
     if ":" in desc.name:
         fn = _import_attr(desc.name, desc.name)

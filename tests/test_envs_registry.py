@@ -14,7 +14,7 @@ from envs.registry import _PETTINGZOO, EnvConfigError, env_descriptions, env_nam
 
 
 def test_names_and_descriptions():
-    assert env_names() == ["cn", "cn-mpe2", "mw"]
+    assert env_names() == ["cn", "cn-mpe2", "mw", "mw-pettingzoo"]
     assert set(env_descriptions()) == set(env_names())
 
 
