@@ -9,9 +9,10 @@ step, which is most of a multiwalker run's time.
 `DirectMultiwalker` wraps the real parallel env and does exactly what that chain does to the Box2D
 env, in one loop: each walker's action goes to `MultiWalkerEnv.step(action, i, is_last)` as a
 float32 array (the physics and every random draw happen on the last one), then the rewards, dones
-and observations are read back the way `raw_env` and the AEC-to-parallel wrapper read them. Resets
-(and seeding) still go through the PettingZoo wrapper, which re-initialises all of its own state,
-so nothing it holds can go stale.
+and observations are read back the way `raw_env` and the AEC-to-parallel wrapper read them. The
+clip wrapper's clip is left out: the walker's `apply_action` uses only sign(a) and min(|a|, 1), so
+clipping cannot change the physics. Resets (and seeding) still go through the PettingZoo wrapper,
+which re-initialises all of its own state, so nothing it holds can go stale.
 
 It is only used where the result is provably the same: `terminate_on_fall=True` (the paper's
 setting), where every episode ends for all walkers at once (a fall, the package dropped or out of
@@ -33,6 +34,11 @@ def direct_applies(kwargs: dict[str, Any]) -> bool:
     return bool(kwargs.get("terminate_on_fall", True)) and kwargs.get("render_mode") is None
 
 
+def wrap_if_exact(penv: Any, kwargs: dict[str, Any]) -> Any:
+    """The registry's hook for `mw`: the direct step where it is exact, else PettingZoo's env as is."""
+    return DirectMultiwalker(penv) if direct_applies(kwargs) else penv
+
+
 class DirectMultiwalker:
     """A PettingZoo parallel multiwalker env whose `step` bypasses the AEC wrappers (see module doc)."""
 
@@ -47,8 +53,6 @@ class DirectMultiwalker:
         self.possible_agents = list(penv.possible_agents)
         self.agents: list[str] = []
         self.metadata = penv.metadata
-        box = penv.action_space(self.possible_agents[0])
-        self._low, self._high = box.low, box.high
 
     # What the registry, the adapter and the tests read.
     @property
@@ -76,8 +80,9 @@ class DirectMultiwalker:
                 raise ValueError("step() cannot take in a nan action")
         last = len(agents) - 1
         for i, act in enumerate(acts):
-            # The clip wrapper's clip (a no-op for actions inside the box, which is all the adapter sends).
-            base.step(np.clip(act, self._low, self._high), i, i == last)
+            # No clip here: the clip wrapper's clip cannot change the physics, because the walker's
+            # apply_action uses only sign(a) and min(|a|, 1) (and the adapter clips the batch already).
+            base.step(act, i, i == last)
         # raw_env after the last walker: rewards from get_last_rewards (np.float64; the earlier walkers'
         # steps contributed cleared zeros), terminations from get_last_dones, all of them at max_cycles.
         rewards = {a: np.float64(r) for a, r in zip(agents, base.last_rewards, strict=True)}

@@ -46,7 +46,7 @@ class _Entry:
     defaults: dict[str, Any]
     signature_of: str  # "module:attr" whose __init__/call signature lists the valid kwargs
     about: str
-    direct: bool = False  # step multiwalker without the AEC wrappers where exact (envs.multiwalker_direct)
+    wrap: str | None = None  # "module:fn", fn(parallel_env, kwargs) -> the env to use (e.g. a faster exact step)
 
 
 _MW_DEFAULTS: dict[str, Any] = {
@@ -65,7 +65,7 @@ _PETTINGZOO: dict[str, _Entry] = {
         "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
         "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
         "SISL multiwalker_v9, paper settings (continuous, 500 steps, fallen walkers removed)",
-        direct=True,
+        wrap="envs.multiwalker_direct:wrap_if_exact",
     ),
     "mw-pettingzoo": _Entry(
         "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
@@ -146,11 +146,9 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
         _check_kwargs(desc.name, kwargs, _kwarg_names(_import_attr(entry.signature_of, desc.name)), entry.n_key)
         full = {**entry.defaults, **kwargs, entry.n_key: desc.n_agents}
         fn = _import_attr(f"{entry.module}:{entry.factory}", desc.name)
-        if entry.direct:
-            from envs.multiwalker_direct import DirectMultiwalker, direct_applies
-
-            if direct_applies(full):
-                return (lambda: DirectMultiwalker(fn(**full))), desc.name, int(full["max_cycles"])
+        if entry.wrap is not None:
+            wrap = _import_attr(entry.wrap, desc.name)
+            return (lambda: wrap(fn(**full), full)), desc.name, int(full["max_cycles"])
         return (lambda: fn(**full)), desc.name, int(full["max_cycles"])
     if ":" in desc.name:
         fn = _import_attr(desc.name, desc.name)

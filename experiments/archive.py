@@ -91,7 +91,7 @@ def partial_dir(archive: Path, name: str) -> Path:
     return Path(archive) / PARTIAL / name
 
 
-def _complete_checkpoints(run_dir: Path) -> list[Path]:
+def complete_checkpoints(run_dir: Path) -> list[Path]:
     """Checkpoint stems whose JSON exists (the JSON is written last: it marks a complete pair)."""
     d = Path(run_dir) / "checkpoints"
     return [j.with_suffix("") for j in sorted(d.glob("ckpt_*.json"))] if d.is_dir() else []
@@ -114,7 +114,7 @@ def snapshot_run(run_dir: Path, archive: Path) -> Snapshot | None:
     run_dir = Path(run_dir)
     dest = partial_dir(archive, run_dir.name)
     for _ in range(5):
-        stems = _complete_checkpoints(run_dir)
+        stems = complete_checkpoints(run_dir)
         if not stems:
             return None
         stem = stems[-1]

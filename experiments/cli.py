@@ -101,6 +101,8 @@ def sweep(
 
 
 def _print_status(console, points, out: Path, archive: Path | None) -> None:
+    from collections import Counter
+
     from rich.table import Table
 
     from experiments.sweep import sweep_status
@@ -119,9 +121,7 @@ def _print_status(console, points, out: Path, archive: Path | None) -> None:
         table.add_row(r.name, f"[{style.get(r.state, 'dim')}]{r.state}[/]", eps, final, r.note)
     console.print(table)
     console.print("final = mean paper metric of the last 500 episodes (finished runs only)", style="dim")
-    counts: dict[str, int] = {}
-    for r in rows:
-        counts[r.state] = counts.get(r.state, 0) + 1
+    counts = Counter(r.state for r in rows)
     console.print(", ".join(f"{n} {k}" for k, n in counts.items()) + f" of {len(rows)}")
 
 

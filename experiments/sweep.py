@@ -27,6 +27,7 @@ from pathlib import Path
 from experiments.archive import (
     Snapshot,
     archive_run,
+    complete_checkpoints,
     drop_partial,
     is_archived,
     partial_dir,
@@ -247,20 +248,25 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
     raise SystemExit(128 + signum)
 
 
+def _snapshot_one(run_dir: Path, archive: Path, on_event=None, report_unchanged: bool = True) -> Snapshot | None:
+    """Snapshot one run in progress and report it; a failure is reported, never raised, so that one
+    bad run costs neither the others their snapshot nor a sweep its runs."""
+    try:
+        snap = snapshot_run(run_dir, archive)
+    except (ValueError, RuntimeError, OSError) as e:
+        if on_event:
+            on_event("fail", f"{run_dir.name}: not snapshotted ({e})")
+        return None
+    if snap is not None and on_event and (report_unchanged or not snap.unchanged):
+        on_event("same" if snap.unchanged else "snap", f"{run_dir.name}  update {snap.update}, {snap.episodes} episodes")
+    return snap
+
+
 def _snapshot_running(names: list[str], out: Path, archive: Path, on_event=None) -> None:
-    """The periodic snapshot of `run_sweep`: runs in progress that have a checkpoint; a failure is
-    reported and never stops the sweep."""
+    """The periodic snapshot of `run_sweep`: runs in progress that have a checkpoint."""
     for name in names:
-        if state_of(out / name) != "resume":
-            continue  # no checkpoint yet
-        try:
-            snap = snapshot_run(out / name, archive)
-        except (ValueError, RuntimeError, OSError) as e:
-            if on_event:
-                on_event("fail", f"{name}: not snapshotted ({e})")
-            continue
-        if snap is not None and not snap.unchanged and on_event:
-            on_event("snap", f"{name}  update {snap.update}, {snap.episodes} episodes")
+        if state_of(out / name) == "resume":  # else no checkpoint yet
+            _snapshot_one(out / name, archive, on_event, report_unchanged=False)
 
 
 def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=None) -> list[Snapshot]:
@@ -278,17 +284,9 @@ def snapshot_sweep(points: list[SweepPoint], out: Path, archive: Path, on_event=
                     on_event("archive", p.name)
             drop_partial(archive, p.name)
         elif st == "resume" and not is_archived(archive, p.name):
-            try:
-                snap = snapshot_run(run_dir, archive)
-            except (ValueError, RuntimeError) as e:  # one bad run must not cost the others their snapshot
-                if on_event:
-                    on_event("fail", f"{p.name}: not snapshotted ({e})")
-                continue
+            snap = _snapshot_one(run_dir, archive, on_event)
             if snap is not None:
                 taken.append(snap)
-                if on_event:
-                    on_event("same" if snap.unchanged else "snap",
-                             f"{p.name}  update {snap.update}, {snap.episodes} episodes")
     return taken
 
 
@@ -312,8 +310,8 @@ def _json(path: Path) -> dict | None:
 
 
 def _latest_checkpoint_episodes(run_dir: Path) -> int | None:
-    metas = sorted((run_dir / "checkpoints").glob("ckpt_*.json")) if (run_dir / "checkpoints").is_dir() else []
-    meta = _json(metas[-1]) if metas else None
+    stems = complete_checkpoints(run_dir)
+    meta = _json(Path(str(stems[-1]) + ".json")) if stems else None
     return int(meta["episodes"]) if meta and "episodes" in meta else None
 
 
@@ -343,13 +341,8 @@ def sweep_status(points: list[SweepPoint], out: Path, archive: Path | None = Non
                                     summ.get("final_paper_metric_last500"),
                                     "not archived yet" if archive is not None else ""))
             continue
-        lock = run_dir / LOCK
-        try:
-            holders = [int(x) for x in lock.read_text().split()] if lock.is_file() else []
-        except (OSError, ValueError):
-            holders = []
         ckpt = _latest_checkpoint_episodes(run_dir) if st == "resume" else None
-        if any(_alive(pid) for pid in holders):
+        if _held(run_dir):
             rows.append(PointStatus(p.name, "running", _rows(run_dir / "metrics.csv"), budget,
                                     note=f"checkpoint at {ckpt:,}" if ckpt is not None else ""))
         elif st == "resume":
@@ -378,6 +371,15 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _held(run_dir: Path) -> bool:
+    """Whether a live process (a sweep or its `hammer train` child) holds the run directory's lock."""
+    try:
+        holders = [int(x) for x in (run_dir / LOCK).read_text().split()]
+    except (OSError, ValueError):
+        return False
+    return any(_alive(pid) for pid in holders)
+
+
 def _lock(run_dir: Path, child: int | None = None) -> bool:
     """Claim a run directory for this sweep process (and, once started, its `hammer train` child),
     so that several sweeps over one directory (e.g. one per core, or a restarted one next to a
@@ -392,11 +394,7 @@ def _lock(run_dir: Path, child: int | None = None) -> bool:
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
         except FileExistsError:
-            try:
-                holders = [int(x) for x in path.read_text().split()]
-            except (OSError, ValueError):
-                holders = []
-            if any(_alive(pid) for pid in holders):
+            if _held(run_dir):
                 return False
             path.unlink(missing_ok=True)  # stale: its sweep and child are gone
             continue
