@@ -28,7 +28,6 @@ def main(argv: list[str] | None = None) -> None:
     cfg = build_config({**preset_dict("cn3"), "variant": "hammer", "central_mode": "rl", "seed": 0, "compile": True})
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, RunDir.create(f"{tmp}/run", cfg), tensorboard=False)
-        tr._t0 = time.perf_counter()
         state = {"obs": tr.env.reset(0)[0], "prev": tr.team.zero_prev_actions(cfg.num_envs), "u": 0}
 
         def collect() -> None:

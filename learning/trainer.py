@@ -57,6 +57,7 @@ class Trainer:
         self.episodes = 0
         self.env_steps = 0
         self.wall_offset = 0.0
+        self._t0 = time.perf_counter()  # run() restarts the clock; set here so _collect works on its own
         self.recent: deque[float] = deque(maxlen=500)
         self.tensorboard = tensorboard
 
