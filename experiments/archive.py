@@ -7,6 +7,8 @@ curve are copied to an archive directory inside the repository (`docs/results/ru
     <archive>/<run name>/config.json   the resolved RunConfig
     <archive>/<run name>/summary.json  the run's summary
     <archive>/<run name>/metrics.npz   episode (int32), paper_metric, team_return (float32)
+    <archive>/<run name>/train_stats.npz  the learners' per-update statistics, if the run logged
+                                       any (`experiments.train_stats`, drawn by `hammer diagnose`)
 
 about 0.2 MB per 30,000-episode run. The sweep treats an archived run as done, and `hammer plot`
 / `hammer report` read archived runs exactly like run directories. npz is read with
@@ -40,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.train_stats import write_train_stats
+
 METRICS_NPZ = "metrics.npz"
 PARTIAL = "_partial"  # in-progress snapshots inside an archive: never a finished result
 
@@ -66,6 +70,7 @@ def archive_run(run_dir: Path, archive: Path) -> Path:
     np.savez_compressed(tmp, episode=np.asarray(eps, np.int32), paper_metric=np.asarray(metric, np.float32),
                         team_return=np.asarray(team, np.float32))
     tmp.replace(dest / METRICS_NPZ)
+    write_train_stats(run_dir, dest)  # optional: runs trained without TensorBoard have none
     for f in ("config.json", "summary.json"):  # summary last: its presence marks a complete copy
         shutil.copyfile(run_dir / f, dest / f)
     return dest

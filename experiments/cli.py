@@ -1,4 +1,4 @@
-"""`hammer sweep`, `hammer plot`, `hammer report`."""
+"""`hammer sweep`, `hammer plot`, `hammer report`, `hammer diagnose`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("sweep")(sweep)
     app.command("plot")(plot)
     app.command("report")(report)
+    app.command("diagnose")(diagnose)
 
 
 def _fail(msg: str) -> None:
@@ -156,3 +157,35 @@ def report(
         from experiments.export import export_runs
 
         export_runs(loaded, export)
+
+
+def diagnose(
+    runs: Annotated[list[Path], typer.Argument(help="Run directories, archived runs or folders holding them.")],
+    out: Annotated[Path | None, typer.Option(
+        help="Also draw the figure: output path without extension; writes .png and .svg.")] = None,
+    table: Annotated[Path | None, typer.Option(help="Also write the markdown table here.")] = None,
+    window: Annotated[int, typer.Option(help="Rolling-mean window in episodes for the best point.")] = 500,
+    last: Annotated[int, typer.Option(help="Final performance = mean of each run's last N episodes.")] = 500,
+) -> None:
+    """Why did a run fall back after it had learned? Per run: its best rolling mean and final
+    score next to its local learner's policy entropy (at the best episode and at the end) and the
+    median approximate KL and clip fraction of its updates before and after the best episode.
+
+    Reads the learner statistics from an archived run's train_stats.npz or a run directory's
+    TensorBoard events (tb/); runs with neither show a dash.
+    """
+    from experiments.diagnose import diagnose as diagnose_run
+    from experiments.diagnose import plot_diagnostics, to_markdown
+
+    loaded = _load(runs)
+    try:
+        diags = [diagnose_run(r, window, last) for r in loaded]
+    except ValueError as e:
+        _fail(str(e))
+    md = to_markdown(diags, window, last)
+    typer.echo(md)
+    if table:
+        table.write_text(md)
+    if out:
+        for p in plot_diagnostics(loaded, out, window=window):
+            typer.echo(f"wrote {p}")

@@ -44,12 +44,19 @@ def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None =
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
+    return save_figure(fig, out, dpi=120)
+
+
+def save_figure(fig, out: Path, dpi: int) -> list[Path]:
+    """Write `<out>.png` and `<out>.svg` and close the figure; returns the paths written."""
+    import matplotlib.pyplot as plt
+
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     written = []
     for ext in (".png", ".svg"):
         p = out.with_suffix(ext)
-        fig.savefig(p, dpi=120)
+        fig.savefig(p, dpi=dpi)
         written.append(p)
     plt.close(fig)
     return written

@@ -92,7 +92,10 @@ class Trainer:
         self._t0 = time.perf_counter()
         resumed = getattr(self, "_resumed", False)
         steps_at_start, t_start = self.env_steps, time.perf_counter()
-        tb = self.rd.tensorboard(purge_step=self.env_steps if resumed else None) if self.tensorboard else None
+        # a resumed run drops what its last life logged after the checkpoint; the update logged at
+        # the checkpoint's own env-step count came before it and stays (purge = steps >= this)
+        purge = self.env_steps + 1 if resumed else None
+        tb = self.rd.tensorboard(purge_step=purge) if self.tensorboard else None
         k = cfg.num_envs
         done_training = self.episodes >= cfg.episodes
         obs = prev = None
