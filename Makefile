@@ -78,6 +78,7 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
 	-$(H) report $(A)/mw3 --out docs/results/mw3-table.md --export docs/results/mw3-runs.json
+	-$(H) diagnose $(A)/mw3 --out docs/results/mw3-diagnostics --table docs/results/mw3-diagnostics.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
