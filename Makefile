@@ -40,6 +40,7 @@ G_CN5 := --out runs/paper/cn5 --archive $(A)/cn5 --presets cn5 --variants $(VARI
 G_MW3_PILOT := --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3 --variants hammer-rl,il --seeds 0-2 --episodes 2000
 G_CN3 := --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
 G_MW3 := --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
+G_MW5_PILOT := --out runs/paper/mw5-pilot --archive $(A)/mw5-pilot --presets mw5 --variants hammer-rl,il --seeds 0-2 --episodes 2000
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
@@ -47,6 +48,7 @@ paper: $(STAMP)
 	$(H) sweep $(G_MW3_PILOT)
 	$(H) sweep $(G_CN3)
 	$(H) sweep $(G_MW3)
+	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
 
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
@@ -54,6 +56,7 @@ paper: $(STAMP)
 # and resumes those runs. Safe while `make paper` is running. mw3 (4-5 h a run) first.
 snapshot: $(STAMP)
 	$(H) sweep $(G_MW3) --snapshot
+	$(H) sweep $(G_MW5_PILOT) --snapshot
 	$(H) sweep $(G_MW3_PILOT) --snapshot
 	$(H) sweep $(G_CN5) --snapshot
 	$(H) sweep $(G_CN3) --snapshot
@@ -62,6 +65,7 @@ snapshot: $(STAMP)
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
 	@$(H) sweep $(G_MW3) --status
+	@$(H) sweep $(G_MW5_PILOT) --status
 	@$(H) sweep $(G_MW3_PILOT) --status
 	@$(H) sweep $(G_CN5) --status
 	@$(H) sweep $(G_CN3) --status
@@ -79,6 +83,8 @@ paper-report: $(STAMP)
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
 	-$(H) report $(A)/mw3 --out docs/results/mw3-table.md --export docs/results/mw3-runs.json
 	-$(H) diagnose $(A)/mw3 --out docs/results/mw3-diagnostics --table docs/results/mw3-diagnostics.md
+	-$(H) plot $(A)/mw5-pilot --out docs/results/mw5-pilot-curves
+	-$(H) report $(A)/mw5-pilot --out docs/results/mw5-pilot-table.md --export docs/results/mw5-pilot-runs.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
