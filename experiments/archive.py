@@ -35,6 +35,7 @@ import csv
 import gzip
 import io
 import json
+import logging
 import os
 import shutil
 from dataclasses import dataclass
@@ -43,6 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments.train_stats import write_train_stats
+
+log = logging.getLogger(__name__)
 
 METRICS_NPZ = "metrics.npz"
 PARTIAL = "_partial"  # in-progress snapshots inside an archive: never a finished result
@@ -70,7 +73,10 @@ def archive_run(run_dir: Path, archive: Path) -> Path:
     np.savez_compressed(tmp, episode=np.asarray(eps, np.int32), paper_metric=np.asarray(metric, np.float32),
                         team_return=np.asarray(team, np.float32))
     tmp.replace(dest / METRICS_NPZ)
-    write_train_stats(run_dir, dest)  # optional: runs trained without TensorBoard have none
+    try:  # optional: runs trained without TensorBoard have none
+        write_train_stats(run_dir, dest)
+    except ValueError as e:  # a `hammer up` run: archive it without them
+        log.warning("%s: learner statistics not archived: %s", run_dir.name, e)
     for f in ("config.json", "summary.json"):  # summary last: its presence marks a complete copy
         shutil.copyfile(run_dir / f, dest / f)
     return dest

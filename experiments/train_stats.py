@@ -29,10 +29,15 @@ PREFIX = "train/"  # only the learners' statistics; speed and running means are 
 
 
 def read_tensorboard(run_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{tag: (steps, values)} for every `train/...` scalar in `run_dir/tb`; {} if there is none."""
+    """{tag: (steps, values)} for every `train/...` scalar in `run_dir/tb`; {} if there is none.
+    Only in-process runs (`hammer train`, sweeps): their steps are env steps."""
     tb = Path(run_dir) / "tb"
     if not tb.is_dir() or not any(tb.glob("events.out.tfevents.*")):
         return {}
+    if (Path(run_dir) / "learner_summary.json").is_file():
+        raise ValueError(f"{run_dir} is a `hammer up` run: its learner logs statistics per update, not per "
+                         "env step, so they cannot be placed on the episode axis; fix: diagnose in-process "
+                         "runs (`hammer train`, `hammer sweep`), or read tb/ with TensorBoard")
     import logging
 
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

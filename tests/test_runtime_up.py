@@ -13,6 +13,7 @@ import pytest
 
 from deploy.settings import RuntimeSettings
 from deploy.up import launch
+from experiments.train_stats import load_train_stats
 from learning.config import merge_config
 from tests.runtime_helpers import hammer, processes_mentioning
 
@@ -47,6 +48,9 @@ def test_short_up_run_completes_writes_metrics_and_leaves_no_process(tmp_path):
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
     assert (run / "final" / "local.safetensors").is_file()
     assert processes_mentioning(str(run)) == []
+    # its learner logs per update, not per env step: `hammer diagnose` says so instead of a wrong axis
+    with pytest.raises(ValueError, match="hammer up"):
+        load_train_stats(run)
 
 
 @pytest.mark.parametrize("mode", ["backprop", "rl"])
