@@ -82,6 +82,7 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
 	-$(H) report $(A)/mw3 --out docs/results/mw3-table.md --export docs/results/mw3-runs.json
+	-$(H) report $(A)/mw3 --best-window 500 --out docs/results/mw3-table-best.md
 	-$(H) diagnose $(A)/mw3 --out docs/results/mw3-diagnostics --table docs/results/mw3-diagnostics.md
 	-$(H) plot $(A)/mw5-pilot --out docs/results/mw5-pilot-curves
 	-$(H) report $(A)/mw5-pilot --out docs/results/mw5-pilot-table.md --export docs/results/mw5-pilot-runs.json

@@ -144,12 +144,18 @@ def report(
     out: Annotated[Path | None, typer.Option(help="Also write the markdown table here.")] = None,
     export: Annotated[Path | None, typer.Option(
         help="Also write a compact JSON of every run (config, final figures, downsampled curve).")] = None,
+    best_window: Annotated[int | None, typer.Option(
+        help="Rank each run by its best rolling mean over this many episodes instead of its final mean: "
+             "how high it got, not where it ended (runs that learn and then fall back differ).", min=1)] = None,
 ) -> None:
     """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL."""
     from experiments.report import build_rows, to_markdown
 
     loaded = _load(runs)
-    md = to_markdown(build_rows(loaded, last), last)
+    try:
+        md = to_markdown(build_rows(loaded, last, best_window), last, best_window)
+    except ValueError as e:
+        _fail(str(e))
     typer.echo(md)
     if out:
         out.write_text(md)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.plot import save_figure
-from experiments.runs import Run, rolling_mean
+from experiments.runs import Run, best_rolling, rolling_mean
 from experiments.train_stats import load_train_stats
 
 # (tag, axis label): the local agents' learner; every variant has one
@@ -37,14 +37,6 @@ class Diagnosis:
     stats: dict[str, tuple[float, float, float, float]]
 
 
-def best_point(metric: np.ndarray, window: int) -> tuple[float, int]:
-    """(best rolling mean over complete windows, its episode); the whole run if shorter than one."""
-    rm = rolling_mean(metric, window)
-    first = min(window, len(rm)) - 1
-    i = first + int(np.argmax(rm[first:]))
-    return float(rm[i]), i + 1
-
-
 def _split(episodes: np.ndarray, values: np.ndarray, at: int) -> tuple[float, float, float, float]:
     nan = float("nan")
     if len(values) == 0:
@@ -59,7 +51,7 @@ def _split(episodes: np.ndarray, values: np.ndarray, at: int) -> tuple[float, fl
 def diagnose(run: Run, window: int = 500, last: int = 500) -> Diagnosis:
     if len(run.paper_metric) == 0:
         raise ValueError(f"{run.path} has no episodes yet")
-    best, at = best_point(run.paper_metric, window)
+    best, at = best_rolling(run.paper_metric, window)
     stats = load_train_stats(run.path)
     return Diagnosis(
         name=run.path.name, label=run.label, episodes=len(run.paper_metric),
@@ -107,7 +99,7 @@ def plot_diagnostics(runs: list[Run], out: Path, window: int = 500) -> list[Path
     dashes = ["-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1))]
     for r in sorted(runs, key=lambda r: (r.label, r.seed)):
         c, ls = colour[r.label], dashes[r.seed % len(dashes)]
-        best, at = best_point(r.paper_metric, window)
+        best, at = best_rolling(r.paper_metric, window)
         axes[0].plot(np.arange(1, len(r.paper_metric) + 1), rolling_mean(r.paper_metric, window), color=c, ls=ls,
                      lw=1, label=f"{r.label} s{r.seed}")
         axes[0].plot([at], [best], "o", color=c, ms=4)

@@ -103,6 +103,15 @@ def rolling_mean(x: np.ndarray, window: int) -> np.ndarray:
     return (c[idx] - c[lo]) / (idx - lo)
 
 
+def best_rolling(metric: np.ndarray, window: int) -> tuple[float, int]:
+    """(best rolling mean over complete windows, the episode it ends at); over the whole run if it
+    is shorter than one window. How high a run got, where the final mean says where it ended."""
+    rm = rolling_mean(metric, window)
+    first = min(window, len(rm)) - 1
+    i = first + int(np.argmax(rm[first:]))
+    return float(rm[i]), i + 1
+
+
 def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
     """Runs grouped by (setting, label): the seeds of one comparison."""
     groups: dict[tuple[str, str], list[Run]] = {}

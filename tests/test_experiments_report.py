@@ -57,6 +57,24 @@ def test_report_means_sem_and_welch(runs_dir):
     assert "| cn N=3 | hammer-backprop-m4 | 4 | 800 |" in md
 
 
+def test_report_by_best_rolling_mean(runs_dir):
+    runs = [load_run(p) for p in find_runs([runs_dir])]
+    # one IL seed peaks early and falls back: by final mean it is low, by best rolling mean high
+    il0 = next(r for r in runs if r.path.name == "il-s0")
+    il0.paper_metric = np.concatenate([np.full(300, 5.0), np.full(500, -40.0)])
+    best = {
+        label: np.array([max(r.paper_metric[i - 100:i].mean() for i in range(100, len(r.paper_metric) + 1))
+                         for r in runs if r.label == label])
+        for label in ("il", "hammer-backprop-m4")
+    }
+    rows = {r.label: r for r in build_rows(runs, last=500, best_window=100)}
+    assert rows["il"].finals[[r for r in runs if r.label == "il"].index(il0)] == pytest.approx(5.0)
+    assert rows["il"].mean == pytest.approx(best["il"].mean())
+    assert rows["hammer-backprop-m4"].p_vs_il == pytest.approx(
+        stats.ttest_ind(best["hammer-backprop-m4"], best["il"], equal_var=False).pvalue)
+    assert "| best (mean ± s.e.) |" in to_markdown(list(rows.values()), 500, best_window=100)
+
+
 def test_plot_writes_png_and_svg(runs_dir, tmp_path):
     runs = [load_run(p) for p in find_runs([runs_dir])]
     out = plot_runs(runs, tmp_path / "figs" / "curves", window=100)

@@ -6,8 +6,8 @@ import pytest
 from typer.testing import CliRunner
 
 from experiments.archive import archive_run
-from experiments.diagnose import DIAG_STATS, best_point, diagnose
-from experiments.runs import load_run, rolling_mean
+from experiments.diagnose import DIAG_STATS, diagnose
+from experiments.runs import best_rolling, load_run, rolling_mean
 from experiments.train_stats import TRAIN_STATS_NPZ, load_train_stats, read_tensorboard
 from learning.config import merge_config
 from learning.rundir import RunDir
@@ -79,7 +79,7 @@ def test_diagnosis_splits_the_statistics_at_the_best_episode(runs):
     d = diagnose(run, window=20, last=30)
     rm = rolling_mean(run.paper_metric, 20)
     assert d.best == pytest.approx(rm[19:].max()) and d.best_episode == 20 + int(np.argmax(rm[19:]))
-    assert (d.best, d.best_episode) == best_point(run.paper_metric, 20)
+    assert (d.best, d.best_episode) == best_rolling(run.paper_metric, 20)
     assert d.final == pytest.approx(run.paper_metric[-30:].mean())
     ep, v = load_train_stats(archive / "full")["train/local/approx_kl"]
     i = int((ep <= d.best_episode).sum())
