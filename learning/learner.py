@@ -76,10 +76,12 @@ class TeamLearner:
         if self.team.central is not None:
             self.team.central.load_state_dict({k[8:]: v for k, v in tensors.items() if k.startswith("central/")})
             optimizer_from_tensors(self.central_opt.optimizer, "opt_central", tensors, meta["opt_central"])
-        for opt in (self.local_opt, self.central_opt):  # checkpoints from before the fused Adam
+        # The config decides the learning rate, not the checkpoint (which restores its own): a run
+        # resumed with a changed lr must train with it. Also: checkpoints from before the fused Adam.
+        for opt, lr in ((self.local_opt, self.cfg.lr_local), (self.central_opt, self.cfg.lr_central)):
             if opt is not None:
                 for group in opt.optimizer.param_groups:
-                    group.update(fused=True, foreach=None)
+                    group.update(fused=True, foreach=None, lr=lr)
 
     def batch(self, obs: np.ndarray, prev: np.ndarray) -> dict[str, torch.Tensor]:
         """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors."""

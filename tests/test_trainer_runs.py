@@ -96,3 +96,28 @@ def test_cli_train_and_one_line_errors(tmp_path):
     res = runner.invoke(app, ["train", "--resume", str(d), "--episodes", "48", "--quiet"])
     assert res.exit_code == 0, res.output
     assert len(_rows(d)) == 48
+
+
+def test_a_resumed_learner_trains_with_the_configured_learning_rate():
+    """The checkpoint restores Adam's moments, but the learning rate comes from the config: a branch
+    resumed with another lr (config.json edited) must not silently keep the old one."""
+    import torch
+
+    from envs.registry import make_vec_env
+    from learning.learner import TeamLearner
+
+    cfg = merge_config("cn3", overrides=SMALL + ["variant=hammer", "central_mode=rl"])
+    env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)
+    a = TeamLearner(cfg, env.spec)
+    for opt in (a.local_opt, a.central_opt):  # give Adam some state to carry over
+        opt.optimizer.zero_grad()
+        sum(p.sum() for g in opt.optimizer.param_groups for p in g["params"]).backward()
+        opt.optimizer.step()
+    tensors, meta = a.state_tensors()
+    b = TeamLearner(cfg.model_copy(update={"lr_local": 1e-4, "lr_central": 5e-4}), env.spec)
+    b.load_state(tensors, meta)
+    assert [g["lr"] for g in b.local_opt.optimizer.param_groups] == [1e-4]
+    assert [g["lr"] for g in b.central_opt.optimizer.param_groups] == [5e-4]
+    state_a, state_b = a.local_opt.optimizer.state_dict()["state"], b.local_opt.optimizer.state_dict()["state"]
+    assert state_a.keys() == state_b.keys() and all(
+        torch.equal(state_a[k]["exp_avg"], state_b[k]["exp_avg"]) for k in state_a)
