@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.plot import save_figure
+from experiments.report import final_performance
 from experiments.runs import Run, best_rolling, rolling_mean
 from experiments.train_stats import load_train_stats
 
@@ -49,13 +50,12 @@ def _split(episodes: np.ndarray, values: np.ndarray, at: int) -> tuple[float, fl
 
 
 def diagnose(run: Run, window: int = 500, last: int = 500) -> Diagnosis:
-    if len(run.paper_metric) == 0:
-        raise ValueError(f"{run.path} has no episodes yet")
+    final = final_performance(run, last)  # ValueError for a run without episodes
     best, at = best_rolling(run.paper_metric, window)
     stats = load_train_stats(run.path)
     return Diagnosis(
         name=run.path.name, label=run.label, episodes=len(run.paper_metric),
-        final=float(np.mean(run.paper_metric[-last:])), best=best, best_episode=at,
+        final=final, best=best, best_episode=at,
         stats={tag: _split(*stats[tag], at) for tag, _ in DIAG_STATS if tag in stats},
     )
 

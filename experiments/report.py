@@ -23,11 +23,20 @@ class Row:
     finals: list[float]
 
 
-def final_performance(run: Run, last: int) -> float:
-    """Mean paper metric over the run's last `last` episodes."""
+def _episodes(run: Run) -> np.ndarray:
     if len(run.paper_metric) == 0:
         raise ValueError(f"{run.path} has no episodes yet")
-    return float(np.mean(run.paper_metric[-last:]))
+    return run.paper_metric
+
+
+def final_performance(run: Run, last: int) -> float:
+    """Mean paper metric over the run's last `last` episodes: where the run ended."""
+    return float(np.mean(_episodes(run)[-last:]))
+
+
+def best_performance(run: Run, window: int) -> float:
+    """The run's best rolling-`window` mean of the paper metric: how high it got."""
+    return best_rolling(_episodes(run), window)[0]
 
 
 def sem(x: np.ndarray) -> float:
@@ -38,11 +47,7 @@ def build_rows(runs: list[Run], last: int = 500, best_window: int | None = None)
     """One row per (setting, variant). Each run counts with its final performance, or with its best
     rolling-`best_window` mean if that is given."""
     def value(r: Run) -> float:
-        if best_window is None:
-            return final_performance(r, last)
-        if len(r.paper_metric) == 0:
-            raise ValueError(f"{r.path} has no episodes yet")
-        return best_rolling(r.paper_metric, best_window)[0]
+        return final_performance(r, last) if best_window is None else best_performance(r, best_window)
 
     groups = group_runs(runs)
     finals = {key: np.array([value(r) for r in rs]) for key, rs in groups.items()}
