@@ -9,6 +9,10 @@ from typing import Annotated
 
 import typer
 
+# What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
+BRANCH_FIXED = ("env", "env_kwargs", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
+                "use_prev_actions", "actor_hidden", "critic_hidden", "central_hidden")
+
 
 def _fail(msg: str) -> None:
     typer.secho(f"error: {msg}", fg="red", err=True)
@@ -27,6 +31,10 @@ def train_command(
     name: Annotated[str | None, typer.Option(help="run directory name under --out")] = None,
     run_dir: Annotated[Path | None, typer.Option(help="exact run directory (overrides --out/--name)")] = None,
     resume: Annotated[Path | None, typer.Option(help="continue this run directory from its last checkpoint")] = None,
+    branch: Annotated[Path | None, typer.Option(
+        help="continue a copy of this run from its last checkpoint into --run-dir, with --set/--seed/--episodes "
+             "changes (e.g. --set ent_coef=0.01): what would have happened from there with another setting. "
+             "The original is not touched.")] = None,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
 ) -> None:
     """Train a HAMMER team (or a baseline) in-process; writes a run directory."""
@@ -34,7 +42,19 @@ def train_command(
     from learning.rundir import RunDir
 
     try:
-        if resume is not None:
+        if branch is not None:
+            if resume is not None or run_dir is None or any(v is not None for v in (preset, variant, central_mode,
+                                                                                     config)):
+                raise ConfigError("--branch: needs --run-dir for the new run and takes only --set, --seed and "
+                                  "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.01")
+            src, src_cfg = RunDir.open(branch)
+            cfg = merge_config(None, None, set_ or [], {"seed": seed, "episodes": episodes},
+                               base=src_cfg.model_dump(mode="json"))
+            changed = [f for f in BRANCH_FIXED if getattr(cfg, f) != getattr(src_cfg, f)]
+            if changed:
+                raise ConfigError(f"--branch: '{changed[0]}' cannot change on a branch (the checkpoint's networks, "
+                                  f"buffers or random streams are built on it); fix: drop that --set, or start a new run")
+        elif resume is not None:
             if any(v is not None for v in (preset, variant, central_mode, seed, config, set_)):
                 raise ConfigError("--resume: only --episodes may be changed when resuming; fix: drop the other options")
             rd, cfg = RunDir.open(resume)
@@ -59,11 +79,11 @@ def train_command(
         if resume is None:
             path = run_dir if run_dir is not None else Path(cfg.out) / (name or cfg.run_name())
             try:
-                rd = RunDir.create(path, cfg)
+                rd = RunDir.branch(src, path, cfg) if branch is not None else RunDir.create(path, cfg)
             except ConfigError:
                 env.close()
                 raise
-        _run(cfg, rd, env, resume is not None, quiet)
+        _run(cfg, rd, env, resume is not None or branch is not None, quiet)
     except ConfigError as e:
         _fail(str(e))
 

@@ -8,6 +8,7 @@ Sources are merged in this order (later wins): model defaults < preset < YAML fi
 
 from __future__ import annotations
 
+import copy
 import difflib
 from pathlib import Path
 from typing import Any, Literal
@@ -168,11 +169,13 @@ def merge_config(
     file: str | Path | None = None,
     overrides: list[str] | None = None,
     extra: dict[str, Any] | None = None,
+    base: dict[str, Any] | None = None,
 ) -> RunConfig:
-    """defaults < preset < YAML file < `extra` (explicit CLI flags) < `--set` overrides."""
+    """defaults < `base` (a run's own config, for branches) < preset < YAML file < `extra`
+    (explicit CLI flags) < `--set` overrides."""
     from learning.presets import preset_dict
 
-    data: dict[str, Any] = {}
+    data: dict[str, Any] = copy.deepcopy(base) if base else {}
     if preset:
         data.update(preset_dict(preset))
     if file:

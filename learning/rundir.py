@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -85,6 +86,23 @@ class RunDir:
         (rd.path / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
         save_yaml(cfg, rd.path / "config.yaml")
         rd.truncate_metrics(0)
+        return rd
+
+    @classmethod
+    def branch(cls, src: RunDir, path: str | Path, cfg: RunConfig) -> RunDir:
+        """A new run at `path` that continues `src` from its latest checkpoint under `cfg` (a few
+        fields changed): the checkpoint, the episodes it covers and the TensorBoard log are copied,
+        `src` is not touched. Resuming it (`train(..., resume=True)`) is the branch."""
+        stem = src.latest_checkpoint()
+        if stem is None:
+            raise ConfigError(f"--branch '{src.path}': no checkpoint yet; fix: branch a run that has one")
+        rd = cls.create(path, cfg)
+        rd.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        for suffix in (".safetensors", ".json"):  # the JSON last: it marks the pair complete
+            shutil.copyfile(str(stem) + suffix, rd.ckpt_dir / (stem.name + suffix))
+        shutil.copyfile(src.metrics_path, rd.metrics_path)  # resuming cuts it to the checkpoint's episodes
+        if (src.path / "tb").is_dir():  # resuming purges what was logged after the checkpoint
+            shutil.copytree(src.path / "tb", rd.path / "tb", dirs_exist_ok=True)
         return rd
 
     @classmethod

@@ -121,3 +121,33 @@ def test_a_resumed_learner_trains_with_the_configured_learning_rate():
     state_a, state_b = a.local_opt.optimizer.state_dict()["state"], b.local_opt.optimizer.state_dict()["state"]
     assert state_a.keys() == state_b.keys() and all(
         torch.equal(state_a[k]["exp_avg"], state_b[k]["exp_avg"]) for k in state_a)
+
+
+def test_branch_continues_a_copy_with_changed_settings(tmp_path):
+    """`hammer train --branch RUN --run-dir NEW --set k=v`: an unchanged branch is the run itself
+    resumed; a changed one shares everything up to the checkpoint; the original is untouched."""
+    from hammer.cli import app
+
+    sets = ["variant=hammer", "central_mode=rl", "checkpoint_every=3", "seed=1"]
+    _run(tmp_path, "full", sets + ["episodes=160"])
+    _run(tmp_path, "cut", sets + ["episodes=100"])  # newest checkpoint at 96 episodes
+    before = {p.name: p.read_bytes() for p in (tmp_path / "cut").rglob("*") if p.is_file()}
+    runner = CliRunner()
+    same = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut"), "--run-dir", str(tmp_path / "same"),
+                               "--episodes", "160", "--quiet"])
+    assert same.exit_code == 0, same.output
+    assert _rows(tmp_path / "same") == _rows(tmp_path / "full")
+    lr = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut"), "--run-dir", str(tmp_path / "lr"),
+                             "--episodes", "160", "--set", "lr_local=0.003", "--quiet"])
+    assert lr.exit_code == 0, lr.output
+    assert json.loads((tmp_path / "lr" / "config.json").read_text())["lr_local"] == 0.003
+    rows_lr, rows_full = _rows(tmp_path / "lr"), _rows(tmp_path / "full")
+    assert rows_lr[:96] == rows_full[:96] and rows_lr[96:] != rows_full[96:] and len(rows_lr) == 160
+    assert {p.name: p.read_bytes() for p in (tmp_path / "cut").rglob("*") if p.is_file()} == before
+    bad = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut"), "--run-dir", str(tmp_path / "bad"),
+                              "--set", "msg_dim=2"])
+    assert bad.exit_code == 2 and "'msg_dim' cannot change on a branch" in bad.output
+    bad = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut")])
+    assert bad.exit_code == 2 and "needs --run-dir" in bad.output
+    taken = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut"), "--run-dir", str(tmp_path / "lr")])
+    assert taken.exit_code == 2 and "already holds a run" in taken.output
