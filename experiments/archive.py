@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.metrics_csv import read_metrics_csv
 from experiments.train_stats import write_train_stats
 
 log = logging.getLogger(__name__)
@@ -63,18 +64,13 @@ def archive_run(run_dir: Path, archive: Path) -> Path:
         raise FileNotFoundError(f"{run_dir} has no summary.json: only finished runs are archived")
     dest = Path(archive) / run_dir.name
     dest.mkdir(parents=True, exist_ok=True)
-    eps, metric, team = [], [], []
-    with open(run_dir / "metrics.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            eps.append(int(float(row["episode"])))
-            metric.append(float(row["paper_metric"]))
-            team.append(float(row["team_return"]))
+    m = read_metrics_csv(run_dir / "metrics.csv")
     tmp = dest / (METRICS_NPZ + ".tmp.npz")
-    np.savez_compressed(tmp, episode=np.asarray(eps, np.int32), paper_metric=np.asarray(metric, np.float32),
-                        team_return=np.asarray(team, np.float32))
+    np.savez_compressed(tmp, episode=m["episode"].astype(np.int32), paper_metric=m["paper_metric"].astype(np.float32),
+                        team_return=m["team_return"].astype(np.float32))
     tmp.replace(dest / METRICS_NPZ)
     try:  # optional: runs trained without TensorBoard have none
-        write_train_stats(run_dir, dest)
+        write_train_stats(run_dir, dest, m["env_steps"])
     except ValueError as e:  # a `hammer up` run: archive it without them
         log.warning("%s: learner statistics not archived: %s", run_dir.name, e)
     for f in ("config.json", "summary.json"):  # summary last: its presence marks a complete copy

@@ -182,10 +182,12 @@ def diagnose(
     """
     from experiments.diagnose import diagnose as diagnose_run
     from experiments.diagnose import plot_diagnostics, to_markdown
+    from experiments.train_stats import load_train_stats
 
     loaded = _load(runs)
     try:
-        diags = [diagnose_run(r, window, last) for r in loaded]
+        stats = {r.path: load_train_stats(r.path) for r in loaded}  # read once: the table and the figure
+        diags = [diagnose_run(r, window, last, stats[r.path]) for r in loaded]
     except ValueError as e:
         _fail(str(e))
     md = to_markdown(diags, window, last)
@@ -193,5 +195,5 @@ def diagnose(
     if table:
         table.write_text(md)
     if out:
-        for p in plot_diagnostics(loaded, out, window=window):
+        for p in plot_diagnostics(loaded, out, window=window, stats=stats):
             typer.echo(f"wrote {p}")

@@ -18,6 +18,8 @@ from experiments.report import final_performance
 from experiments.runs import Run, best_rolling, rolling_mean
 from experiments.train_stats import load_train_stats
 
+Stats = dict[str, tuple[np.ndarray, np.ndarray]]  # load_train_stats: {tag: (episodes, values)}
+
 # (tag, axis label): the local agents' learner; every variant has one
 DIAG_STATS = (
     ("train/local/entropy", "local policy entropy"),
@@ -49,10 +51,12 @@ def _split(episodes: np.ndarray, values: np.ndarray, at: int) -> tuple[float, fl
     return at_best, float(values[-1]), before, after
 
 
-def diagnose(run: Run, window: int = 500, last: int = 500) -> Diagnosis:
+def diagnose(run: Run, window: int = 500, last: int = 500, stats: Stats | None = None) -> Diagnosis:
+    """`stats`: the run's `load_train_stats`, if the caller has it already (reading TensorBoard
+    events takes seconds per run)."""
     final = final_performance(run, last)  # ValueError for a run without episodes
     best, at = best_rolling(run.paper_metric, window)
-    stats = load_train_stats(run.path)
+    stats = load_train_stats(run.path) if stats is None else stats
     return Diagnosis(
         name=run.path.name, label=run.label, episodes=len(run.paper_metric),
         final=final, best=best, best_episode=at,
@@ -85,9 +89,11 @@ def to_markdown(diags: list[Diagnosis], window: int, last: int) -> str:
     return "\n".join(out) + "\n"
 
 
-def plot_diagnostics(runs: list[Run], out: Path, window: int = 500) -> list[Path]:
+def plot_diagnostics(runs: list[Run], out: Path, window: int = 500,
+                     stats: dict[Path, Stats] | None = None) -> list[Path]:
     """Write `<out>.png` and `<out>.svg`: the rolling paper metric and each DIAG_STATS statistic
-    against episodes, one line per run (colour = variant, dash = seed, a dot at the run's best point)."""
+    against episodes, one line per run (colour = variant, dash = seed, a dot at the run's best point).
+    `stats`: {run path: its load_train_stats} if the caller has them already."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,10 +109,10 @@ def plot_diagnostics(runs: list[Run], out: Path, window: int = 500) -> list[Path
         axes[0].plot(np.arange(1, len(r.paper_metric) + 1), rolling_mean(r.paper_metric, window), color=c, ls=ls,
                      lw=1, label=f"{r.label} s{r.seed}")
         axes[0].plot([at], [best], "o", color=c, ms=4)
-        stats = load_train_stats(r.path)
+        run_stats = stats[r.path] if stats is not None else load_train_stats(r.path)
         for ax, (tag, _) in zip(axes[1:], DIAG_STATS, strict=True):
-            if tag in stats:
-                ep, v = stats[tag][0], rolling_mean(stats[tag][1], 25)
+            if tag in run_stats:
+                ep, v = run_stats[tag][0], rolling_mean(run_stats[tag][1], 25)
                 ax.plot(ep, v, color=c, ls=ls, lw=1)
                 i = int(np.searchsorted(ep, at, side="right"))
                 if i > 0:

@@ -7,7 +7,6 @@ and tables can be rebuilt from runs made on any machine.
 
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
+from experiments.metrics_csv import read_metrics_csv
 
 
 @dataclass
@@ -75,22 +75,9 @@ def load_run(path: Path) -> Run:
         e, m, t = load_metrics_npz(path / METRICS_NPZ)
         return Run(path=path, config=config, episodes=e, paper_metric=m, team_return=t,
                    finished=(path / "summary.json").is_file())
-    eps: list[float] = []
-    metric: list[float] = []
-    team: list[float] = []
-    with open(path / "metrics.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            eps.append(float(row["episode"]))
-            metric.append(float(row["paper_metric"]))
-            team.append(float(row["team_return"]))
-    return Run(
-        path=path,
-        config=config,
-        episodes=np.asarray(eps),
-        paper_metric=np.asarray(metric),
-        team_return=np.asarray(team),
-        finished=(path / "summary.json").is_file(),
-    )
+    m = read_metrics_csv(path / "metrics.csv")
+    return Run(path=path, config=config, episodes=m["episode"], paper_metric=m["paper_metric"],
+               team_return=m["team_return"], finished=(path / "summary.json").is_file())
 
 
 def rolling_mean(x: np.ndarray, window: int) -> np.ndarray:

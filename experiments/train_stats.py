@@ -19,10 +19,11 @@ snapshots do not carry `tb/`.
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
+
+from experiments.metrics_csv import read_metrics_csv
 
 TRAIN_STATS_NPZ = "train_stats.npz"
 PREFIX = "train/"  # only the learners' statistics; speed and running means are elsewhere
@@ -54,13 +55,13 @@ def read_tensorboard(run_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _episodes_at(run_dir: Path, steps: np.ndarray) -> np.ndarray:
-    """Episodes finished by each env-step count, from metrics.csv's cumulative env_steps column."""
-    ends = []
-    with open(Path(run_dir) / "metrics.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            ends.append(int(float(row["env_steps"])))
-    return np.searchsorted(np.asarray(ends, np.int64), steps, side="right").astype(np.int32)
+def _episodes_at(ends: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Episodes finished by each env-step count, from metrics.csv's cumulative env_steps (`ends`)."""
+    return np.searchsorted(ends, steps, side="right").astype(np.int32)
+
+
+def _episode_ends(run_dir: Path) -> np.ndarray:
+    return read_metrics_csv(Path(run_dir) / "metrics.csv")["env_steps"]
 
 
 def _key(tag: str) -> str:
@@ -69,14 +70,16 @@ def _key(tag: str) -> str:
     return tag.replace("/", ".")
 
 
-def write_train_stats(run_dir: Path, dest_dir: Path) -> Path | None:
-    """Write `dest_dir/train_stats.npz` from the run's TensorBoard events; None if it has none."""
+def write_train_stats(run_dir: Path, dest_dir: Path, ends: np.ndarray | None = None) -> Path | None:
+    """Write `dest_dir/train_stats.npz` from the run's TensorBoard events; None if it has none.
+    `ends`: metrics.csv's env_steps column if the caller has read it already."""
     stats = read_tensorboard(run_dir)
     if not stats:
         return None
     # every train/ tag is logged at every update, so one step axis serves all (NaN if one is missing)
     steps = np.unique(np.concatenate([s for s, _ in stats.values()]))
-    arrays = {"step": steps, "episode": _episodes_at(run_dir, steps)}
+    ends = _episode_ends(run_dir) if ends is None else ends
+    arrays = {"step": steps, "episode": _episodes_at(ends, steps)}
     for tag, (s, v) in sorted(stats.items()):
         col = np.full(len(steps), np.nan, np.float32)
         col[np.searchsorted(steps, s)] = v
@@ -106,5 +109,7 @@ def load_train_stats(run_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
             return out
     if not (run_dir / "metrics.csv").is_file():
         return {}
-    return {tag: (_episodes_at(run_dir, steps).astype(np.int64), values.astype(np.float64))
-            for tag, (steps, values) in read_tensorboard(run_dir).items()}
+    stats = read_tensorboard(run_dir)
+    ends = _episode_ends(run_dir) if stats else None
+    return {tag: (_episodes_at(ends, steps).astype(np.int64), values.astype(np.float64))
+            for tag, (steps, values) in stats.items()}
