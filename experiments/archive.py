@@ -98,10 +98,12 @@ def partial_dir(archive: Path, name: str) -> Path:
     return Path(archive) / PARTIAL / name
 
 
-def complete_checkpoints(run_dir: Path) -> list[Path]:
-    """Checkpoint stems whose JSON exists (the JSON is written last: it marks a complete pair)."""
-    d = Path(run_dir) / "checkpoints"
-    return [j.with_suffix("") for j in sorted(d.glob("ckpt_*.json"))] if d.is_dir() else []
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The run's newest complete checkpoint stem: the trainer's own rule (`RunDir.latest_checkpoint`,
+    the JSON is written last and marks a complete pair)."""
+    from learning.rundir import RunDir
+
+    return RunDir(run_dir).latest_checkpoint()
 
 
 def _csv_head(text: str, n_rows: int) -> str:
@@ -121,10 +123,9 @@ def snapshot_run(run_dir: Path, archive: Path) -> Snapshot | None:
     run_dir = Path(run_dir)
     dest = partial_dir(archive, run_dir.name)
     for _ in range(5):
-        stems = complete_checkpoints(run_dir)
-        if not stems:
+        stem = latest_checkpoint(run_dir)
+        if stem is None:
             return None
-        stem = stems[-1]
         try:
             meta_text = Path(str(stem) + ".json").read_text()
             meta = json.loads(meta_text)

@@ -27,9 +27,9 @@ from pathlib import Path
 from experiments.archive import (
     Snapshot,
     archive_run,
-    complete_checkpoints,
     drop_partial,
     is_archived,
+    latest_checkpoint,
     partial_dir,
     restore_partial,
     snapshot_run,
@@ -118,7 +118,7 @@ def expand(presets: list[str], variants: list[str], seeds: list[int],
 def state_of(run_dir: Path) -> str:
     if (run_dir / "summary.json").is_file():
         return "done"
-    if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").glob("*.json")):
+    if latest_checkpoint(run_dir) is not None:
         return "resume"
     return "new"
 
@@ -310,8 +310,8 @@ def _json(path: Path) -> dict | None:
 
 
 def _latest_checkpoint_episodes(run_dir: Path) -> int | None:
-    stems = complete_checkpoints(run_dir)
-    meta = _json(Path(str(stems[-1]) + ".json")) if stems else None
+    stem = latest_checkpoint(run_dir)
+    meta = _json(Path(str(stem) + ".json")) if stem is not None else None
     return int(meta["episodes"]) if meta and "episodes" in meta else None
 
 
