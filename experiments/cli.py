@@ -173,9 +173,11 @@ def diagnose(
     window: Annotated[int, typer.Option(help="Rolling-mean window in episodes for the best point.")] = 500,
     last: Annotated[int, typer.Option(help="Final performance = mean of each run's last N episodes.")] = 500,
 ) -> None:
-    """Why did a run fall back after it had learned? Per run: its best rolling mean and final
-    score next to its local learner's policy entropy (at the best episode and at the end) and the
-    median approximate KL and clip fraction of its updates before and after the best episode.
+    """Why did a run fall back after it had learned? Learner statistics around each run's peak.
+
+    Per run: its best rolling mean and final score next to its local learner's policy entropy (at
+    the best episode and at the end) and the median approximate KL and clip fraction of its
+    updates before and after the best episode.
 
     Reads the learner statistics from an archived run's train_stats.npz or a run directory's
     TensorBoard events (tb/); runs with neither show a dash.
