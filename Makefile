@@ -41,12 +41,15 @@ G_MW3_PILOT := --out runs/paper/mw3-pilot --archive $(A)/mw3-pilot --presets mw3
 G_CN3 := --out runs/paper/cn3 --archive $(A)/cn3 --presets cn3 --variants $(VARIANTS) --seeds 0-4
 G_MW3 := --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer-rl,il --seeds 0-4
 G_MW5_PILOT := --out runs/paper/mw5-pilot --archive $(A)/mw5-pilot --presets mw5 --variants hammer-rl,il --seeds 0-2 --episodes 2000
+# cn3 with the authors' PPO settings (Monte-Carlo returns, local lr 1e-4, full-batch epochs).
+G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid gae_lambda=1.0 --grid lr_local=1e-4 --grid minibatches=1
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
 	$(H) sweep $(G_CN5)
 	$(H) sweep $(G_MW3_PILOT)
 	$(H) sweep $(G_CN3)
+	$(H) sweep $(G_CN3_PAPERPPO)
 	$(H) sweep $(G_MW3)
 	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
@@ -60,6 +63,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_MW3_PILOT) --snapshot
 	$(H) sweep $(G_CN5) --snapshot
 	$(H) sweep $(G_CN3) --snapshot
+	$(H) sweep $(G_CN3_PAPERPPO) --snapshot
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
@@ -69,6 +73,7 @@ status: $(STAMP)
 	@$(H) sweep $(G_MW3_PILOT) --status
 	@$(H) sweep $(G_CN5) --status
 	@$(H) sweep $(G_CN3) --status
+	@$(H) sweep $(G_CN3_PAPERPPO) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
 
 paper-report: $(STAMP)
@@ -78,6 +83,8 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/cn3-msglen --out docs/results/cn3-msglen-table.md --export docs/results/cn3-msglen-runs.json
 	-$(H) plot $(A)/cn5 --out docs/results/cn5-curves
 	-$(H) report $(A)/cn5 --out docs/results/cn5-table.md --export docs/results/cn5-runs.json
+	-$(H) plot $(A)/cn3-paperppo --out docs/results/cn3-paperppo-curves
+	-$(H) report $(A)/cn3-paperppo --out docs/results/cn3-paperppo-table.md --export docs/results/cn3-paperppo-runs.json
 	-$(H) plot $(A)/mw3-pilot --out docs/results/mw3-pilot-curves
 	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
