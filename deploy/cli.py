@@ -38,10 +38,10 @@ def bench_runtime_command(
     import json
     import os
 
-    from rich.console import Console
     from rich.table import Table
 
     from deploy.bench import bench_runtime, same_label
+    from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
     rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
@@ -54,7 +54,7 @@ def bench_runtime_command(
         t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
                   f"{r['ratio_up_over_train']:.2f}", f"{r.get('ratio_up_lag1_over_train', float('nan')):.2f}",
                   f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}", same_label(r))
-    Console().print(t)
+    table_console().print(t)
     if json_out is not None:
         json_out.write_text(json.dumps(rows, indent=1))
 

@@ -22,10 +22,10 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     @envs.command("list")
     def list_envs(n_agents: int = typer.Option(DEFAULT_N, "--n-agents", "-n", help="team size N to describe")) -> None:
         """List env names with N, observation size and action space (builds one copy of each)."""
-        from rich.console import Console
         from rich.table import Table
 
         from envs.registry import env_descriptions, make_vec_env
+        from hammer.console import table_console
 
         table = Table("name", "N", "obs dim", "actions", "max steps", "description")
         for name, about in env_descriptions().items():
@@ -34,7 +34,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             acts = f"{s.action_dim} discrete" if s.discrete else f"{s.action_dim} in [{s.action_low:g}, {s.action_high:g}]"
             table.add_row(name, str(s.n_agents), str(s.obs_dim), acts, str(s.max_steps), about)
             v.close()
-        Console().print(table)
+        table_console().print(table)
         typer.echo("Any PettingZoo parallel env is accepted too, as 'module:factory' (e.g. "
                    "'mpe2.simple_spread_v3:parallel_env') with its kwargs.")
 

@@ -64,11 +64,10 @@ def sweep(
     Re-running the same command skips finished runs, resumes interrupted ones from their last
     checkpoint and starts the rest. Each run is its own run directory under OUT.
     """
-    from rich.console import Console
-
     from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, snapshot_sweep
+    from hammer.console import table_console
 
-    console = Console()
+    console = table_console()
     try:
         points = expand(presets.split(","), variants.split(","), parse_seeds(seeds),
                         parse_grid_overrides(grid or []), episodes=episodes)

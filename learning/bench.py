@@ -158,8 +158,9 @@ def run_bench(variant: str = "hammer", central_mode: str = "rl", cn_episodes: in
 
 
 def print_table(r: dict[str, Any]) -> None:
-    from rich.console import Console
     from rich.table import Table
+
+    from hammer.console import table_console
 
     mode = f"/{r['central_mode']}" if r["variant"] == "hammer" else ""
     t = Table(title=f"hammer train speed ({r['variant']}{mode}; env-steps/s include PPO updates; "
@@ -186,7 +187,7 @@ def print_table(r: dict[str, Any]) -> None:
         if key == "workers=2":
             note += f"; speed-up {r['mw3']['speedup']:.2f}x over in-process"
         t.add_row("mw3", name, f"{m['env_steps_per_s']:,.0f}", note, ld(m))
-    console = Console()
+    console = table_console()
     console.print(t)
     console.print("The machine is shared: compare figures only with the load average beside them.")
 

@@ -42,9 +42,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     ) -> None:
         """Messages/s and round-trip p50/p99 of typed messages vs raw bytes of the same size,
         over Zenoh on 127.0.0.1 to an echo peer in another (spawned) process."""
-        from rich.console import Console
         from rich.table import Table
 
+        from hammer.console import table_console
         from protocol.bench import bench_meta, rows_as_dicts, run_bench
 
         rows = run_bench(rounds=rounds, flood=flood)
@@ -59,9 +59,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 f"{r.typed_rtt_p50_us:.0f} / {r.typed_rtt_p99_us:.0f}",
                 f"{r.raw_rtt_p50_us:.0f} / {r.raw_rtt_p99_us:.0f}", f"{r.rtt_ratio:.2f}",
             )
-        console = Console()
-        if not console.is_terminal:
-            console = Console(width=170)  # keep the table readable in logs and CI output
+        console = table_console()
         console.print(table)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
@@ -83,17 +81,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         import os
         import platform
 
-        from rich.console import Console
         from rich.table import Table
 
+        from hammer.console import table_console
         from protocol.bench import codec_bench, codec_rows_as_dicts, role_costs
 
         sizes = ((3, 18, 4), (5, 30, 8))
         rows = codec_bench(k=k, sizes=sizes, number=number, repeat=repeat, cold=cold)
         load = os.getloadavg()
-        console = Console()
-        if not console.is_terminal:
-            console = Console(width=170)
+        console = table_console()
         regime = "cache-cold single calls, median CPU time" if cold else "hot loop, best wall time"
         table = Table(title=f"hammer bench codec (us per message, {regime}; ref = pydantic, fast = fast path; "
                             f"load {load[0]:.2f})")
@@ -136,9 +132,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         import os
         import platform
 
-        from rich.console import Console
         from rich.table import Table
 
+        from hammer.console import table_console
         from protocol.loopfloor import rows_as_dicts as floor_dicts
         from protocol.loopfloor import run_floor
 
@@ -151,9 +147,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         for n, r in rows:
             table.add_row(str(n), "one process each" if r.topology == "split" else "one process for all",
                           r.mode, str(r.processes), f"{r.p50_us:.0f}", f"{r.p99_us:.0f}", str(r.steps))
-        console = Console()
-        if not console.is_terminal:
-            console = Console(width=170)
+        console = table_console()
         console.print(table)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
