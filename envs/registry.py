@@ -196,7 +196,10 @@ def _make_cn(n_agents: int, num_envs: int, kwargs: dict[str, Any], workers: int)
     _check_kwargs("cn", kwargs, valid, None)
     if workers:
         log.warning("env 'cn' is already vectorised in numpy; workers=%d ignored (runs in-process)", workers)
-    return VecSimpleSpread(num_envs, n_agents, **{**_CN_DEFAULTS, **kwargs})
+    try:
+        return VecSimpleSpread(num_envs, n_agents, **{**_CN_DEFAULTS, **kwargs})
+    except (ValueError, TypeError) as e:  # a bad value (e.g. local_ratio=2): name the env, keep the reason
+        raise EnvConfigError(f"env 'cn': {e}") from e
 
 
 # -- the public entry point ------------------------------------------------------------------------

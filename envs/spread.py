@@ -31,6 +31,12 @@ _mpe_utils/simple_env.py), with discrete actions and the defaults `N`, `local_ra
 
 The floating-point operations are the same as mpe2's except the order in which an agent's
 contact forces are summed, so trajectories agree to ~1e-15 (see tests/test_spread_exact.py).
+
+One option goes beyond mpe2: `observe_others=False` drops the other agents' positions and the
+(always zero) communication slots from each local observation, leaving [v_i, p_i, landmarks - p_i].
+The world, the rewards and the random streams are unchanged. It exists to test the paper's premise
+that the central agent helps when it knows what the local agents do not: the central agent's
+input (every local observation) still holds every agent's position, a local agent's no longer does.
 """
 
 from __future__ import annotations
@@ -56,9 +62,10 @@ _ACTION_FORCE = (
 )
 
 
-def spread_obs_dim(n_agents: int) -> int:
-    """vel (2) + pos (2) + landmarks (2N) + other agents (2(N-1)) + communication (2(N-1))."""
-    return 4 + 2 * n_agents + 2 * (n_agents - 1) + DIM_C * (n_agents - 1)
+def spread_obs_dim(n_agents: int, observe_others: bool = True) -> int:
+    """vel (2) + pos (2) + landmarks (2N) [+ other agents (2(N-1)) + communication (2(N-1))]."""
+    own = 4 + 2 * n_agents
+    return own + 2 * (n_agents - 1) + DIM_C * (n_agents - 1) if observe_others else own
 
 
 class VecSimpleSpread(VecEnv):
@@ -73,7 +80,8 @@ class VecSimpleSpread(VecEnv):
     """
 
     def __init__(
-        self, num_envs: int, n_agents: int = 3, local_ratio: float = 0.5, max_steps: int = 25
+        self, num_envs: int, n_agents: int = 3, local_ratio: float = 0.5, max_steps: int = 25,
+        observe_others: bool = True,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -83,14 +91,17 @@ class VecSimpleSpread(VecEnv):
             raise ValueError(f"local_ratio is a proportion in [0, 1], got {local_ratio}")
         if max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        if not isinstance(observe_others, bool):
+            raise TypeError(f"observe_others must be true or false, got {observe_others!r}")
         self.num_envs = num_envs
         self.n_agents = n_agents
         self.local_ratio = float(local_ratio)
         self.max_steps = max_steps
+        self.observe_others = observe_others
         self.spec = EnvSpec(
             name="cn",
             n_agents=n_agents,
-            obs_dim=spread_obs_dim(n_agents),
+            obs_dim=spread_obs_dim(n_agents, observe_others),
             discrete=True,
             action_dim=N_ACTIONS,
             max_steps=max_steps,
@@ -208,8 +219,9 @@ class VecSimpleSpread(VecEnv):
     def _observe(self, v: np.ndarray, p: np.ndarray, rel: np.ndarray, lm_rel: np.ndarray) -> np.ndarray:
         """Scenario.observation of every agent of k copies, cast to float32: (k, N, D).
 
-        Per agent i: [v_i, p_i, landmark_l - p_i for all l, p_j - p_i for j != i, comm zeros].
-        Built feature-major (D, N, k) with long contiguous writes, then transposed once.
+        Per agent i: [v_i, p_i, landmark_l - p_i for all l, p_j - p_i for j != i, comm zeros]
+        (only the first three with observe_others=False). Built feature-major (D, N, k) with long
+        contiguous writes, then transposed once.
         """
         n, kk = self.n_agents, p.shape[-1]
         buf = np.empty((self.spec.obs_dim, n, kk), dtype=np.float32)
@@ -217,6 +229,8 @@ class VecSimpleSpread(VecEnv):
         buf[2:4] = p
         a = 4 + 2 * n
         buf[4:a].reshape(n, 2, n, kk)[...] = lm_rel  # lm_rel is (L, 2, N, k)
+        if not self.observe_others:
+            return np.ascontiguousarray(buf.transpose(2, 1, 0))
         b = a + 2 * (n - 1)
         buf[a:b].reshape(n - 1, 2, n, kk)[...] = rel.transpose(1, 0, 2, 3)
         buf[b:] = 0.0  # silent agents: the communication slots are always 0

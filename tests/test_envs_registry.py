@@ -49,6 +49,7 @@ def test_kwargs_override_defaults():
         assert not v.step(np.zeros((1, 3), dtype=np.int64)).done.any()
     assert v.step(np.zeros((1, 3), dtype=np.int64)).done.all()
     assert make_vec_env("cn", 3, 1, env_kwargs={"max_steps": 10}).spec.max_steps == 10
+    assert make_vec_env("cn", 3, 1, env_kwargs={"observe_others": False}).spec.obs_dim == 10
 
 
 def test_module_factory_any_parallel_env():
@@ -65,6 +66,10 @@ def test_module_factory_any_parallel_env():
      r"field 'bogus'; valid fields: .*local_ratio"),
     (lambda: make_vec_env("cn", 3, 1, env_kwargs={"max_cycles": 5}), EnvConfigError,
      r"env 'cn': unknown env_kwargs field 'max_cycles'; valid fields: .*max_steps"),
+    (lambda: make_vec_env("cn", 3, 1, env_kwargs={"observe_others": "maybe"}), EnvConfigError,
+     r"env 'cn': observe_others must be true or false, got 'maybe'"),
+    (lambda: make_vec_env("cn", 3, 1, env_kwargs={"local_ratio": 2}), EnvConfigError,
+     r"env 'cn': local_ratio is a proportion in \[0, 1\], got 2"),
     (lambda: make_vec_env("mw", 3, 1, env_kwargs={"n_walkers": 4}), EnvConfigError,
      r"'n_walkers' is set by n_agents"),
     (lambda: make_vec_env("cn-mpe2", 3, 1, env_kwargs={"N": 4}), EnvConfigError, r"'N' is set by n_agents"),

@@ -252,3 +252,24 @@ def test_spec_and_errors() -> None:
         env.step(np.full((2, 5), 5))
     with pytest.raises(ValueError, match="agent_pos"):
         env.set_state(0, np.zeros((3, 2)), np.zeros((5, 2)), np.zeros((5, 2)))
+
+
+def test_observe_others_false_keeps_only_own_state_and_landmarks() -> None:
+    """observe_others=False is the same world with a shorter observation: the first 4 + 2N values of
+    the full one ([v_i, p_i, landmarks - p_i]); rewards, episode ends and resets are unchanged."""
+    k, n = 8, 3
+    full, own = VecSimpleSpread(k, n_agents=n), VecSimpleSpread(k, n_agents=n, observe_others=False)
+    assert own.spec.obs_dim == spread_obs_dim(n, observe_others=False) == 4 + 2 * n
+    obs_full, _ = full.reset(21)
+    obs_own, _ = own.reset(21)
+    np.testing.assert_array_equal(obs_own, obs_full[..., : 4 + 2 * n])
+    rng = np.random.default_rng(1)
+    for _ in range(3 * MAX_CYCLES):  # crosses two auto-resets
+        actions = rng.integers(0, 5, (k, n))
+        a, b = full.step(actions), own.step(actions)
+        np.testing.assert_array_equal(b.obs, a.obs[..., : 4 + 2 * n])
+        np.testing.assert_array_equal(b.final_obs, a.final_obs[..., : 4 + 2 * n])
+        np.testing.assert_array_equal(b.reward, a.reward)
+        np.testing.assert_array_equal(b.done, a.done)
+    with pytest.raises(TypeError, match="observe_others"):
+        VecSimpleSpread(k, n_agents=n, observe_others="no")
