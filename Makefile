@@ -43,6 +43,8 @@ G_MW3 := --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer
 G_MW5_PILOT := --out runs/paper/mw5-pilot --archive $(A)/mw5-pilot --presets mw5 --variants hammer-rl,il --seeds 0-2 --episodes 2000
 # cn3 with the authors' PPO settings (Monte-Carlo returns, local lr 1e-4, full-batch epochs).
 G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid gae_lambda=1.0 --grid lr_local=1e-4 --grid minibatches=1
+# cn3 where a local agent does not observe the other agents (the central agent still sees everyone).
+G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid env_kwargs.observe_others=false
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
@@ -50,6 +52,7 @@ paper: $(STAMP)
 	$(H) sweep $(G_MW3_PILOT)
 	$(H) sweep $(G_CN3)
 	$(H) sweep $(G_CN3_PAPERPPO)
+	$(H) sweep $(G_CN3_OWNOBS)
 	$(H) sweep $(G_MW3)
 	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
@@ -64,6 +67,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_CN5) --snapshot
 	$(H) sweep $(G_CN3) --snapshot
 	$(H) sweep $(G_CN3_PAPERPPO) --snapshot
+	$(H) sweep $(G_CN3_OWNOBS) --snapshot
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
@@ -74,6 +78,7 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN5) --status
 	@$(H) sweep $(G_CN3) --status
 	@$(H) sweep $(G_CN3_PAPERPPO) --status
+	@$(H) sweep $(G_CN3_OWNOBS) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
 
 paper-report: $(STAMP)
@@ -85,6 +90,8 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/cn5 --out docs/results/cn5-table.md --export docs/results/cn5-runs.json
 	-$(H) plot $(A)/cn3-paperppo --out docs/results/cn3-paperppo-curves
 	-$(H) report $(A)/cn3-paperppo --out docs/results/cn3-paperppo-table.md --export docs/results/cn3-paperppo-runs.json
+	-$(H) plot $(A)/cn3-ownobs --out docs/results/cn3-ownobs-curves
+	-$(H) report $(A)/cn3-ownobs --out docs/results/cn3-ownobs-table.md --export docs/results/cn3-ownobs-runs.json
 	-$(H) plot $(A)/mw3-pilot --out docs/results/mw3-pilot-curves
 	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
