@@ -43,8 +43,9 @@ G_MW3 := --out runs/paper/mw3 --archive $(A)/mw3 --presets mw3 --variants hammer
 G_MW5_PILOT := --out runs/paper/mw5-pilot --archive $(A)/mw5-pilot --presets mw5 --variants hammer-rl,il --seeds 0-2 --episodes 2000
 # cn3 with the authors' PPO settings (Monte-Carlo returns, local lr 1e-4, full-batch epochs).
 G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid gae_lambda=1.0 --grid lr_local=1e-4 --grid minibatches=1
-# cn3 where a local agent does not observe the other agents (the central agent still sees everyone).
-G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid env_kwargs.observe_others=false
+# cn3 where a local agent does not observe the other agents (the central agent still sees everyone);
+# random messages as the control for "the message carries information".
+G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,il,random --seeds 0-4 --grid env_kwargs.observe_others=false
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
