@@ -7,6 +7,7 @@ and tables can be rebuilt from runs made on any machine.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,47 @@ import numpy as np
 
 from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
 from experiments.metrics_csv import read_metrics_csv
+
+
+# Fields that never make two runs different comparisons: the seed, the fields `Run.label` shows
+# (variant, central mode, message length) and those that change speed or bookkeeping, not learning.
+_NOT_SETTING = frozenset({"env", "n_agents", "seed", "variant", "central_mode", "msg_dim", "out",
+                          "env_workers", "env_parent_slice", "torch_threads", "compile", "checkpoint_every"})
+
+
+@functools.cache
+def _reference(env: str, n_agents: int) -> dict:
+    """The resolved config of a run of this env and N with nothing overridden: its paper preset
+    (cn3, cn5, mw3, mw5), or RunConfig's defaults for any other env and N."""
+    from learning.config import merge_config
+    from learning.presets import PRESETS
+
+    preset = next((p for p, d in PRESETS.items() if d["env"] == env and d["n_agents"] == n_agents), None)
+    return merge_config(preset=preset, extra={"env": env, "n_agents": n_agents}).model_dump(mode="json")
+
+
+def setting_changes(config: dict) -> list[str]:
+    """`field=value` for every field of `config` that differs from its reference (nested mappings
+    as `env_kwargs.field=value`; a key the reference's mapping lacks counts as a change). Top-level
+    fields the reference lacks (renamed or removed since the run) are not compared."""
+    try:
+        ref = _reference(config.get("env"), config.get("n_agents"))
+    except Exception:  # an env or N no config can be built for today: nothing to compare with
+        return []
+
+    def diff(ours: dict, theirs: dict, prefix: str) -> list[str]:
+        out: list[str] = []
+        for key in sorted(ours):
+            if not prefix and (key in _NOT_SETTING or key not in theirs):
+                continue
+            a, b = ours[key], theirs.get(key)
+            if isinstance(a, dict) and isinstance(b, dict):
+                out += diff(a, b, f"{prefix}{key}.")
+            elif a != b:
+                out.append(f"{prefix}{key}={json.dumps(a)}")
+        return out
+
+    return diff(config, ref, "")
 
 
 @dataclass
@@ -32,8 +74,12 @@ class Run:
 
     @property
     def setting(self) -> str:
-        """Environment setting, e.g. `cn N=3`, used as the row group of tables."""
-        return f"{self.config.get('env', '?')} N={self.config.get('n_agents', '?')}"
+        """The row group of tables and the panel of plots: env and N, plus every field this run
+        changed from its paper preset, e.g. `cn N=3 (gae_lambda=1.0, minibatches=1)`. Runs that
+        differ in anything but the seed and the label's fields are never pooled as seeds."""
+        base = f"{self.config.get('env', '?')} N={self.config.get('n_agents', '?')}"
+        changed = setting_changes(self.config)
+        return f"{base} ({', '.join(changed)})" if changed else base
 
     @property
     def label(self) -> str:

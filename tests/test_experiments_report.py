@@ -57,6 +57,23 @@ def test_report_means_sem_and_welch(runs_dir):
     assert "| cn N=3 | hammer-backprop-m4 | 4 | 800 |" in md
 
 
+def test_runs_with_changed_settings_are_never_pooled(runs_dir):
+    """A run that changed a learning field (or an env kwarg) from its preset is its own setting,
+    named by the change; fields equal to the preset's, and speed/bookkeeping fields, change nothing."""
+    rng = np.random.default_rng(2)
+    base = {"env": "cn", "n_agents": 3, "msg_dim": 4, "variant": "il", "gamma": 0.95, "env_workers": 2}
+    for seed in range(2):
+        write_run(runs_dir, f"il-lr-s{seed}", {**base, "seed": seed, "lr_local": 1e-4}, rng.normal(-25, 1, 800))
+        write_run(runs_dir, f"il-own-s{seed}", {**base, "seed": seed, "env_kwargs": {"observe_others": False}},
+                  rng.normal(-25, 1, 800))
+    write_run(runs_dir, "il-same-s9", {**base, "seed": 9}, rng.normal(-20, 1, 800))
+    rows = {(r.setting, r.label): r for r in build_rows([load_run(p) for p in find_runs([runs_dir])], last=500)}
+    assert set(rows) == {("cn N=3", "il"), ("cn N=3", "hammer-backprop-m4"), ("cn N=3 (lr_local=0.0001)", "il"),
+                         ("cn N=3 (env_kwargs.observe_others=false)", "il")}
+    assert rows[("cn N=3", "il")].n_seeds == 5  # the four fixture seeds and il-same-s9
+    assert rows[("cn N=3 (lr_local=0.0001)", "il")].n_seeds == 2
+
+
 def test_report_by_best_rolling_mean(runs_dir):
     runs = [load_run(p) for p in find_runs([runs_dir])]
     # one IL seed peaks early and falls back: by final mean it is low, by best rolling mean high
