@@ -17,7 +17,6 @@ import numpy as np
 from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
 from experiments.metrics_csv import read_metrics_csv
 
-
 # Fields that never make two runs different comparisons: the seed, the fields `Run.label` shows
 # (variant, central mode, message length) and those that change speed or bookkeeping, not learning.
 _NOT_SETTING = frozenset({"env", "n_agents", "seed", "variant", "central_mode", "msg_dim", "out",
@@ -41,7 +40,7 @@ def setting_changes(config: dict) -> list[str]:
     fields the reference lacks (renamed or removed since the run) are not compared."""
     try:
         ref = _reference(config.get("env"), config.get("n_agents"))
-    except Exception:  # an env or N no config can be built for today: nothing to compare with
+    except (ValueError, TypeError):  # no config can be built for this env and N today: nothing to compare
         return []
 
     def diff(ours: dict, theirs: dict, prefix: str) -> list[str]:
