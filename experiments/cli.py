@@ -147,7 +147,12 @@ def report(
         help="Rank each run by its best rolling mean over this many episodes instead of its final mean: "
              "how high it got, not where it ended (runs that learn and then fall back differ).", min=1)] = None,
 ) -> None:
-    """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL."""
+    """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL.
+
+    One row per setting and variant. A setting is the env and N plus every config field the runs
+    changed from their paper preset (e.g. `cn N=3 (lr_local=0.0001)`): runs are pooled as seeds
+    only when nothing but the seed differs, and IL is compared within the same setting.
+    """
     from experiments.report import build_rows, to_markdown
 
     loaded = _load(runs)
