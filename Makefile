@@ -46,6 +46,8 @@ G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --pr
 # cn3 where a local agent does not observe the other agents (the central agent still sees everyone);
 # random messages as the control for "the message carries information".
 G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,il,random --seeds 0-4 --grid env_kwargs.observe_others=false
+# Its replication on five new seeds, archived and reported on its own.
+G_CN3_OWNOBS_REP := --out runs/paper/cn3-ownobs-rep --archive $(A)/cn3-ownobs-rep --presets cn3 --variants hammer-rl,il --seeds 5-9 --grid env_kwargs.observe_others=false
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
@@ -54,6 +56,7 @@ paper: $(STAMP)
 	$(H) sweep $(G_CN3)
 	$(H) sweep $(G_CN3_PAPERPPO)
 	$(H) sweep $(G_CN3_OWNOBS)
+	$(H) sweep $(G_CN3_OWNOBS_REP)
 	$(H) sweep $(G_MW3)
 	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
@@ -69,6 +72,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_CN3) --snapshot
 	$(H) sweep $(G_CN3_PAPERPPO) --snapshot
 	$(H) sweep $(G_CN3_OWNOBS) --snapshot
+	$(H) sweep $(G_CN3_OWNOBS_REP) --snapshot
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
@@ -80,6 +84,7 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN3) --status
 	@$(H) sweep $(G_CN3_PAPERPPO) --status
 	@$(H) sweep $(G_CN3_OWNOBS) --status
+	@$(H) sweep $(G_CN3_OWNOBS_REP) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
 
 paper-report: $(STAMP)
@@ -93,6 +98,7 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/cn3-paperppo --out docs/results/cn3-paperppo-table.md --export docs/results/cn3-paperppo-runs.json
 	-$(H) plot $(A)/cn3-ownobs --out docs/results/cn3-ownobs-curves
 	-$(H) report $(A)/cn3-ownobs --out docs/results/cn3-ownobs-table.md --export docs/results/cn3-ownobs-runs.json
+	-$(H) report $(A)/cn3-ownobs-rep --out docs/results/cn3-ownobs-rep-table.md --export docs/results/cn3-ownobs-rep-runs.json
 	-$(H) plot $(A)/mw3-pilot --out docs/results/mw3-pilot-curves
 	-$(H) report $(A)/mw3-pilot --out docs/results/mw3-pilot-table.md --export docs/results/mw3-pilot-runs.json
 	-$(H) plot $(A)/mw3 --out docs/results/mw3-curves
