@@ -229,11 +229,10 @@ class VecSimpleSpread(VecEnv):
         buf[2:4] = p
         a = 4 + 2 * n
         buf[4:a].reshape(n, 2, n, kk)[...] = lm_rel  # lm_rel is (L, 2, N, k)
-        if not self.observe_others:
-            return np.ascontiguousarray(buf.transpose(2, 1, 0))
-        b = a + 2 * (n - 1)
-        buf[a:b].reshape(n - 1, 2, n, kk)[...] = rel.transpose(1, 0, 2, 3)
-        buf[b:] = 0.0  # silent agents: the communication slots are always 0
+        if self.observe_others:
+            b = a + 2 * (n - 1)
+            buf[a:b].reshape(n - 1, 2, n, kk)[...] = rel.transpose(1, 0, 2, 3)
+            buf[b:] = 0.0  # silent agents: the communication slots are always 0
         return np.ascontiguousarray(buf.transpose(2, 1, 0))
 
     def step(self, actions: np.ndarray) -> VecStep:
