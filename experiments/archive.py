@@ -175,7 +175,7 @@ def check_partial(src: Path, expected: dict | None = None) -> tuple[Path, str]:
     from safetensors import SafetensorError
     from safetensors.numpy import load_file
 
-    from learning.config import ConfigError, build_config
+    from learning.config import ConfigError, build_config, config_changes
 
     src = Path(src)
     try:
@@ -185,8 +185,7 @@ def check_partial(src: Path, expected: dict | None = None) -> tuple[Path, str]:
     except (json.JSONDecodeError, ConfigError) as e:
         raise ValueError(f"config.json is not a valid RunConfig ({str(e).splitlines()[0]})") from None
     if expected is not None:
-        diff = sorted(k for k in set(cfg) | set(expected)
-                      if k not in ("out", "torch_threads") and cfg.get(k) != expected.get(k))
+        diff = list(config_changes(cfg, expected, ignore={"out", "torch_threads"}))
         if diff:
             raise ValueError(f"config differs from this sweep point in {', '.join(diff)}")
     stems = sorted((src / "checkpoints").glob("ckpt_*.json")) if (src / "checkpoints").is_dir() else []

@@ -35,27 +35,16 @@ def _reference(env: str, n_agents: int) -> dict:
 
 
 def setting_changes(config: dict) -> list[str]:
-    """`field=value` for every field of `config` that differs from its reference (nested mappings
-    as `env_kwargs.field=value`; a key the reference's mapping lacks counts as a change). Top-level
-    fields the reference lacks (renamed or removed since the run) are not compared."""
+    """`field=value` for every field of `config` that differs from its reference, by
+    `learning.config.config_changes` (nested as `env_kwargs.field=value`), minus `_NOT_SETTING`."""
+    from learning.config import config_changes
+
     try:
         ref = _reference(config.get("env"), config.get("n_agents"))
     except (ValueError, TypeError):  # no config can be built for this env and N today: nothing to compare
         return []
 
-    def diff(ours: dict, theirs: dict, prefix: str) -> list[str]:
-        out: list[str] = []
-        for key in sorted(ours):
-            if not prefix and (key in _NOT_SETTING or key not in theirs):
-                continue
-            a, b = ours[key], theirs.get(key)
-            if isinstance(a, dict) and isinstance(b, dict):
-                out += diff(a, b, f"{prefix}{key}.")
-            elif a != b:
-                out.append(f"{prefix}{key}={json.dumps(a)}")
-        return out
-
-    return diff(config, ref, "")
+    return [f"{key}={json.dumps(value)}" for key, value in config_changes(config, ref, _NOT_SETTING).items()]
 
 
 @dataclass

@@ -192,5 +192,30 @@ def merge_config(
     return build_config(data)
 
 
+def config_changes(ours: dict[str, Any], reference: dict[str, Any],
+                   ignore: frozenset[str] | set[str] = frozenset()) -> dict[str, Any]:
+    """Every field where two resolved configs (`model_dump(mode="json")`) differ, as dotted key ->
+    our value, sorted by key: `lr_local`, `env_kwargs.observe_others`. Nested mappings are compared
+    key by key, and a key either side lacks counts as a change (ours `None` if we lack it).
+    Top-level fields the reference lacks (renamed or removed since `ours` was written) and the
+    `ignore`d ones are skipped. Shared by sweep snapshots (is this the same run?) and reports
+    (which runs pool as seeds of one setting?), so both agree on what "differs" means."""
+
+    def diff(a: dict[str, Any], b: dict[str, Any], prefix: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        keys = set(a) if not prefix else set(a) | set(b)
+        for key in sorted(keys):
+            if not prefix and (key in ignore or key not in b):
+                continue
+            x, y = a.get(key), b.get(key)
+            if isinstance(x, dict) and isinstance(y, dict):
+                out.update(diff(x, y, f"{prefix}{key}."))
+            elif x != y or (key in a) != (key in b):
+                out[f"{prefix}{key}"] = x
+        return out
+
+    return diff(ours, reference, "")
+
+
 def save_yaml(cfg: RunConfig, path: str | Path) -> None:
     Path(path).write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))

@@ -2,7 +2,7 @@
 
 import pytest
 
-from learning.config import ConfigError, RunConfig, merge_config
+from learning.config import ConfigError, RunConfig, config_changes, merge_config
 from learning.presets import PRESETS
 
 
@@ -56,3 +56,19 @@ def test_presets_carry_the_paper_settings():
     assert set(PRESETS) == set(expected)
     assert RunConfig().use_prev_actions and RunConfig().msg_dropout == 0.0
     assert merge_config("cn3", overrides=["variant=il"]).effective_msg_dim == 0
+
+
+def test_config_changes_names_every_differing_field_including_nested_ones():
+    ref = merge_config(preset="mw3").model_dump(mode="json")
+    ours = merge_config(preset="mw3", overrides=["lr_local=1e-4", "seed=3", "env_kwargs.forward_reward=2.0",
+                                                  "env_kwargs.extra_flag=true"]).model_dump(mode="json")
+    assert config_changes(ours, ref) == {"env_kwargs.extra_flag": True, "env_kwargs.forward_reward": 2.0,
+                                         "lr_local": 1e-4, "seed": 3}
+    assert config_changes(ours, ref, ignore={"seed"}) == {"env_kwargs.extra_flag": True,
+                                                          "env_kwargs.forward_reward": 2.0, "lr_local": 1e-4}
+    # A nested key only the reference has is a change too (ours: None); equal configs have none.
+    assert config_changes(ref, ours, ignore={"seed", "lr_local"}) == {"env_kwargs.extra_flag": None,
+                                                                       "env_kwargs.forward_reward": ref["env_kwargs"]["forward_reward"]}
+    assert config_changes(ref, dict(ref)) == {}
+    # A top-level field the reference lacks (renamed since ours was written) is not compared.
+    assert config_changes({**ref, "old_field": 1}, ref) == {}
