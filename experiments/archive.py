@@ -9,8 +9,10 @@ curve are copied to an archive directory inside the repository (`docs/results/ru
     <archive>/<run name>/metrics.npz   episode (int32), paper_metric, team_return (float32)
     <archive>/<run name>/train_stats.npz  the learners' per-update statistics, if the run logged
                                        any (`experiments.train_stats`, drawn by `hammer diagnose`)
+    <archive>/<run name>/final/*.safetensors  the trained team's exported weights (30-130 KB), so
+                                       `hammer faults` and `hammer local` can use it from a clone
 
-about 0.2 MB per 30,000-episode run. The sweep treats an archived run as done, and `hammer plot`
+about 0.3 MB per 30,000-episode run. The sweep treats an archived run as done, and `hammer plot`
 / `hammer report` read archived runs exactly like run directories. npz is read with
 allow_pickle=False: nothing in the archive can execute code.
 
@@ -73,6 +75,10 @@ def archive_run(run_dir: Path, archive: Path) -> Path:
         write_train_stats(run_dir, dest, m["env_steps"])
     except ValueError as e:  # a `hammer up` run: archive it without them
         log.warning("%s: learner statistics not archived: %s", run_dir.name, e)
+    if (run_dir / "final").is_dir():
+        (dest / "final").mkdir(exist_ok=True)
+        for f in sorted((run_dir / "final").glob("*.safetensors")):
+            shutil.copyfile(f, dest / "final" / f.name)
     for f in ("config.json", "summary.json"):  # summary last: its presence marks a complete copy
         shutil.copyfile(run_dir / f, dest / f)
     return dest

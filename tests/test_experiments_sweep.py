@@ -53,6 +53,10 @@ def test_archived_runs_survive_a_fresh_sweep_directory(tmp_path):
     archive = tmp_path / "archive"
     res = run_sweep(pts, tmp_path / "a", jobs=1, episodes=8, archive=archive)
     assert res.done == [pts[0].name] and is_archived(archive, pts[0].name)
+    # The trained weights come along, byte for byte: the archived team can be evaluated from a clone.
+    final = tmp_path / "a" / pts[0].name / "final"
+    assert sorted(f.name for f in (archive / pts[0].name / "final").iterdir()) == ["local.safetensors"]
+    assert (archive / pts[0].name / "final" / "local.safetensors").read_bytes() == (final / "local.safetensors").read_bytes()
     res2 = run_sweep(pts, tmp_path / "fresh", jobs=1, episodes=8, archive=archive)
     assert res2.skipped == [pts[0].name] and not res2.done
     assert not (tmp_path / "fresh" / pts[0].name).exists()

@@ -1,0 +1,53 @@
+"""Print the table of docs/results/faults-ownobs/README.md from the two faults sweeps' CSVs:
+per training seed, the cn3-ownobs HAMMER team evaluated with its messages and with every message
+cut, and the IL team of the same seed; then the means over seeds and the tests.
+
+Run from the repository root: `.venv/bin/python docs/results/faults_ownobs.py`.
+How the sweeps were made is in docs/results/faults-ownobs/README.md.
+"""
+
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from experiments.report import sem
+
+HERE = Path(__file__).parent / "faults-ownobs"
+
+
+def per_team(path: Path, drop: float) -> dict[int, float]:
+    """Training seed -> mean paper metric over the evaluation seeds at this drop rate."""
+    by_seed: dict[int, list[float]] = defaultdict(list)
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            if float(r["drop"]) == drop and float(r["delay_ms"]) == 0:
+                by_seed[int(r["team"].rsplit("-s", 1)[1])].append(float(r["paper_metric"]))
+    return {s: float(np.mean(v)) for s, v in sorted(by_seed.items())}
+
+
+def main() -> None:
+    with_msgs = per_team(HERE / "hammer" / "sweep.csv", 0.0)
+    cut = per_team(HERE / "hammer" / "sweep.csv", 1.0)
+    il = per_team(HERE / "il" / "sweep.csv", 0.0)
+    seeds = sorted(set(with_msgs) & set(cut) & set(il))
+    a, b, c = (np.array([d[s] for s in seeds]) for d in (with_msgs, cut, il))
+    print("| training seed | hammer, messages | hammer, messages cut | IL |")
+    print("|---|---|---|---|")
+    for s, x, y, z in zip(seeds, a, b, c):
+        print(f"| {s} | {x:.2f} | {y:.2f} | {z:.2f} |")
+    print(f"| mean ± s.e. ({len(seeds)} seeds) | {a.mean():.2f} ± {sem(a):.2f} | {b.mean():.2f} ± {sem(b):.2f} "
+          f"| {c.mean():.2f} ± {sem(c):.2f} |")
+    print()
+    print(f"- cutting the messages: {np.mean(b - a):+.2f} ± {sem(b - a):.2f} (paired t-test "
+          f"p = {stats.ttest_rel(a, b).pvalue:.2g}; worse on {int(np.sum(b < a))} of {len(seeds)} seeds)")
+    print(f"- hammer with messages against IL: {np.mean(a - c):+.2f}, Welch p = "
+          f"{stats.ttest_ind(a, c, equal_var=False).pvalue:.2g}")
+    print(f"- hammer with messages cut against IL: {np.mean(b - c):+.2f}, Welch p = "
+          f"{stats.ttest_ind(b, c, equal_var=False).pvalue:.2g}")
+
+
+if __name__ == "__main__":
+    main()
