@@ -48,7 +48,9 @@ def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None =
 
 
 def save_figure(fig, out: Path, dpi: int) -> list[Path]:
-    """Write `<out>.png` and `<out>.svg` and close the figure; returns the paths written."""
+    """Write `<out>.png` and `<out>.svg` and close the figure; returns the paths written. The same
+    data gives the same bytes (no date in the metadata, fixed SVG ids), so redrawing every figure
+    (`make paper-report`) changes in git only the figures whose runs changed."""
     import matplotlib.pyplot as plt
 
     out = Path(out)
@@ -56,7 +58,8 @@ def save_figure(fig, out: Path, dpi: int) -> list[Path]:
     written = []
     for ext in (".png", ".svg"):
         p = out.with_suffix(ext)
-        fig.savefig(p, dpi=dpi)
+        with plt.rc_context({"svg.hashsalt": "hammer"}):
+            fig.savefig(p, dpi=dpi, metadata={"Date": None} if ext == ".svg" else None)
         written.append(p)
     plt.close(fig)
     return written

@@ -97,6 +97,9 @@ def test_plot_writes_png_and_svg(runs_dir, tmp_path):
     out = plot_runs(runs, tmp_path / "figs" / "curves", window=100)
     assert [p.suffix for p in out] == [".png", ".svg"]
     assert all(p.stat().st_size > 1000 for p in out)
+    # Redrawing the same runs gives the same bytes: regenerated figures only show in git when their data changed.
+    again = plot_runs(runs, tmp_path / "figs2" / "curves", window=100)
+    assert [p.read_bytes() for p in again] == [p.read_bytes() for p in out]
 
 
 def test_missing_run_path_is_a_clear_error(tmp_path):
