@@ -45,7 +45,7 @@ G_MW5_PILOT := --out runs/paper/mw5-pilot --archive $(A)/mw5-pilot --presets mw5
 G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --presets cn3 --variants hammer-rl,il --seeds 0-4 --grid gae_lambda=1.0 --grid lr_local=1e-4 --grid minibatches=1
 # cn3 where a local agent does not observe the other agents (the central agent still sees everyone);
 # random messages as the control for "the message carries information".
-G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,il,random --seeds 0-4 --grid env_kwargs.observe_others=false
+G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,hammer-backprop,il,random,centralized --seeds 0-4 --grid env_kwargs.observe_others=false
 # Its replication on five new seeds, archived and reported on its own.
 G_CN3_OWNOBS_REP := --out runs/paper/cn3-ownobs-rep --archive $(A)/cn3-ownobs-rep --presets cn3 --variants hammer-rl,il --seeds 5-9 --grid env_kwargs.observe_others=false
 # Order: what is still missing first (every grid but mw3 is complete in the archive).
