@@ -109,7 +109,8 @@ paper-report: $(STAMP)
 	-$(H) report $(A)/mw5-pilot --out docs/results/mw5-pilot-table.md --export docs/results/mw5-pilot-runs.json
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
-# and with every message cut, IL without faults; 10 training seeds x 2 eval seeds x 500 episodes.
+# and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds
+# x 500 episodes.
 OWN := $(A)/cn3-ownobs/cn3-%-env_kwargs_observe_others=false-s
 OWNREP := $(A)/cn3-ownobs-rep/cn3-%-env_kwargs_observe_others=false-s
 TEAMS = $(foreach s,0 1 2 3 4,$(1)-s$(s)=$(subst %,$(2),$(OWN))$(s)) $(foreach s,5 6 7 8 9,$(1)-s$(s)=$(subst %,$(2),$(OWNREP))$(s))
@@ -117,7 +118,8 @@ FAULTS_EVAL := --delays-ms 0 --seeds 2 --episodes 500 --parallel 1
 faults-ownobs: $(STAMP)
 	$(H) faults sweep $(call TEAMS,hammer,hammer-rl) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer
 	$(H) faults sweep $(call TEAMS,il,il) --drops 0 $(FAULTS_EVAL) --out runs/faults-ownobs/il
-	for d in hammer il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
+	$(H) faults sweep $(foreach s,0 1 2 3 4,backprop-s$(s)=$(subst %,hammer-backprop,$(OWN))$(s)) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer-backprop
+	for d in hammer hammer-backprop il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
 	$(PY) docs/results/faults_ownobs.py
 
 lint: $(STAMP)

@@ -1,6 +1,7 @@
-"""Print the table of docs/results/faults-ownobs/README.md from the two faults sweeps' CSVs:
-per training seed, the cn3-ownobs HAMMER team evaluated with its messages and with every message
-cut, and the IL team of the same seed; then the means over seeds and the tests.
+"""Print the tables of docs/results/faults-ownobs/README.md from the faults sweeps' CSVs: per
+training seed, the cn3-ownobs HAMMER team (rl mode: `hammer/`, backprop mode: `hammer-backprop/`)
+evaluated with its messages and with every message cut, and the IL team of the same seed; then
+the means over seeds and the tests.
 
 Run from the repository root: `.venv/bin/python docs/results/faults_ownobs.py`.
 How the sweeps were made is in docs/results/faults-ownobs/README.md.
@@ -28,13 +29,14 @@ def per_team(path: Path, drop: float) -> dict[int, float]:
     return {s: float(np.mean(v)) for s, v in sorted(by_seed.items())}
 
 
-def main() -> None:
-    with_msgs = per_team(HERE / "hammer" / "sweep.csv", 0.0)
-    cut = per_team(HERE / "hammer" / "sweep.csv", 1.0)
+def table(team: str) -> None:
+    """One team kind (a sweep directory under faults-ownobs/) against the IL team of each seed."""
+    with_msgs = per_team(HERE / team / "sweep.csv", 0.0)
+    cut = per_team(HERE / team / "sweep.csv", 1.0)
     il = per_team(HERE / "il" / "sweep.csv", 0.0)
     seeds = sorted(set(with_msgs) & set(cut) & set(il))
     a, b, c = (np.array([d[s] for s in seeds]) for d in (with_msgs, cut, il))
-    print("| training seed | hammer, messages | hammer, messages cut | IL |")
+    print(f"| training seed | {team}, messages | {team}, messages cut | IL |")
     print("|---|---|---|---|")
     for s, x, y, z in zip(seeds, a, b, c):
         print(f"| {s} | {x:.2f} | {y:.2f} | {z:.2f} |")
@@ -43,10 +45,17 @@ def main() -> None:
     print()
     print(f"- cutting the messages: {np.mean(b - a):+.2f} ± {sem(b - a):.2f} (paired t-test "
           f"p = {stats.ttest_rel(a, b).pvalue:.2g}; worse on {int(np.sum(b < a))} of {len(seeds)} seeds)")
-    print(f"- hammer with messages against IL: {np.mean(a - c):+.2f}, Welch p = "
+    print(f"- {team} with messages against IL: {np.mean(a - c):+.2f}, Welch p = "
           f"{stats.ttest_ind(a, c, equal_var=False).pvalue:.2g}")
-    print(f"- hammer with messages cut against IL: {np.mean(b - c):+.2f}, Welch p = "
+    print(f"- {team} with messages cut against IL: {np.mean(b - c):+.2f}, Welch p = "
           f"{stats.ttest_ind(b, c, equal_var=False).pvalue:.2g}")
+    print()
+
+
+def main() -> None:
+    for team in ("hammer", "hammer-backprop"):
+        if (HERE / team / "sweep.csv").is_file():
+            table(team)
 
 
 if __name__ == "__main__":
