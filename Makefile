@@ -48,7 +48,7 @@ G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --pr
 G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,hammer-backprop,il,random,centralized --seeds 0-4 --grid env_kwargs.observe_others=false
 # Its replication on five new seeds, archived and reported on its own.
 G_CN3_OWNOBS_REP := --out runs/paper/cn3-ownobs-rep --archive $(A)/cn3-ownobs-rep --presets cn3 --variants hammer-rl,il --seeds 5-9 --grid env_kwargs.observe_others=false
-# Order: what is still missing first (every grid but mw3 is complete in the archive).
+# Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
 	$(H) sweep $(G_CN5)

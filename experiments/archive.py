@@ -10,7 +10,7 @@ curve are copied to an archive directory inside the repository (`docs/results/ru
     <archive>/<run name>/train_stats.npz  the learners' per-update statistics, if the run logged
                                        any (`experiments.train_stats`, drawn by `hammer diagnose`)
     <archive>/<run name>/final/*.safetensors  the trained team's exported weights (30-140 KB), so
-                                       `hammer faults` and `hammer local` can use it from a clone
+                                       `hammer faults` can evaluate the team from a clone
 
 about 0.3 MB per 30,000-episode run. The sweep treats an archived run as done, and `hammer plot`
 / `hammer report` read archived runs exactly like run directories. npz is read with
