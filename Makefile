@@ -111,14 +111,14 @@ paper-report: $(STAMP)
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds
 # x 500 episodes.
-OWN := $(A)/cn3-ownobs/cn3-%-env_kwargs_observe_others=false-s
-OWNREP := $(A)/cn3-ownobs-rep/cn3-%-env_kwargs_observe_others=false-s
-TEAMS = $(foreach s,0 1 2 3 4,$(1)-s$(s)=$(subst %,$(2),$(OWN))$(s)) $(foreach s,5 6 7 8 9,$(1)-s$(s)=$(subst %,$(2),$(OWNREP))$(s))
+# $(call TEAMS,label,variant,grid,seeds): label-sN=<archived run of that variant and seed> for each seed.
+TEAMS = $(foreach s,$(4),$(1)-s$(s)=$(A)/$(3)/cn3-$(2)-env_kwargs_observe_others=false-s$(s))
+OWN_TEAMS = $(call TEAMS,$(1),$(2),cn3-ownobs,0 1 2 3 4) $(call TEAMS,$(1),$(2),cn3-ownobs-rep,5 6 7 8 9)
 FAULTS_EVAL := --delays-ms 0 --seeds 2 --episodes 500 --parallel 1
 faults-ownobs: $(STAMP)
-	$(H) faults sweep $(call TEAMS,hammer,hammer-rl) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer
-	$(H) faults sweep $(call TEAMS,il,il) --drops 0 $(FAULTS_EVAL) --out runs/faults-ownobs/il
-	$(H) faults sweep $(foreach s,0 1 2 3 4,backprop-s$(s)=$(subst %,hammer-backprop,$(OWN))$(s)) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer-backprop
+	$(H) faults sweep $(call OWN_TEAMS,hammer,hammer-rl) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer
+	$(H) faults sweep $(call OWN_TEAMS,il,il) --drops 0 $(FAULTS_EVAL) --out runs/faults-ownobs/il
+	$(H) faults sweep $(call TEAMS,backprop,hammer-backprop,cn3-ownobs,0 1 2 3 4) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer-backprop
 	for d in hammer hammer-backprop il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
 	$(PY) docs/results/faults_ownobs.py
 

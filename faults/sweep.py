@@ -21,7 +21,7 @@ import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 log = logging.getLogger("hammer.faults.sweep")
@@ -142,6 +142,14 @@ def aggregate(results: list[PointResult]) -> dict[tuple[str, float, float], dict
         out[key] = {"mean": m, "std": s, "n": len(rs), "fallback": sum(r.msg_fallback_rate for r in rs) / len(rs),
                     "late": sum(r.msgs_late for r in rs), "dropped": sum(r.msgs_dropped for r in rs)}
     return out
+
+
+def read_results(path: Path) -> list[PointResult]:
+    """The rows of a sweep.csv written by `write_outputs`, typed again (for analyses of finished sweeps)."""
+    types = {"str": str, "int": int, "float": float}
+    with open(path, newline="") as f:
+        return [PointResult(**{fl.name: types[fl.type](row[fl.name]) for fl in fields(PointResult)})
+                for row in csv.DictReader(f)]
 
 
 def write_outputs(results: list[PointResult], out: Path, msg_deadline_ms: float, episodes: int) -> None:

@@ -102,3 +102,19 @@ def test_chaos_parse_and_schedule():
     assert board.held == {"local-1"}
     with pytest.raises(ChaosSpecError, match="no role"):
         ChaosScheduler.from_strings(["kill:local-7@step=1"]).validate_roles({"central", "local-0"})
+
+
+def test_sweep_results_read_back_typed_and_aggregate(tmp_path):
+    """sweep.csv round-trips to the same PointResults, so analyses of a finished sweep (e.g.
+    docs/results/faults_ownobs.py) reuse `aggregate` instead of parsing the CSV again."""
+    from faults.sweep import PointResult, aggregate, read_results, write_outputs
+
+    results = [PointResult(team=f"hammer-s{s}", variant="hammer", train_msg_dropout=0.0, drop=d, delay_ms=0.0,
+                           seed=e, episodes=500, paper_metric=-19.0 - d - 0.1 * e - 0.01 * s, msgs_sent=100,
+                           msgs_dropped=int(100 * d), msgs_late=0, msg_fallback_rate=d, default_actions=0, wall_s=9.5)
+               for s in range(2) for d in (0.0, 1.0) for e in range(2)]
+    write_outputs(results, tmp_path, msg_deadline_ms=50.0, episodes=500)
+    back = read_results(tmp_path / "sweep.csv")
+    assert back == results and isinstance(back[0].seed, int) and isinstance(back[0].drop, float)
+    agg = aggregate(back)
+    assert agg[("hammer-s1", 1.0, 0.0)]["mean"] == pytest.approx(-20.06) and agg[("hammer-s1", 1.0, 0.0)]["n"] == 2

@@ -7,33 +7,33 @@ Run from the repository root: `.venv/bin/python docs/results/faults_ownobs.py`.
 How the sweeps were made is in docs/results/faults-ownobs/README.md.
 """
 
-import csv
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
 from experiments.report import sem
+from faults.sweep import aggregate, read_results
 
 HERE = Path(__file__).parent / "faults-ownobs"
 
 
-def per_team(path: Path, drop: float) -> dict[int, float]:
-    """Training seed -> mean paper metric over the evaluation seeds at this drop rate."""
-    by_seed: dict[int, list[float]] = defaultdict(list)
-    with open(path, newline="") as f:
-        for r in csv.DictReader(f):
-            if float(r["drop"]) == drop and float(r["delay_ms"]) == 0:
-                by_seed[int(r["team"].rsplit("-s", 1)[1])].append(float(r["paper_metric"]))
-    return {s: float(np.mean(v)) for s, v in sorted(by_seed.items())}
+def load(sweep: str) -> dict:
+    """`faults.sweep.aggregate` of one sweep directory under faults-ownobs/."""
+    return aggregate(read_results(HERE / sweep / "sweep.csv"))
 
 
-def table(team: str) -> None:
+def per_seed(agg: dict, drop: float) -> dict[int, float]:
+    """Training seed (the `-sN` of a team label) -> mean paper metric over the evaluation seeds at
+    this drop rate, no delay."""
+    return {int(team.rsplit("-s", 1)[1]): a["mean"] for (team, d, delay), a in sorted(agg.items())
+            if d == drop and delay == 0}
+
+
+def table(team: str, il: dict[int, float]) -> None:
     """One team kind (a sweep directory under faults-ownobs/) against the IL team of each seed."""
-    with_msgs = per_team(HERE / team / "sweep.csv", 0.0)
-    cut = per_team(HERE / team / "sweep.csv", 1.0)
-    il = per_team(HERE / "il" / "sweep.csv", 0.0)
+    agg = load(team)
+    with_msgs, cut = per_seed(agg, 0.0), per_seed(agg, 1.0)
     seeds = sorted(set(with_msgs) & set(cut) & set(il))
     a, b, c = (np.array([d[s] for s in seeds]) for d in (with_msgs, cut, il))
     print(f"| training seed | {team}, messages | {team}, messages cut | IL |")
@@ -53,9 +53,10 @@ def table(team: str) -> None:
 
 
 def main() -> None:
+    il = per_seed(load("il"), 0.0)
     for team in ("hammer", "hammer-backprop"):
         if (HERE / team / "sweep.csv").is_file():
-            table(team)
+            table(team, il)
 
 
 if __name__ == "__main__":
