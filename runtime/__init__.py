@@ -1,0 +1,1 @@
+"""The process shell every distributed role shares (`Role`, `WeightsIntake`); torch-free."""

@@ -1,0 +1,105 @@
+"""The event loop every distributed role runs: control, heartbeat, step-log flush, idle exit.
+
+Each role process (env host, central agent, local agent, learner, policy server) does the same
+housekeeping around its real work: it obeys a stop command addressed to it, says it is alive with
+its counters about once a second, flushes its per-step link log in the heartbeat's rhythm (so a
+killed process's step log and its last heartbeat agree), and, where asked, exits after a spell
+with no input. `Role` owns that housekeeping once; a role subclass says only what it does with
+its messages: `poll` waits for the role's main input and hands each message to an `on_*`
+handler, `on_idle` runs when nothing came, `counters` is what its heartbeat reports.
+
+A role that drives the loop itself instead of reacting to input (the env host) does not call
+`run`; it calls `stop_requested` and `heartbeat` from its own loop.
+
+The process shell (session, run directory, exit status) stays in `deploy/roles.py`, the
+algorithm (acting, learning) in `learning/` and the acting cores; this module is only the loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+from faults.links import flat_fault_counters
+from faults.steplog import StepLog
+from protocol.schemas import Control, Heartbeat, HeartbeatStatus
+from protocol.session import HammerSession
+
+STOP_COMMANDS = ("stop", "shutdown")
+
+
+class Role:
+    """One role's event loop; subclasses implement `poll` and the `on_*` handlers it calls."""
+
+    heartbeat_every_s = 1.0
+    poll_s = 0.2  # how long `poll` may block: the loop's reaction time to control and heartbeats
+
+    def __init__(self, session: HammerSession, name: str, *, step_log: StepLog | None = None,
+                 idle_exit_s: float | None = None, report_faults: bool = True) -> None:
+        self.session, self.keys, self.name = session, session.keys, name
+        self.log = logging.getLogger(f"hammer.{name.split('-')[0]}")
+        self.step_log = step_log
+        self.idle_exit_s = idle_exit_s
+        self.report_faults = report_faults
+        self.stop_reason: str | None = None
+        self._control = session.subscribe(self.keys.ctl("all"), Control)
+        self._heartbeat_pub = session.publisher(self.keys.heartbeat(name), reliable=False)
+        self._last_heartbeat = 0.0  # the first loop turn says at once that this role is up
+        self._last_input = time.monotonic()
+
+    # ----- what a role declares -----------------------------------------------------------------
+    def poll(self, timeout: float) -> bool:
+        """Wait up to `timeout` s for the role's main input and handle what came; True if anything did."""
+        raise NotImplementedError
+
+    def on_idle(self) -> None:
+        """Nothing arrived within `poll_s` (e.g. preload weights, republish)."""
+
+    def on_stop(self) -> None:
+        """The loop has ended (stop command or idle exit): final files, summaries."""
+
+    def counters(self) -> dict[str, int | float]:
+        """What the heartbeat reports (fault-layer counters are added when `report_faults`)."""
+        return {}
+
+    # ----- the shell ----------------------------------------------------------------------------
+    def stop_requested(self) -> bool:
+        """True once a stop/shutdown command for everyone or for this role has arrived."""
+        for cmd in self._control.drain():
+            if cmd.command in STOP_COMMANDS and cmd.target in ("*", self.name) and self.stop_reason is None:
+                self.stop_reason = f"{cmd.command} command from {cmd.sender or 'an unnamed sender'}"
+        return self.stop_reason is not None
+
+    def heartbeat(self, status: HeartbeatStatus = "running") -> None:
+        """Publish the counters if `heartbeat_every_s` has passed since the last heartbeat."""
+        now = time.monotonic()
+        if now - self._last_heartbeat <= self.heartbeat_every_s:
+            return
+        self._last_heartbeat = now
+        counters = self.counters()
+        if self.report_faults:
+            counters = {**counters, **flat_fault_counters(self.session.fault_report())}
+        self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status, counters=counters))
+        if self.step_log is not None:
+            self.step_log.flush()
+
+    def heartbeat_soon(self) -> None:
+        """Make the next loop turn publish a heartbeat (something the launcher waits for changed)."""
+        self._last_heartbeat = 0.0
+
+    def run(self) -> None:
+        """Handle input until a stop command, or `idle_exit_s` without input."""
+        while not self.stop_requested():
+            self.heartbeat()
+            if self.poll(self.poll_s):
+                self._last_input = time.monotonic()
+                continue
+            self.on_idle()
+            if self.idle_exit_s is not None and time.monotonic() - self._last_input > self.idle_exit_s:
+                self.stop_reason = f"no input for {self.idle_exit_s:g} s"
+                break
+        if self.step_log is not None:
+            self.step_log.flush()
+        self.on_stop()
+        self.log.info("%s stopped: %s", self.name, self.stop_reason)

@@ -1,0 +1,74 @@
+"""Weights intake of an acting role: hold what the learner publishes, load what a step asks for.
+
+The central agent and every local agent act with the policy version their step names (the
+observation / global state carries it). Weights can arrive before that step (policy lag) or a
+little after the step that needs them (the learner publishes as the env host moves on), so an
+acting role holds received versions (`learning.policy_versions.WeightsInbox`) and, when a step
+names a version it has not loaded, waits for it up to a timeout, then acts with what it has and
+counts the timeout. Torch-free: the edge local agent uses it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+from learning.policy_versions import WeightsInbox
+from protocol.schemas import Weights
+from protocol.session import HammerSession
+
+log = logging.getLogger("hammer.weights")
+
+
+class WeightsIntake:
+    """The subscription to one network's weights (`local` or `central`) and the versions held."""
+
+    def __init__(self, session: HammerSession, network: str, load: Callable[[bytes, int], None],
+                 timeout_s: float, version: int = -1) -> None:
+        self.network = network
+        self.timeout_s = timeout_s
+        self._sub = session.subscribe(session.keys.weights(network), Weights)
+        self._inbox = WeightsInbox(load, version)
+        self.loaded = 0  # versions loaded
+        self.wait_timeouts = 0  # steps that named a version which did not come in time
+
+    @property
+    def version(self) -> int:
+        """The loaded version (-1: none yet)."""
+        return self._inbox.version
+
+    def take(self, need: int | None) -> None:
+        """Load the version `need` names, never a newer one (see WeightsInbox), waiting for it up to
+        `timeout_s`; need=None: load the newest received, without waiting."""
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            wait = 0.0 if need is None or self.version >= need else deadline - time.monotonic()
+            w = self._sub.get(timeout=max(wait, 0.0))
+            if w is not None:
+                self._offer(w)
+                if self._inbox.select(need):
+                    self.loaded += 1
+                continue
+            if need is None or self.version >= need:
+                return
+            if time.monotonic() < deadline:
+                continue
+            self.wait_timeouts += 1
+            log.warning("%s policy version %d not received in %.0fs; acting with %d",
+                        self.network, need, self.timeout_s, self.version)
+            return
+
+    def preload_oldest(self) -> bool:
+        """While idle with no policy: load the oldest version held, so the first step is not slowed
+        by loading weights (a step never asks for a version older than the learner's first
+        broadcast). True if one was loaded."""
+        for w in self._sub.drain():
+            self._offer(w)
+        if self._inbox.held and self._inbox.select(min(self._inbox.held)):
+            self.loaded += 1
+            return True
+        return False
+
+    def _offer(self, w: Weights) -> None:
+        self._inbox.offer(w.version, w.blob)
