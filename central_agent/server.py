@@ -56,8 +56,7 @@ class CentralCounters:
 
 
 def needs_central_record(cfg: RunConfig) -> bool:
-    return (cfg.variant == "hammer" and cfg.central_mode == "rl") or (
-        cfg.variant in ("hammer", "random") and cfg.msg_dropout > 0)
+    return cfg.wiring.needs_central_record
 
 
 def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float,

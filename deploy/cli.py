@@ -76,7 +76,7 @@ def _links_table(board, cfg, settings):
     for col in COLUMNS:
         t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
+    for link, row in link_table(roles, cfg.n_agents, cfg.wiring.uses_central).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
     if board.chaos_log:
         t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
@@ -90,8 +90,7 @@ def _dashboard_table(board, cfg, started: float, settings=None):
 
     env = board.heartbeats.get("env")
     c = env.counters if env else {}
-    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.variant}"
-                    f"{'/' + cfg.central_mode if cfg.variant == 'hammer' else ''} seed {cfg.seed}",
+    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
               show_header=True, expand=False)
     t.add_column("what")
     t.add_column("value", justify="right")

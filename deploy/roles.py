@@ -120,21 +120,15 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
 
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config)
-        cfg = json.loads((Path(run_dir) / "config.json").read_text())
-        spec = read_env_spec(run_dir)
+        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
-    n = int(cfg["n_agents"])
-    if not 0 <= agent < n:
-        _fail(f"--agent {agent}: this run has agents 0..{n - 1}")
-    variant = cfg["variant"]
-    msg_dim = int(cfg["msg_dim"]) if variant in ("hammer", "random") else 0
-    centralized = variant == "centralized"
-    aspec = AgentSpec(agent=agent, n_agents=n, obs_dim=spec.obs_dim * (n if centralized else 1), msg_dim=msg_dim,
-                      discrete=spec.discrete, action_dim=spec.action_dim, seed=int(cfg["seed"]), onehot=centralized)
+    if not 0 <= agent < cfg.n_agents:
+        _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
+    aspec = AgentSpec.from_config(cfg, spec, agent)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
-            c = run_local_agent(s, aspec, int(cfg["num_envs"]), settings.fallback, settings.fallback_k,
+            c = run_local_agent(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
                                 settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
                                 step_log_dir=_step_log_dir(run_dir))
             logging.getLogger("hammer.local").info("stopped: %s", c.as_dict())
@@ -224,7 +218,7 @@ def learner_command(run_dir: RunDirOpt,
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                serve_frozen_policy(s, Path(settings.policy_dir), cfg.variant == "hammer")
+                serve_frozen_policy(s, Path(settings.policy_dir), cfg.wiring.has_central_network)
         except PolicyDirError as e:
             _fail(str(e))
         except KeyboardInterrupt:

@@ -65,7 +65,7 @@ class Board:
 def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
     rd = ["--run-dir", str(run_dir)]
     specs = [RoleSpec("learner", ["learner", *rd])]
-    if cfg.variant in ("hammer", "random"):
+    if cfg.wiring.uses_central:
         specs.append(RoleSpec("central", ["central", *rd], restart=True))
     specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)]
     specs.append(RoleSpec("env", ["env-host", *rd]))
@@ -283,7 +283,7 @@ def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:
     from faults.links import collect_role_counters, link_table
 
     roles = collect_role_counters(run_dir, board.last_by_pid)
-    links = link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random"))
+    links = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
     (run_dir / "links.json").write_text(json.dumps({"links": links, "roles": roles, "chaos": board.chaos_log},
                                                    indent=1))
     return links

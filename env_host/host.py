@@ -124,7 +124,7 @@ class _Wiring:
     def __init__(self, cfg: RunConfig, spec) -> None:
         self.spec = spec
         self.act_dim, self.msg_dim = spec.action_dim, cfg.effective_msg_dim
-        self.has_central_network = cfg.variant == "hammer"
+        self.has_central_network = cfg.wiring.has_central_network
 
     def encode_actions(self, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
         return encode_actions(self.spec, actions, active)
@@ -145,7 +145,7 @@ class EnvHost:
         self.team = _Wiring(cfg, env.spec)
         self.n, self.k = cfg.n_agents, cfg.num_envs
         self.act_deadline_s, self.weights_timeout_s = act_deadline_s, weights_timeout_s
-        self.uses_central = cfg.variant in ("hammer", "random")
+        self.uses_central = cfg.wiring.uses_central
         keys = session.keys
         dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
                     msg_dim=self.team.msg_dim or None)
@@ -307,7 +307,7 @@ class EnvHost:
         if self.uses_central:
             self.state_pub.publish(GlobalState(step=h.step, env_idx=self.env_idx, obs=obs,
                                                prev_actions=prev, active=active, policy_version=self.rollout_version))
-        joint = obs.reshape(self.k, -1) if cfg.variant == "centralized" else None
+        joint = obs.reshape(self.k, -1) if cfg.wiring.joint_obs else None
         for i in range(self.n):
             self.obs_pubs[i].publish(LocalObs(step=h.step, env_idx=self.env_idx, agent=i,
                                               obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),

@@ -17,6 +17,7 @@ import numpy as np
 from envs.base import EnvSpec
 from learning.config import RunConfig
 from learning.sampling import ActingStreams
+from learning.variant import Wiring
 
 LOG_2PI = float(np.log(2 * np.pi))
 
@@ -54,25 +55,29 @@ class CentralOut:
 class CentralActing:
     """The part of a RunConfig the central acting path reads, and the maths it runs."""
 
-    variant: str
-    central_mode: str
-    n_agents: int
-    msg_dim: int  # effective: 0 for il and centralized
+    wiring: Wiring
     msg_std: float
     use_prev_actions: bool
 
     @classmethod
     def from_config(cls, cfg: RunConfig) -> CentralActing:
-        return cls(cfg.variant, cfg.central_mode, cfg.n_agents, cfg.effective_msg_dim, cfg.msg_std,
-                   cfg.use_prev_actions)
+        return cls(cfg.wiring, cfg.msg_std, cfg.use_prev_actions)
+
+    @property
+    def n_agents(self) -> int:
+        return self.wiring.n_agents
+
+    @property
+    def msg_dim(self) -> int:
+        return self.wiring.msg_dim
 
     @property
     def has_network(self) -> bool:
-        return self.variant == "hammer"
+        return self.wiring.has_central_network
 
     @property
     def rl(self) -> bool:
-        return self.has_network and self.central_mode == "rl"
+        return self.wiring.central_rl
 
     def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
         """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32."""
@@ -93,14 +98,14 @@ class CentralActing:
         k, n, m = state.shape[0], self.n_agents, self.msg_dim
         zeros_kn = np.zeros((k, n), dtype=np.float32)
         value = zeros_kn
-        if self.variant == "random":
+        if self.wiring.random_messages:
             mean = raw = streams.central_uniform_messages(k, n, m)
             sent, logp = raw, zeros_kn
         elif self.has_network:
             if message_mean is None or (self.rl and values is None):
-                raise ValueError(f"variant hammer ({self.central_mode}) needs the central network's forward")
+                raise ValueError(f"variant {self.wiring.label} needs the central network's forward")
             mean = message_mean(state)
-            if self.central_mode == "rl":
+            if self.rl:
                 z = streams.central_normals(k, n, m)
                 raw = (mean + self.msg_std * z).astype(np.float32)
                 logp = (-0.5 * z**2 - np.log(self.msg_std) - 0.5 * LOG_2PI).sum(-1).astype(np.float32)

@@ -95,8 +95,7 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     from learning.trainer import train
 
     console = Console(stderr=True)
-    console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.variant}"
-                  f"{'/' + cfg.central_mode if cfg.variant == 'hammer' else ''}, seed {cfg.seed})")
+    console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
     if quiet or not sys.stderr.isatty():
         last = [0]
 

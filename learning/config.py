@@ -16,6 +16,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from learning.variant import MESSAGE_VARIANTS, Wiring
+
 Variant = Literal["hammer", "il", "random", "centralized"]
 CentralMode = Literal["rl", "backprop"]
 
@@ -84,7 +86,7 @@ class RunConfig(BaseModel):
             sizes = getattr(self, name)
             if not sizes or any(s < 1 for s in sizes):
                 raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
-        if self.variant in ("hammer", "random") and self.msg_dim < 1:
+        if self.variant in MESSAGE_VARIANTS and self.msg_dim < 1:
             raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
         if self.minibatches > self.rollout_steps * self.num_envs:
             raise ValueError("minibatches: must be <= rollout_steps * num_envs")
@@ -93,11 +95,15 @@ class RunConfig(BaseModel):
     @property
     def effective_msg_dim(self) -> int:
         """Message length the local agents actually receive (0 for il and centralized)."""
-        return self.msg_dim if self.variant in ("hammer", "random") else 0
+        return self.wiring.msg_dim
+
+    @property
+    def wiring(self) -> Wiring:
+        """What the variant and central mode mean for every runner (`learning.variant`)."""
+        return Wiring.from_config(self)
 
     def run_name(self) -> str:
-        mode = f"-{self.central_mode}" if self.variant == "hammer" else ""
-        return f"{self.env.replace(':', '_')}{self.n_agents}-{self.variant}{mode}-s{self.seed}"
+        return f"{self.env.replace(':', '_')}{self.n_agents}-{self.wiring.label}-s{self.seed}"
 
 
 _FIXES = {

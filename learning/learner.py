@@ -136,7 +136,7 @@ class TeamLearner:
         empty list unless `with_stats`)."""
         cfg, team = self.cfg, self.team
         m = None if self._full else r["mask"]
-        backprop = team.central is not None and cfg.central_mode == "backprop"
+        backprop = team.wiring.central_backprop
         if backprop:
             msg = team.central.message_mean(r["state"])
             if cfg.msg_dropout > 0:

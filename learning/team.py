@@ -32,25 +32,22 @@ class Team:
         self.n, self.obs_dim = spec.n_agents, spec.obs_dim
         self.discrete = spec.discrete
         self.act_dim = spec.action_dim  # one-hot width (discrete) or vector length (continuous)
-        self.variant = cfg.variant
         self.msg_dim = cfg.effective_msg_dim
         self.state_dim = self.n * self.obs_dim + (self.n * self.act_dim if cfg.use_prev_actions else 0)
-        if self.variant == "centralized":
-            self.local_in_dim = self.n * self.obs_dim + self.n
-        else:
-            self.local_in_dim = self.obs_dim + self.msg_dim
+        self.wiring = cfg.wiring
+        self.local_in_dim = self.wiring.local_input_dim(self.obs_dim)
         self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
                                  cfg.critic_hidden, cfg.log_std_init)
         self.central: CentralAgent | None = None
-        if self.variant == "hammer":
+        if self.wiring.has_central_network:
             self.central = CentralAgent(self.state_dim, self.n, self.msg_dim, cfg.central_hidden,
-                                        cfg.critic_hidden if cfg.central_mode == "rl" else None)
+                                        cfg.critic_hidden if self.wiring.central_rl else None)
         self._eye = torch.eye(self.n)
         self.acting = CentralActing.from_config(cfg)
 
     @property
     def central_rl(self) -> bool:
-        return self.central is not None and self.cfg.central_mode == "rl"
+        return self.wiring.central_rl
 
     # ----- global state -------------------------------------------------------------------------
     def encode_actions(self, actions: np.ndarray, active: np.ndarray) -> np.ndarray:
@@ -93,7 +90,7 @@ class Team:
     # ----- local agents -------------------------------------------------------------------------
     def local_input(self, obs: torch.Tensor, msg: torch.Tensor) -> torch.Tensor:
         """(B, N, D) obs and (B, N, M) messages → (B, N, in) local policy input."""
-        if self.variant == "centralized":
+        if self.wiring.joint_obs:
             b = obs.shape[0]
             joint = obs.reshape(b, 1, -1).expand(b, self.n, self.n * self.obs_dim)
             return torch.cat([joint, self._eye.expand(b, self.n, self.n)], dim=-1)

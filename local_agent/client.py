@@ -22,8 +22,10 @@ from pathlib import Path
 import numpy as np
 from safetensors.numpy import load as load_safetensors
 
+from envs.base import EnvSpec
 from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
+from learning.config import RunConfig
 from learning.numpy_policy import NumpyLocalPolicy, softmax
 from learning.policy_versions import WeightsInbox
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
@@ -45,6 +47,12 @@ class AgentSpec:
     action_dim: int
     seed: int
     onehot: bool = False  # variant centralized: append one-hot(agent) to the joint observation
+
+    @classmethod
+    def from_config(cls, cfg: RunConfig, env: EnvSpec, agent: int) -> AgentSpec:
+        w = cfg.wiring
+        return cls(agent=agent, n_agents=cfg.n_agents, obs_dim=w.local_obs_dim(env.obs_dim), msg_dim=w.msg_dim,
+                   discrete=env.discrete, action_dim=env.action_dim, seed=cfg.seed, onehot=w.joint_obs)
 
 
 @dataclass
