@@ -16,10 +16,9 @@ import numpy as np
 
 from envs.base import EnvSpec
 from learning.config import RunConfig
+from learning.numpy_policy import gaussian_logp_of_draw
 from learning.sampling import ActingStreams
 from learning.variant import Wiring
-
-LOG_2PI = float(np.log(2 * np.pi))
 
 Forward = Callable[[np.ndarray], np.ndarray]
 
@@ -108,7 +107,7 @@ class CentralActing:
             if self.rl:
                 z = streams.central_normals(k, n, m)
                 raw = (mean + self.msg_std * z).astype(np.float32)
-                logp = (-0.5 * z**2 - np.log(self.msg_std) - 0.5 * LOG_2PI).sum(-1).astype(np.float32)
+                logp = gaussian_logp_of_draw(z, np.log(self.msg_std))
                 sent = np.clip(raw, -1.0, 1.0)
                 value = values(state)
             else:  # backprop: act on the deterministic message, recomputed with grad at update time

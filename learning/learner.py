@@ -8,15 +8,15 @@ the env host's experience chunks. Both then call `learn`, so the update is writt
 
 from __future__ import annotations
 
-import contextlib
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from envs.base import EnvSpec
+from learning.compiled_update import CompiledUpdate
 from learning.config import RunConfig
 from learning.networks import gaussian_logp
 from learning.ppo import (
@@ -45,17 +45,10 @@ class TeamLearner:
                             if self.team.central is not None else None)
         self.buf = RolloutBuffer(cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim,
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
-        self._full = self._c_full = False  # set by batch(): every agent present / no message dropped
+        self.full = self.c_full = False  # set by batch(): every agent present / no message dropped
         self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
-        self._updaters = [opt for opt in (self.local_opt, self.central_opt) if opt is not None]
-        self._step = None
-        if cfg.compile:
-            # A minibatch step is hundreds of tiny ops; what pays is one graph for all of it (see
-            # `_train_step`). Shapes are static, so one graph per minibatch size and flags
-            # (_full, _c_full): one for cn.
-            self._nets = _Nets(self)
-            self._step = torch.compile(self._train_step, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
-            self._compiled: set[tuple] = set()
+        self.updaters = [opt for opt in (self.local_opt, self.central_opt) if opt is not None]
+        self.compiled_update = CompiledUpdate(self) if cfg.compile else None
 
     # ----- state (checkpoints) -------------------------------------------------------------------
     def state_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -99,8 +92,8 @@ class TeamLearner:
              "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
              "mask": flat(buf.active.astype(np.float32))}
         # All agents present (and no message dropped): the losses skip their masking ops.
-        self._full = bool(buf.active.all())
-        self._c_full = self._full and bool(buf.keep.all())
+        self.full = bool(buf.active.all())
+        self.c_full = self.full and bool(buf.keep.all())
         if team.central_rl:
             c_nv = next_values(buf.c_values, team.central_values(last_state), buf.c_final_values, buf.reset)
             c_adv, c_ret = gae(buf.rewards, buf.c_values, c_nv, buf.terminated, dones, cfg.gamma,
@@ -109,33 +102,18 @@ class TeamLearner:
                      c_mask=b["mask"] * b["keep"])
         return b
 
-    def losses(self, b: dict[str, torch.Tensor], mb: torch.Tensor
-               ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, float]]:
-        """(local PPO loss, central PPO loss or None, logs) on the rows `mb` of the batch `b`.
+    def losses(self, r: dict[str, torch.Tensor], with_stats: bool = True
+               ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
+        """(local PPO loss, central PPO loss or None, statistics) on the minibatch `r`; the
+        statistics are 0-d tensors named by `log_keys` (an empty list unless `with_stats`).
 
         backprop: the messages are recomputed from the stored global states with grad, so the
         local actor loss flows through u_i into the central heads and encoder (DIAL-style); the
         local critic sees detached messages. rl: the local loss sees the stored (sent) messages,
         the central loss is its own PPO on the Gaussian messages; the two graphs never meet.
         """
-        local_loss, central_loss, stats = self._losses({k: v[mb] for k, v in b.items()})
-        return local_loss, central_loss, dict(zip(self._log_keys(), torch.stack(stats).tolist(), strict=False))
-
-    def _log_keys(self) -> list[str]:
-        keys = ["local/policy_loss", "local/value_loss", "local/entropy", "local/approx_kl", "local/clipfrac"]
-        if self.team.central_rl:
-            keys += ["central/policy_loss", "central/value_loss", "central/approx_kl"]
-        keys.append("local/grad_norm")
-        if self.central_opt is not None:
-            keys.append("central/grad_norm")
-        return keys
-
-    def _losses(self, r: dict[str, torch.Tensor], with_stats: bool = True
-                ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
-        """`losses` on an already selected minibatch `r`; the statistics stay 0-d tensors (an
-        empty list unless `with_stats`)."""
         cfg, team = self.cfg, self.team
-        m = None if self._full else r["mask"]
+        m = None if self.full else r["mask"]
         backprop = team.wiring.central_backprop
         if backprop:
             msg = team.central.message_mean(r["state"])
@@ -154,7 +132,7 @@ class TeamLearner:
         stats = [pg.detach(), vl.detach(), ent.detach(), kl, clipfrac] if with_stats else []
         central_loss = None
         if team.central_rl:
-            cm = None if self._c_full else r["c_mask"]
+            cm = None if self.c_full else r["c_mask"]
             mean = team.central.message_mean(r["state"])
             c_logp = gaussian_logp(r["raw"], mean, self._msg_log_std)
             ca = normalize_advantages(r["c_adv"], cm) if cfg.norm_adv else r["c_adv"]
@@ -165,131 +143,56 @@ class TeamLearner:
                 stats += [cpg.detach(), cvl.detach(), ckl]
         return local_loss, central_loss, stats
 
-    def _train_step(self, params: list[torch.Tensor], exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
-                    steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor]) -> torch.Tensor:
-        """One whole minibatch step, written to be traced into one torch.compile graph
-        (compile=true): the losses, their gradients by `torch.func.grad` (a traced backward, so no
-        autograd engine, AccumulateGrad or `.grad` bookkeeping at run time), then per network the
-        clip and Adam (`PPOUpdater.traced_clip_and_step`), in place on the parameters and the Adam
-        state. The same maths as the eager loop in `learn`; only float rounding differs. Returns
-        the statistics stacked in `_log_keys` order, on every step: one graph instead of one with
-        and one without them (half the compile time) for a few reductions per step."""
-        r = dict(zip(keys, fields, strict=True))
-        names = self._nets.names
+    def log_keys(self) -> list[str]:
+        """Names of the statistics `losses` returns, then of the grad norms `learn` adds."""
+        keys = ["local/policy_loss", "local/value_loss", "local/entropy", "local/approx_kl", "local/clipfrac"]
+        if self.team.central_rl:
+            keys += ["central/policy_loss", "central/value_loss", "central/approx_kl"]
+        keys.append("local/grad_norm")
+        if self.central_opt is not None:
+            keys.append("central/grad_norm")
+        return keys
 
-        def total_loss(ps: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
-            local, central, stats = torch.func.functional_call(self._nets, dict(zip(names, ps, strict=True)),
-                                                               (r, True))
-            return (local if central is None else local + central), stats
-
-        grads, stats = torch.func.grad(total_loss, has_aux=True)(tuple(p.detach() for p in params))
-        norms, lo = [], 0
-        with torch.no_grad():
-            for opt in self._updaters:
-                part = slice(lo, lo + len(opt.params))
-                norms.append(opt.traced_clip_and_step(params[part], list(grads[part]), exp_avgs[part],
-                                                      exp_avg_sqs[part], steps[part]))
-                lo = part.stop
-        return torch.stack(stats + norms)
+    def epoch_minibatches(self, b: dict[str, torch.Tensor], rng: np.random.Generator
+                          ) -> Iterator[dict[str, torch.Tensor]]:
+        """One epoch's minibatches of the batch `b`: the rows `minibatch_indices` gives, in its
+        order. Every field is gathered once in the epoch's shuffled row order, so a minibatch is a
+        contiguous slice (a view) instead of one gather per field per minibatch."""
+        parts = minibatch_indices(self.buf.t * self.buf.k, self.cfg.minibatches, rng)
+        perm = torch.from_numpy(np.concatenate(parts))
+        shuffled = {k: v.index_select(0, perm) for k, v in b.items()}
+        start = 0
+        for part in parts:
+            end = start + len(part)
+            yield {k: v[start:end] for k, v in shuffled.items()}
+            start = end
 
     def learn(self, obs: np.ndarray, prev: np.ndarray, update: int) -> dict[str, float]:
         """PPO epochs over shuffled minibatches of rows; one backward over the summed losses,
         then each network clips its own gradient norm and steps its own optimiser.
 
-        Each epoch gathers every field once in that epoch's shuffled row order, so a minibatch is
-        a contiguous slice (a view) instead of one gather per field per minibatch; the rows are
-        exactly those `minibatch_indices` gives. The returned logs are means over the last
-        epoch's minibatches (how far the final policy moved from the rollout policy), kept as
-        tensors and turned into floats once per update.
+        The returned logs are means over the last epoch's minibatches (how far the final policy
+        moved from the rollout policy), kept as tensors and turned into floats once per update.
+        compile=true runs the same loop with each minibatch step one compiled graph
+        (`learning.compiled_update`).
         """
-        cfg, buf = self.cfg, self.buf
+        cfg = self.cfg
         b = self.batch(obs, prev)
         rng = stream(cfg.seed, MINIBATCH_STREAM, update)
-        if self._step is not None:
-            return self._learn_compiled(b, rng)
+        if self.compiled_update is not None:
+            return self.compiled_update.learn(b, rng)
         total: torch.Tensor | None = None
         for epoch in range(cfg.epochs):
             last = epoch == cfg.epochs - 1
-            parts = minibatch_indices(buf.t * buf.k, cfg.minibatches, rng)
-            perm = torch.from_numpy(np.concatenate(parts))
-            shuffled = {k: v.index_select(0, perm) for k, v in b.items()}
-            start = 0
-            for part in parts:
-                end = start + len(part)
-                local_loss, central_loss, stats = self._losses({k: v[start:end] for k, v in shuffled.items()}, last)
-                start = end
+            for mb in self.epoch_minibatches(b, rng):
+                local_loss, central_loss, stats = self.losses(mb, with_stats=last)
                 loss = local_loss if central_loss is None else local_loss + central_loss
-                self.local_opt.zero_grad()
-                if self.central_opt is not None:
-                    self.central_opt.zero_grad()
+                for opt in self.updaters:
+                    opt.zero_grad()
                 loss.backward()
-                norms = [self.local_opt.clip_and_step()]
-                if self.central_opt is not None:
-                    norms.append(self.central_opt.clip_and_step())
+                norms = [opt.clip_and_step() for opt in self.updaters]
                 if last:
                     st = torch.stack(stats + norms)
                     total = st if total is None else total + st
         assert total is not None
-        return dict(zip(self._log_keys(), (total / cfg.minibatches).tolist(), strict=True))
-
-    def _learn_compiled(self, b: dict[str, torch.Tensor], rng: np.random.Generator) -> dict[str, float]:
-        """`learn`'s loop with each minibatch step as one call of the compiled `_train_step`: the
-        same rows in the same order, the same statistics."""
-        cfg, buf = self.cfg, self.buf
-        params = [p for opt in self._updaters for p in opt.params]
-        exp_avgs, exp_avg_sqs, steps = ([t for opt in self._updaters for t in opt.adam_state()[i]] for i in range(3))
-        keys = tuple(b)
-        n_rows = buf.t * buf.k
-        graphs = {(len(part), self._full, self._c_full, keys)
-                  for part in np.array_split(np.arange(n_rows), cfg.minibatches)}
-        total: torch.Tensor | None = None
-        with _skip_guards(graphs <= self._compiled):
-            for epoch in range(cfg.epochs):
-                last = epoch == cfg.epochs - 1
-                parts = minibatch_indices(n_rows, cfg.minibatches, rng)
-                perm = torch.from_numpy(np.concatenate(parts))
-                shuffled = [b[k].index_select(0, perm) for k in keys]
-                start = 0
-                for part in parts:
-                    end = start + len(part)
-                    st = self._step(params, exp_avgs, exp_avg_sqs, steps, keys, [v[start:end] for v in shuffled])
-                    start = end
-                    if last:
-                        total = st if total is None else total + st
-        self._compiled |= graphs
-        assert total is not None
-        return dict(zip(self._log_keys(), (total / cfg.minibatches).tolist(), strict=True))
-
-
-# cpp_wrapper: the graph's glue code (buffer allocation, size asserts, kernel calls) in C++ instead
-# of Python, which is a large part of a call at these sizes.
-COMPILE_OPTIONS = {"cpp_wrapper": True}
-SKIP_GUARDS = True
-
-
-def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
-    """Once every step graph an update needs exists, dynamo need not re-check their guards
-    (~100 tensors and the config) on every call: ~8% of a compiled update. Under this stance
-    dynamo would run a stale graph if a Python value the trace read had changed, so the key holds
-    every such value that can change between calls (minibatch size, `_full`, `_c_full`, the batch
-    fields); the rest (config, learning rates, network shapes) is fixed for a learner's life."""
-    if seen and SKIP_GUARDS:
-        return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
-    return contextlib.nullcontext()
-
-
-class _Nets(nn.Module):
-    """The team's networks as one module whose forward is the PPO losses, so that
-    `torch.func.functional_call` can swap in the tensors `torch.func.grad` differentiates."""
-
-    def __init__(self, learner: TeamLearner) -> None:
-        super().__init__()
-        self.local = learner.team.local
-        if learner.team.central is not None:
-            self.central = learner.team.central
-        self.losses = learner._losses
-        self.names = [n for n, _ in self.named_parameters()]
-
-    def forward(self, r: dict[str, torch.Tensor], with_stats: bool
-                ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
-        return self.losses(r, with_stats)
+        return dict(zip(self.log_keys(), (total / cfg.minibatches).tolist(), strict=True))

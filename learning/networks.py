@@ -50,7 +50,7 @@ _FAST_TANH_MIN = 8192  # elements; below this the plain kernel wins (call overhe
 def tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh for the hidden layers.
 
-    torch's float32 tanh kernel is ~3x slower than its sigmoid on our CPUs, and tanh was the most
+    torch's float32 tanh kernel is much slower than its sigmoid on our CPUs, and tanh was the most
     expensive op of a PPO update (more than the matmuls), so large tensors use 2σ(2x) − 1, which
     is tanh up to ~2e-7 absolute (float32 rounding; numpy_policy's np.tanh matches to 1e-6).
     """
@@ -66,8 +66,8 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
 def _traced_tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh inside a torch.compile graph (compile=true) as plain ops, which inductor fuses into
     its kernels and AOTAutograd differentiates itself: the custom autograd.Function would keep the
-    graph out of AOTAutograd's cache (5 s more compile in every run). 2σ(2x) − 1 here too: inductor's
-    tanh made the whole update ~1.1x slower."""
+    graph out of AOTAutograd's cache (a longer compile in every run). 2σ(2x) − 1 here too: inductor's
+    tanh made the whole update slower."""
     return (x * 2.0).sigmoid() * 2.0 - 1.0
 
 
@@ -97,9 +97,6 @@ class _Exportable(nn.Module):
     def export_numpy(self) -> dict[str, np.ndarray]:
         """All weights as a flat {name: float32 array} dict (what edge devices load)."""
         return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in self.state_dict().items()}
-
-    def load_numpy(self, params: dict[str, np.ndarray]) -> None:
-        self.load_state_dict({k: torch.as_tensor(np.asarray(v)) for k, v in params.items()})
 
 
 class LocalPolicy(_Exportable):
@@ -133,7 +130,9 @@ class LocalPolicy(_Exportable):
 
 
 def gaussian_logp(x: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    """Diagonal Gaussian log-density summed over the last axis."""
+    """Diagonal Gaussian log-density of x summed over the last axis (with grad, for the losses).
+    The numpy twin on the acting path, from the standard-normal draw, is
+    `numpy_policy.gaussian_logp_of_draw`."""
     z = (x - mean) * torch.exp(-log_std)
     return (-0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
 

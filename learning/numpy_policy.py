@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+LOG_2PI = float(np.log(2 * np.pi))
+
 
 def _layers(params: dict[str, np.ndarray], prefix: str) -> list[tuple[np.ndarray, np.ndarray]]:
     out = []
@@ -39,6 +41,13 @@ def softmax(logits: np.ndarray) -> np.ndarray:
     z = z - z.max(axis=-1, keepdims=True)
     e = np.exp(z)
     return e / e.sum(axis=-1, keepdims=True)
+
+
+def gaussian_logp_of_draw(z: np.ndarray, log_std: np.ndarray | float) -> np.ndarray:
+    """Log-density of the Gaussian sample mean + exp(log_std) * z, summed over the last axis, from
+    its standard-normal draw z (float32): acting knows z, so this needs no mean and no division.
+    The torch twin, from the sample and the mean, is `networks.gaussian_logp` (training)."""
+    return (-0.5 * z**2 - log_std - 0.5 * LOG_2PI).sum(-1).astype(np.float32)
 
 
 class NumpyLocalPolicy:
@@ -76,7 +85,7 @@ class NumpyCentralAgent:
         self.n_agents, hidden, self.msg_dim = self.head_weight.shape
         self.state_dim = self.encoder[0][0].shape[1]
         # All N heads as one (H, N*M) matmul, as CentralAgent.message_mean does: an einsum over
-        # (N, H, M) costs ~2.5x more per call on the central server's acting path.
+        # (N, H, M) costs more per call on the central server's acting path.
         self._heads = np.ascontiguousarray(self.head_weight.transpose(1, 0, 2).reshape(hidden, -1))
         self._heads_bias = self.head_bias.reshape(-1)
 

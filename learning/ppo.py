@@ -1,6 +1,6 @@
 """PPO maths, written once and free of trainer state.
 
-The in-process trainer and (later) the distributed learner processes both call these pure
+`TeamLearner.learn` (the in-process trainer's and the learner process's update) calls these pure
 functions; `PPOUpdater` only wraps one optimiser with its learning rate and grad-norm clip.
 
 Shapes: time first, then any batch shape, e.g. (T, K, N). `mask` is 1 where the agent was present
@@ -14,7 +14,8 @@ from collections.abc import Iterable
 
 import numpy as np
 import torch
-from torch.optim.adam import adam as functional_adam
+
+from learning.fused_adam import fused_adam_step
 
 
 def next_values(values: np.ndarray, last_values: np.ndarray, final_values: np.ndarray,
@@ -73,9 +74,11 @@ def normalize_advantages(adv: torch.Tensor, mask: torch.Tensor | None, eps: floa
 def clipped_surrogate(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch.Tensor, clip: float,
                       mask: torch.Tensor | None, stats: bool = True
                       ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """(loss, approx_kl, clipfrac) as tensors (the statistics None unless `stats`): the minibatch
-    loop keeps its statistics as tensors and converts them once per update (a float() per
-    statistic per minibatch costs more than the maths)."""
+    """PPO's clipped policy loss -E[min(r A, clip(r, 1-eps, 1+eps) A)] with r = exp(new - old).
+
+    Returns (loss, approx_kl, clipfrac) as tensors (the statistics None unless `stats`): the
+    minibatch loop keeps its statistics as tensors and converts them once per update (a float()
+    per statistic per minibatch costs more than the maths)."""
     log_ratio = new_logp - old_logp
     ratio = log_ratio.exp()
     loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip))
@@ -88,28 +91,9 @@ def clipped_surrogate(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch
     return masked_mean(loss, mask), approx_kl, clipfrac
 
 
-def clipped_policy_loss(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch.Tensor, clip: float,
-                        mask: torch.Tensor | None) -> tuple[torch.Tensor, dict[str, float]]:
-    """-E[min(r A, clip(r, 1-eps, 1+eps) A)] with r = exp(new - old); also KL and clip-fraction stats."""
-    loss, approx_kl, clipfrac = clipped_surrogate(new_logp, old_logp, adv, clip, mask)
-    return loss, {"approx_kl": float(approx_kl), "clipfrac": float(clipfrac)}
-
-
 def value_loss(new_values: torch.Tensor, returns: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     """0.5 * E[(V - R)^2] over present entries."""
     return 0.5 * masked_mean((new_values - returns) ** 2, mask)
-
-
-def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
-    """`PPOUpdater.clip_and_step`'s clip (clip_grad_norm_'s rule: scale by min(1, max/(norm + 1e-6)))
-    for a torch.compile graph; returns the clipped gradients and the norm before clipping.
-
-    The norm is a sum of squares instead of `_foreach_norm`: inductor fuses the sums into its own
-    kernels, while `_foreach_norm` stays a loop of one library call per tensor inside the graph.
-    """
-    norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
-    coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
-    return [g * coef for g in grads], norm
 
 
 def minibatch_indices(n_rows: int, minibatches: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -117,15 +101,21 @@ def minibatch_indices(n_rows: int, minibatches: int, rng: np.random.Generator) -
     return np.array_split(rng.permutation(n_rows), minibatches)
 
 
+def clip_grad_norm(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """Scale `grads` in place by min(1, max_norm / (norm + 1e-6)), where norm is their total L2
+    norm; returns the norm before clipping as a 0-d tensor. `torch.nn.utils.clip_grad_norm_`'s
+    rule and result, as three foreach ops without its per-call grouping of the tensors."""
+    norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
+    torch._foreach_mul_(grads, (max_norm / (norm + 1e-6)).clamp_(max=1.0))
+    return norm
+
+
 class PPOUpdater:
     """One network's Adam optimiser with its own learning rate and grad-norm clip.
 
-    The networks are tiny and an update makes epochs × minibatches optimiser steps per network, so
-    per-call overhead, not arithmetic, is the cost. Hence the clip is three foreach ops and the
-    step calls the fused CPU Adam kernel directly (the same kernel `Adam(fused=True).step()` runs,
-    without ~0.25 ms of Python bookkeeping per call). The `torch.optim.Adam` object still owns
-    the state, so checkpoints (`state_dict`/`load_state_dict`) are unchanged; its own `step()`
-    makes the first step (it creates the state) and any step where a parameter has no state yet.
+    The `torch.optim.Adam` object owns the state, so a checkpoint is its `state_dict`. The step
+    runs through `fused_adam_step`: the same fused kernel as `optimizer.step()`, with less
+    per-call overhead, which is what an update of these small networks spends its time on.
     """
 
     def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, max_grad_norm: float) -> None:
@@ -138,63 +128,12 @@ class PPOUpdater:
             p.grad = None
 
     def clip_and_step(self) -> torch.Tensor:
-        """Clip this network's gradient norm, step; returns the norm before clipping as a 0-d tensor."""
+        """Clip this network's gradient norm, take one Adam step; returns the norm before clipping
+        as a 0-d tensor."""
         params = [p for p in self.params if p.grad is not None]
         if not params:
             return torch.zeros(())
         grads = [p.grad for p in params]
-        norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
-        torch._foreach_mul_(grads, (self.max_grad_norm / (norm + 1e-6)).clamp_(max=1.0))
-        self._adam_step(params, grads)
+        norm = clip_grad_norm(grads, self.max_grad_norm)
+        fused_adam_step(self.optimizer, params, grads)
         return norm
-
-    def _adam_step(self, params: list[torch.nn.Parameter], grads: list[torch.Tensor]) -> None:
-        group = self.optimizer.param_groups[0]
-        states = [self.optimizer.state.get(p) for p in params]
-        if (len(self.optimizer.param_groups) != 1 or not group.get("fused") or group["amsgrad"]
-                or group["weight_decay"] or group["maximize"] or not all(states)):
-            self.optimizer.step()  # first step, or a configuration the direct call does not cover
-            return
-        steps = [s["step"] for s in states]
-        torch._foreach_add_(steps, 1)
-        beta1, beta2 = group["betas"]
-        torch._fused_adam_(params, grads, [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [],
-                           steps, amsgrad=False, lr=float(group["lr"]), beta1=beta1, beta2=beta2, weight_decay=0.0,
-                           eps=group["eps"], maximize=False)
-
-    def adam_state(self) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
-        """(exp_avgs, exp_avg_sqs, steps) of every parameter, created as Adam's first step creates
-        them (zeros, a float32 0-d step) where missing. The compiled update steps these tensors in
-        place, so the `torch.optim.Adam` object keeps owning the state (checkpoints unchanged)."""
-        group = self.optimizer.param_groups[0]
-        for p in self.params:
-            if p not in self.optimizer.state:
-                self.optimizer.state[p] = {"step": torch.zeros((), dtype=torch.float32),
-                                           "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
-                                           "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
-        if (len(self.optimizer.param_groups) != 1 or group["amsgrad"] or group["weight_decay"]
-                or group["maximize"]):
-            raise ValueError("compile=true supports plain Adam only (no amsgrad, weight decay, maximize)")
-        states = [self.optimizer.state[p] for p in self.params]
-        return [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [s["step"] for s in states]
-
-    def traced_clip_and_step(self, params: list[torch.Tensor], grads: list[torch.Tensor],
-                             exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
-                             steps: list[torch.Tensor]) -> torch.Tensor:
-        """`clip_and_step` written to be traced into a torch.compile graph (compile=true): the
-        clip as `clip_by_total_norm`, then torch's own Adam maths in its foreach/capturable form
-        (what torch traces when it compiles an Adam optimiser), stepping the state from
-        `adam_state` in place. Returns the norm before clipping."""
-        group = self.optimizer.param_groups[0]
-        grads, norm = clip_by_total_norm(grads, self.max_grad_norm)
-        beta1, beta2 = group["betas"]
-        # capturable: the step count stays a tensor inside the graph (torch allows it on CPU only
-        # while compiling; run eagerly, e.g. under set_stance("force_eager"), the plain form runs).
-        functional_adam(params, grads, exp_avgs, exp_avg_sqs, [], steps, foreach=True,
-                        capturable=torch.compiler.is_compiling(), amsgrad=False, beta1=beta1, beta2=beta2,
-                        lr=group["lr"], weight_decay=0.0, eps=group["eps"], maximize=False)
-        return norm
-
-    def step(self) -> float:
-        """Clip this network's gradient norm, step; returns the norm before clipping."""
-        return float(self.clip_and_step())

@@ -38,10 +38,6 @@ def categorical_inverse_cdf(probs: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.minimum(idx, probs.shape[-1] - 1).astype(np.int64)
 
 
-def gaussian_sample(mean: np.ndarray, std: np.ndarray | float, z: np.ndarray) -> np.ndarray:
-    return (mean + std * z).astype(np.float32)
-
-
 def env_reset_seed(seed: int, update: int) -> int:
     """Seed for `VecEnv.reset` at a checkpoint point (copy k gets this + k)."""
     return int(np.random.SeedSequence([seed, ENV_RESEED_STREAM, update]).generate_state(1)[0] % (2**31 - 2**20))

@@ -15,11 +15,10 @@ import numpy as np
 import torch
 
 from envs.base import EnvSpec
-from learning.central_acting import LOG_2PI as _LOG_2PI
 from learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from learning.config import RunConfig
 from learning.networks import CentralAgent, LocalPolicy
-from learning.numpy_policy import softmax
+from learning.numpy_policy import gaussian_logp_of_draw, softmax
 from learning.sampling import ActingStreams, categorical_inverse_cdf
 
 
@@ -119,8 +118,7 @@ class Team:
         z = streams.local_normals(k, self.act_dim)
         log_std = self.local.log_std.detach().numpy()
         action = (out + np.exp(log_std) * z).astype(np.float32)
-        logp = (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1).astype(np.float32)
-        return action, logp, value
+        return action, gaussian_logp_of_draw(z, log_std), value
 
     @torch.inference_mode()
     def local_evaluate(self, obs: np.ndarray, msg: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +132,7 @@ class Team:
             return np.log(np.take_along_axis(probs, action[..., None], axis=-1)[..., 0]).astype(np.float32), value
         log_std = self.local.log_std.detach().numpy()
         z = (action - out) / np.exp(log_std)  # the Gaussian draw behind the action (to float precision)
-        return (-0.5 * z**2 - log_std - 0.5 * _LOG_2PI).sum(-1).astype(np.float32), value
+        return gaussian_logp_of_draw(z, log_std), value
 
     @torch.inference_mode()
     def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:

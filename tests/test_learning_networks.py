@@ -8,8 +8,8 @@ import torch
 
 from envs.registry import make_vec_env
 from learning.config import merge_config
-from learning.networks import CentralAgent, LocalPolicy
-from learning.numpy_policy import NumpyCentralAgent, NumpyLocalPolicy, softmax
+from learning.networks import CentralAgent, LocalPolicy, gaussian_logp
+from learning.numpy_policy import NumpyCentralAgent, NumpyLocalPolicy, gaussian_logp_of_draw, softmax
 from learning.rundir import RunDir
 from learning.sampling import ActingStreams, categorical_inverse_cdf
 from learning.trainer import Trainer
@@ -35,9 +35,20 @@ def test_numpy_forward_matches_torch():
     assert mean.shape == (5, 3, 4) and np.abs(mean).max() <= 1.0
     # export -> load round trip gives the same network
     other = CentralAgent(69, 3, 4, [64, 64], [64, 32])
-    other.load_numpy(central.export_numpy())
+    other.load_state_dict({k: torch.from_numpy(v) for k, v in central.export_numpy().items()})
     with torch.no_grad():
         assert torch.equal(other.message_mean(torch.from_numpy(s)), central.message_mean(torch.from_numpy(s)))
+
+
+def test_gaussian_logp_numpy_from_the_draw_equals_torch_from_the_sample():
+    rng = np.random.default_rng(3)
+    mean, z = rng.normal(size=(4, 3, 2)), rng.standard_normal((4, 3, 2))
+    log_std = np.array([-0.5, 0.3], np.float32)
+    x = mean + np.exp(log_std) * z
+    ours = gaussian_logp_of_draw(z, log_std)
+    ref = gaussian_logp(torch.from_numpy(x), torch.from_numpy(mean), torch.from_numpy(log_std)).numpy()
+    assert ours.dtype == np.float32 and ours.shape == (4, 3)
+    np.testing.assert_allclose(ours, ref, rtol=1e-5)
 
 
 def test_edge_modules_do_not_import_torch():
@@ -93,7 +104,7 @@ def _grads(module):
 def test_backprop_mode_trains_the_central_net_through_the_local_loss(tmp_path):
     tr, b = _trainer(tmp_path, "backprop")
     assert tr.team.central.critic is None
-    local_loss, central_loss, _ = tr.learner.losses(b, torch.arange(100))
+    local_loss, central_loss, _ = tr.learner.losses({k: v[:100] for k, v in b.items()})
     assert central_loss is None
     local_loss.backward()
     grads = _grads(tr.team.central)
@@ -112,7 +123,7 @@ def _last(tr):
 
 def test_rl_mode_keeps_the_two_graphs_apart(tmp_path):
     tr, b = _trainer(tmp_path, "rl")
-    local_loss, central_loss, _ = tr.learner.losses(b, torch.arange(100))
+    local_loss, central_loss, _ = tr.learner.losses({k: v[:100] for k, v in b.items()})
     local_loss.backward(retain_graph=True)
     assert all(g is None for g in _grads(tr.team.central))
     assert any(g is not None for g in _grads(tr.team.local))

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from learning.ppo import (
-    clipped_policy_loss,
+    PPOUpdater,
+    clipped_surrogate,
     gae,
     minibatch_indices,
     next_values,
@@ -56,19 +57,19 @@ def test_gae_masks_absent_agents():
     np.testing.assert_allclose(adv[:, 0], [1 + 0.72 * 1.72, 1.72, 1.0], rtol=1e-6)
 
 
-def test_clipped_policy_loss_tiny_example():
+def test_clipped_surrogate_tiny_example():
     new = torch.log(torch.tensor([1.5, 0.5]))
     old = torch.zeros(2)
     adv = torch.tensor([1.0, -1.0])
     # r=1.5, A=1: min(1.5, 1.2) = 1.2 ; r=0.5, A=-1: min(-0.5, -0.8) = -0.8 ; loss = -mean = -(1.2-0.8)/2
-    loss, stats = clipped_policy_loss(new, old, adv, 0.2, torch.ones(2))
+    loss, _, clipfrac = clipped_surrogate(new, old, adv, 0.2, torch.ones(2))
     assert loss.item() == pytest.approx(-0.2)
-    assert stats["clipfrac"] == pytest.approx(1.0)
-    loss_masked, _ = clipped_policy_loss(new, old, adv, 0.2, torch.tensor([1.0, 0.0]))
+    assert clipfrac.item() == pytest.approx(1.0)
+    loss_masked, _, _ = clipped_surrogate(new, old, adv, 0.2, torch.tensor([1.0, 0.0]))
     assert loss_masked.item() == pytest.approx(-1.2)
     # inside the clip range the loss is just -r*A
-    inside, _ = clipped_policy_loss(torch.log(torch.tensor([1.1])), torch.zeros(1), torch.tensor([2.0]), 0.2,
-                                    torch.ones(1))
+    inside, _, _ = clipped_surrogate(torch.log(torch.tensor([1.1])), torch.zeros(1), torch.tensor([2.0]), 0.2,
+                                     torch.ones(1))
     assert inside.item() == pytest.approx(-2.2)
 
 
@@ -86,8 +87,8 @@ def test_minibatches_partition_rows():
 
 
 def test_updater_equals_torch_fused_adam_with_clip():
-    """PPOUpdater's direct fused-Adam call is bit-identical to clip_grad_norm_ + Adam(fused=True).step()."""
-    from learning.ppo import PPOUpdater
+    """PPOUpdater's clip and direct fused-Adam call are bit-identical to clip_grad_norm_ +
+    Adam(fused=True).step()."""
 
     def net():
         torch.manual_seed(0)

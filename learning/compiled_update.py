@@ -1,0 +1,165 @@
+"""compile=true: each minibatch step of the PPO update as one torch.compile graph.
+
+A minibatch step of these small networks is hundreds of tiny ops, so what pays is one graph for
+all of it: the losses (`TeamLearner.losses`, the one definition the eager loop uses too), their
+gradients by `torch.func.grad` (a traced backward, so no autograd engine, AccumulateGrad or `.grad`
+bookkeeping at run time), then per network the grad-norm clip and torch's own Adam maths, in place
+on the parameters and on the Adam state the `torch.optim.Adam` objects own (checkpoints
+unchanged). The maths, the rows and their order are the eager `TeamLearner.learn`'s; only float
+rounding differs (tests/test_learning_compile.py). The eager path never reads this module.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import nn
+from torch.optim.adam import adam as functional_adam
+
+from learning.ppo import PPOUpdater
+
+if TYPE_CHECKING:
+    from learning.learner import TeamLearner
+
+# cpp_wrapper: the graph's glue code (buffer allocation, size asserts, kernel calls) in C++ instead
+# of Python, which is a large part of a call at these sizes.
+COMPILE_OPTIONS = {"cpp_wrapper": True}
+SKIP_GUARDS = True
+
+
+class CompiledUpdate:
+    """`TeamLearner.learn`'s epochs and minibatches, each minibatch step one call of a compiled
+    `_train_step`. Shapes are static, so there is one graph per minibatch size and mask flags
+    (`TeamLearner.full`, `TeamLearner.c_full`): one for cn."""
+
+    def __init__(self, learner: TeamLearner) -> None:
+        self.learner = learner
+        self.nets = _Nets(learner)
+        self.step = torch.compile(self._train_step, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
+        self.compiled: set[tuple] = set()
+
+    def learn(self, b: dict[str, torch.Tensor], rng: np.random.Generator) -> dict[str, float]:
+        """The update on the batch `b` with the minibatch stream `rng`: the same rows in the same
+        order as the eager loop, the same statistics."""
+        learner = self.learner
+        cfg, buf, updaters = learner.cfg, learner.buf, learner.updaters
+        params = [p for opt in updaters for p in opt.params]
+        states = [adam_state(opt) for opt in updaters]
+        exp_avgs, exp_avg_sqs, steps = ([t for s in states for t in s[i]] for i in range(3))
+        keys = tuple(b)
+        graphs = {(len(part), learner.full, learner.c_full, keys)
+                  for part in np.array_split(np.arange(buf.t * buf.k), cfg.minibatches)}
+        total: torch.Tensor | None = None
+        with _skip_guards(graphs <= self.compiled):
+            for epoch in range(cfg.epochs):
+                last = epoch == cfg.epochs - 1
+                for mb in learner.epoch_minibatches(b, rng):
+                    st = self.step(params, exp_avgs, exp_avg_sqs, steps, keys, [mb[k] for k in keys])
+                    if last:
+                        total = st if total is None else total + st
+        self.compiled |= graphs
+        assert total is not None
+        return dict(zip(learner.log_keys(), (total / cfg.minibatches).tolist(), strict=True))
+
+    def _train_step(self, params: list[torch.Tensor], exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
+                    steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor]) -> torch.Tensor:
+        """One whole minibatch step, written to be traced into one graph: the losses, their
+        gradients, then per network `traced_clip_and_step`. Returns the statistics stacked in
+        `TeamLearner.log_keys` order, on every step: one graph instead of one with and one without
+        them (half the compile time) for a few reductions per step."""
+        r = dict(zip(keys, fields, strict=True))
+        names = self.nets.names
+
+        def total_loss(ps: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+            local, central, stats = torch.func.functional_call(self.nets, dict(zip(names, ps, strict=True)),
+                                                               (r, True))
+            return (local if central is None else local + central), stats
+
+        grads, stats = torch.func.grad(total_loss, has_aux=True)(tuple(p.detach() for p in params))
+        norms, lo = [], 0
+        with torch.no_grad():
+            for opt in self.learner.updaters:
+                part = slice(lo, lo + len(opt.params))
+                norms.append(traced_clip_and_step(opt, params[part], list(grads[part]), exp_avgs[part],
+                                                  exp_avg_sqs[part], steps[part]))
+                lo = part.stop
+        return torch.stack(stats + norms)
+
+
+class _Nets(nn.Module):
+    """The team's networks as one module whose forward is the PPO losses, so that
+    `torch.func.functional_call` can swap in the tensors `torch.func.grad` differentiates."""
+
+    def __init__(self, learner: TeamLearner) -> None:
+        super().__init__()
+        self.local = learner.team.local
+        if learner.team.central is not None:
+            self.central = learner.team.central
+        self.losses = learner.losses
+        self.names = [n for n, _ in self.named_parameters()]
+
+    def forward(self, r: dict[str, torch.Tensor], with_stats: bool
+                ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
+        return self.losses(r, with_stats)
+
+
+def adam_state(opt: PPOUpdater) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """(exp_avgs, exp_avg_sqs, steps) of every parameter of `opt`, created as Adam's first step
+    creates them (zeros, a float32 0-d step) where missing. The compiled step steps these tensors
+    in place, so the `torch.optim.Adam` object keeps owning the state (checkpoints unchanged)."""
+    optimizer = opt.optimizer
+    group = optimizer.param_groups[0]
+    for p in opt.params:
+        if p not in optimizer.state:
+            optimizer.state[p] = {"step": torch.zeros((), dtype=torch.float32),
+                                  "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+                                  "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
+    if len(optimizer.param_groups) != 1 or group["amsgrad"] or group["weight_decay"] or group["maximize"]:
+        raise ValueError("compile=true supports plain Adam only (no amsgrad, weight decay, maximize)")
+    states = [optimizer.state[p] for p in opt.params]
+    return [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [s["step"] for s in states]
+
+
+def traced_clip_and_step(opt: PPOUpdater, params: list[torch.Tensor], grads: list[torch.Tensor],
+                         exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
+                         steps: list[torch.Tensor]) -> torch.Tensor:
+    """`PPOUpdater.clip_and_step` written to be traced: the clip as `clip_by_total_norm`, then
+    torch's own Adam maths in its foreach/capturable form (what torch traces when it compiles an
+    Adam optimiser), stepping the state from `adam_state` in place. Returns the norm before
+    clipping."""
+    group = opt.optimizer.param_groups[0]
+    grads, norm = clip_by_total_norm(grads, opt.max_grad_norm)
+    beta1, beta2 = group["betas"]
+    # capturable: the step count stays a tensor inside the graph (torch allows it on CPU only
+    # while compiling; run eagerly, e.g. under set_stance("force_eager"), the plain form runs).
+    functional_adam(params, grads, exp_avgs, exp_avg_sqs, [], steps, foreach=True,
+                    capturable=torch.compiler.is_compiling(), amsgrad=False, beta1=beta1, beta2=beta2,
+                    lr=group["lr"], weight_decay=0.0, eps=group["eps"], maximize=False)
+    return norm
+
+
+def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """`ppo.clip_grad_norm`'s rule (scale by min(1, max/(norm + 1e-6))) for a graph; returns the
+    clipped gradients and the norm before clipping.
+
+    The norm is a sum of squares instead of `_foreach_norm`: inductor fuses the sums into its own
+    kernels, while `_foreach_norm` stays a loop of one library call per tensor inside the graph.
+    """
+    norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
+    coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+    return [g * coef for g in grads], norm
+
+
+def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
+    """Once every step graph an update needs exists, dynamo need not re-check their guards (every
+    tensor argument and the config) on every call, a noticeable part of a compiled update. Under
+    this stance dynamo would run a stale graph if a Python value the trace read had changed, so
+    the key holds every such value that can change between calls (minibatch size, `full`,
+    `c_full`, the batch fields); the rest (config, learning rates, network shapes) is fixed for a
+    learner's life."""
+    if seen and SKIP_GUARDS:
+        return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
+    return contextlib.nullcontext()
