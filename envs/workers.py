@@ -204,23 +204,30 @@ class SubprocVecEnv(VecEnv):
         try:
             kind, payload = msgpack.unpackb(self._conns[i].recv_bytes(), raw=False)
         except (EOFError, OSError) as e:
-            p = self._procs[i]
-            p.join(1.0)
-            raise WorkerError(f"env worker {w} (pid {p.pid}, envs {self.slices[w]}) exited unexpectedly "
-                              f"with exit code {p.exitcode}") from e
+            raise self._died(i) from e
         if kind == "error":
             raise WorkerError(f"env worker {w} (envs {self.slices[w]}) of {self.desc.name!r} failed:\n{payload}")
         if kind != expect:
             raise WorkerError(f"env worker {w}: expected {expect!r}, got {kind!r}")
         return payload
 
+    def _died(self, i: int) -> WorkerError:
+        """The error for a subprocess whose pipe broke (it was killed or crashed)."""
+        p = self._procs[i]
+        p.join(1.0)
+        return WorkerError(f"env worker {i + self._w0} (pid {p.pid}, envs {self.slices[i + self._w0]}) exited "
+                           f"unexpectedly with exit code {p.exitcode}")
+
     def _broadcast(self, cmd: str, arg: Any, parent_work=None) -> list[Any]:
         """Send `cmd` to every worker, run `parent_work()` (the parent's slice) meanwhile, gather."""
         if not self._finalizer.alive:
             raise RuntimeError("SubprocVecEnv is closed")
         msg = _pack(cmd, arg)
-        for c in self._conns:
-            c.send_bytes(msg)
+        for i, c in enumerate(self._conns):
+            try:
+                c.send_bytes(msg)
+            except OSError as e:  # a worker killed before this send: its end of the pipe is closed
+                raise self._died(i) from e
         try:
             mine = [parent_work()] if parent_work is not None else []
         finally:  # even if the parent's slice failed: read every reply, so the pipes stay in step
