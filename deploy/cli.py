@@ -134,6 +134,8 @@ def up_command(
     resume: Annotated[Path | None, typer.Option(
         help="Continue this `hammer up` run directory from its latest checkpoint (only --episodes may change).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
+    secure: Annotated[bool, typer.Option(
+        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md).")] = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -162,7 +164,8 @@ def up_command(
     if resume is not None:
         given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
-                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
+                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
+                 "--secure": secure or None}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -199,6 +202,8 @@ def up_command(
         rt["fault_links"] = [lf.model_dump() for lf in plan.links]
     if chaos_items:
         rt["chaos"] = chaos_items
+    if secure:
+        rt["secure"] = True
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
