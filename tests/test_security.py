@@ -234,3 +234,59 @@ def test_stranger_over_tls_without_a_certificate_is_refused(team, idents):
 def test_certificate_from_another_ca_is_refused(team, other_ca):
     _, port = team
     _probe_stranger(team, _tls("local-0", other_ca, connect=port))
+
+
+# --------------------------------------------------------------------------------------------
+# End to end: a secure `hammer up` run with a hostile peer holding local-1's identity
+# --------------------------------------------------------------------------------------------
+
+
+def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
+    import csv
+
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
+
+
+def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None):
+    from deploy.settings import RuntimeSettings
+    from deploy.up import launch
+    from learning.config import merge_config
+    from tests.hostile_peer import HostilePeer
+
+    cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
+    # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
+    # slow message into a fallback.
+    settings = RuntimeSettings(run_id=run_id, secure=True, msg_deadline_ms=5000, act_deadline_ms=10000)
+
+    def chaos(sup, board) -> None:
+        if hostile is not None and not hostile:
+            rt = RuntimeSettings.load(run_dir)
+            stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{rt.hub_port}"]),
+                                "local-1", run_dir, cfg.n_agents)
+            peer = HostilePeer(rt.run_id, stolen, cfg.num_envs, agent=0)
+            peer.start()
+            hostile.append(peer)
+
+    try:
+        return launch(cfg, settings, run_dir, chaos=chaos)
+    finally:
+        for peer in hostile or []:
+            peer.stop_event.set()
+            peer.join(10)
+
+
+def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path):
+    calm = _secure_run(tmp_path / "calm", "sec-calm")
+    hostile: list = []
+    attacked = _secure_run(tmp_path / "attacked", "sec-attacked", hostile)
+    peer = hostile[0]
+    assert peer.error is None, peer.error
+    assert peer.max_peers >= 2, "the hostile peer never joined the run: the test would prove nothing"
+    assert peer.sent["blind_actions"] > 0 and peer.sent["weights"] > 0 and peer.sent["control"] > 0
+    assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
+    assert calm.summary["completed"] and attacked.summary["completed"]
+    a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
+    assert len(a) == 100 and a == b
+    links = attacked.summary["links"]
+    assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
