@@ -290,3 +290,29 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     assert len(a) == 100 and a == b
     links = attacked.summary["links"]
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
+
+
+def test_router_hub_enforces_the_rules_for_its_clients(idents):
+    """`hammer hub --secure` topology: clients reach each other only through the router, which
+    checks every hop; a client with local-1's identity cannot act for agent 0 there either."""
+    port = free_loopback_port()
+    hub_t = TransportConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, "hub", KEYS, N))
+
+    def client(role: str) -> TransportConfig:
+        return TransportConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, role, KEYS, N))
+
+    with HammerSession(RUN, hub_t, sender="hub"), HammerSession(RUN, client("env"), sender="env") as env, \
+            HammerSession(RUN, client("local-0"), sender="local-0") as l0, \
+            HammerSession(RUN, client("local-1"), sender="local-1") as l1:
+        acts = env.subscribe_raw(KEYS.act("*"))
+        spy = l1.subscribe_raw(KEYS.obs(0))
+        obs0 = l0.subscribe_raw(KEYS.obs(0))
+        _settle()
+        for _ in range(20):
+            l1.put_bytes(KEYS.act(0), b"forged")
+        l1.put_bytes(KEYS.act(1), b"a1")
+        l0.put_bytes(KEYS.act(0), b"a0")
+        env.put_bytes(KEYS.obs(0), b"o0")
+        assert sorted(_wait_for(acts, 2)) == [b"a0", b"a1"]
+        assert _wait_for(obs0, 1) == [b"o0"]
+        assert _late_extra(acts) == [] and _late_extra(spy, 0.1) == []
