@@ -25,6 +25,39 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("local")(roles.local_command)
     app.command("learner")(roles.learner_command)
     bench.command("runtime")(bench_runtime_command)
+    bench.command("security")(bench_security_command)
+
+
+def bench_security_command(
+    preset: Annotated[str, typer.Option(help="Preset to run.")] = "cn3",
+    episodes: Annotated[int, typer.Option(help="Episodes per run.")] = 100,
+    repeats: Annotated[int, typer.Option(help="Plain/secure pairs, alternated (medians are shown).")] = 2,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """What `hammer up --secure` costs: env-steps/s and step latency p50/p99, plain vs secure, same run."""
+    import json
+
+    from rich.table import Table
+
+    from deploy.bench_security import FIGURES, PROFILES, bench_security
+    from hammer.console import table_console
+
+    logging.basicConfig(level=logging.WARNING)
+    r = bench_security(preset, episodes, repeats)
+    t = Table(title=f"hammer bench security ({preset}, {episodes} episodes, median of {repeats}, "
+                    f"load {r['loadavg_1m']:.1f} on {r['cpu_count']} cores)")
+    t.add_column("profile")
+    for col in ("env-steps/s", "step p50 ms", "step p99 ms"):
+        t.add_column(col, justify="right")
+    for p in PROFILES:
+        m = r["median"][p]
+        t.add_row(p, f"{m['env_steps_per_s']:,.0f}", f"{m['step_latency_ms_p50']:.2f}", f"{m['step_latency_ms_p99']:.2f}")
+    q = r["secure_over_plain"]
+    t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
+    t.caption = f"same metrics.csv: {r['same_metrics']}"
+    table_console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1))
 
 
 def bench_runtime_command(
