@@ -25,6 +25,39 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("local")(roles.local_command)
     app.command("learner")(roles.learner_command)
     bench.command("runtime")(bench_runtime_command)
+    bench.command("security")(bench_security_command)
+
+
+def bench_security_command(
+    preset: Annotated[str, typer.Option(help="Preset to run.")] = "cn3",
+    episodes: Annotated[int, typer.Option(help="Episodes per run.")] = 100,
+    repeats: Annotated[int, typer.Option(help="Plain/secure pairs, alternated (medians are shown).")] = 2,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """What `hammer up --secure` costs: env-steps/s and step latency p50/p99, plain vs secure, same run."""
+    import json
+
+    from rich.table import Table
+
+    from deploy.bench_security import FIGURES, PROFILES, bench_security
+    from hammer.console import table_console
+
+    logging.basicConfig(level=logging.WARNING)
+    r = bench_security(preset, episodes, repeats)
+    t = Table(title=f"hammer bench security ({preset}, {episodes} episodes, median of {repeats}, "
+                    f"load {r['loadavg_1m']:.1f} on {r['cpu_count']} cores)")
+    t.add_column("profile")
+    for col in ("env-steps/s", "step p50 ms", "step p99 ms"):
+        t.add_column(col, justify="right")
+    for p in PROFILES:
+        m = r["median"][p]
+        t.add_row(p, f"{m['env_steps_per_s']:,.0f}", f"{m['step_latency_ms_p50']:.2f}", f"{m['step_latency_ms_p99']:.2f}")
+    q = r["secure_over_plain"]
+    t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
+    t.caption = f"same metrics.csv: {r['same_metrics']}"
+    table_console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1))
 
 
 def bench_runtime_command(
@@ -134,6 +167,8 @@ def up_command(
     resume: Annotated[Path | None, typer.Option(
         help="Continue this `hammer up` run directory from its latest checkpoint (only --episodes may change).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
+    secure: Annotated[bool, typer.Option(
+        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md).")] = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -162,7 +197,8 @@ def up_command(
     if resume is not None:
         given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
-                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
+                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
+                 "--secure": secure or None}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -199,6 +235,8 @@ def up_command(
         rt["fault_links"] = [lf.model_dump() for lf in plan.links]
     if chaos_items:
         rt["chaos"] = chaos_items
+    if secure:
+        rt["secure"] = True
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:

@@ -3,12 +3,17 @@
 No `zenohd` binary is needed: the Python package runs in router mode. Roles on other machines
 connect to it in client mode (a Zenoh JSON5 config passed with --zenoh-config), and the router
 forwards their traffic; see docs/runtime.md for a two-machine walkthrough.
+
+`--run-dir RUN` of a secure run (runtime.json with secure=true) makes the router one of the run's
+identities (RUN/identity/hub.*): it accepts mutual-TLS links only and checks the run's access
+rules on every hop it relays (docs/security.md).
 """
 
 from __future__ import annotations
 
 import signal
 import threading
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -17,6 +22,9 @@ import typer
 def hub_command(
     listen: Annotated[list[str], typer.Option(help="Endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447 "
                                                     "(use this machine's LAN address for other machines).")],
+    run_dir: Annotated[Path | None, typer.Option(
+        help="A secure run's directory (runtime.json, config.json, identity/): relay that run over mutual TLS "
+             "and enforce its access rules.")] = None,
 ) -> None:
     """Run a Zenoh router until Ctrl-C / SIGTERM (multicast scouting off)."""
     from protocol.session import HammerSession, TransportConfig
@@ -26,12 +34,42 @@ def hub_command(
     except ValueError as e:
         typer.secho(f"error: --listen: {' '.join(str(e).split())}", fg=typer.colors.RED, err=True)
         raise typer.Exit(2) from None
+    run_id = "hub"
+    if run_dir is not None:
+        transport, run_id = _secure_hub(transport, run_dir)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with HammerSession("hub", transport, sender="hub"):
-        typer.echo(f"hammer hub: Zenoh router listening on {', '.join(listen)}", err=True)
+    with HammerSession(run_id, transport, sender="hub"):
+        shown = ", ".join(transport.listen)
+        typer.echo(f"hammer hub: Zenoh router listening on {shown}"
+                   + (f" (secure, run {run_id})" if transport.security else ""), err=True)
         try:
             while not stop.wait(0.5):
                 pass
         except KeyboardInterrupt:
             pass
+
+
+def _secure_hub(transport, run_dir: Path):
+    """The router as identity `hub` of the secure run in `run_dir`: (transport, run id)."""
+    import json
+
+    from deploy.settings import RuntimeSettings
+    from protocol.access import HUB
+
+    def fail(msg: str):
+        typer.secho(f"error: --run-dir {run_dir}: {msg}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(2)
+
+    try:
+        settings = RuntimeSettings.load(run_dir)
+        n_agents = int(json.loads((run_dir / "config.json").read_text())["n_agents"])
+    except (FileNotFoundError, KeyError, ValueError) as e:
+        fail(str(e))
+    if not settings.secure:
+        fail("runtime.json has no secure=true: a plain run needs no --run-dir")
+    secured = settings.secured(transport, HUB, run_dir, n_agents)
+    missing = secured.security.identity.missing()
+    if missing:
+        fail(f"identity files missing: {', '.join(map(str, missing))}")
+    return secured, settings.run_id

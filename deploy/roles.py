@@ -53,7 +53,9 @@ def read_env_spec(run_dir: Path):
     return EnvSpec(**d)
 
 
-def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None):
+def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, role: str):
+    """Runtime settings and this role's transport; a secure run adds the role's identity from
+    RUN/identity/ (protocol.identity) and the run's access rules."""
     from deploy.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
@@ -62,6 +64,8 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None):
     transport = s.transport()
     if connect is not None and zenoh_config is None:
         transport = transport.model_copy(update={"connect": [connect]})
+    if s.secure:
+        transport = s.secured(transport, role, run_dir, _read_config(run_dir).n_agents)
     return s, transport
 
 
@@ -119,7 +123,7 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
     from protocol.session import HammerSession
 
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config)
+        settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
@@ -144,7 +148,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
     from protocol.session import HammerSession
 
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config)
+        settings, transport = _settings(run_dir, connect, zenoh_config, "central")
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
@@ -168,7 +172,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     from protocol.session import HammerSession
 
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config)
+        settings, transport = _settings(run_dir, connect, zenoh_config, "env")
         cfg = _read_config(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
@@ -209,7 +213,7 @@ def learner_command(run_dir: RunDirOpt,
         _fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
               "requires); see docs/runtime.md")
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config)
+        settings, transport = _settings(run_dir, connect, zenoh_config, "learner")
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))

@@ -55,6 +55,9 @@ class RuntimeSettings(BaseModel):
     resume_from: int | None = Field(
         None, ge=0, description="continue from this update: the learner loads checkpoints/ckpt_<U>, the env host "
                                 "host_state/ckpt_<U>.json (set by `hammer up --resume`, never by hand)")
+    secure: bool = Field(
+        False, description="mutual TLS with per-run identities (RUN/identity/) and per-role access rules "
+                           "(protocol.access); see docs/security.md")
     resume_step: int | None = Field(
         None, ge=0, description="resume: the env host's step counter starts after this, above every step number "
                                 "an earlier session may have used (step logs are joined to episodes by step)")
@@ -85,8 +88,24 @@ class RuntimeSettings(BaseModel):
             return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
         return TransportConfig(listen=[loopback_endpoint(self.hub_port)])
 
+    def secured(self, transport: TransportConfig, role: str, run_dir: Path, n_agents: int) -> TransportConfig:
+        """`transport` as role `role` of a secure run: TLS endpoints, the role's identity from
+        RUN/identity/ and the run's access rules; unchanged when the run is not secure."""
+        if not self.secure:
+            return transport
+        from protocol.access import secure_link, tls_endpoint
+        from protocol.identity import identity_dir
+        from protocol.keys import Keys
+
+        return transport.model_copy(update={
+            "listen": [tls_endpoint(e) for e in transport.listen],
+            "connect": [tls_endpoint(e) for e in transport.connect],
+            "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents)})
+
     def save(self, run_dir: Path) -> None:
-        (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1))
+        # `secure` is written only when set, so the runtime.json of a plain run is what it always was.
+        exclude = None if self.secure else {"secure"}
+        (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 
     @classmethod
     def load(cls, run_dir: Path) -> RuntimeSettings:

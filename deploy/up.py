@@ -201,10 +201,13 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         prepare_run_dir(cfg, settings, run_dir)
     specs = role_specs(cfg, run_dir)
     names = {s.name for s in specs}
+    hub_transport = settings.hub_transport()
+    if settings.secure:
+        hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
     sup = Supervisor(run_dir / "logs")
     board = Board(restarts={n: 0 for n in names})
     t_start = time.monotonic()
-    with HammerSession(settings.run_id, settings.hub_transport(), sender="launcher") as hub:
+    with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
         watch = hub.watch_alive()
         hb_sub = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
         try:
@@ -275,6 +278,18 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
     return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start, links, list(board.chaos_log))
+
+
+def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
+    """A secure run: a new CA and role identities in RUN/identity/ (kept on resume, so remote roles
+    keep the files they were given); returns the launcher's own secured transport."""
+    from protocol.access import LAUNCHER, role_names
+    from protocol.identity import create_identities, has_identities, identity_dir
+
+    roles = role_names(cfg.n_agents)
+    if fresh or not has_identities(identity_dir(run_dir), roles):
+        create_identities(identity_dir(run_dir), roles)
+    return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
 
 
 def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:

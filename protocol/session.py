@@ -34,6 +34,7 @@ from typing import Any, Literal, Self
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from protocol.access import SecureLink
 from protocol.codec import Expected, decode, encode
 from protocol.errors import ProtocolError, RunMismatchError
 from protocol.faults import FaultInjector, FaultSpec
@@ -79,6 +80,7 @@ class TransportConfig(BaseModel):
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
+    security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
 
     @field_validator("listen", "connect")
     @classmethod
@@ -119,6 +121,8 @@ class TransportConfig(BaseModel):
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         if self.connect or self.zenoh_config_file is None:
             cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        if self.security is not None:
+            self.security.apply(cfg)
         return cfg
 
 

@@ -1,0 +1,151 @@
+"""Who may publish and subscribe what: the role table and the Zenoh access rules built from it.
+
+One table (`grants`) says, per role, which keys it may publish and which it may subscribe to;
+everything else is denied. Zenoh enforces it through `access_control` with subjects matched by
+the certificate common name of the other end of each link (protocol.identity), so every
+process applies the same rules to everyone it talks to:
+
+- ingress `put` from role R is accepted only on the keys R may publish (a forged action or
+  weights message from a wrong identity never reaches the subscriber);
+- egress `put` to role R is sent only on keys R may subscribe to (a role cannot read what it has
+  no business reading by declaring a subscriber);
+- R may declare subscribers only on its own subscriptions and a liveliness token only as itself.
+
+Every process enforces the table on its own links, so the rules hold in both topologies:
+peers meeting directly (`hammer up`) and clients behind a router (`hammer hub --secure`, where
+the router checks each hop and the clients accept what the router relays).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol.identity import Identity
+from protocol.keys import Keys
+
+LAUNCHER = "launcher"
+HUB = "hub"  # the `hammer hub` router: relays the run's traffic; it publishes nothing of its own
+
+
+@dataclass(frozen=True)
+class Grant:
+    """Key expressions one role may publish and subscribe to (as declared, wildcards included)."""
+
+    publish: tuple[str, ...] = ()
+    subscribe: tuple[str, ...] = ()
+    liveliness: tuple[str, ...] = ()  # tokens it may declare
+    watch_liveliness: bool = False  # may subscribe to / query every role's liveliness
+    relay: bool = False  # a router: forwards everyone's traffic (and checks each hop itself)
+
+
+def role_names(n_agents: int, uses_central: bool = True) -> list[str]:
+    """Every identity a `hammer up` run creates."""
+    return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
+            "learner", HUB]
+
+
+def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
+    """The role table: what each role's job needs, nothing more (docs/security.md)."""
+    g = {
+        LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
+        "env": Grant(
+            publish=(keys.obs("*"), keys.state(), keys.result(), keys.exp("team"), keys.heartbeat("env")),
+            subscribe=(keys.act("*"), keys.weights("local"), keys.ctl("all"), keys.heartbeat("*")),
+            liveliness=(keys.alive("env"),)),
+        "central": Grant(
+            publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
+            subscribe=(keys.state(), keys.weights("central"), keys.ctl("all")),
+            liveliness=(keys.alive("central"),)),
+        "learner": Grant(
+            publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
+            subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
+            liveliness=(keys.alive("learner"),)),
+        HUB: Grant(relay=True),
+    }
+    for i in range(n_agents):
+        g[f"local-{i}"] = Grant(
+            publish=(keys.act(i), keys.heartbeat(f"local-{i}")),
+            subscribe=(keys.obs(i), keys.msg(i), keys.weights("local"), keys.ctl("all")),
+            liveliness=(keys.alive(f"local-{i}"),))
+    return g
+
+
+def _rule(rid: str, flow: str, messages: list[str], key_exprs: tuple[str, ...] | list[str]) -> dict:
+    return {"id": rid, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": list(key_exprs)}
+
+
+def access_control(keys: Keys, n_agents: int) -> dict:
+    """The `access_control` section every process of the run uses (default deny)."""
+    everything = [keys.all]
+    rules: list[dict] = [
+        # A process's own declarations may leave it; the receiving side decides what to accept.
+        _rule("own-declarations", "egress", ["declare_subscriber", "liveliness_token", "declare_liveliness_subscriber",
+                                              "liveliness_query"], everything),
+    ]
+    subjects: list[dict] = []
+    policies: list[dict] = [{"id": "own-declarations", "rules": ["own-declarations"], "subjects": []}]
+    for role, g in grants(keys, n_agents).items():
+        subjects.append({"id": role, "cert_common_names": [role]})
+        policies[0]["subjects"].append(role)
+        mine = []
+        if g.relay:
+            mine.append(_rule(f"{role}-relays-in", "ingress", ["put", "declare_subscriber", "liveliness_token",
+                                                               "declare_liveliness_subscriber", "liveliness_query",
+                                                               "reply"], everything))
+            mine.append(_rule(f"{role}-relays-out", "egress", ["put", "reply"], everything))
+        if g.publish:
+            mine.append(_rule(f"{role}-publishes", "ingress", ["put"], g.publish))
+        if g.subscribe:
+            mine.append(_rule(f"{role}-receives", "egress", ["put"], g.subscribe))
+            mine.append(_rule(f"{role}-subscribes", "ingress", ["declare_subscriber"], g.subscribe))
+        if g.liveliness:
+            mine.append(_rule(f"{role}-alive", "ingress", ["liveliness_token"], g.liveliness))
+            mine.append(_rule(f"{role}-answers-liveliness", "ingress", ["reply"], g.liveliness))
+        if g.watch_liveliness:
+            mine.append(_rule(f"{role}-watches", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+                              [keys.alive("**")]))
+            mine.append(_rule(f"{role}-liveliness-replies", "egress", ["reply"], [keys.alive("**")]))
+        rules += mine
+        policies.append({"id": f"{role}-policy", "rules": [r["id"] for r in mine], "subjects": [role]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+@dataclass(frozen=True)
+class SecureLink:
+    """What makes one process's Zenoh session secure: its TLS identity (mutual authentication, TLS
+    links only) and the run's access rules."""
+
+    identity: Identity
+    access: dict = field(hash=False)
+
+    def apply(self, cfg) -> None:
+        """Write the TLS and access-control sections into a `zenoh.Config`."""
+        missing = self.identity.missing()
+        if missing:
+            raise FileNotFoundError(f"identity of {self.identity.role!r} incomplete: {', '.join(map(str, missing))} "
+                                    "missing (copy ca.pem, <role>.pem and <role>.key from the launcher's RUN/identity/)")
+        tls = {
+            "root_ca_certificate": str(self.identity.ca),
+            "listen_certificate": str(self.identity.cert), "listen_private_key": str(self.identity.key),
+            "connect_certificate": str(self.identity.cert), "connect_private_key": str(self.identity.key),
+            "enable_mtls": True,
+            # A role's address says nothing about who it is (peers meet at gossiped addresses on any
+            # machine); its certificate's CN does, and the access rules check exactly that.
+            "verify_name_on_connect": False,
+        }
+        cfg.insert_json5("transport/link/tls", json.dumps(tls))
+        cfg.insert_json5("transport/link/protocols", json.dumps(["tls"]))
+        cfg.insert_json5("access_control", json.dumps(self.access))
+
+
+def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int) -> SecureLink:
+    from protocol.identity import identity_of
+
+    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents))
+
+
+def tls_endpoint(endpoint: str) -> str:
+    """The TLS form of a tcp endpoint (secure runs listen and connect over TLS only)."""
+    return "tls/" + endpoint.removeprefix("tcp/") if endpoint.startswith("tcp/") else endpoint

@@ -1,0 +1,318 @@
+"""The secure profile over real Zenoh on 127.0.0.1: mutual TLS with per-run identities and the
+access rules of protocol.access. Every forged message is published next to a legitimate one
+sent after it on the same link, so "the legitimate one arrived, the forged one did not" is
+decided without waiting on a timeout alone."""
+
+from __future__ import annotations
+
+import stat
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.access import access_control, grants, role_names, secure_link
+from protocol.identity import create_identities, identity_of
+from protocol.keys import Keys
+from protocol.session import HammerSession, TransportConfig, free_loopback_port
+
+RUN = "sec1"
+N = 2
+KEYS = Keys(RUN)
+
+
+def _tls(role: str, ident_dir: Path, listen: int | None = None, connect: int | None = None) -> TransportConfig:
+    return TransportConfig(listen=[f"tls/127.0.0.1:{listen}"] if listen else ["tls/127.0.0.1:0"],
+                           connect=[f"tls/127.0.0.1:{connect}"] if connect else [],
+                           security=secure_link(ident_dir, role, KEYS, N))
+
+
+@pytest.fixture(scope="module")
+def idents(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("identity")
+    create_identities(d, role_names(N))
+    return d
+
+
+@pytest.fixture(scope="module")
+def other_ca(tmp_path_factory) -> Path:
+    """Identities of the same role names signed by a different CA (a stranger's own PKI)."""
+    d = tmp_path_factory.mktemp("other")
+    create_identities(d, role_names(N), ca_name="stranger-ca")
+    return d
+
+
+@pytest.fixture(scope="module")
+def team(idents):
+    """env listens (the hub of this test); the other roles connect to it as peers."""
+    port = free_loopback_port()
+    opened = {"env": HammerSession(RUN, _tls("env", idents, listen=port), sender="env").open()}
+    for role in ("launcher", "central", "local-0", "local-1", "learner"):
+        opened[role] = HammerSession(RUN, _tls(role, idents, connect=port), sender=role).open()
+    yield opened, port
+    for s in opened.values():
+        s.close()
+
+
+def _settle() -> None:
+    time.sleep(0.6)  # peers meet (gossip) and declarations propagate
+
+
+def _wait_for(sub, n: int, timeout: float = 5.0) -> list[bytes]:
+    got, deadline = [], time.monotonic() + timeout
+    while len(got) < n and time.monotonic() < deadline:
+        b = sub.get(0.05)
+        if b is not None:
+            got.append(b)
+    return got
+
+
+def _late_extra(sub, wait: float = 0.5) -> list[bytes]:
+    time.sleep(wait)
+    out = []
+    while (b := sub.get(0)) is not None:
+        out.append(b)
+    return out
+
+
+def test_identity_files_are_private_and_named_by_role(idents):
+    assert stat.S_IMODE(idents.stat().st_mode) == 0o700
+    for role in role_names(N):
+        ident = identity_of(idents, role)
+        for p in (ident.ca, ident.cert, ident.key):
+            assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
+        from cryptography import x509
+
+        cert = x509.load_pem_x509_certificate(ident.cert.read_bytes())
+        assert cert.subject.rfc4514_string() == f"CN={role}"
+    assert not list(idents.glob("ca*.key")), "the CA key is not kept"
+
+
+def test_role_table_follows_the_issue():
+    g = grants(KEYS, N)
+    assert g["local-1"].publish == (KEYS.act(1), KEYS.heartbeat("local-1"))
+    assert set(g["local-1"].subscribe) == {KEYS.obs(1), KEYS.msg(1), KEYS.weights("local"), KEYS.ctl("all")}
+    publishers = {k: {r for r, x in g.items() if k in x.publish} for k in
+                  (KEYS.msg("*"), KEYS.weights("local"), KEYS.weights("central"), KEYS.ctl("all"))}
+    assert publishers == {KEYS.msg("*"): {"central"}, KEYS.weights("local"): {"learner"},
+                          KEYS.weights("central"): {"learner"}, KEYS.ctl("all"): {"launcher"}}
+    acl = access_control(KEYS, N)
+    assert acl["default_permission"] == "deny" and acl["enabled"] is True
+
+
+def test_legitimate_traffic_flows(team):
+    s, _ = team
+    acts = s["env"].subscribe_raw(KEYS.act("*"))
+    obs0 = s["local-0"].subscribe_raw(KEYS.obs(0))
+    w0 = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    ctl = s["env"].subscribe_raw(KEYS.ctl("all"))
+    msgs = s["local-1"].subscribe_raw(KEYS.msg(1))
+    hb = s["launcher"].subscribe_raw(KEYS.heartbeat("*"))
+    _settle()
+    s["local-0"].put_bytes(KEYS.act(0), b"a0")
+    s["local-1"].put_bytes(KEYS.act(1), b"a1")
+    s["env"].put_bytes(KEYS.obs(0), b"o0")
+    s["learner"].put_bytes(KEYS.weights("local"), b"w")
+    s["launcher"].put_bytes(KEYS.ctl("all"), b"stop")
+    s["central"].put_bytes(KEYS.msg(1), b"m1")
+    s["local-1"].put_bytes(KEYS.heartbeat("local-1"), b"hb")
+    assert sorted(_wait_for(acts, 2)) == [b"a0", b"a1"]
+    assert _wait_for(obs0, 1) == [b"o0"]
+    assert _wait_for(w0, 1) == [b"w"]
+    assert _wait_for(ctl, 1) == [b"stop"]
+    assert _wait_for(msgs, 1) == [b"m1"]
+    assert _wait_for(hb, 1) == [b"hb"]
+
+
+def test_liveliness_tokens_reach_the_launcher(team):
+    s, _ = team
+    watch = s["launcher"].watch_alive()
+    s["local-0"].declare_alive("local-0")
+    s["local-1"].declare_alive("local-0")  # impersonated token: refused
+    deadline, seen = time.monotonic() + 5.0, set()
+    while "local-0" not in seen and time.monotonic() < deadline:
+        ev = watch.get(0.05)
+        if ev is not None and ev.alive:
+            seen.add(ev.role)
+    assert "local-0" in seen
+
+
+def test_local_agent_cannot_act_for_another(team):
+    s, _ = team
+    acts = s["env"].subscribe_raw(KEYS.act(0))
+    _settle()
+    for _ in range(20):
+        s["local-1"].put_bytes(KEYS.act(0), b"forged")
+    s["local-0"].put_bytes(KEYS.act(0), b"real")
+    assert _wait_for(acts, 1) == [b"real"]
+    assert _late_extra(acts) == []
+
+
+def test_only_the_learner_publishes_weights(team):
+    s, _ = team
+    w_local = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    w_env = s["env"].subscribe_raw(KEYS.weights("local"))
+    w_central = s["central"].subscribe_raw(KEYS.weights("central"))
+    _settle()
+    # A session's own subscribers get its own publications (that is no attack), so each forger
+    # publishes only weights it does not itself subscribe to.
+    for forger, network in (("local-1", "central"), ("central", "local"), ("env", "central"),
+                            ("launcher", "local"), ("launcher", "central")):
+        s[forger].put_bytes(KEYS.weights(network), b"forged")
+    s["learner"].put_bytes(KEYS.weights("local"), b"real")
+    s["learner"].put_bytes(KEYS.weights("central"), b"real")
+    for sub in (w_local, w_env, w_central):
+        assert _wait_for(sub, 1) == [b"real"]
+        assert _late_extra(sub, 0.2) == []
+
+
+def test_only_the_launcher_publishes_control(team):
+    s, _ = team
+    subs = [s[r].subscribe_raw(KEYS.ctl("all")) for r in ("env", "local-0")]
+    _settle()
+    for forger in ("local-1", "central", "learner"):
+        s[forger].put_bytes(KEYS.ctl("all"), b"forged-stop")
+    s["launcher"].put_bytes(KEYS.ctl("all"), b"real")
+    for sub in subs:
+        assert _wait_for(sub, 1) == [b"real"]
+        assert _late_extra(sub, 0.2) == []
+
+
+def test_a_role_cannot_read_another_roles_inputs(team):
+    s, _ = team
+    spy_obs = s["local-1"].subscribe_raw(KEYS.obs(0))
+    spy_msg = s["local-1"].subscribe_raw(KEYS.msg(0))
+    spy_exp = s["local-1"].subscribe_raw(KEYS.exp("team"))
+    real = s["local-0"].subscribe_raw(KEYS.obs(0))
+    _settle()
+    s["env"].put_bytes(KEYS.obs(0), b"o0")
+    s["central"].put_bytes(KEYS.msg(0), b"m0")
+    s["env"].put_bytes(KEYS.exp("team"), b"x")
+    assert _wait_for(real, 1) == [b"o0"]
+    for spy in (spy_obs, spy_msg, spy_exp):
+        assert _late_extra(spy, 0.2) == []
+
+
+def _probe_stranger(team, transport: TransportConfig) -> None:
+    """A stranger on the env host's port can neither inject an action nor read an observation."""
+    s, _ = team
+    acts = s["env"].subscribe_raw(KEYS.act(0))
+    with HammerSession(RUN, transport, sender="stranger") as x:
+        spy = x.subscribe_raw(KEYS.obs(0))
+        _settle()
+        for _ in range(20):
+            x.put_bytes(KEYS.act(0), b"stranger")
+        s["env"].put_bytes(KEYS.obs(0), b"o0")
+        s["local-0"].put_bytes(KEYS.act(0), b"real")
+        assert _wait_for(acts, 1) == [b"real"]
+        assert _late_extra(acts) == []
+        assert _late_extra(spy, 0.1) == []
+
+
+def test_stranger_without_credentials_is_refused(team):
+    _, port = team
+    _probe_stranger(team, TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+
+
+def test_stranger_over_tls_without_a_certificate_is_refused(team, idents):
+    _, port = team
+    link = secure_link(idents, "local-0", KEYS, N)
+    bare = TransportConfig(connect=[f"tls/127.0.0.1:{port}"])
+    cfg_ca = {"root_ca_certificate": str(link.identity.ca), "verify_name_on_connect": False}
+
+    class NoCert(TransportConfig):
+        def to_zenoh(self):
+            import json
+
+            cfg = super().to_zenoh()
+            cfg.insert_json5("transport/link/tls", json.dumps(cfg_ca))
+            return cfg
+
+    _probe_stranger(team, NoCert(**bare.model_dump()))
+
+
+def test_certificate_from_another_ca_is_refused(team, other_ca):
+    _, port = team
+    _probe_stranger(team, _tls("local-0", other_ca, connect=port))
+
+
+# --------------------------------------------------------------------------------------------
+# End to end: a secure `hammer up` run with a hostile peer holding local-1's identity
+# --------------------------------------------------------------------------------------------
+
+
+def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
+    import csv
+
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
+
+
+def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None):
+    from deploy.settings import RuntimeSettings
+    from deploy.up import launch
+    from learning.config import merge_config
+    from tests.hostile_peer import HostilePeer
+
+    cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
+    # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
+    # slow message into a fallback.
+    settings = RuntimeSettings(run_id=run_id, secure=True, msg_deadline_ms=5000, act_deadline_ms=10000)
+
+    def chaos(sup, board) -> None:
+        if hostile is not None and not hostile:
+            rt = RuntimeSettings.load(run_dir)
+            stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{rt.hub_port}"]),
+                                "local-1", run_dir, cfg.n_agents)
+            peer = HostilePeer(rt.run_id, stolen, cfg.num_envs, agent=0)
+            peer.start()
+            hostile.append(peer)
+
+    try:
+        return launch(cfg, settings, run_dir, chaos=chaos)
+    finally:
+        for peer in hostile or []:
+            peer.stop_event.set()
+            peer.join(10)
+
+
+def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path):
+    calm = _secure_run(tmp_path / "calm", "sec-calm")
+    hostile: list = []
+    attacked = _secure_run(tmp_path / "attacked", "sec-attacked", hostile)
+    peer = hostile[0]
+    assert peer.error is None, peer.error
+    assert peer.max_peers >= 2, "the hostile peer never joined the run: the test would prove nothing"
+    assert peer.sent["blind_actions"] > 0 and peer.sent["weights"] > 0 and peer.sent["control"] > 0
+    assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
+    assert calm.summary["completed"] and attacked.summary["completed"]
+    a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
+    assert len(a) == 100 and a == b
+    links = attacked.summary["links"]
+    assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
+
+
+def test_router_hub_enforces_the_rules_for_its_clients(idents):
+    """`hammer hub --secure` topology: clients reach each other only through the router, which
+    checks every hop; a client with local-1's identity cannot act for agent 0 there either."""
+    port = free_loopback_port()
+    hub_t = TransportConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, "hub", KEYS, N))
+
+    def client(role: str) -> TransportConfig:
+        return TransportConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, role, KEYS, N))
+
+    with HammerSession(RUN, hub_t, sender="hub"), HammerSession(RUN, client("env"), sender="env") as env, \
+            HammerSession(RUN, client("local-0"), sender="local-0") as l0, \
+            HammerSession(RUN, client("local-1"), sender="local-1") as l1:
+        acts = env.subscribe_raw(KEYS.act("*"))
+        spy = l1.subscribe_raw(KEYS.obs(0))
+        obs0 = l0.subscribe_raw(KEYS.obs(0))
+        _settle()
+        for _ in range(20):
+            l1.put_bytes(KEYS.act(0), b"forged")
+        l1.put_bytes(KEYS.act(1), b"a1")
+        l0.put_bytes(KEYS.act(0), b"a0")
+        env.put_bytes(KEYS.obs(0), b"o0")
+        assert sorted(_wait_for(acts, 2)) == [b"a0", b"a1"]
+        assert _wait_for(obs0, 1) == [b"o0"]
+        assert _late_extra(acts) == [] and _late_extra(spy, 0.1) == []
