@@ -45,6 +45,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError, core_schema
 
 from protocol.errors import RangeError, ShapeError
+from protocol.rollout_layout import RolloutLayout
 
 SCHEMA_VERSION = 1
 
@@ -208,7 +209,9 @@ class Dims:
 
     num_envs: total env copies (env_idx < num_envs, K <= num_envs); n_agents: N; obs_dim: D;
     msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
-    discrete: whether actions are discrete ids (int64) or continuous vectors (float32).
+    discrete: whether actions are discrete ids (int64) or continuous vectors (float32);
+    rollout_steps: T of an experience chunk. With all seven declared, experience chunks are
+    checked array by array against the rollout layout (`rollout_layout`).
     """
 
     num_envs: int | None = None
@@ -217,11 +220,25 @@ class Dims:
     msg_dim: int | None = None
     action_dim: int | None = None
     discrete: bool | None = None
+    rollout_steps: int | None = None
 
     @classmethod
     def from_spec(cls, spec: Any, num_envs: int | None = None, msg_dim: int | None = None) -> Dims:
         """From an `envs.base.EnvSpec` (duck-typed so this module stays import-light)."""
         return cls(num_envs, spec.n_agents, spec.obs_dim, msg_dim, spec.action_dim, spec.discrete)
+
+    @classmethod
+    def from_layout(cls, layout: RolloutLayout) -> Dims:
+        """What a learner declares: every size of the rollout layout."""
+        return cls(layout.k, layout.n, layout.obs_dim, layout.msg_dim, layout.action_dim, layout.discrete, layout.t)
+
+    def rollout_layout(self) -> RolloutLayout | None:
+        """The rollout layout these dims declare, or None when a size of it is not declared."""
+        sizes = (self.rollout_steps, self.num_envs, self.n_agents, self.obs_dim, self.action_dim, self.msg_dim,
+                 self.discrete)
+        if any(x is None for x in sizes):
+            return None
+        return RolloutLayout(*sizes)
 
 
 def _min_max(a: np.ndarray) -> tuple[int, int]:
@@ -519,8 +536,12 @@ Scalar = StrictBool | StrictInt | FiniteFloat | Annotated[str, Strict(), Field(m
 class ExperienceChunk(Message):
     """An actor -> its learner: named arrays of experience tagged with the producing policy version.
 
-    The learner defines the array names and shapes (e.g. obs (T,K,D), reward (T,K)); the codec only
-    enforces the dtype whitelist, finiteness and at most 64 arrays.
+    Role "team" (the env host): one rollout, the arrays of `rollout_layout.CHUNK`; role "central"
+    (the central agent): one vector step's record, the arrays of `rollout_layout.RECORD` for the
+    K copies of env_idx. The codec always enforces the dtype whitelist, finiteness and at most 64
+    arrays; a receiver that declares every size of the layout (`Dims.from_layout`) also gets each
+    array's name, dtype and shape checked, so a chunk that would train on misread numbers is
+    rejected and counted like any other bad message.
     """
 
     TYPE: ClassVar[str] = "experience"
@@ -530,6 +551,17 @@ class ExperienceChunk(Message):
     policy_version: NonNegInt
     arrays: dict[ArrayName, NDArray(tuple(WIRE_DTYPES))] = Field(max_length=64)
     meta: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=64)
+
+    RECORD_ROLE: ClassVar[str] = "central"
+
+    def _check_dims(self, dims: Dims) -> None:
+        layout = dims.rollout_layout()
+        if layout is None:
+            return
+        if self.role == self.RECORD_ROLE:
+            layout.check_record(self.arrays, k=self.k)
+        else:
+            layout.check_chunk(self.arrays)
 
 
 class Weights(Message):
