@@ -25,8 +25,8 @@ import torch
 from envs.base import VecEnv
 from learning.config import RunConfig
 from learning.learner import TeamLearner
-from learning.run_env import make_env
 from learning.rollout import RolloutWriter
+from learning.run_env import make_env
 from learning.rundir import RunDir
 from learning.sampling import ActingStreams, env_reset_seed
 
