@@ -187,8 +187,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             summary = host.run_eval() if settings.mode == "eval" else host.run()
             summary["faults"] = s.fault_report()
             host.write_episode_links()
-            _write_counters(run_dir, "env", {**host.c.as_dict(), **_fault_counters(s), "step": host.h.step,
-                                             "episodes": host.h.episodes})
+            _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
+                                             "episodes": host.state.episodes})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))

@@ -104,7 +104,7 @@ def resume_point(run_dir: Path) -> int:
     """The latest update with both a learner checkpoint and the env host's state. The two are
     written at the same points (every checkpoint_every updates) by different processes, so a kill
     between them leaves one without the other."""
-    from env_host.host import host_state_updates
+    from env_host.checkpoint import host_state_updates
 
     ckpt_dir = Path(run_dir) / "checkpoints"
     learner = {int(p.stem[5:]) for p in ckpt_dir.glob("ckpt_*.json")} if ckpt_dir.is_dir() else set()
@@ -123,7 +123,7 @@ def prepare_resume(cfg, settings: RuntimeSettings, run_dir: Path) -> RuntimeSett
     a step counter above any step the killed session can have reached: at most checkpoint_every x
     rollout_steps vector steps after its latest host state (an env host writes one at every
     checkpoint point, including the one it resumes from, before stepping)."""
-    from env_host.host import host_state_updates, read_host_state
+    from env_host.checkpoint import host_state_updates, read_host_state
     from faults.chaos import parse_chaos
     from faults.steplog import STEP_LOG_DIR
     from learning.rundir import RunDir

@@ -25,6 +25,7 @@ import torch
 from envs.base import VecEnv
 from learning.config import RunConfig
 from learning.learner import TeamLearner
+from learning.rollout import RolloutWriter
 from learning.run_env import make_env
 from learning.rundir import RunDir
 from learning.sampling import ActingStreams, env_reset_seed
@@ -52,6 +53,7 @@ class Trainer:
             raise ValueError("env does not match the config's n_agents/num_envs")
         self.learner = TeamLearner(cfg, self.env.spec)
         self.team, self.buf = self.learner.team, self.learner.buf
+        self.writer = RolloutWriter(self.buf.arrays, self.env.spec)
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
         self.update = 0
         self.episodes = 0
@@ -157,25 +159,20 @@ class Trainer:
     def _collect(self, obs: np.ndarray, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """Fill the rollout buffer; returns the next obs/prev actions and whether the budget is spent."""
         cfg, team, buf, streams = self.cfg, self.team, self.buf, self.streams
-        buf.reset[:] = False
+        self.writer.begin()
         for t in range(cfg.rollout_steps):
             state = team.global_state(obs, prev)
             c = team.central_messages(state, streams, cfg.msg_dropout)
             action, logp, value = team.local_act(obs, c.sent, streams)
             st = self.env.step(team.env_action(action))
-            buf.obs[t], buf.state[t], buf.msg[t], buf.msg_raw[t] = obs, state, c.sent, c.raw
-            buf.keep[t], buf.actions[t], buf.logp[t], buf.values[t] = c.keep, action, logp, value
+            buf.state[t], buf.msg_raw[t], buf.keep[t], buf.logp[t], buf.values[t] = state, c.raw, c.keep, logp, value
             buf.c_logp[t], buf.c_values[t] = c.logp, c.value
-            buf.rewards[t], buf.terminated[t], buf.truncated[t] = st.reward, st.terminated, st.truncated
-            buf.active[t] = st.active
-            prev = team.encode_actions(action, st.active)
-            if st.done.any():
-                idx = np.flatnonzero(st.done)
-                buf.reset[t, idx] = True
-                fstate = team.global_state(st.final_obs[idx], prev[idx])
+            nxt = self.writer.write(t, obs, prev, c.sent, action, st)
+            prev, idx = nxt.prev, nxt.reset_idx
+            if idx.size:
+                fstate = team.global_state(st.final_obs[idx], nxt.final_prev)
                 buf.final_values[t, idx] = team.local_values(st.final_obs[idx], team.bootstrap_messages(fstate))
                 buf.c_final_values[t, idx] = team.central_values(fstate)
-                prev[idx] = 0.0
             obs = st.obs
             self.env_steps += cfg.num_envs
             if st.episodes:

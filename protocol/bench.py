@@ -32,11 +32,9 @@ from protocol.schemas import (
     CentralMsg,
     Control,
     Dims,
-    EpisodeInfo,
     GlobalState,
     LocalObs,
     Message,
-    StepResult,
 )
 from protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
@@ -281,11 +279,7 @@ def loop_messages(k: int = 32, n: int = 3, d: int = 18, m: int = 4, a: int = 5,
     active = np.ones((k, n), bool)
     dims = Dims(num_envs=k, n_agents=n, obs_dim=d, msg_dim=m, action_dim=a, discrete=True)
     msg = np.tanh(rng.standard_normal((k, m))).astype(np.float32)
-    eps = [EpisodeInfo(env_index=i, paper_metric=-20.5, team_return=-61.5, length=25) for i in range(k)]
     head = {"step": 7, "env_idx": idx, "policy_version": 3}
-    step = {"step": 7, "env_idx": idx, "rewards": rng.standard_normal((k, n)).astype(np.float32),
-            "terminated": np.zeros((k, n), bool), "truncated": np.zeros((k, n), bool),
-            "done": np.zeros(k, bool), "defaulted": np.zeros((k, n), bool)}
     return [
         ("global_state", GlobalState, {**head, "obs": obs, "prev_actions": np.zeros((k, n, a), np.float32),
                                        "active": active}, dims),
@@ -294,8 +288,6 @@ def loop_messages(k: int = 32, n: int = 3, d: int = 18, m: int = 4, a: int = 5,
         ("central_msg", CentralMsg, {**head, "agent": 1, "msg": msg}, dims),
         ("action", Action, {**head, "agent": 1, "action": rng.integers(0, a, k),
                             "fallback": np.zeros(k, bool), "msg": msg}, dims),
-        ("step_result", StepResult, {**step, "episodes": []}, dims),
-        (f"step_result +{k} episodes", StepResult, {**step, "done": np.ones(k, bool), "episodes": eps}, dims),
     ]
 
 
@@ -357,7 +349,7 @@ def codec_rows_as_dicts(rows: list[CodecRow]) -> list[dict]:
 
 def role_costs(rows: list[CodecRow], k: int, n: int) -> dict[str, tuple[float, float]]:
     """Codec microseconds per vector step and role, (reference, fast), from the rows of one N:
-    env host builds+encodes the state, N local obs and the step result and decodes N actions;
+    env host builds+encodes the state, N local obs and decodes N actions;
     the central agent decodes the state and builds+encodes N messages; a local agent decodes its
     obs and message and builds+encodes its action."""
     by = {r.payload.split(f" K={k} ")[0]: r for r in rows if f" K={k} N={n} " in r.payload}
@@ -371,8 +363,7 @@ def role_costs(rows: list[CodecRow], k: int, n: int) -> dict[str, tuple[float, f
 
     def roles(ref: bool) -> dict[str, float]:
         return {
-            "env host": send("global_state", ref) + n * send("local_obs", ref) + send("step_result", ref)
-            + n * recv("action", ref),
+            "env host": send("global_state", ref) + n * send("local_obs", ref) + n * recv("action", ref),
             "central agent": recv("global_state", ref) + n * send("central_msg", ref),
             "local agent": recv("local_obs", ref) + recv("central_msg", ref) + send("action", ref),
         }

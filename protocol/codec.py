@@ -78,7 +78,7 @@ def _wire_value(v: Any) -> Any:
         return {"dtype": dtype, "shape": list(v.shape), "data": v.tobytes()}
     if t is list:
         return [_wire_value(x) for x in v]
-    if isinstance(v, BaseModel):  # e.g. EpisodeInfo
+    if isinstance(v, BaseModel):
         values = v.__dict__
         return {n: x if type(x := values[n]) in _PLAIN else _wire_value(x) for n in _field_names(t)}
     return _to_wire(v)

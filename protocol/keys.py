@@ -6,7 +6,6 @@ silently producing a wildcard or an empty key chunk.
 
   hammer/<run>/env/obs/<agent>          LocalObs to local agent <agent>
   hammer/<run>/env/state                GlobalState to the central agent
-  hammer/<run>/env/result               StepResult
   hammer/<run>/central/msg/<agent>      CentralMsg to local agent <agent>
   hammer/<run>/agent/act/<agent>        Action from local agent <agent>
   hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner of <role>
@@ -71,9 +70,6 @@ class Keys:
 
     def state(self) -> str:
         return f"{self.prefix}/env/state"
-
-    def result(self) -> str:
-        return f"{self.prefix}/env/result"
 
     def msg(self, agent: int | str) -> str:
         return f"{self.prefix}/central/msg/{_agent(agent)}"

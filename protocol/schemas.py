@@ -12,8 +12,8 @@ A = action vector length):
   LocalObs     obs (K,D) float32, active (K,) bool
   GlobalState  obs (K,N,D) float32, prev_actions (K,N,A) float32, active (K,N) bool
   CentralMsg   msg (K,M) float32 in [-1,1]
-  Action       action (K,) int64 (discrete) or (K,A) float32 (continuous), logp/value (K,) float32
-  StepResult   rewards (K,N) float32, terminated/truncated/defaulted (K,N) bool, done (K,) bool
+  Action       action (K,) int64 (discrete) or (K,A) float32 (continuous), fallback (K,) bool, msg (K,M) float32
+  ExperienceChunk  the arrays of protocol/rollout_layout.py
 """
 
 from __future__ import annotations
@@ -38,15 +38,15 @@ from pydantic import (
     StrictBool,
     StrictInt,
     StrictStr,
-    TypeAdapter,
     field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError, core_schema
 
 from protocol.errors import RangeError, ShapeError
+from protocol.rollout_layout import RolloutLayout
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 # dtype names on the wire -> numpy dtype (always little-endian on the wire).
 WIRE_DTYPES: dict[str, np.dtype] = {
@@ -208,7 +208,9 @@ class Dims:
 
     num_envs: total env copies (env_idx < num_envs, K <= num_envs); n_agents: N; obs_dim: D;
     msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
-    discrete: whether actions are discrete ids (int64) or continuous vectors (float32).
+    discrete: whether actions are discrete ids (int64) or continuous vectors (float32);
+    rollout_steps: T of an experience chunk. With all seven declared, experience chunks are
+    checked array by array against the rollout layout (`rollout_layout`).
     """
 
     num_envs: int | None = None
@@ -217,11 +219,25 @@ class Dims:
     msg_dim: int | None = None
     action_dim: int | None = None
     discrete: bool | None = None
+    rollout_steps: int | None = None
 
     @classmethod
     def from_spec(cls, spec: Any, num_envs: int | None = None, msg_dim: int | None = None) -> Dims:
         """From an `envs.base.EnvSpec` (duck-typed so this module stays import-light)."""
         return cls(num_envs, spec.n_agents, spec.obs_dim, msg_dim, spec.action_dim, spec.discrete)
+
+    @classmethod
+    def from_layout(cls, layout: RolloutLayout) -> Dims:
+        """What a learner declares: every size of the rollout layout."""
+        return cls(layout.k, layout.n, layout.obs_dim, layout.msg_dim, layout.action_dim, layout.discrete, layout.t)
+
+    def rollout_layout(self) -> RolloutLayout | None:
+        """The rollout layout these dims declare, or None when a size of it is not declared."""
+        sizes = (self.rollout_steps, self.num_envs, self.n_agents, self.obs_dim, self.action_dim, self.msg_dim,
+                 self.discrete)
+        if any(x is None for x in sizes):
+            return None
+        return RolloutLayout(*sizes)
 
 
 def _min_max(a: np.ndarray) -> tuple[int, int]:
@@ -415,8 +431,6 @@ class Action(Message):
     action: NDArray(("int64", "float32"), (1, 2)) = Field(
         description="(K,) int64 action ids, or (K, A) float32 continuous actions"
     )
-    logp: NDArray("float32", 1) | None = Field(None, description="(K,) log-probability of the action")
-    value: NDArray("float32", 1) | None = Field(None, description="(K,) critic value")
     policy_version: NonNegInt = 0
     fallback: NDArray("bool", 1) | None = Field(
         None, description="(K,) the central message was late and a fallback was used (None = all False)"
@@ -432,8 +446,6 @@ class Action(Message):
             self._need("action", self.action, (k,))
         else:
             self._need("action", self.action, (k, None))
-        self._need("logp", self.logp, (k,))
-        self._need("value", self.value, (k,))
         if self.fallback is None:
             self.fallback = np.zeros(k, dtype=bool)
         self._need("fallback", self.fallback, (k,))
@@ -462,56 +474,6 @@ class Action(Message):
             _expect("action", "action vector length", self.action.shape[1], dims.action_dim)
 
 
-class EpisodeInfo(BaseModel):
-    """One finished episode of one env copy (mirrors envs.base.EpisodeStats)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    env_index: NonNegInt
-    paper_metric: FiniteFloat
-    team_return: FiniteFloat
-    length: NonNegInt
-
-    @classmethod
-    def from_stats(cls, s: Any) -> EpisodeInfo:
-        return cls(env_index=int(s.env_index), paper_metric=float(s.paper_metric),
-                   team_return=float(s.team_return), length=int(s.length))
-
-
-class StepResult(Message):
-    """Env host -> learners/monitors: what one vector step produced."""
-
-    TYPE: ClassVar[str] = "step_result"
-    type: Literal["step_result"] = "step_result"
-    rewards: NDArray("float32", 2) = Field(description="(K, N) float32")
-    terminated: NDArray("bool", 2) = Field(description="(K, N) bool")
-    truncated: NDArray("bool", 2) = Field(description="(K, N) bool")
-    done: NDArray("bool", 1) = Field(description="(K,) bool: the copy's episode ended and was reset")
-    defaulted: NDArray("bool", 2) | None = Field(
-        None, description="(K, N) bool: the agent's action missed the deadline and the default was used"
-    )
-    episodes: list[EpisodeInfo] = Field(default_factory=list, max_length=4096)
-
-    @model_validator(mode="after")
-    def _shapes(self) -> StepResult:
-        k, n = self.k, self.rewards.shape[1]
-        self._need("rewards", self.rewards, (k, n))
-        self._need("terminated", self.terminated, (k, n))
-        self._need("truncated", self.truncated, (k, n))
-        self._need("done", self.done, (k,))
-        if self.defaulted is None:
-            self.defaulted = np.zeros((k, n), dtype=bool)
-        self._need("defaulted", self.defaulted, (k, n))
-        return self
-
-    def _check_dims(self, dims: Dims) -> None:
-        _expect("rewards", "n_agents", self.rewards.shape[1], dims.n_agents)
-        if dims.num_envs is not None:
-            for e in self.episodes:
-                if e.env_index >= dims.num_envs:
-                    raise RangeError(f"env_index {e.env_index} >= num_envs {dims.num_envs}", "episodes")
-
-
 ArrayName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$")]
 Scalar = StrictBool | StrictInt | FiniteFloat | Annotated[str, Strict(), Field(max_length=256)] | None
 
@@ -519,8 +481,12 @@ Scalar = StrictBool | StrictInt | FiniteFloat | Annotated[str, Strict(), Field(m
 class ExperienceChunk(Message):
     """An actor -> its learner: named arrays of experience tagged with the producing policy version.
 
-    The learner defines the array names and shapes (e.g. obs (T,K,D), reward (T,K)); the codec only
-    enforces the dtype whitelist, finiteness and at most 64 arrays.
+    Role "team" (the env host): one rollout, the arrays of `rollout_layout.CHUNK`; role "central"
+    (the central agent): one vector step's record, the arrays of `rollout_layout.RECORD` for the
+    K copies of env_idx. The codec always enforces the dtype whitelist, finiteness and at most 64
+    arrays; a receiver that declares every size of the layout (`Dims.from_layout`) also gets each
+    array's name, dtype and shape checked, so a chunk that would train on misread numbers is
+    rejected and counted like any other bad message.
     """
 
     TYPE: ClassVar[str] = "experience"
@@ -530,6 +496,17 @@ class ExperienceChunk(Message):
     policy_version: NonNegInt
     arrays: dict[ArrayName, NDArray(tuple(WIRE_DTYPES))] = Field(max_length=64)
     meta: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=64)
+
+    RECORD_ROLE: ClassVar[str] = "central"
+
+    def _check_dims(self, dims: Dims) -> None:
+        layout = dims.rollout_layout()
+        if layout is None:
+            return
+        if self.role == self.RECORD_ROLE:
+            layout.check_record(self.arrays, k=self.k)
+        else:
+            layout.check_chunk(self.arrays)
 
 
 class Weights(Message):
@@ -556,7 +533,8 @@ class Weights(Message):
         return cls(role=role, version=version, blob=blob, sha256=hashlib.sha256(blob).hexdigest(), **header)
 
 
-ControlCommand = Literal["start", "pause", "resume", "stop", "shutdown", "checkpoint", "reset", "ping", "set"]
+# Only what something sends and something handles: the launcher and the env host end a run.
+ControlCommand = Literal["stop"]
 
 
 class Control(Message):
@@ -588,7 +566,7 @@ class Heartbeat(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (LocalObs, GlobalState, CentralMsg, Action, StepResult, ExperienceChunk, Weights, Control, Heartbeat)
+    for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat)
 }
 
 
@@ -667,17 +645,6 @@ def _sender(v: Any) -> str:
     return v
 
 
-# Episodes arrive a few times per episode length, not every step; for them pydantic's compiled
-# list validator is faster than Python, so the fast path uses it (declines on its errors).
-_EPISODES = TypeAdapter(Annotated[list[EpisodeInfo], *StepResult.model_fields["episodes"].metadata])
-
-
-def _episodes(v: Any) -> list:
-    if type(v) is list and not v:
-        return []
-    return _EPISODES.validate_python(v)
-
-
 def _array_check(spec: _ArrayField, optional: bool) -> Callable[[Any], np.ndarray | None]:
     """The checks of `_ArrayField.validate` (plus _array_from_wire) for one field."""
     names = frozenset(spec.dtypes)
@@ -741,7 +708,7 @@ def _field_check(cls: type[Message], name: str, info: Any) -> Callable[[Any], An
 
         return type_tag
     scalar = {"v": _version, "run": _run, "sender": _sender, "step": _nonneg_int, "ts": _nonneg_int,
-              "seq": _nonneg_int, "agent": _nonneg_int, "policy_version": _nonneg_int, "episodes": _episodes}
+              "seq": _nonneg_int, "agent": _nonneg_int, "policy_version": _nonneg_int}
     if name in scalar:
         return scalar[name]
     for meta in info.metadata:
@@ -778,25 +745,13 @@ def _action_shapes(v: dict, k: int) -> str | None:
     a = v["action"]
     if a.shape[0] != k or a.ndim != (1 if a.dtype == np.int64 else 2):
         raise _Decline
-    for name in ("logp", "value", "fallback", "msg"):
+    for name in ("fallback", "msg"):
         x = v[name]
         if x is not None and x.shape[0] != k:
             raise _Decline
     if v["fallback"] is None:
         v["fallback"] = np.zeros(k, dtype=bool)
         return "fallback"
-    return None
-
-
-def _step_result_shapes(v: dict, k: int) -> str | None:
-    kn = v["rewards"].shape
-    if kn[0] != k or v["terminated"].shape != kn or v["truncated"].shape != kn or v["done"].shape[0] != k:
-        raise _Decline
-    if v["defaulted"] is None:
-        v["defaulted"] = np.zeros(kn, dtype=bool)
-        return "defaulted"
-    if v["defaulted"].shape != kn:
-        raise _Decline
     return None
 
 
@@ -836,8 +791,7 @@ def _fast_validator(cls: type[Message], shapes: Callable[[dict, int], str | None
 _FAST: dict[type[Message], Callable[[dict], tuple[dict[str, Any], set[str]]]] = {
     cls: _fast_validator(cls, shapes)
     for cls, shapes in ((LocalObs, _local_obs_shapes), (GlobalState, _global_state_shapes),
-                        (CentralMsg, _central_msg_shapes), (Action, _action_shapes),
-                        (StepResult, _step_result_shapes))
+                        (CentralMsg, _central_msg_shapes), (Action, _action_shapes))
 }
 FAST_TYPES = frozenset(_FAST)
 

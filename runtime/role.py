@@ -26,7 +26,7 @@ from faults.steplog import StepLog
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
 from protocol.session import HammerSession
 
-STOP_COMMANDS = ("stop", "shutdown")
+STOP_COMMANDS = ("stop",)
 
 
 class Role:
@@ -65,7 +65,7 @@ class Role:
 
     # ----- the shell ----------------------------------------------------------------------------
     def stop_requested(self) -> bool:
-        """True once a stop/shutdown command for everyone or for this role has arrived."""
+        """True once a stop command for everyone or for this role has arrived."""
         for cmd in self._control.drain():
             if cmd.command in STOP_COMMANDS and cmd.target in ("*", self.name) and self.stop_reason is None:
                 self.stop_reason = f"{cmd.command} command from {cmd.sender or 'an unnamed sender'}"

@@ -44,7 +44,7 @@ def test_bench_codec_runs_and_writes_json(tmp_path):
     assert result.exit_code == 0, result.output
     data = json.loads(out.read_text())
     names = [r["payload"] for r in data["rows"]]
-    assert len(names) == 12 and names[0] == "global_state K=4 N=3 D=18 M=4" and names[6].endswith("N=5 D=30 M=8")
+    assert len(names) == 8 and names[0] == "global_state K=4 N=3 D=18 M=4" and names[4].endswith("N=5 D=30 M=8")
     for r in data["rows"]:
         for col in ("build", "encode", "decode"):
             assert r[f"{col}_ref_us"] > 0 and r[f"{col}_fast_us"] > 0
@@ -60,6 +60,6 @@ def test_bench_codec_cold_mode_runs(tmp_path):
     result = CliRunner().invoke(app, ["bench", "codec", "--k", "2", "--number", "2", "--cold", "--json", str(out)])
     assert result.exit_code == 0, result.output
     data = json.loads(out.read_text())
-    assert data["meta"]["cold"] is True and len(data["rows"]) == 12
+    assert data["meta"]["cold"] is True and len(data["rows"]) == 8
     assert all(r["decode_fast_us"] > 0 and r["decode_ref_us"] > 0 for r in data["rows"])
     assert "cache-cold" in result.output

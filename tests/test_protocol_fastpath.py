@@ -25,12 +25,12 @@ from protocol.errors import ProtocolError
 from protocol.samples import sample_messages
 from protocol.schemas import (
     FAST_TYPES,
+    SCHEMA_VERSION,
     WIRE_DTYPES,
     Action,
     Control,
-    EpisodeInfo,
+    GlobalState,
     Message,
-    StepResult,
     _fast_state,
     fast_from_wire,
 )
@@ -44,10 +44,9 @@ def _hot_messages() -> list[Message]:
     for k, n, d, m in ((1, 3, 18, 4), (32, 3, 18, 4), (32, 5, 30, 8)):
         msgs += [cls(**kw) for _, cls, kw, _ in loop_messages(k, n, d, m)]
     rng = np.random.default_rng(1)
-    msgs.append(Action(env_idx=np.array([5, 2, 9]), agent=1, action=rng.standard_normal((3, 2)).astype(np.float32),
-                       logp=np.zeros(3, np.float32), value=np.ones(3, np.float32)))
-    msgs.append(StepResult(rewards=np.zeros((0, 2), np.float32), terminated=np.zeros((0, 2), bool),
-                           truncated=np.zeros((0, 2), bool), done=np.zeros(0, bool)))  # K=0, env_idx defaulted
+    msgs.append(Action(env_idx=np.array([5, 2, 9]), agent=1, action=rng.standard_normal((3, 2)).astype(np.float32)))
+    msgs.append(GlobalState(obs=np.zeros((0, 2, 5), np.float32), prev_actions=np.zeros((0, 2, 3), np.float32),
+                            active=np.zeros((0, 2), bool)))  # K=0, env_idx defaulted
     return msgs
 
 
@@ -142,7 +141,7 @@ def test_encode_fast_equals_reference_bytes():
 
 
 def test_encode_recovers_after_a_packing_error_and_is_thread_safe():
-    bad = Control(command="set", args={"x": 1})
+    bad = Control(command="stop", args={"x": 1})
     bad.args["x"] = object()  # no validate_assignment: only packing can catch it
     with pytest.raises(TypeError):
         codec.encode(bad)
@@ -236,14 +235,8 @@ def _wire_corpus(wire: dict) -> list[dict]:
             out += [{**wire, key: variant} for variant in _array_variants(value, k)]
     out += [{**wire, "run": r} for r in _RUNS]
     out += [{**wire, "sender": s} for s in ("x" * 128, "x" * 129, "é" * 128, "é" * 129)]
-    out += [{**wire, "type": t} for t in ("local_obs", "global_state", "central_msg", "action", "step_result")]
-    out += [{**wire, "v": v} for v in (0, 2, 1.0)]
-    if wire["type"] == "step_result":
-        ep = {"env_index": 0, "paper_metric": -1.5, "team_return": 2.0, "length": 25}
-        for eps in ([ep], [ep] * 4097, [ep] * 4096, [{**ep, "paper_metric": 3}], [{**ep, "length": True}],
-                    [{**ep, "team_return": float("nan")}], [{**ep, "x": 1}], [{"env_index": 0}], [ep, None],
-                    [[0, 1.0, 2.0, 3]], [{**ep, "env_index": -1}]):
-            out.append({**wire, "episodes": eps})
+    out += [{**wire, "type": t} for t in ("local_obs", "global_state", "central_msg", "action", "step_result")]  # step_result: a retired tag
+    out += [{**wire, "v": v} for v in (0, SCHEMA_VERSION - 1, SCHEMA_VERSION + 1, float(SCHEMA_VERSION))]
     return out
 
 
@@ -300,9 +293,6 @@ def _kw_corpus(msg: Message) -> list[dict]:
             for axis in range(1, value.ndim):  # an inner dim disagrees
                 pad = [(0, 1 if a == axis else 0) for a in range(value.ndim)]
                 out.append({**kw, key: np.pad(value, pad)})
-    if "episodes" in kw:
-        ep = EpisodeInfo(env_index=1, paper_metric=2.0, team_return=3.0, length=4)
-        out += [{**kw, "episodes": e} for e in ([ep], (ep,), [ep.model_dump()], [ep, 1], [ep] * 4097)]
     return out
 
 

@@ -71,7 +71,7 @@ def test_bounded_queue_counts_overflow_and_keeps_the_oldest(pair):
     raw = b.subscribe_raw(b.keys.bench("bounded"), maxsize=5)
     free = b.subscribe_raw(b.keys.bench("bounded"))
     _settle()
-    seqs = [a.publish(a.keys.bench("bounded"), Control(command="ping")) for _ in range(10)]
+    seqs = [a.publish(a.keys.bench("bounded"), Control(command="stop")) for _ in range(10)]
     deadline = time.monotonic() + 5.0
     while free.pending() < 10 and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -80,7 +80,7 @@ def test_bounded_queue_counts_overflow_and_keeps_the_oldest(pair):
     assert raw.pending() == 5 and raw.stats.overflow == 5
     assert [m.seq for m in typed.drain()] == seqs[:3] and typed.get(0) is None
     assert len([raw.get(0) for _ in range(5)]) == 5 and raw.get(0) is None and raw.get(0.05) is None
-    a.publish(a.keys.bench("bounded"), Control(command="ping"))  # room again once drained
+    a.publish(a.keys.bench("bounded"), Control(command="stop"))  # room again once drained
     assert typed.get(5.0) is not None and typed.stats.overflow == 7
 
 

@@ -1,0 +1,174 @@
+"""What the env host keeps across a kill: its counters, its episode rows, and the files that hold them.
+
+Resuming (`hammer up --resume`): at every checkpoint point (update % checkpoint_every == 0, where
+the env copies are reseeded anyway) the host writes `host_state/ckpt_<update>.json` (its counters,
+recent metrics, wall clock) after flushing metrics.csv and the episode rows, so a run killed later
+can continue from the latest update that has both this file and the learner's checkpoint.
+
+`episode_links.csv` holds one row per finished episode: its env copy, length, span of global steps
+(`start_step..end_step`), and how many agent x copy entries of that copy acted on a fallback
+message and used the declared default action (faults/episode_links.py adds the per-link columns).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from learning.rundir import RunDir, fsync_file
+
+HOST_STATE_DIR = "host_state"
+EPISODE_LINKS = "episode_links.csv"
+EPISODE_ROW_COLUMNS = ("episode", "env_index", "length", "start_step", "end_step", "msg_fallbacks", "default_actions")
+
+
+def host_state_path(run_dir: Path, update: int) -> Path:
+    return Path(run_dir) / HOST_STATE_DIR / f"ckpt_{update:07d}.json"
+
+
+def host_state_updates(run_dir: Path) -> list[int]:
+    """The updates with a saved host state, ascending."""
+    d = Path(run_dir) / HOST_STATE_DIR
+    return sorted(int(p.stem[5:]) for p in d.glob("ckpt_*.json")) if d.is_dir() else []
+
+
+def read_host_state(run_dir: Path, update: int) -> dict:
+    return json.loads(host_state_path(run_dir, update).read_text())
+
+
+def write_host_state(run_dir: Path, state: dict, keep: int = 5) -> Path:
+    """Atomic (tmp + fsync + rename); keeps the `keep` latest (the learner keeps 3 checkpoints)."""
+    path = host_state_path(run_dir, int(state["update"]))
+    path.parent.mkdir(exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(state))
+    fsync_file(tmp)
+    tmp.replace(path)
+    for old in host_state_updates(run_dir)[:-keep]:
+        host_state_path(run_dir, old).unlink(missing_ok=True)
+    return path
+
+
+@dataclass
+class HostState:
+    """The env host's counters; all but the latencies survive a resume."""
+
+    update: int = 0
+    episodes: int = 0
+    env_steps: int = 0
+    step: int = 0  # global vector-step counter (message header)
+    recent: deque = field(default_factory=lambda: deque(maxlen=500))
+    step_latency_ms: deque = field(default_factory=lambda: deque(maxlen=2000))
+    steps_at_start: int = 0  # env steps before this session (resume)
+    wall_start: float = field(default_factory=time.perf_counter)  # perf_counter at wall_time 0 of the run
+
+    def wall_time(self) -> float:
+        return time.perf_counter() - self.wall_start
+
+
+class EpisodeRows:
+    """The finished episodes' rows of episode_links.csv, and how many of them are already on disk."""
+
+    def __init__(self, run_dir: Path, num_envs: int) -> None:
+        self.path = Path(run_dir) / EPISODE_LINKS
+        self.rows: list[tuple] = []
+        self.saved = 0  # rows already in the file (written at checkpoint points)
+        # Per env copy, since its current episode started: agent-steps on a fallback message / on the
+        # default action. Zeroed where an episode starts: after it ends, and at every env reset.
+        self.fallback = np.zeros(num_envs, np.int64)
+        self.defaulted = np.zeros(num_envs, np.int64)
+
+    def count(self, fallback: np.ndarray, defaulted: np.ndarray) -> None:
+        """One vector step's (K, N) masks of fallback messages and default actions."""
+        self.fallback += fallback.sum(axis=1)
+        self.defaulted += defaulted.sum(axis=1)
+
+    def reset_counts(self) -> None:
+        self.fallback[:] = self.defaulted[:] = 0
+
+    def add(self, episode: int, e, end_step: int) -> None:
+        """The row of finished episode number `episode` (an envs.base.EpisodeStats) ending at `end_step`."""
+        i = e.env_index
+        self.rows.append((episode, i, e.length, end_step - e.length + 1, end_step,
+                          int(self.fallback[i]), int(self.defaulted[i])))
+
+    def end(self, finished: list) -> None:
+        """These copies' episodes ended (counted or beyond the budget): their next ones start at zero."""
+        for e in finished:
+            self.fallback[e.env_index] = self.defaulted[e.env_index] = 0
+
+    def append_new(self) -> None:
+        """Append the rows not yet on disk (at a checkpoint point), fsynced."""
+        new = self.rows[self.saved:]
+        if new or not self.path.is_file():
+            with open(self.path, "a") as f:
+                if f.tell() == 0:
+                    f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
+                f.writelines(",".join(map(str, row)) + "\n" for row in new)
+            fsync_file(self.path)
+            self.saved = len(self.rows)
+
+    def write_all(self) -> None:
+        with open(self.path, "w") as f:
+            f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
+            f.writelines(",".join(map(str, row)) + "\n" for row in self.rows)
+
+    def read(self, n: int) -> list[tuple]:
+        """The first n rows of the file (base columns; a torn last line is never among them)."""
+        rows: list[tuple] = []
+        if n:
+            with open(self.path, newline="") as f:
+                for row in csv.DictReader(f):
+                    if len(rows) == n:
+                        break
+                    rows.append(tuple(int(row[c]) for c in EPISODE_ROW_COLUMNS))
+        if len(rows) != n or [r[0] for r in rows] != list(range(1, n + 1)):
+            raise ValueError(f"{self.path}: expected episodes 1..{n}, found {len(rows)} rows")
+        return rows
+
+
+def save(rd: RunDir, state: HostState, episodes: EpisodeRows) -> None:
+    """At a checkpoint point: metrics.csv and the episode rows on disk first, then the host
+    state that vouches for them (so every count in it is backed by rows on disk)."""
+    rd.flush()
+    if rd.metrics_path.is_file():
+        fsync_file(rd.metrics_path)
+    episodes.append_new()
+    write_host_state(rd.path, {
+        "update": state.update, "episodes": state.episodes, "env_steps": state.env_steps, "step": state.step,
+        "wall_time": state.wall_time(), "recent": list(state.recent), "episode_rows": len(episodes.rows)})
+
+
+def restore(rd: RunDir, state: HostState, episodes: EpisodeRows, update: int, step: int) -> int:
+    """Continue from host_state/ckpt_<update>.json: counters, recent metrics and wall clock;
+    metrics.csv and episode_links.csv cut back to the episodes it counted. Returns the saved step.
+
+    The step counter does not continue from the saved value but from `step`, which the
+    launcher puts above every step the killed session may have reached (its latest host
+    state + checkpoint_every x rollout_steps): the roles' per-step link logs (RUN/linksteps/)
+    of that session stay on disk and are joined to episodes by step number
+    (faults.episode_links), so reusing a number would add the lost rollouts' link events to
+    the new episodes."""
+    path = host_state_path(rd.path, update)
+    saved = read_host_state(rd.path, update)
+    if int(saved["update"]) != update or int(saved["episode_rows"]) != int(saved["episodes"]):
+        raise ValueError(f"{path}: inconsistent host state (update {saved['update']}, "
+                         f"{saved['episodes']} episodes, {saved['episode_rows']} episode rows)")
+    if step < int(saved["step"]):
+        raise ValueError(f"resume_step {step} is below the saved step counter {saved['step']} ({path})")
+    state.update, state.episodes, state.env_steps, state.step = update, int(saved["episodes"]), \
+        int(saved["env_steps"]), step
+    state.recent = deque((float(x) for x in saved["recent"]), maxlen=state.recent.maxlen)
+    state.steps_at_start = state.env_steps
+    state.wall_start = time.perf_counter() - float(saved["wall_time"])
+    rd.truncate_metrics(state.episodes)
+    episodes.rows = episodes.read(state.episodes)
+    episodes.saved = 0  # the next save rewrites the file with exactly these rows
+    episodes.path.unlink(missing_ok=True)
+    return int(saved["step"])
