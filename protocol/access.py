@@ -51,7 +51,7 @@ def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
     g = {
         LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
         "env": Grant(
-            publish=(keys.obs("*"), keys.state(), keys.result(), keys.exp("team"), keys.heartbeat("env")),
+            publish=(keys.obs("*"), keys.state(), keys.exp("team"), keys.heartbeat("env")),
             subscribe=(keys.act("*"), keys.weights("local"), keys.ctl("all"), keys.heartbeat("*")),
             liveliness=(keys.alive("env"),)),
         "central": Grant(

@@ -2,7 +2,7 @@
 
 It answers agent 0's observations before the real agent (if it can read them), floods actions
 for agent 0 at guessed steps, publishes well-formed weights of a far-future version for both
-networks, and sends `pause` / `stop` control commands. In the secure profile it joins with a
+networks, and sends forged `stop` control commands. In the secure profile it joins with a
 stolen role identity (e.g. local-1's), so it is linked into the run and only the access rules
 stand between it and the other roles.
 """
@@ -61,7 +61,6 @@ class HostilePeer(threading.Thread):
                     for net, pub in weights.items():
                         pub.publish(Weights.from_blob(net, 2**40, junk))
                         self.sent["weights"] += 1
-                    for command in ("pause", "stop"):
-                        ctl.publish(Control(command=command))
-                        self.sent["control"] += 1
+                    ctl.publish(Control(command="stop"))
+                    self.sent["control"] += 1
                 time.sleep(0.002)
