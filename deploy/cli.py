@@ -156,7 +156,7 @@ def up_command(
     from faults.chaos import ChaosSpecError, parse_chaos
     from faults.spec import FaultSpecError, build_plan
     from learning.config import ConfigError, load_yaml, merge_config
-    from protocol.faults import FaultSpec
+    from protocol.fault_injection import FaultSpec
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
