@@ -24,7 +24,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         """List env names with N, observation size and action space (builds one copy of each)."""
         from rich.table import Table
 
-        from envs.registry import env_descriptions, make_vec_env
+        from envs.catalog import env_descriptions
+        from envs.registry import make_vec_env
         from hammer.console import table_console
 
         table = Table("name", "N", "obs dim", "actions", "max steps", "description")

@@ -9,8 +9,10 @@ import pytest
 from pettingzoo.sisl.multiwalker import multiwalker_base
 
 from envs.base import VecEnv
+from envs.catalog import _PETTINGZOO, env_descriptions, env_names
+from envs.description import EnvConfigError
 from envs.pettingzoo_vec import EnvSpaceError, PettingZooVecEnv
-from envs.registry import _PETTINGZOO, EnvConfigError, env_descriptions, env_names, make_vec_env
+from envs.registry import make_vec_env
 
 
 def test_names_and_descriptions():
