@@ -16,7 +16,7 @@ def _fail(msg: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-def register(app: typer.Typer, bench: typer.Typer) -> None:
+def register(app: typer.Typer) -> None:
     from deploy import roles
 
     app.command("up")(up_command)
@@ -24,39 +24,6 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("central")(roles.central_command)
     app.command("local")(roles.local_command)
     app.command("learner")(roles.learner_command)
-    bench.command("runtime")(bench_runtime_command)
-
-
-def bench_runtime_command(
-    presets: Annotated[str, typer.Option(help="Comma-separated presets to measure.")] = "cn3,cn5",
-    episodes: Annotated[int, typer.Option(help="Episodes per measurement (same for both runners).")] = 320,
-    variant: Annotated[str, typer.Option(help="Variant to run.")] = "hammer",
-    central_mode: Annotated[str, typer.Option(help="Central mode (hammer).")] = "backprop",
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
-) -> None:
-    """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
-    import json
-    import os
-
-    from rich.table import Table
-
-    from deploy.bench import bench_runtime, same_label
-    from hammer.console import table_console
-
-    logging.basicConfig(level=logging.WARNING)
-    rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
-    t = Table(title=f"hammer bench runtime ({variant}/{central_mode}, {episodes} episodes each, "
-                    f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
-    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "up lag-1 / train", "loop p50 ms",
-                "loop p99 ms", "same metrics"):
-        t.add_column(col, justify="right")
-    for r in rows:
-        t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
-                  f"{r['ratio_up_over_train']:.2f}", f"{r.get('ratio_up_lag1_over_train', float('nan')):.2f}",
-                  f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}", same_label(r))
-    table_console().print(t)
-    if json_out is not None:
-        json_out.write_text(json.dumps(rows, indent=1))
 
 
 def _links_table(board, cfg, settings):

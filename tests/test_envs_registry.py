@@ -102,8 +102,8 @@ def test_cli_envs_list_shows_dims():
 
     from envs import cli
 
-    app, bench = typer.Typer(), typer.Typer()
-    cli.register(app, bench)
+    app = typer.Typer()
+    cli.register(app)
     res = CliRunner().invoke(app, ["envs", "list", "-n", "5"], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     rows = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:6]]

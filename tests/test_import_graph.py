@@ -138,3 +138,11 @@ def test_no_cycle_hidden_behind_an_import_inside_a_function():
 
 def test_a_cycle_is_found():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_the_library_does_not_import_the_benchmarks():
+    """Benchmarks measure the library from outside; only the CLI wires `hammer bench` to them."""
+    graph = import_graph(inside_functions=True)
+    importers = {m for m, edges in graph.items() if not m.startswith("benchmarks")
+                 and any(e.startswith("benchmarks") for e in edges)}
+    assert importers == {"hammer.cli"}
