@@ -80,9 +80,9 @@ def time_acting(preset: str, mode: str, k: int, calls: int, block: int = 200) ->
 
 
 def central_rss(episodes: int) -> dict:
-    """Peak RSS (MiB) per role of a real `hammer up` run of the cn3 preset (RssSampler of deploy.bench),
+    """Peak RSS (MiB) per role of a real `hammer up` run of the cn3 preset (RssSampler of benchmarks.runtime),
     with its env-steps/s and control-loop latency (env host publishes -> every action back)."""
-    from deploy.bench import RssSampler
+    from benchmarks.runtime import RssSampler
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
     from learning.config import merge_config

@@ -14,8 +14,7 @@ import tempfile
 import threading
 import time
 
-from learning.config import build_config
-from learning.presets import preset_dict
+from learning.config import build_config, preset_dict
 from learning.rundir import RunDir
 from learning.trainer import Trainer
 

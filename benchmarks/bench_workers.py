@@ -21,7 +21,7 @@ import time
 import numpy as np
 import psutil
 
-from envs.parallel_ceiling import ceiling, slices
+from benchmarks.parallel_ceiling import ceiling, slices
 from envs.registry import make_vec_env
 
 CEIL = "ceiling: independent processes, no IPC"

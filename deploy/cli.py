@@ -16,7 +16,7 @@ def _fail(msg: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-def register(app: typer.Typer, bench: typer.Typer) -> None:
+def register(app: typer.Typer) -> None:
     from deploy import roles
 
     app.command("up")(up_command)
@@ -24,72 +24,6 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     app.command("central")(roles.central_command)
     app.command("local")(roles.local_command)
     app.command("learner")(roles.learner_command)
-    bench.command("runtime")(bench_runtime_command)
-    bench.command("security")(bench_security_command)
-
-
-def bench_security_command(
-    preset: Annotated[str, typer.Option(help="Preset to run.")] = "cn3",
-    episodes: Annotated[int, typer.Option(help="Episodes per run.")] = 100,
-    repeats: Annotated[int, typer.Option(help="Plain/secure pairs, alternated (medians are shown).")] = 2,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
-) -> None:
-    """What `hammer up --secure` costs: env-steps/s and step latency p50/p99, plain vs secure, same run."""
-    import json
-
-    from rich.table import Table
-
-    from deploy.bench_security import FIGURES, PROFILES, bench_security
-    from hammer.console import table_console
-
-    logging.basicConfig(level=logging.WARNING)
-    r = bench_security(preset, episodes, repeats)
-    t = Table(title=f"hammer bench security ({preset}, {episodes} episodes, median of {repeats}, "
-                    f"load {r['loadavg_1m']:.1f} on {r['cpu_count']} cores)")
-    t.add_column("profile")
-    for col in ("env-steps/s", "step p50 ms", "step p99 ms"):
-        t.add_column(col, justify="right")
-    for p in PROFILES:
-        m = r["median"][p]
-        t.add_row(p, f"{m['env_steps_per_s']:,.0f}", f"{m['step_latency_ms_p50']:.2f}", f"{m['step_latency_ms_p99']:.2f}")
-    q = r["secure_over_plain"]
-    t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
-    t.caption = f"same metrics.csv: {r['same_metrics']}"
-    table_console().print(t)
-    if json_out is not None:
-        json_out.write_text(json.dumps(r, indent=1))
-
-
-def bench_runtime_command(
-    presets: Annotated[str, typer.Option(help="Comma-separated presets to measure.")] = "cn3,cn5",
-    episodes: Annotated[int, typer.Option(help="Episodes per measurement (same for both runners).")] = 320,
-    variant: Annotated[str, typer.Option(help="Variant to run.")] = "hammer",
-    central_mode: Annotated[str, typer.Option(help="Central mode (hammer).")] = "backprop",
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
-) -> None:
-    """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
-    import json
-    import os
-
-    from rich.table import Table
-
-    from deploy.bench import bench_runtime, same_label
-    from hammer.console import table_console
-
-    logging.basicConfig(level=logging.WARNING)
-    rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
-    t = Table(title=f"hammer bench runtime ({variant}/{central_mode}, {episodes} episodes each, "
-                    f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
-    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "up lag-1 / train", "loop p50 ms",
-                "loop p99 ms", "same metrics"):
-        t.add_column(col, justify="right")
-    for r in rows:
-        t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
-                  f"{r['ratio_up_over_train']:.2f}", f"{r.get('ratio_up_lag1_over_train', float('nan')):.2f}",
-                  f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}", same_label(r))
-    table_console().print(t)
-    if json_out is not None:
-        json_out.write_text(json.dumps(rows, indent=1))
 
 
 def _links_table(board, cfg, settings):
@@ -109,7 +43,7 @@ def _links_table(board, cfg, settings):
     for col in COLUMNS:
         t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    for link, row in link_table(roles, cfg.n_agents, cfg.wiring.uses_central).items():
+    for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
     if board.chaos_log:
         t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
@@ -123,7 +57,8 @@ def _dashboard_table(board, cfg, started: float, settings=None):
 
     env = board.heartbeats.get("env")
     c = env.counters if env else {}
-    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
+    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.variant}"
+                    f"{'/' + cfg.central_mode if cfg.variant == 'hammer' else ''} seed {cfg.seed}",
               show_header=True, expand=False)
     t.add_column("what")
     t.add_column("value", justify="right")
@@ -167,8 +102,6 @@ def up_command(
     resume: Annotated[Path | None, typer.Option(
         help="Continue this `hammer up` run directory from its latest checkpoint (only --episodes may change).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
-    secure: Annotated[bool, typer.Option(
-        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md).")] = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -190,15 +123,14 @@ def up_command(
     from faults.chaos import ChaosSpecError, parse_chaos
     from faults.spec import FaultSpecError, build_plan
     from learning.config import ConfigError, load_yaml, merge_config
-    from protocol.faults import FaultSpec
+    from protocol.fault_injection import FaultSpec
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
     if resume is not None:
         given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
-                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
-                 "--secure": secure or None}
+                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -235,8 +167,6 @@ def up_command(
         rt["fault_links"] = [lf.model_dump() for lf in plan.links]
     if chaos_items:
         rt["chaos"] = chaos_items
-    if secure:
-        rt["secure"] = True
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:

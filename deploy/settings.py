@@ -16,7 +16,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from protocol.faults import FaultSpec
+from protocol.fault_injection import FaultSpec
 from protocol.session import TransportConfig, loopback_endpoint
 
 Fallback = Literal["zeros", "last", "last_k"]

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
-from envs.registry import EnvConfigError
+from envs.description import EnvConfigError
 
 ParallelEnvFactory = Callable[[], Any]
 

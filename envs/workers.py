@@ -32,7 +32,8 @@ import msgpack
 import numpy as np
 
 from envs.base import EnvSpec, EpisodeStats, VecEnv, VecStep
-from envs.registry import EnvDescription, build_local
+from envs.catalog import build_local
+from envs.description import EnvDescription
 
 _POLL_S = 0.5  # how often an idle worker checks that its parent is still alive
 

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 
-def register(app: typer.Typer, bench: typer.Typer) -> None:
+def register(app: typer.Typer) -> None:
     app.command("sweep")(sweep)
     app.command("plot")(plot)
     app.command("report")(report)

@@ -12,7 +12,7 @@ faults_app = typer.Typer(help="Communication faults as an experiment: evaluate t
                               "delays and process chaos.", no_args_is_help=True)
 
 
-def register(app: typer.Typer, bench: typer.Typer) -> None:
+def register(app: typer.Typer) -> None:
     app.add_typer(faults_app, name="faults")
 
 

@@ -14,7 +14,7 @@ Links and the keys (relative to hammer/<run>/) their messages travel on:
     central->local central/msg/<i>      each local agent's message
     local->env     agent/act/<i>        each local agent's action
 
-Faults act on the publishing side (the `protocol.faults` layer), seeded per (rule, key): the same
+Faults act on the publishing side (the `protocol.fault_injection` layer), seeded per (rule, key): the same
 `--fault-seed` gives the same faults. Rules are ordered so that agent-specific rules win over
 link-wide ones whatever order they were given in (the first matching rule applies to a key).
 """
@@ -25,7 +25,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from protocol.faults import FaultRule, FaultSpec
+from protocol.fault_injection import FaultRule, FaultSpec
 
 LINKS: dict[str, str] = {
     "env->central": "env/state",

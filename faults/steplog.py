@@ -79,7 +79,7 @@ class LoggedPublisher:
     """A step-loop publisher that logs, at each message's step: one `sent`, and the `dropped` /
     `duplicated` its session's fault layer decided for it.
 
-    Those two decisions are made synchronously inside `publish` (`protocol.faults.FaultInjector.
+    Those two decisions are made synchronously inside `publish` (`protocol.fault_injection.FaultInjector.
     submit`), so the change of the fault counters across the call belongs to this message, as long
     as one thread publishes this role's step-loop messages (true for every role). Only rules whose
     key pattern belongs to `link` count, as in `faults.links.flat_fault_counters`, so the step logs

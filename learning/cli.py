@@ -122,9 +122,6 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
                   f"{summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
 
 
-def register(app: typer.Typer, bench: typer.Typer) -> None:
-    """Add this package's commands to the top-level app and its `bench` group."""
+def register(app: typer.Typer) -> None:
+    """Add this package's commands to the top-level app."""
     app.command("train")(train_command)
-    from learning.bench import bench_train_command
-
-    bench.command("train")(bench_train_command)

@@ -16,6 +16,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from learning.presets import PRESETS
 from learning.variant import MESSAGE_VARIANTS, Wiring
 
 Variant = Literal["hammer", "il", "random", "centralized"]
@@ -170,6 +171,15 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def preset_dict(name: str) -> dict[str, Any]:
+    """A copy of a preset's fields (so callers may mutate it)."""
+    if name not in PRESETS:
+        raise ConfigError(f"preset '{name}': unknown; fix: use one of {', '.join(PRESETS)}")
+    d = dict(PRESETS[name])
+    d["env_kwargs"] = dict(d.get("env_kwargs", {}))
+    return d
+
+
 def merge_config(
     preset: str | None = None,
     file: str | Path | None = None,
@@ -179,8 +189,6 @@ def merge_config(
 ) -> RunConfig:
     """defaults < `base` (a run's own config, for branches) < preset < YAML file < `extra`
     (explicit CLI flags) < `--set` overrides."""
-    from learning.presets import preset_dict
-
     data: dict[str, Any] = copy.deepcopy(base) if base else {}
     if preset:
         data.update(preset_dict(preset))

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from learning.config import ConfigError
-
 _CN = {
     "env": "cn",
     "gamma": 0.95,
@@ -68,11 +66,3 @@ PRESETS: dict[str, dict[str, Any]] = {
     "mw5": {**_MW, "n_agents": 5, "msg_dim": 10},
 }
 
-
-def preset_dict(name: str) -> dict[str, Any]:
-    """A copy of a preset's fields (so callers may mutate it)."""
-    if name not in PRESETS:
-        raise ConfigError(f"preset '{name}': unknown; fix: use one of {', '.join(PRESETS)}")
-    d = dict(PRESETS[name])
-    d["env_kwargs"] = dict(d.get("env_kwargs", {}))
-    return d

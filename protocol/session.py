@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from protocol.access import SecureLink
 from protocol.codec import Expected, decode, encode
 from protocol.errors import ProtocolError, RunMismatchError
-from protocol.faults import FaultInjector, FaultSpec
+from protocol.fault_injection import FaultInjector, FaultSpec
 from protocol.keys import Keys
 from protocol.schemas import Dims, Message
 

@@ -9,8 +9,10 @@ import pytest
 from pettingzoo.sisl.multiwalker import multiwalker_base
 
 from envs.base import VecEnv
+from envs.catalog import _PETTINGZOO, env_descriptions, env_names
+from envs.description import EnvConfigError
 from envs.pettingzoo_vec import EnvSpaceError, PettingZooVecEnv
-from envs.registry import _PETTINGZOO, EnvConfigError, env_descriptions, env_names, make_vec_env
+from envs.registry import make_vec_env
 
 
 def test_names_and_descriptions():
@@ -100,8 +102,8 @@ def test_cli_envs_list_shows_dims():
 
     from envs import cli
 
-    app, bench = typer.Typer(), typer.Typer()
-    cli.register(app, bench)
+    app = typer.Typer()
+    cli.register(app)
     res = CliRunner().invoke(app, ["envs", "list", "-n", "5"], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     rows = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:6]]

@@ -10,7 +10,7 @@ import pytest
 from faults.chaos import ChaosScheduler, ChaosSpecError, parse_chaos
 from faults.links import flat_fault_counters, link_of_pattern, link_table
 from faults.spec import FaultSpecError, build_plan, parse_link_fault
-from protocol.faults import FaultInjector, key_matches
+from protocol.fault_injection import FaultInjector, key_matches
 
 
 def test_link_fault_maps_to_the_link_keys_with_optional_agent():

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from benchmarks.transport import loop_messages
 from protocol import codec
-from protocol.bench import loop_messages
 from protocol.errors import ProtocolError
 from protocol.samples import sample_messages
 from protocol.schemas import (

@@ -10,7 +10,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from protocol.bench import echo_main
+from benchmarks.transport import echo_main
 from protocol.codec import encode
 from protocol.errors import RunMismatchError
 from protocol.samples import sample_messages

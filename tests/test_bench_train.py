@@ -4,7 +4,7 @@ import math
 
 from typer.testing import CliRunner
 
-from learning.bench import print_table, run_bench
+from benchmarks.train import print_table, run_bench
 
 
 def test_bench_train_figures(capsys):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deploy.bench import _same_metrics, same_label
+from benchmarks.runtime import _same_metrics, same_label
 
 
 def _metrics(d: Path, values: list[float]) -> Path:

@@ -9,7 +9,7 @@ its inputs and publishes its outputs. What it measures is the floor the real loo
 architecture on this hardware, whatever the roles' code does.
 
 Two payload modes, measured in the same run:
-  typed  the real messages of one cn vector step (K copies; `protocol.bench.loop_messages`): every
+  typed  the real messages of one cn vector step (K copies; `benchmarks.transport.loop_messages`): every
          sender builds and encodes, every receiver decodes and validates, as the roles do.
   raw    bytes of the same sizes, only the step number read: Zenoh plus scheduling alone.
 
@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from protocol.bench import loop_messages
+from benchmarks.transport import loop_messages
 from protocol.codec import encode
 from protocol.schemas import Action, CentralMsg, GlobalState, LocalObs
 from protocol.session import HammerSession, TransportConfig

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocol.loopfloor import measure
+from benchmarks.loop_floor import measure
 
 
 @pytest.mark.parametrize(("topology", "typed"), [("split", False), ("grouped", True)])

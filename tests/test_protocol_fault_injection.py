@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from protocol.faults import FaultInjector, FaultRule, FaultSpec, key_matches
+from protocol.fault_injection import FaultInjector, FaultRule, FaultSpec, key_matches
 from protocol.schemas import LocalObs
 from protocol.session import HammerSession, TransportConfig
 

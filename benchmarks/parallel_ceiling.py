@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from envs.registry import EnvDescription, build_local
+from envs.catalog import build_local
+from envs.description import EnvDescription
 from envs.workers import slice_counts
 
 

@@ -21,9 +21,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Annotated, Any
-
-import typer
+from typing import Any
 
 from learning.config import RunConfig, merge_config
 
@@ -191,29 +189,3 @@ def print_table(r: dict[str, Any]) -> None:
     console.print(t)
     console.print("The machine is shared: compare figures only with the load average beside them.")
 
-
-def bench_train_command(
-    variant: Annotated[str, typer.Option(help="hammer | il | random | centralized")] = "hammer",
-    central_mode: Annotated[str, typer.Option(help="rl | backprop")] = "rl",
-    cn_episodes: Annotated[int, typer.Option(help="episodes of each cn3 run (cn and cn-mpe2)")] = 300,
-    mw_updates: Annotated[int, typer.Option(help="timed PPO updates of each mw3 run")] = 2,
-    full: Annotated[bool, typer.Option("--full", help="really run the 30,000-episode cn3 run (~minutes)")] = False,
-    extrapolate_from: Annotated[int, typer.Option(help="episodes of the measured run the full run is "
-                                                       "extrapolated from (without --full)")] = 2000,
-    seed: Annotated[int, typer.Option(help="run seed")] = 0,
-    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
-) -> None:
-    """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
-    from rich.console import Console
-
-    err = Console(stderr=True)
-    if min(cn_episodes, mw_updates, extrapolate_from) < 1:
-        typer.secho("error: --cn-episodes, --mw-updates and --extrapolate-from must be >= 1", fg="red", err=True)
-        raise typer.Exit(2)
-    r = run_bench(variant, central_mode, cn_episodes, mw_updates, full, extrapolate_from, seed=seed,
-                  progress=lambda msg: err.print(f"[dim]bench train: {msg} (load {_load():.2f})[/dim]"))
-    print_table(r)
-    if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(r, indent=2))
-        err.print(f"wrote {json_out}")

@@ -1,4 +1,4 @@
-"""Runtime benchmarks: the distributed runtime against the in-process trainer, same config, same run.
+"""`hammer bench runtime`: the distributed runtime against the in-process trainer, same config, same run.
 
 `bench_runtime` trains the same number of episodes twice per preset: in-process
 (`learning.trainer`) and as separate processes over Zenoh (`deploy.up.launch`), and reports the

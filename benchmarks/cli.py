@@ -1,0 +1,272 @@
+"""`hammer bench`: the benchmark commands, wired into the `hammer` CLI by `hammer.cli`.
+
+Without a subcommand, the whole-system table (`benchmarks.suite`); each subcommand measures one
+part against a baseline taken in the same run:
+
+  transport    typed protocol vs raw Zenoh bytes: msgs/s and round trips   (benchmarks.transport)
+  codec        build/encode/decode us per message: fast path vs pydantic   (benchmarks.transport)
+  loop-floor   the step loop with every role's work taken out               (benchmarks.loop_floor)
+  workers      multiwalker in-process vs subprocess workers vs the ceiling  (benchmarks.bench_workers)
+  train        the in-process trainer's speed, PPO updates included         (benchmarks.train)
+  runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
+  security     `hammer up --secure` vs plain, same run                       (benchmarks.security)
+
+The measuring code is imported inside each command, so `hammer --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseline measured in the same run). "
+                         "Without a subcommand: the whole-system table (raw env, train, up, latency, RSS).",
+                    invoke_without_command=True)
+
+
+@bench.callback()
+def bench_all(
+    ctx: typer.Context,
+    episodes: int = typer.Option(320, help="Episodes per runner and preset."),
+    json_dir: str = typer.Option("docs/results", "--json-dir", help="Write bench-<date>.json here ('' to skip)."),
+) -> None:
+    """Whole-system figures in one run; subcommands measure one part each."""
+    if ctx.invoked_subcommand is not None:
+        return
+    from benchmarks.suite import run_suite
+
+    run_suite(episodes, Path(json_dir) if json_dir else None)
+
+
+@bench.command("transport")
+def bench_transport(
+    rounds: Annotated[int, typer.Option(min=10, help="round trips per payload and mode")] = 1000,
+    flood: Annotated[int, typer.Option(min=100, help="messages per throughput burst")] = 5000,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+) -> None:
+    """Messages/s and round-trip p50/p99 of typed messages vs raw bytes of the same size,
+    over Zenoh on 127.0.0.1 to an echo peer in another (spawned) process."""
+    from rich.table import Table
+
+    from benchmarks.transport import bench_meta, rows_as_dicts, run_bench
+    from hammer.console import table_console
+
+    rows = run_bench(rounds=rounds, flood=flood)
+    table = Table(title="hammer bench transport (typed protocol vs raw bytes, loopback, echo process)")
+    for col in ("payload", "bytes", "enc us", "dec us", "typed msg/s", "raw msg/s", "ratio",
+                "typed rtt p50/p99 us", "raw rtt p50/p99 us", "rtt ratio"):
+        table.add_column(col, justify="left" if col == "payload" else "right")
+    for r in rows:
+        table.add_row(
+            r.payload, str(r.bytes), f"{r.encode_us:.1f}", f"{r.decode_us:.1f}",
+            f"{r.typed_msgs_per_s:,.0f}", f"{r.raw_msgs_per_s:,.0f}", f"{r.rate_ratio:.2f}",
+            f"{r.typed_rtt_p50_us:.0f} / {r.typed_rtt_p99_us:.0f}",
+            f"{r.raw_rtt_p50_us:.0f} / {r.raw_rtt_p99_us:.0f}", f"{r.rtt_ratio:.2f}",
+        )
+    console = table_console()
+    console.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps({"meta": bench_meta(rounds, flood), "rows": rows_as_dicts(rows)},
+                                       indent=2) + "\n")
+        typer.echo(f"wrote {json_out}")
+
+
+@bench.command("codec")
+def bench_codec(
+    k: Annotated[int, typer.Option(min=1, help="env copies per message (K)")] = 32,
+    number: Annotated[int, typer.Option(min=1, help="calls per timing (--cold: calls per figure)")] = 500,
+    repeat: Annotated[int, typer.Option(min=1, help="timings per figure (the best is kept)")] = 7,
+    cold: Annotated[bool, typer.Option("--cold", help="time single calls with cold caches (median CPU "
+                                                       "time; --number calls each), as a woken-up role")] = False,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+) -> None:
+    """Microseconds to build (validate), encode and decode (validate) each message of the
+    control loop, fast path vs the pydantic reference measured in the same run."""
+    from rich.table import Table
+
+    from benchmarks.transport import codec_bench, codec_rows_as_dicts, role_costs
+    from hammer.console import table_console
+
+    sizes = ((3, 18, 4), (5, 30, 8))
+    rows = codec_bench(k=k, sizes=sizes, number=number, repeat=repeat, cold=cold)
+    load = os.getloadavg()
+    console = table_console()
+    regime = "cache-cold single calls, median CPU time" if cold else "hot loop, best wall time"
+    table = Table(title=f"hammer bench codec (us per message, {regime}; ref = pydantic, fast = fast path; "
+                        f"load {load[0]:.2f})")
+    for col in ("payload", "bytes", "build ref/fast", "encode ref/fast", "decode ref/fast", "total ref/fast",
+                "speedup"):
+        table.add_column(col, justify="left" if col == "payload" else "right")
+    for r in rows:
+        table.add_row(r.payload, str(r.bytes), f"{r.build_ref_us:.1f} / {r.build_fast_us:.1f}",
+                      f"{r.encode_ref_us:.1f} / {r.encode_fast_us:.1f}",
+                      f"{r.decode_ref_us:.1f} / {r.decode_fast_us:.1f}",
+                      f"{r.total_ref_us:.1f} / {r.total_fast_us:.1f}", f"{r.speedup:.2f}x")
+    console.print(table)
+    roles = Table(title="codec time per vector step and role (us)"
+                  + (", upper bound: a role pays cold caches once per wake-up, not per call" if cold else ""))
+    for col in ("N", "role", "reference", "fast", "speedup"):
+        roles.add_column(col, justify="left" if col == "role" else "right")
+    per_role = {}
+    for n, _, _ in sizes:
+        per_role[n] = role_costs(rows, k, n)
+        for role, (ref, fast) in per_role[n].items():
+            roles.add_row(str(n), role, f"{ref:.0f}", f"{fast:.0f}", f"{ref / fast:.2f}x")
+    console.print(roles)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        meta = {"python": platform.python_version(), "cpus": os.cpu_count(), "loadavg": load, "k": k,
+                "number": number, "repeat": repeat, "cold": cold}
+        json_out.write_text(json.dumps({"meta": meta, "rows": codec_rows_as_dicts(rows),
+                                        "roles": {str(n): r for n, r in per_role.items()}}, indent=2) + "\n")
+        typer.echo(f"wrote {json_out}")
+
+
+@bench.command("loop-floor")
+def bench_loop_floor(
+    steps: Annotated[int, typer.Option(min=50, help="timed vector steps per topology and mode")] = 1000,
+    k: Annotated[int, typer.Option(min=1, help="env copies per message (K)")] = 32,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+) -> None:
+    """Latency floor of the step loop: env -> central -> local agents -> env with every role's
+    work removed (same keys, publishers and subscriptions as `hammer up`), typed messages vs raw
+    bytes, one process per local agent vs one for all. Compare with `hammer bench runtime`."""
+    from rich.table import Table
+
+    from benchmarks.loop_floor import rows_as_dicts as floor_dicts
+    from benchmarks.loop_floor import run_floor
+    from hammer.console import table_console
+
+    rows = run_floor(k=k, steps=steps)
+    load = os.getloadavg()
+    table = Table(title=f"hammer bench loop-floor (us per vector step, K={k}, loopback, no work in any role; "
+                        f"load {load[0]:.2f})")
+    for col in ("N", "local agents", "payload", "processes", "p50 us", "p99 us", "steps"):
+        table.add_column(col, justify="left" if col in ("local agents", "payload") else "right")
+    for n, r in rows:
+        table.add_row(str(n), "one process each" if r.topology == "split" else "one process for all",
+                      r.mode, str(r.processes), f"{r.p50_us:.0f}", f"{r.p99_us:.0f}", str(r.steps))
+    console = table_console()
+    console.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        meta = {"python": platform.python_version(), "cpus": os.cpu_count(), "loadavg": load, "k": k,
+                "steps": steps}
+        json_out.write_text(json.dumps({"meta": meta, "rows": floor_dicts(rows)}, indent=2) + "\n")
+        typer.echo(f"wrote {json_out}")
+
+
+@bench.command("workers")
+def bench_workers(
+    num_envs: int = typer.Option(8, help="K copies"),
+    workers: int = typer.Option(2, help="worker processes"),
+    n_agents: int = typer.Option(3, help="walkers"),
+    steps: int = typer.Option(300, help="batched steps per timed phase"),
+) -> None:
+    """Multiwalker env-steps/s in-process vs SubprocVecEnv vs the ceiling of independent processes (no IPC), same run; prints the speed-ups and load."""
+    from benchmarks.bench_workers import main
+
+    main([f"--num-envs={num_envs}", f"--workers={workers}", f"--n-agents={n_agents}", f"--steps={steps}"])
+
+
+@bench.command("train")
+def bench_train(
+    variant: Annotated[str, typer.Option(help="hammer | il | random | centralized")] = "hammer",
+    central_mode: Annotated[str, typer.Option(help="rl | backprop")] = "rl",
+    cn_episodes: Annotated[int, typer.Option(help="episodes of each cn3 run (cn and cn-mpe2)")] = 300,
+    mw_updates: Annotated[int, typer.Option(help="timed PPO updates of each mw3 run")] = 2,
+    full: Annotated[bool, typer.Option("--full", help="really run the 30,000-episode cn3 run (~minutes)")] = False,
+    extrapolate_from: Annotated[int, typer.Option(help="episodes of the measured run the full run is "
+                                                       "extrapolated from (without --full)")] = 2000,
+    seed: Annotated[int, typer.Option(help="run seed")] = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
+) -> None:
+    """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
+    from rich.console import Console
+
+    from benchmarks.train import print_table, run_bench
+
+    err = Console(stderr=True)
+    if min(cn_episodes, mw_updates, extrapolate_from) < 1:
+        typer.secho("error: --cn-episodes, --mw-updates and --extrapolate-from must be >= 1", fg="red", err=True)
+        raise typer.Exit(2)
+    r = run_bench(variant, central_mode, cn_episodes, mw_updates, full, extrapolate_from, seed=seed,
+                  progress=lambda msg: err.print(f"[dim]bench train: {msg} (load {os.getloadavg()[0]:.2f})[/dim]"))
+    print_table(r)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(r, indent=2))
+        err.print(f"wrote {json_out}")
+
+
+@bench.command("runtime")
+def bench_runtime(
+    presets: Annotated[str, typer.Option(help="Comma-separated presets to measure.")] = "cn3,cn5",
+    episodes: Annotated[int, typer.Option(help="Episodes per measurement (same for both runners).")] = 320,
+    variant: Annotated[str, typer.Option(help="Variant to run.")] = "hammer",
+    central_mode: Annotated[str, typer.Option(help="Central mode (hammer).")] = "backprop",
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
+    from rich.table import Table
+
+    from benchmarks.runtime import bench_runtime, same_label
+    from hammer.console import table_console
+
+    logging.basicConfig(level=logging.WARNING)
+    rows = bench_runtime(presets.split(","), episodes, variant, central_mode)
+    t = Table(title=f"hammer bench runtime ({variant}/{central_mode}, {episodes} episodes each, "
+                    f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
+    for col in ("preset", "train env-steps/s", "up env-steps/s", "up / train", "up lag-1 / train", "loop p50 ms",
+                "loop p99 ms", "same metrics"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        t.add_row(r["preset"], f"{r['train_env_steps_per_s']:,.0f}", f"{r['up_env_steps_per_s']:,.0f}",
+                  f"{r['ratio_up_over_train']:.2f}", f"{r.get('ratio_up_lag1_over_train', float('nan')):.2f}",
+                  f"{r['step_latency_ms_p50']:.2f}", f"{r['step_latency_ms_p99']:.2f}", same_label(r))
+    table_console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(rows, indent=1))
+
+
+@bench.command("security")
+def bench_security(
+    preset: Annotated[str, typer.Option(help="Preset to run.")] = "cn3",
+    episodes: Annotated[int, typer.Option(help="Episodes per run.")] = 100,
+    repeats: Annotated[int, typer.Option(help="Plain/secure pairs, alternated (medians are shown).")] = 2,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """What `hammer up --secure` costs: env-steps/s and step latency p50/p99, plain vs secure, same run."""
+    from rich.table import Table
+
+    from benchmarks.security import FIGURES, PROFILES, bench_security
+    from hammer.console import table_console
+
+    logging.basicConfig(level=logging.WARNING)
+    r = bench_security(preset, episodes, repeats)
+    t = Table(title=f"hammer bench security ({preset}, {episodes} episodes, median of {repeats}, "
+                    f"load {r['loadavg_1m']:.1f} on {r['cpu_count']} cores)")
+    t.add_column("profile")
+    for col in ("env-steps/s", "step p50 ms", "step p99 ms"):
+        t.add_column(col, justify="right")
+    for p in PROFILES:
+        m = r["median"][p]
+        t.add_row(p, f"{m['env_steps_per_s']:,.0f}", f"{m['step_latency_ms_p50']:.2f}", f"{m['step_latency_ms_p99']:.2f}")
+    q = r["secure_over_plain"]
+    t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
+    t.caption = f"same metrics.csv: {r['same_metrics']}"
+    table_console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1))
+
+
+def register(app: typer.Typer) -> None:
+    """Add the `bench` group to the top-level app."""
+    app.add_typer(bench, name="bench")

@@ -1,0 +1,179 @@
+"""The registered env names and how each is built in this process (`envs.registry` has the list).
+
+`parallel_env_factory` checks a PettingZoo-backed name's kwargs before anything is built;
+`build_local` builds K copies of it as one in-process batch, which is also what each subprocess
+worker of `envs.workers.SubprocVecEnv` runs on its slice; `build_cn` builds the vectorised
+cooperative navigation. `envs.registry.make_vec_env` chooses between them.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from envs.base import VecEnv
+from envs.description import EnvConfigError, EnvDescription
+from envs.pettingzoo_vec import PettingZooVecEnv
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _Entry:
+    module: str  # where the parallel-env factory lives
+    factory: str
+    n_key: str  # the factory's kwarg for the number of agents
+    defaults: dict[str, Any]
+    signature_of: str  # "module:attr" whose __init__/call signature lists the valid kwargs
+    about: str
+    wrap: str | None = None  # "module:fn", fn(parallel_env, kwargs) -> the env to use (e.g. a faster exact step)
+
+
+_MW_DEFAULTS: dict[str, Any] = {
+    "position_noise": 1e-3, "angle_noise": 1e-3, "forward_reward": 1.0, "terminate_reward": -100.0,
+    "fall_reward": -10.0, "terminate_on_fall": True, "remove_on_fall": True, "terrain_length": 200,
+    "shared_reward": False, "max_cycles": 500}
+
+_PETTINGZOO: dict[str, _Entry] = {
+    "cn-mpe2": _Entry(
+        "mpe2.simple_spread_v3", "parallel_env", "N",
+        {"max_cycles": 25, "local_ratio": 0.5, "continuous_actions": False},
+        "mpe2.simple_spread.simple_spread:raw_env",
+        "cooperative navigation via PettingZoo mpe2 simple_spread_v3 (discrete, 25 steps)",
+    ),
+    "mw": _Entry(
+        "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
+        "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
+        "SISL multiwalker_v9, paper settings (continuous, 500 steps, fallen walkers removed)",
+        wrap="envs.multiwalker_direct:wrap_if_exact",
+    ),
+    "mw-pettingzoo": _Entry(
+        "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
+        "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
+        "the same multiwalker stepped through PettingZoo's AEC wrappers (the reference for 'mw')",
+    ),
+}
+_CN_DEFAULTS: dict[str, Any] = {"local_ratio": 0.5, "max_steps": 25}
+_CN_ABOUT = "cooperative navigation, vectorised numpy (envs.spread.VecSimpleSpread)"
+
+
+def env_names() -> list[str]:
+    """The registered names; any `module:factory` PettingZoo parallel env is accepted as well."""
+    return ["cn", *_PETTINGZOO]
+
+
+def env_descriptions() -> dict[str, str]:
+    """One line per registered name, for `hammer envs list` and error messages."""
+    return {"cn": _CN_ABOUT, **{n: e.about for n, e in _PETTINGZOO.items()}}
+
+
+def valid_names() -> str:
+    """The names as error messages list them."""
+    return ", ".join(env_names()) + ", or 'module:factory' for any PettingZoo parallel env"
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+
+
+def _import_attr(path: str, what: str) -> Any:
+    mod_name, _, attr = path.partition(":")
+    try:
+        mod = importlib.import_module(mod_name)
+    except ImportError as e:
+        raise EnvConfigError(f"env {what!r}: cannot import module {mod_name!r} ({e}); valid names: "
+                             f"{valid_names()}") from e
+    try:
+        return getattr(mod, attr)
+    except AttributeError as e:
+        raise EnvConfigError(f"env {what!r}: module {mod_name!r} has no attribute {attr!r}; valid names: "
+                             f"{valid_names()}") from e
+
+
+def _kwarg_names(fn: Callable[..., Any]) -> set[str] | None:
+    """Keyword names `fn` accepts, or None when it takes **kwargs (cannot check up front)."""
+    target = fn.__init__ if inspect.isclass(fn) else fn
+    params = inspect.signature(target).parameters.values()
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return None
+    return {p.name for p in params if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def _check_kwargs(name: str, kwargs: dict[str, Any], valid: set[str] | None, reserved: str | None) -> None:
+    if valid is not None:
+        unknown = sorted(set(kwargs) - valid)
+        if unknown:
+            raise EnvConfigError(f"env {name!r}: unknown env_kwargs field {unknown[0]!r}; valid fields: "
+                                 f"{', '.join(sorted(valid - {reserved}))}")
+    if reserved is not None and reserved in kwargs:
+        raise EnvConfigError(f"env {name!r}: env_kwargs field {reserved!r} is set by n_agents; pass "
+                             f"n_agents instead of env_kwargs[{reserved!r}]")
+
+
+def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, int | None]:
+    """(factory of one parallel env, spec name, max_steps or None) for a PettingZoo-backed name.
+
+    Validates the kwargs before anything is built, so a typo fails here with the valid fields.
+    """
+    kwargs = dict(desc.env_kwargs)
+    if desc.name in _PETTINGZOO:
+        entry = _PETTINGZOO[desc.name]
+        _check_kwargs(desc.name, kwargs, _kwarg_names(_import_attr(entry.signature_of, desc.name)), entry.n_key)
+        full = {**entry.defaults, **kwargs, entry.n_key: desc.n_agents}
+        fn = _import_attr(f"{entry.module}:{entry.factory}", desc.name)
+        if entry.wrap is not None:
+            wrap = _import_attr(entry.wrap, desc.name)
+            return (lambda: wrap(fn(**full), full)), desc.name, int(full["max_cycles"])
+        return (lambda: fn(**full)), desc.name, int(full["max_cycles"])
+    if ":" in desc.name:
+        fn = _import_attr(desc.name, desc.name)
+        if not callable(fn):
+            raise EnvConfigError(f"env {desc.name!r}: {desc.name!r} is not callable; name a function that "
+                                 "returns a PettingZoo parallel env")
+        valid = _kwarg_names(fn)
+        if valid is None:  # parallel_wrapper_fn(...) takes **kwargs; the module's raw_env tells the fields
+            raw = getattr(importlib.import_module(desc.name.partition(":")[0]), "raw_env", None)
+            valid = _kwarg_names(raw) if raw is not None else None
+        _check_kwargs(desc.name, kwargs, valid, None)
+
+        def factory() -> Any:
+            try:
+                return fn(**kwargs)
+            except TypeError as e:
+                raise EnvConfigError(f"env {desc.name!r}: the factory rejected env_kwargs {sorted(kwargs)}: {e}") from e
+
+        max_cycles = kwargs.get("max_cycles")
+        return factory, desc.name, (int(max_cycles) if max_cycles is not None else None)
+    raise EnvConfigError(f"env: unknown name {desc.name!r}; valid names: {valid_names()}")
+
+
+def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:
+    """The in-process VecEnv for `desc`; also what each worker of `SubprocVecEnv` runs on its slice."""
+    factory, spec_name, max_steps = parallel_env_factory(desc)
+    venv = PettingZooVecEnv(factory, num_envs, name=spec_name, max_steps=max_steps, index_offset=index_offset)
+    if venv.spec.n_agents != desc.n_agents:
+        venv.close()
+        raise EnvConfigError(f"env {desc.name!r}: n_agents={desc.n_agents} but the env has "
+                             f"{venv.spec.n_agents} agents {list(venv.spec.agent_ids)}; set n_agents to "
+                             f"{venv.spec.n_agents} or pass the env's own size kwarg in env_kwargs")
+    return venv
+
+
+def build_cn(n_agents: int, num_envs: int, kwargs: dict[str, Any], workers: int) -> VecEnv:
+    """The vectorised CN. It steps all K copies in one numpy program, so workers would only add IPC."""
+    from envs.spread import VecSimpleSpread
+
+    valid = _kwarg_names(VecSimpleSpread)
+    if valid is not None:
+        valid -= {"num_envs", "n_agents"}
+    _check_kwargs("cn", kwargs, valid, None)
+    if workers:
+        log.warning("env 'cn' is already vectorised in numpy; workers=%d ignored (runs in-process)", workers)
+    try:
+        return VecSimpleSpread(num_envs, n_agents, **{**_CN_DEFAULTS, **kwargs})
+    except (ValueError, TypeError) as e:  # a bad value (e.g. local_ratio=2): name the env, keep the reason
+        raise EnvConfigError(f"env 'cn': {e}") from e
+
