@@ -35,8 +35,8 @@ def time_acting(preset: str, mode: str, k: int, calls: int, block: int = 200) ->
     from safetensors.numpy import load as load_safetensors
 
     from envs.registry import make_vec_env
+    from learner.worker import weights_blob
     from learning.config import merge_config
-    from learning.learner_role import weights_blob
     from learning.numpy_policy import NumpyCentralAgent
     from learning.sampling import ActingStreams
     from learning.team import Team

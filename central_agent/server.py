@@ -12,6 +12,10 @@ log-density and the central critic's value; any mode with message dropout: which
 dropped), the server publishes a small per-step record to `learn/central/exp`, tagged with the
 step, so the learner can join it with the env host's rollout.
 
+`CentralServer` reads top to bottom as what it does with each global state (`on_state`): load
+the policy version the state names, serve the newest state queued, sample and publish the
+messages, publish the learner's record.
+
 When states queue up (the server was paused, or restarted and waited for weights), only the
 newest is served: messages for steps the local agents have already acted on would be discarded
 as late anyway. Without faults there is never more than one state queued, so this changes nothing.
@@ -19,9 +23,6 @@ as late anyway. Without faults there is never more than one state queued, so thi
 
 from __future__ import annotations
 
-import logging
-import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,17 +30,17 @@ import numpy as np
 from safetensors.numpy import load as load_safetensors
 
 from envs.base import EnvSpec
-from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
-from learning.central_acting import CentralActing
+from learning.central_acting import CentralActing, CentralOut
 from learning.config import RunConfig
 from learning.numpy_policy import NumpyCentralAgent
-from learning.policy_versions import WeightsInbox
 from learning.sampling import ActingStreams
-from protocol.schemas import CentralMsg, Control, Dims, ExperienceChunk, GlobalState, Heartbeat, Weights
+from protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
 from protocol.session import HammerSession
+from runtime.role import Role
+from runtime.weights import WeightsIntake
 
-log = logging.getLogger("hammer.central")
+DELIVERED, LATE = column("env->central", "delivered"), column("env->central", "late")
 
 
 @dataclass
@@ -55,135 +56,127 @@ class CentralCounters:
         return dict(self.__dict__)
 
 
-def needs_central_record(cfg: RunConfig) -> bool:
-    return cfg.wiring.needs_central_record
+class CentralServer(Role):
+    """Global state in, one message per local agent out (and the learner's record, when it needs one).
 
+    load_when_idle (evaluation, frozen weights): load the policy before the first state arrives so
+    the env host can wait for it (see EnvHost.run_eval); training loads weights only when a state
+    asks for them (up == train equivalence). step_log_dir: where this process logs its link events
+    per step (faults.steplog; None: nowhere)."""
 
-def run_central(session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float,
-                idle_exit_s: float | None = None, load_when_idle: bool = False,
-                step_log_dir: Path | None = None) -> CentralCounters:
-    """Serve messages until a stop command. load_when_idle (evaluation, frozen weights): load the
-    policy before the first state arrives so the env host can wait for it (see EnvHost.run_eval);
-    training keeps loading weights only when a state asks for them (up == train equivalence).
-    step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
-    keys = session.keys
-    acting = CentralActing.from_config(cfg)
-    net: NumpyCentralAgent | None = None
-    streams = ActingStreams(cfg.seed, cfg.n_agents)
-    n = cfg.n_agents
-    dims = Dims(num_envs=cfg.num_envs, n_agents=n, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
-                discrete=spec.discrete)
-    state_sub = session.subscribe(keys.state(), GlobalState, dims)
-    w_sub = session.subscribe(keys.weights("central"), Weights) if acting.has_network else None
-    ctl_sub = session.subscribe(keys.ctl("all"), Control)
-    delivered, late = column("env->central", "delivered"), column("env->central", "late")
-    slog = StepLog(step_log_dir, "central", [delivered, late, *(column("central->local", e) for e in
-                                                                ("sent", "dropped", "duplicated"))])
-    msg_pubs = [LoggedPublisher(session.publisher(keys.msg(i), express=True), session, slog, "central->local")
-                for i in range(n)]
-    exp_pub = session.publisher(keys.exp("central"))
-    hb_pub = session.publisher(keys.heartbeat("central"), reliable=False)
-    session.declare_alive("central")
-    record = needs_central_record(cfg)
+    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float, *,
+                 idle_exit_s: float | None = None, load_when_idle: bool = False,
+                 step_log_dir: Path | None = None) -> None:
+        step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
+                                                                       ("sent", "dropped", "duplicated"))])
+        super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
+        self.cfg, self.n_agents = cfg, cfg.n_agents
+        self.acting = CentralActing.from_config(cfg)
+        self.streams = ActingStreams(cfg.seed, cfg.n_agents)
+        self.state_dim = cfg.n_agents * (spec.obs_dim + (spec.action_dim if cfg.use_prev_actions else 0))
+        self.load_when_idle = load_when_idle
+        self.counts = CentralCounters()
+        self.net: NumpyCentralAgent | None = None
+        self.last_step = -1
+        dims = Dims(num_envs=cfg.num_envs, n_agents=cfg.n_agents, obs_dim=spec.obs_dim,
+                    action_dim=spec.action_dim, discrete=spec.discrete)
+        self.states = session.subscribe(self.keys.state(), GlobalState, dims)
+        self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s)
+                        if self.acting.has_network else None)
+        self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=True), session, step_log,
+                                         "central->local") for i in range(cfg.n_agents)]
+        self.record_pub = session.publisher(self.keys.exp("central")) if cfg.wiring.needs_central_record else None
 
-    c = CentralCounters()
-    version = -1 if acting.has_network else 0
-    last_step = -1
-    last_hb = 0.0
-    last_state_t = time.monotonic()
+    @property
+    def version(self) -> int:
+        """The policy version acting (variant `random`, no network: always 0)."""
+        return self.weights.version if self.weights is not None else 0
 
-    state_dim = n * spec.obs_dim + (n * spec.action_dim if cfg.use_prev_actions else 0)
+    def counters(self) -> dict[str, int]:
+        return {**self.counts.as_dict(), "policy_version": self.version}
 
-    def _load(blob: bytes, v: int) -> None:
-        nonlocal version, net
-        new = NumpyCentralAgent(load_safetensors(blob))
-        got = (new.state_dim, new.n_agents, new.msg_dim, new.critic is not None)
-        want = (state_dim, n, acting.msg_dim, acting.rl)
-        if got != want:  # fail here, not on the first forward (a learner of another run's config)
-            raise ValueError(f"central weights v{v} have (state_dim, n_agents, msg_dim, critic) = {got}, "
-                             f"this run needs {want}: start the learner from the same config.json")
-        net = new
-        version = v
+    # ----- a step, in the order it flows ---------------------------------------------------------
+    def poll(self, timeout: float) -> bool:
+        state = self.states.get(timeout=timeout)
+        if state is None:
+            return False
+        self.on_state(state)
+        return True
 
-    inbox = WeightsInbox(_load, version)
-
-    def take_weights(need: int | None) -> None:
-        """Load the policy version the step asks for, never a newer one (see WeightsInbox);
-        need=None: load the newest received, without waiting."""
-        deadline = time.monotonic() + weights_timeout_s
-        while w_sub is not None:
-            wait = 0.0 if need is None or version >= need else deadline - time.monotonic()
-            w = w_sub.get(timeout=max(wait, 0.0))
-            if w is not None:
-                inbox.offer(w.version, w.blob)
-                if inbox.select(need):
-                    c.weights_loaded += 1
-                continue
-            if need is None:
-                return
-            if version < need and time.monotonic() < deadline:
-                continue
-            if version < need:
-                c.weights_wait_timeouts += 1
-                log.warning("central policy version %d not received in %.0fs; using %d",
-                            need, weights_timeout_s, version)
+    def on_state(self, state: GlobalState) -> None:
+        """Serve one vector step: load the version it names, then send the messages of the newest state queued."""
+        if state.step <= self.last_step:
+            self.counts.states_stale += 1
+            self.log_late(state.step)
             return
+        self.take_weights(state.policy_version)
+        state = self.newest_queued(state)
+        if self.acting.has_network and self.net is None:
+            self.skip_without_policy(state.step)
+            return
+        net = self.net
+        out = self.acting.messages(self.acting.global_state(state.obs, state.prev_actions), self.streams,
+                                   self.cfg.msg_dropout, net.message_mean if net is not None else None,
+                                   net.values if self.acting.rl else None)
+        self.publish_messages(state, out)
+        if self.record_pub is not None:
+            self.publish_record(state, out)
+        self.last_step = state.step
+        self.counts.steps += 1
+        self.step_log.add(state.step, DELIVERED)
 
-    while True:
-        for cmd in ctl_sub.drain():
-            if cmd.command in ("stop", "shutdown") and cmd.target in ("*", "central"):
-                slog.flush()
-                return c
-        now = time.monotonic()
-        if now - last_hb > 1.0:
-            hb_pub.publish(Heartbeat(role="central", pid=os.getpid(), status="running",
-                                     counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
-                                               "policy_version": version}))
-            slog.flush()  # with the heartbeat: a killed server's step log and last counters agree
-            last_hb = now
-        s = state_sub.get(timeout=0.2)
-        if s is None:
-            if load_when_idle:
-                take_weights(None)  # never blocks: loads the newest weights already received
-            if idle_exit_s is not None and time.monotonic() - last_state_t > idle_exit_s:
-                slog.flush()
-                return c
-            continue
-        last_state_t = time.monotonic()
-        if s.step <= last_step:
-            c.states_stale += 1
-            slog.add(s.step, delivered)
-            slog.add(s.step, late)
-            continue
-        take_weights(s.policy_version)
-        for newer in state_sub.drain():  # serve the newest queued state only
-            old = s if newer.step > s.step else newer
-            slog.add(old.step, delivered)
-            slog.add(old.step, late)
-            if newer.step > s.step:
-                c.states_skipped += 1
-                s = newer
+    def take_weights(self, need: int | None) -> None:
+        if self.weights is None:
+            return
+        self.weights.take(need)
+        self.counts.weights_loaded, self.counts.weights_wait_timeouts = self.weights.loaded, self.weights.wait_timeouts
+
+    def load_weights(self, blob: bytes, version: int) -> None:
+        """WeightsIntake's loader: fail on weights of another run's config here, not on the first forward."""
+        net = NumpyCentralAgent(load_safetensors(blob))
+        got = (net.state_dim, net.n_agents, net.msg_dim, net.critic is not None)
+        want = (self.state_dim, self.n_agents, self.acting.msg_dim, self.acting.rl)
+        if got != want:
+            raise ValueError(f"central weights v{version} have (state_dim, n_agents, msg_dim, critic) = {got}, "
+                             f"this run needs {want}: start the learner from the same config.json")
+        self.net = net
+
+    def newest_queued(self, state: GlobalState) -> GlobalState:
+        """Serve the newest queued state only: the others are for steps the local agents have acted on."""
+        for newer in self.states.drain():
+            self.log_late(min(newer.step, state.step))  # the older of the two is not served
+            if newer.step > state.step:
+                self.counts.states_skipped += 1
+                state = newer
             else:
-                c.states_stale += 1
-        if acting.has_network and net is None:
-            # Only after a weights timeout: no policy to act with. Sending nothing lets the local
-            # agents act on their fallback, as for any missing message; no stream is drawn.
-            if c.states_no_policy == 0:
-                log.warning("no central weights received yet: step %d not served", s.step)
-            c.states_no_policy += 1
-            slog.add(s.step, delivered)
-            continue
-        state = acting.global_state(s.obs, s.prev_actions)
-        out = acting.messages(state, streams, cfg.msg_dropout, net.message_mean if net is not None else None,
-                              net.values if acting.rl else None)
-        for i in range(n):
-            msg_pubs[i].publish(CentralMsg(step=s.step, env_idx=s.env_idx, agent=i,
-                                           msg=np.ascontiguousarray(out.sent[:, i]), policy_version=max(version, 0)))
-        if record:
-            exp_pub.publish(ExperienceChunk(
-                step=s.step, env_idx=s.env_idx, role="central", policy_version=max(version, 0),
-                arrays={"msg_raw": out.raw.astype(np.float32, copy=False), "c_logp": out.logp,
-                        "c_values": out.value, "keep": out.keep}))
-        last_step = s.step
-        c.steps += 1
-        slog.add(s.step, delivered)
+                self.counts.states_stale += 1
+        return state
+
+    def skip_without_policy(self, step: int) -> None:
+        """Only after a weights timeout: no policy to act with. Sending nothing lets the local agents
+        act on their fallback, as for any missing message; no stream is drawn."""
+        if self.counts.states_no_policy == 0:
+            self.log.warning("no central weights received yet: step %d not served", step)
+        self.counts.states_no_policy += 1
+        self.step_log.add(step, DELIVERED)
+
+    def publish_messages(self, state: GlobalState, out: CentralOut) -> None:
+        for i, pub in enumerate(self.msg_pubs):
+            pub.publish(CentralMsg(step=state.step, env_idx=state.env_idx, agent=i,
+                                   msg=np.ascontiguousarray(out.sent[:, i]), policy_version=max(self.version, 0)))
+
+    def publish_record(self, state: GlobalState, out: CentralOut) -> None:
+        """What only the central agent knows of this step, for the learner (joined by step)."""
+        self.record_pub.publish(ExperienceChunk(
+            step=state.step, env_idx=state.env_idx, role="central", policy_version=max(self.version, 0),
+            arrays={"msg_raw": out.raw.astype(np.float32, copy=False), "c_logp": out.logp,
+                    "c_values": out.value, "keep": out.keep}))
+
+    def log_late(self, step: int) -> None:
+        """A state for `step` arrived and was not served."""
+        self.step_log.add(step, DELIVERED)
+        self.step_log.add(step, LATE)
+
+    def on_idle(self) -> None:
+        if self.load_when_idle:
+            self.take_weights(None)  # never blocks: loads the newest weights already received

@@ -119,7 +119,7 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
     """A local-agent client: acts on its observation + central message. Runs without torch."""
     _setup(f"local-{agent}")
     # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
-    from local_agent.client import AgentSpec, run_local_agent
+    from local_agent.client import AgentSpec, LocalAgentClient
     from protocol.session import HammerSession
 
     try:
@@ -132,11 +132,12 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
     aspec = AgentSpec.from_config(cfg, spec, agent)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
-            c = run_local_agent(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
-                                settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                step_log_dir=_step_log_dir(run_dir))
-            logging.getLogger("hammer.local").info("stopped: %s", c.as_dict())
-            _write_counters(run_dir, f"local-{agent}", {**c.as_dict(), **_fault_counters(s)})
+            client = LocalAgentClient(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
+                                      settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
+                                      step_log_dir=_step_log_dir(run_dir))
+            client.run()
+            logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
+            _write_counters(run_dir, f"local-{agent}", {**client.counts.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
         pass
 
@@ -144,7 +145,7 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
     _setup("central")
-    from central_agent.server import run_central
+    from central_agent.server import CentralServer
     from protocol.session import HammerSession
 
     try:
@@ -154,10 +155,11 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         _fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
-            c = run_central(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
-                            step_log_dir=_step_log_dir(run_dir))
-            logging.getLogger("hammer.central").info("stopped: %s", c.as_dict())
-            _write_counters(run_dir, "central", {**c.as_dict(), **_fault_counters(s)})
+            server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
+                                   step_log_dir=_step_log_dir(run_dir))
+            server.run()
+            logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())
+            _write_counters(run_dir, "central", {**server.counts.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
         pass
 
@@ -218,23 +220,24 @@ def learner_command(run_dir: RunDirOpt,
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     if settings.mode == "eval":  # serve the frozen policy; no torch, no learning
-        from faults.policy_server import PolicyDirError, serve_frozen_policy
+        from serve.policy_server import PolicyDirError, PolicyServer
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                serve_frozen_policy(s, Path(settings.policy_dir), cfg.wiring.has_central_network)
+                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network).run()
         except PolicyDirError as e:
             _fail(str(e))
         except KeyboardInterrupt:
             pass
         return
-    from learning.learner_role import run_learner
+    from learner.worker import LearnerWorker
     from learning.rundir import RunDir
 
     rd = RunDir(run_dir)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-            run_learner(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag, resume_from=settings.resume_from)
+            LearnerWorker(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag,
+                          resume_from=settings.resume_from).run()
     except KeyboardInterrupt:
         pass
     finally:

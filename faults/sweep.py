@@ -1,7 +1,7 @@
 """The communication-faults experiment: a trained team under a grid of drop rates and delays.
 
 Every point is a real `hammer up` run in evaluation mode (frozen exported policy served by
-`faults.policy_server`, env host never waiting for updates, every hop over Zenoh) with a seeded
+`serve.policy_server`, env host never waiting for updates, every hop over Zenoh) with a seeded
 fault on the central->local link: drop rate p, or a delay d (beyond the message deadline the
 message always comes too late, which must behave like a drop, counted as late). Several seeds per
 point: the seed sets the env resets, the agents' sampling streams and the fault stream. A team

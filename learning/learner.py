@@ -2,7 +2,7 @@
 
 `TeamLearner` owns what an update needs: the team's networks, one optimiser per network, the
 rollout buffer and the PPO maths (GAE, clipped losses, minibatch epochs). The in-process `Trainer`
-fills its buffer by acting itself; the distributed learner (`learning.learner_role`) fills it from
+fills its buffer by acting itself; the distributed learner (`learner.worker`) fills it from
 the env host's experience chunks. Both then call `learn`, so the update is written once.
 """
 

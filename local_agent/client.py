@@ -6,6 +6,10 @@ last-for-k-steps) when it is late, runs the shared policy in numpy from weights 
 published, samples from its own random stream (the randomness contract of `learning.sampling`)
 and publishes its action. It never talks to other local agents.
 
+`LocalAgentClient` reads top to bottom as what it does with each observation (`on_obs`): load
+the policy version it names, wait for its message (`on_message` sorts each one that arrives)
+or fall back, act, publish the action. `LocalAgent` is the transport-free acting core.
+
 Messages are matched to steps by their `step` header: a message for a step already acted on is
 counted late and discarded, a second copy of a message is counted as a duplicate, a message for a
 future step is kept until that step comes. So nothing is applied to the wrong step or twice.
@@ -13,8 +17,6 @@ future step is kept until that step comes. So nothing is applied to the wrong st
 
 from __future__ import annotations
 
-import logging
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,16 +25,17 @@ import numpy as np
 from safetensors.numpy import load as load_safetensors
 
 from envs.base import EnvSpec
-from faults.links import flat_fault_counters
 from faults.steplog import LoggedPublisher, StepLog, column
 from learning.config import RunConfig
 from learning.numpy_policy import NumpyLocalPolicy, softmax
-from learning.policy_versions import WeightsInbox
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
-from protocol.schemas import Action, CentralMsg, Control, Dims, Heartbeat, LocalObs, Weights
+from protocol.schemas import Action, CentralMsg, Dims, LocalObs
 from protocol.session import HammerSession
+from runtime.role import Role
+from runtime.weights import WeightsIntake
 
-log = logging.getLogger("hammer.local")
+OBS_EVENTS = {e: column("env->local", e) for e in ("delivered", "late")}
+MSG_EVENTS = {e: column("central->local", e) for e in ("delivered", "late", "duplicate", "fallbacks")}
 
 
 @dataclass
@@ -143,154 +146,132 @@ def load_policy_file(path: str) -> tuple[NumpyLocalPolicy, dict]:
     return NumpyLocalPolicy(params), meta
 
 
-def run_local_agent(session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
-                    msg_deadline_s: float, weights_timeout_s: float, idle_exit_s: float | None = None,
-                    step_log_dir: Path | None = None) -> LocalCounters:
-    """Serve one local agent until a stop command (or `idle_exit_s` without observations).
+class LocalAgentClient(Role):
+    """One local agent's process: observation (and message) in, action out.
+
     step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
-    keys, me = session.keys, spec.agent
-    dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
-                msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
-    obs_sub = session.subscribe(keys.obs(me), LocalObs, dims)
-    msg_sub = session.subscribe(keys.msg(me), CentralMsg, dims) if spec.msg_dim else None
-    w_sub = session.subscribe(keys.weights("local"), Weights)
-    ctl_sub = session.subscribe(keys.ctl("all"), Control)
-    ev = {(link, e): column(link, e) for link, events in (
-        ("env->local", ("delivered", "late")), ("central->local", ("delivered", "late", "duplicate", "fallbacks")))
-        for e in events}
-    slog = StepLog(step_log_dir, f"local-{me}", [*ev.values(), *(column("local->env", e) for e in
-                                                                  ("sent", "dropped", "duplicated"))])
-    act_pub = LoggedPublisher(session.publisher(keys.act(me), express=True), session, slog, "local->env")
-    hb_pub = session.publisher(keys.heartbeat(f"local-{me}"), reliable=False)
-    session.declare_alive(f"local-{me}")
 
-    agent = LocalAgent(spec)
-    c = LocalCounters()
-    fb = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
-    pending: dict[int, CentralMsg] = {}  # messages for steps not acted on yet
-    last_step = -1
-    last_hb = 0.0
-    last_obs_t = time.monotonic()
+    def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
+                 msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
+                 step_log_dir: Path | None = None) -> None:
+        name = f"local-{spec.agent}"
+        step_log = StepLog(step_log_dir, name, [*OBS_EVENTS.values(), *MSG_EVENTS.values(),
+                                                *(column("local->env", e) for e in ("sent", "dropped", "duplicated"))])
+        super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
+        self.spec, self.msg_deadline_s = spec, msg_deadline_s
+        self.agent = LocalAgent(spec)
+        self.counts = LocalCounters()
+        self.fallback = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
+        self.pending: dict[int, CentralMsg] = {}  # messages for steps not acted on yet
+        self.seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
+        self.last_step = -1
+        dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
+                    msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
+        self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
+        self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
+        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s)
+        self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
+                                          step_log, "local->env")
 
-    inbox = WeightsInbox(agent.load_weights)
+    def counters(self) -> dict[str, int]:
+        return {**self.counts.as_dict(), "policy_version": self.agent.version}
 
-    def take_weights(block_until: int | None) -> None:
-        """Load the policy version the step asks for (never a newer one: see WeightsInbox)."""
-        deadline = time.monotonic() + weights_timeout_s
-        while True:
-            timeout = 0.0 if block_until is None or agent.version >= block_until else deadline - time.monotonic()
-            w = w_sub.get(timeout=max(timeout, 0.0))
-            if w is not None:
-                inbox.offer(w.version, w.blob)
-                if inbox.select(block_until):
-                    c.weights_loaded += 1
-                continue
-            if block_until is not None and agent.version < block_until and time.monotonic() < deadline:
-                continue
-            if block_until is not None and agent.version < block_until:
-                c.weights_wait_timeouts += 1
-                log.warning("policy version %d not received in %.0fs; acting with %d",
-                            block_until, weights_timeout_s, agent.version)
+    # ----- a step, in the order it flows ---------------------------------------------------------
+    def poll(self, timeout: float) -> bool:
+        obs = self.observations.get(timeout=timeout)
+        if obs is None:
+            return False
+        self.on_obs(obs)
+        return True
+
+    def on_obs(self, obs: LocalObs) -> None:
+        """Act on one vector step's observation with the version it names and its message (or a fallback)."""
+        if obs.step <= self.last_step:
+            self.counts.obs_stale += 1
+            self.step_log.add(obs.step, OBS_EVENTS["delivered"])
+            self.step_log.add(obs.step, OBS_EVENTS["late"])
             return
+        self.weights.take(obs.policy_version)
+        self.sync_weight_counters()
+        if self.messages is not None:
+            msg, fallback_mask = self.message_for(obs)
+        else:
+            msg, fallback_mask = None, np.zeros(obs.k, dtype=bool)
+        action = self.agent.act(obs.obs, msg)
+        self.action_pub.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
+                                       policy_version=max(self.agent.version, 0), fallback=fallback_mask, msg=msg))
+        self.last_step = obs.step
+        self.counts.steps += 1
+        self.step_log.add(obs.step, OBS_EVENTS["delivered"])
 
-    def preload_first_weights() -> bool:
-        """While idle with no policy: load the oldest version held, so the first step is not slowed by
-        loading weights (a step never asks for a version older than the learner's first broadcast)."""
-        for w in w_sub.drain():
-            inbox.offer(w.version, w.blob)
-        if inbox.held and inbox.select(min(inbox.held)):
-            c.weights_loaded += 1
-            return True
-        return False
+    def message_for(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
+        """The message of each env copy of this step (waiting for it up to the deadline), and the
+        mask of copies that act on a fallback instead."""
+        for m in self.messages.drain():
+            self.on_message(m)
+        deadline = time.monotonic() + self.msg_deadline_s
+        while obs.step not in self.pending:
+            m = self.messages.get(timeout=max(0.0, deadline - time.monotonic()))
+            if m is None:
+                break
+            self.on_message(m)
+        received = self.pending.pop(obs.step, None)
+        for step in [s for s in self.pending if s < obs.step]:  # older than this step: never usable
+            del self.pending[step]
+            self.counts.msgs_late += 1
+            self.log_msg(step, "late")
+        msg = np.zeros((obs.k, self.spec.msg_dim), np.float32)
+        have = np.zeros(obs.k, dtype=bool)
+        if received is not None:
+            have = self.fill_received(msg, received, obs.env_idx)
+            self.fallback.received(obs.env_idx[have], msg[have])
+            self.counts.msgs_on_time += 1
+            self.log_msg(obs.step, None)
+        fallback_mask = ~have
+        if fallback_mask.any():
+            msg[fallback_mask] = self.fallback.fill(obs.env_idx[fallback_mask])
+            self.counts.fallback_copies += int(fallback_mask.sum())
+            self.step_log.add(obs.step, MSG_EVENTS["fallbacks"], int(fallback_mask.sum()))
+        return msg, fallback_mask
 
-    seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
+    @staticmethod
+    def fill_received(msg: np.ndarray, received: CentralMsg, env_idx: np.ndarray) -> np.ndarray:
+        """Copy a message's rows into `msg`; returns which env copies it covered (it may carry a
+        different subset of copies than the observation: matched by env index)."""
+        if np.array_equal(received.env_idx, env_idx):
+            msg[:] = received.msg
+            return np.ones(len(env_idx), dtype=bool)
+        pos = {int(e): j for j, e in enumerate(received.env_idx)}
+        rows = np.array([pos.get(int(e), -1) for e in env_idx])
+        have = rows >= 0
+        msg[have] = received.msg[rows[have]]
+        return have
 
-    def log_msg(step: int, event: str | None) -> None:
+    def on_message(self, m: CentralMsg) -> None:
+        """Keep a message for a step to come; count a duplicate or a late one."""
+        if m.step in self.seen:
+            self.counts.msgs_duplicate += 1
+            self.log_msg(m.step, "duplicate")
+        elif m.step <= self.last_step:
+            self.counts.msgs_late += 1
+            self.log_msg(m.step, "late")
+        else:
+            self.pending[m.step] = m
+            self.seen.add(m.step)
+            if len(self.seen) > 256:
+                self.seen.difference_update([s for s in self.seen if s < self.last_step - 64])
+
+    def log_msg(self, step: int, event: str | None) -> None:
         """A message for `step` is counted (on time: event None; late; duplicate): it was delivered."""
-        slog.add(step, ev["central->local", "delivered"])
+        self.step_log.add(step, MSG_EVENTS["delivered"])
         if event is not None:
-            slog.add(step, ev["central->local", event])
+            self.step_log.add(step, MSG_EVENTS[event])
 
-    def absorb(m: CentralMsg) -> None:
-        if m.step in seen:
-            c.msgs_duplicate += 1
-            log_msg(m.step, "duplicate")
-        elif m.step <= last_step:
-            c.msgs_late += 1
-            log_msg(m.step, "late")
-        else:
-            pending[m.step] = m
-            seen.add(m.step)
-            if len(seen) > 256:
-                seen.difference_update([s for s in seen if s < last_step - 64])
+    def on_idle(self) -> None:
+        """No policy yet: load the first one now, and say so at once (the env host may wait for it)."""
+        if self.agent.version < 0 and self.weights.preload_oldest():
+            self.sync_weight_counters()
+            self.heartbeat_soon()
 
-    while True:
-        for cmd in ctl_sub.drain():
-            if cmd.command in ("stop", "shutdown") and cmd.target in ("*", f"local-{me}"):
-                slog.flush()
-                return c
-        now = time.monotonic()
-        if now - last_hb > 1.0:
-            hb_pub.publish(Heartbeat(role=f"local-{me}", pid=os.getpid(), status="running",
-                                     counters={**c.as_dict(), **flat_fault_counters(session.fault_report()),
-                                               "policy_version": agent.version}))
-            slog.flush()  # with the heartbeat: a killed agent's step log and last counters agree
-            last_hb = now
-        o = obs_sub.get(timeout=0.2)
-        if o is None:
-            if agent.version < 0 and preload_first_weights():
-                last_hb = 0.0  # say at once that this agent holds a policy (the env host may wait for it)
-            if idle_exit_s is not None and time.monotonic() - last_obs_t > idle_exit_s:
-                slog.flush()
-                return c
-            continue
-        last_obs_t = time.monotonic()
-        if o.step <= last_step:
-            c.obs_stale += 1
-            slog.add(o.step, ev["env->local", "delivered"])
-            slog.add(o.step, ev["env->local", "late"])
-            continue
-        take_weights(o.policy_version)
-        msg = None
-        if msg_sub is not None:
-            for m in msg_sub.drain():
-                absorb(m)
-            deadline = time.monotonic() + msg_deadline_s
-            while o.step not in pending:
-                m = msg_sub.get(timeout=max(0.0, deadline - time.monotonic()))
-                if m is None:
-                    break
-                absorb(m)
-            m = pending.pop(o.step, None)
-            for s in [s for s in pending if s < o.step]:  # older than this step: never usable
-                del pending[s]
-                c.msgs_late += 1
-                log_msg(s, "late")
-            fallback_mask = np.ones(o.k, dtype=bool)
-            msg = np.zeros((o.k, spec.msg_dim), np.float32)
-            if m is not None:
-                if np.array_equal(m.env_idx, o.env_idx):
-                    have = np.ones(o.k, dtype=bool)
-                    msg[:] = m.msg
-                else:  # a message may carry a different subset of copies: match by env index
-                    pos = {int(e): j for j, e in enumerate(m.env_idx)}
-                    rows = np.array([pos.get(int(e), -1) for e in o.env_idx])
-                    have = rows >= 0
-                    msg[have] = m.msg[rows[have]]
-                fallback_mask = ~have
-                fb.received(o.env_idx[have], msg[have])
-                c.msgs_on_time += 1
-                log_msg(o.step, None)
-            if fallback_mask.any():
-                msg[fallback_mask] = fb.fill(o.env_idx[fallback_mask])
-                c.fallback_copies += int(fallback_mask.sum())
-                slog.add(o.step, ev["central->local", "fallbacks"], int(fallback_mask.sum()))
-        else:
-            fallback_mask = np.zeros(o.k, dtype=bool)
-        action = agent.act(o.obs, msg)
-        act_pub.publish(Action(step=o.step, env_idx=o.env_idx, agent=me, action=action,
-                               policy_version=max(agent.version, 0), fallback=fallback_mask,
-                               msg=msg if msg is not None else None))
-        last_step = o.step
-        c.steps += 1
-        slog.add(o.step, ev["env->local", "delivered"])
+    def sync_weight_counters(self) -> None:
+        self.counts.weights_loaded, self.counts.weights_wait_timeouts = self.weights.loaded, self.weights.wait_timeouts

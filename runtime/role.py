@@ -53,6 +53,9 @@ class Role:
         """Wait up to `timeout` s for the role's main input and handle what came; True if anything did."""
         raise NotImplementedError
 
+    def on_start(self) -> None:
+        """The role is declared alive and about to take input (e.g. publish the first weights)."""
+
     def on_idle(self) -> None:
         """Nothing arrived within `poll_s` (e.g. preload weights, republish)."""
 
@@ -89,7 +92,11 @@ class Role:
         self._last_heartbeat = 0.0
 
     def run(self) -> None:
-        """Handle input until a stop command, or `idle_exit_s` without input."""
+        """Declare this role alive (its subscriptions are in place), then handle input until a
+        stop command, or `idle_exit_s` without input."""
+        self.session.declare_alive(self.name)
+        self.on_start()
+        self._last_input = time.monotonic()
         while not self.stop_requested():
             self.heartbeat()
             if self.poll(self.poll_s):

@@ -18,8 +18,8 @@ import pytest
 from safetensors.numpy import load as load_safetensors
 
 from envs.registry import make_vec_env
+from learner.worker import weights_blob
 from learning.config import merge_config
-from learning.learner_role import weights_blob
 from learning.numpy_policy import NumpyCentralAgent
 from learning.sampling import ActingStreams
 from learning.team import Team
@@ -109,20 +109,21 @@ import json, sys
 from envs.base import EnvSpec
 from learning.config import build_config
 from protocol.session import HammerSession, TransportConfig
-from central_agent.server import run_central
+from central_agent.server import CentralServer
 
 args = json.loads(sys.argv[1])
 cfg = build_config(args["cfg"])
 spec = args["spec"]
 spec["agent_ids"] = tuple(spec["agent_ids"])
 with HammerSession(args["run"], TransportConfig.connector(args["port"]), sender="central") as s:
-    c = run_central(s, cfg, EnvSpec(**spec), weights_timeout_s=args["weights_timeout_s"], idle_exit_s=30.0)
-print(json.dumps({"torch": "torch" in sys.modules, "counters": c.as_dict()}))
+    server = CentralServer(s, cfg, EnvSpec(**spec), weights_timeout_s=args["weights_timeout_s"], idle_exit_s=30.0)
+    server.run()
+print(json.dumps({"torch": "torch" in sys.modules, "counters": server.counts.as_dict()}))
 """
 
 
 class _Server:
-    """`run_central` in a fresh interpreter connected to this test's Zenoh session on 127.0.0.1."""
+    """`CentralServer` in a fresh interpreter connected to this test's Zenoh session on 127.0.0.1."""
 
     def __init__(self, cfg, spec, weights_timeout_s: float = 30.0) -> None:
         from dataclasses import asdict

@@ -34,9 +34,9 @@ def test_learner_evaluates_lagged_experience_with_the_behaviour_version():
     import torch
 
     from envs.registry import make_vec_env
+    from learner.remote_rollout import BehaviourSnapshots
     from learning.config import merge_config
     from learning.learner import TeamLearner
-    from learning.learner_role import BehaviourSnapshots
 
     cfg = merge_config("cn3", overrides=["num_envs=4", "variant=hammer"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)

@@ -11,7 +11,7 @@ import time
 import numpy as np
 from safetensors.numpy import save
 
-from local_agent.client import AgentSpec, run_local_agent
+from local_agent.client import AgentSpec, LocalAgentClient
 from protocol.schemas import Heartbeat, Weights
 from protocol.session import HammerSession, TransportConfig
 
@@ -34,8 +34,8 @@ def test_agent_holds_the_policy_before_its_first_observation():
     with HammerSession("pre", t, sender="test") as hub, \
             HammerSession("pre", TransportConfig.connector(port), sender="local-0") as s:
         hb = hub.subscribe(hub.keys.heartbeat("local-0"), Heartbeat)
-        agent = threading.Thread(target=run_local_agent, daemon=True,
-                                 args=(s, spec, 4, "zeros", 1, 0.02, 5.0), kwargs={"idle_exit_s": 4.0})
+        client = LocalAgentClient(s, spec, 4, "zeros", 1, 0.02, 5.0, idle_exit_s=4.0)
+        agent = threading.Thread(target=client.run, daemon=True)
         agent.start()
         first = hb.get(timeout=5.0)  # announced before any weights: no policy yet
         assert first is not None and first.counters["policy_version"] == -1

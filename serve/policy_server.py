@@ -1,0 +1,71 @@
+"""Serving a trained team: its exported policy, published as the learner would; never learns.
+
+Deployment and evaluation run the real runtime (every hop, every fault) but must not change the
+policy, so the learner role is taken by this server: it publishes the exported
+`local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0, and republishes
+them every second so a restarted agent gets them too. The files are sent as they are
+(safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from protocol.schemas import Weights
+from protocol.session import HammerSession
+from runtime.role import Role
+
+
+class PolicyDirError(FileNotFoundError):
+    """The policy directory lacks a file the run needs."""
+
+
+def policy_blobs(policy_dir: Path, needs_central: bool) -> dict[str, bytes]:
+    """role -> safetensors bytes from an exported policy directory (RUN/final)."""
+    policy_dir = Path(policy_dir)
+    files = {"local": policy_dir / "local.safetensors"}
+    if needs_central:
+        files["central"] = policy_dir / "central.safetensors"
+    for role, f in files.items():
+        if not f.is_file():
+            raise PolicyDirError(f"{f} is missing: policy_dir must hold the {role} policy a run exports "
+                                 "(RUN/final/ after `hammer train` or `hammer up`)")
+    return {role: f.read_bytes() for role, f in files.items()}
+
+
+class PolicyServer(Role):
+    """Publishes the frozen weights as version 0 every `republish_s` until a stop command."""
+
+    def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
+                 republish_s: float = 1.0) -> None:
+        blobs = policy_blobs(policy_dir, needs_central)  # a missing file fails before anything is declared
+        super().__init__(session, "learner", report_faults=False)
+        self.blobs, self.republish_s = blobs, republish_s
+        self.pubs = {role: session.publisher(self.keys.weights(role)) for role in blobs}
+        self.published = 0
+        self.last_publish = 0.0
+
+    def counters(self) -> dict[str, int]:
+        return {"policy_version": 0, "frozen_publishes": self.published}
+
+    def on_start(self) -> None:
+        self.publish()
+
+    def poll(self, timeout: float) -> bool:
+        """Nothing to receive: wait out the loop turn (a stop command is read at the next one)."""
+        time.sleep(timeout)
+        return False
+
+    def on_idle(self) -> None:
+        if time.monotonic() - self.last_publish >= self.republish_s:
+            self.publish()
+
+    def publish(self) -> None:
+        for role, blob in self.blobs.items():
+            self.pubs[role].publish(Weights.from_blob(role, 0, blob))
+        self.published += 1
+        self.last_publish = time.monotonic()
+
+    def on_stop(self) -> None:
+        self.log.info("stopped after %d publishes", self.published)

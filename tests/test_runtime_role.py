@@ -1,0 +1,185 @@
+"""The shared role loop (`runtime.role.Role`) and weights intake (`runtime.weights.WeightsIntake`)
+over real Zenoh on 127.0.0.1 (explicit endpoints, multicast scouting off): what every role
+process relies on for stopping, idling out, reporting, and acting with the right policy version."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from protocol.schemas import Control, Heartbeat, Weights
+from protocol.session import HammerSession, TransportConfig
+from runtime.role import Role
+from runtime.weights import WeightsIntake
+
+
+@pytest.fixture
+def hub_and_role_session():
+    """Two sessions of one run: the test's `hub` listens, the role's session connects to it."""
+    t = TransportConfig.listener()
+    port = int(t.listen[0].rsplit(":", 1)[1])
+    with HammerSession("rl", t, sender="test") as hub, \
+            HammerSession("rl", TransportConfig.connector(port), sender="ticker") as s:
+        yield hub, s
+
+
+def _settle() -> None:
+    time.sleep(0.3)  # let subscriber declarations reach the publisher's side
+
+
+class Ticker(Role):
+    """The smallest role: counts the ticks (pings on the bench channel) it receives."""
+
+    def __init__(self, session: HammerSession, **kw) -> None:
+        super().__init__(session, "ticker", **kw)
+        self.ticks = session.subscribe(self.keys.bench("tick"), Control)
+        self.received = 0
+        self.started = self.stopped = False
+
+    def counters(self) -> dict[str, int]:
+        return {"ticks": self.received}
+
+    def on_start(self) -> None:
+        self.started = True
+
+    def poll(self, timeout: float) -> bool:
+        tick = self.ticks.get(timeout=timeout)
+        if tick is None:
+            return False
+        self.received += 1
+        return True
+
+    def on_stop(self) -> None:
+        self.stopped = True
+
+
+def _start(role: Role) -> threading.Thread:
+    thread = threading.Thread(target=role.run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_role_stops_on_a_stop_addressed_to_it_and_not_on_one_for_another_role(hub_and_role_session):
+    hub, s = hub_and_role_session
+    role = Ticker(s)
+    thread = _start(role)
+    _settle()
+    hub.publish(hub.keys.ctl("all"), Control(command="stop", target="central"))
+    time.sleep(0.8)
+    assert thread.is_alive() and role.stop_reason is None
+    hub.publish(hub.keys.ctl("all"), Control(command="stop", target="ticker"))
+    thread.join(timeout=5.0)
+    assert not thread.is_alive()
+    assert role.started and role.stopped
+    assert role.stop_reason == "stop command from test"
+
+
+def test_role_stops_on_a_shutdown_for_everyone(hub_and_role_session):
+    hub, s = hub_and_role_session
+    role = Ticker(s)
+    thread = _start(role)
+    _settle()
+    hub.publish(hub.keys.ctl("all"), Control(command="shutdown"))
+    thread.join(timeout=5.0)
+    assert not thread.is_alive() and role.stop_reason.startswith("shutdown command")
+
+
+def test_role_exits_after_idle_exit_s_without_input_and_not_while_input_comes(hub_and_role_session):
+    hub, s = hub_and_role_session
+    role = Ticker(s, idle_exit_s=0.8)
+    t0 = time.monotonic()
+    thread = _start(role)
+    _settle()
+    while time.monotonic() - t0 < 2.0:  # input keeps it alive past idle_exit_s
+        hub.publish(hub.keys.bench("tick"), Control(command="ping"))
+        time.sleep(0.1)
+    assert thread.is_alive()
+    thread.join(timeout=5.0)
+    assert not thread.is_alive() and role.stopped
+    assert role.stop_reason == "no input for 0.8 s"
+    assert role.received >= 10
+
+
+def test_role_says_it_is_alive_and_heartbeats_carry_its_counters(hub_and_role_session):
+    hub, s = hub_and_role_session
+    beats = hub.subscribe(hub.keys.heartbeat("ticker"), Heartbeat)
+    alive = hub.watch_alive()
+    _settle()
+    role = Ticker(s)
+    thread = _start(role)
+    ev = alive.get(5.0)
+    assert ev is not None and ev.role == "ticker" and ev.alive
+    first = beats.get(timeout=5.0)  # published at once, before any input
+    assert first is not None and first.role == "ticker" and first.counters["ticks"] == 0
+    for _ in range(3):
+        hub.publish(hub.keys.bench("tick"), Control(command="ping"))
+    deadline, ticks = time.monotonic() + 5.0, 0
+    while ticks < 3 and time.monotonic() < deadline:
+        hb = beats.get(timeout=0.5)
+        if hb is not None:
+            ticks = hb.counters["ticks"]
+    assert ticks == 3
+    hub.publish(hub.keys.ctl("all"), Control(command="stop", target="ticker"))
+    thread.join(timeout=5.0)
+    assert not thread.is_alive()
+
+
+def test_heartbeat_is_rate_limited_and_carries_only_the_role_counters(hub_and_role_session):
+    hub, s = hub_and_role_session
+    beats = hub.subscribe(hub.keys.heartbeat("ticker"), Heartbeat)
+    _settle()
+    role = Ticker(s, report_faults=False)
+    role.heartbeat()
+    hb = beats.get(timeout=5.0)
+    assert hb is not None and hb.counters == {"ticks": 0}
+    role.heartbeat()  # within heartbeat_every_s of the last one: nothing sent
+    assert beats.get(timeout=0.3) is None
+
+
+def _publish_versions(hub: HammerSession, versions: list[int]) -> None:
+    for v in versions:
+        hub.publish(hub.keys.weights("local"), Weights.from_blob("local", v, f"weights v{v}".encode()))
+
+
+def test_weights_intake_loads_the_version_a_step_names_not_a_newer_one(hub_and_role_session):
+    hub, s = hub_and_role_session
+    loads: list[tuple[bytes, int]] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append((blob, v)), timeout_s=5.0)
+    _settle()
+    _publish_versions(hub, [0, 1, 2])
+    intake.take(1)
+    assert intake.version == 1 and loads[-1] == (b"weights v1", 1)
+    assert intake.wait_timeouts == 0
+    _publish_versions(hub, [3])
+    time.sleep(0.3)
+    intake.take(None)  # no step named (an idle evaluation server): the newest received, without waiting
+    assert intake.version == 3 and loads[-1] == (b"weights v3", 3)
+    assert intake.loaded == len(loads)
+
+
+def test_weights_intake_times_out_on_a_version_that_never_comes(hub_and_role_session):
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=0.5)
+    _settle()
+    _publish_versions(hub, [0])
+    t0 = time.monotonic()
+    intake.take(3)
+    waited = time.monotonic() - t0
+    assert intake.wait_timeouts == 1 and intake.version == 0 and loads == [0]
+    assert 0.4 < waited < 3.0
+    intake.take(0)  # a version already loaded: no wait, no timeout
+    assert intake.wait_timeouts == 1
+
+
+def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=1.0)
+    _settle()
+    assert not intake.preload_oldest()
+    _publish_versions(hub, [4, 5])
+    time.sleep(0.3)
+    assert intake.preload_oldest() and loads == [4] and intake.version == 4
