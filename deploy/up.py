@@ -199,85 +199,121 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         settings.save(run_dir)
     else:
         prepare_run_dir(cfg, settings, run_dir)
-    specs = role_specs(cfg, run_dir)
-    names = {s.name for s in specs}
     hub_transport = settings.hub_transport()
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
-    sup = Supervisor(run_dir / "logs")
-    board = Board(restarts={n: 0 for n in names})
-    t_start = time.monotonic()
+    launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos)
     with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
-        watch = hub.watch_alive()
-        hb_sub = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
-        try:
-            for spec in specs:
-                sup.start(spec)
-            deadline = time.monotonic() + settings.startup_timeout_s
-            while not names <= board.alive:
-                for ev in watch.drain():
-                    (board.alive.add if ev.alive else board.alive.discard)(ev.role)
-                for rp in sup.poll():
-                    raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
-                                  f"{_tail(rp.log_path)} (log: {rp.log_path})")
-                if time.monotonic() > deadline:
-                    missing = ", ".join(sorted(names - board.alive))
-                    raise UpError(f"roles not alive after {settings.startup_timeout_s:.0f}s: {missing} "
-                                  f"(logs in {run_dir / 'logs'})")
-                time.sleep(0.05)
-            log.info("all %d roles alive after %.1fs", len(names), time.monotonic() - t_start)
-            done = False
-            while not done:
-                for ev in watch.drain():
-                    (board.alive.add if ev.alive else board.alive.discard)(ev.role)
-                for h in hb_sub.drain():
-                    board.heartbeats[h.role] = h
-                    board.last_by_pid[(h.role, h.pid)] = dict(h.counters)
-                    if h.role == "env":
-                        board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
-                        board.steps_hist = board.steps_hist[-20:]
-                if chaos is not None:
-                    chaos(sup, board)
-                for rp in sup.poll():
-                    name, code = rp.spec.name, rp.exit_codes[-1]
-                    if name == "env":
-                        if code != 0:
-                            raise UpError(f"env host exited with code {code}: {_tail(rp.log_path)} (log: {rp.log_path})")
-                        done = True
-                    elif code == 0:  # a clean exit: it was told to stop (the run is ending)
-                        continue
-                    elif name in board.held:  # killed on purpose by the chaos schedule
-                        log.warning("role %s killed by chaos (code %s); not restarted", name, code)
-                        continue
-                    elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
-                        rp.restarts += 1
-                        board.restarts[name] = rp.restarts
-                        log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts,
-                                    rp.spec.max_restarts)
-                        sup.start(rp.spec)
-                    else:
-                        raise UpError(f"role {name} exited with code {code} and cannot be restarted: "
-                                      f"{_tail(rp.log_path)} (log: {rp.log_path})")
-                if on_tick is not None:
-                    on_tick(board)
-                time.sleep(0.25)
-        finally:
-            try:
-                hub.publish(hub.keys.ctl("all"), Control(command="stop"))
-            except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
-                log.debug("could not broadcast stop: %s", e)
-            deadline = time.monotonic() + 10.0
-            while any(sup.alive(n) for n in names) and time.monotonic() < deadline:
-                sup.poll()
-                time.sleep(0.1)
-            sup.stop_all()
+        launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
-    links = _write_links(cfg, run_dir, board)
+    links = _write_links(cfg, run_dir, launcher.board)
     _write_episode_links(run_dir, list(links))
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
-    return UpResult(run_dir, summary, dict(board.restarts), time.monotonic() - t_start, links, list(board.chaos_log))
+    return UpResult(run_dir, summary, dict(launcher.board.restarts), time.monotonic() - launcher.t_start, links,
+                    list(launcher.board.chaos_log))
+
+
+class Launcher:
+    """The launcher role: starts every role, waits for their liveliness, follows their heartbeats,
+    restarts the ones that may be restarted, and stops them all when the env host is done (or on
+    any way out, Ctrl-C included). The only publisher of control commands."""
+
+    tick_s = 0.25
+
+    def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
+                 chaos=None) -> None:
+        self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
+        self.on_tick, self.chaos = on_tick, chaos
+        self.names = {s.name for s in specs}
+        self.sup = Supervisor(run_dir / "logs")
+        self.board = Board(restarts={n: 0 for n in self.names})
+        self.t_start = time.monotonic()
+        self.done = False
+
+    def run(self, hub: HammerSession) -> None:
+        self.watch = hub.watch_alive()
+        self.heartbeats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
+        try:
+            for spec in self.specs:
+                self.sup.start(spec)
+            self.wait_alive()
+            while not self.done:
+                self.tick()
+        finally:
+            self.stop_all(hub)
+
+    def wait_alive(self) -> None:
+        """Until every role's liveliness token is up; a role that exits meanwhile ends the run."""
+        deadline = time.monotonic() + self.startup_timeout_s
+        while not self.names <= self.board.alive:
+            self.on_liveliness()
+            for rp in self.sup.poll():
+                raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
+                              f"{_tail(rp.log_path)} (log: {rp.log_path})")
+            if time.monotonic() > deadline:
+                missing = ", ".join(sorted(self.names - self.board.alive))
+                raise UpError(f"roles not alive after {self.startup_timeout_s:.0f}s: {missing} "
+                              f"(logs in {self.run_dir / 'logs'})")
+            time.sleep(0.05)
+        log.info("all %d roles alive after %.1fs", len(self.names), time.monotonic() - self.t_start)
+
+    def tick(self) -> None:
+        self.on_liveliness()
+        for h in self.heartbeats.drain():
+            self.on_heartbeat(h)
+        if self.chaos is not None:
+            self.chaos(self.sup, self.board)
+        for rp in self.sup.poll():
+            self.on_exit(rp)
+        if self.on_tick is not None:
+            self.on_tick(self.board)
+        time.sleep(self.tick_s)
+
+    def on_liveliness(self) -> None:
+        for ev in self.watch.drain():
+            (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
+
+    def on_heartbeat(self, h: Heartbeat) -> None:
+        board = self.board
+        board.heartbeats[h.role] = h
+        board.last_by_pid[(h.role, h.pid)] = dict(h.counters)
+        if h.role == "env":
+            board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
+            board.steps_hist = board.steps_hist[-20:]
+
+    def on_exit(self, rp) -> None:
+        """A role process ended: the env host's clean exit ends the run; others are restarted if they may be."""
+        name, code = rp.spec.name, rp.exit_codes[-1]
+        if name == "env":
+            if code != 0:
+                raise UpError(f"env host exited with code {code}: {_tail(rp.log_path)} (log: {rp.log_path})")
+            self.done = True
+        elif code == 0:  # a clean exit: it was told to stop (the run is ending)
+            return
+        elif name in self.board.held:  # killed on purpose by the chaos schedule
+            log.warning("role %s killed by chaos (code %s); not restarted", name, code)
+        elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
+            rp.restarts += 1
+            self.board.restarts[name] = rp.restarts
+            log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts, rp.spec.max_restarts)
+            self.sup.start(rp.spec)
+        else:
+            raise UpError(f"role {name} exited with code {code} and cannot be restarted: "
+                          f"{_tail(rp.log_path)} (log: {rp.log_path})")
+
+    def stop_all(self, hub: HammerSession) -> None:
+        """Tell every role to stop, give them 10 s to exit cleanly, then end the rest."""
+        try:
+            hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+        except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
+            log.debug("could not broadcast stop: %s", e)
+        deadline = time.monotonic() + 10.0
+        while any(self.sup.alive(n) for n in self.names) and time.monotonic() < deadline:
+            self.sup.poll()
+            time.sleep(0.1)
+        self.sup.stop_all()
 
 
 def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):

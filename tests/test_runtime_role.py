@@ -29,12 +29,15 @@ def _settle() -> None:
     time.sleep(0.3)  # let subscriber declarations reach the publisher's side
 
 
+TICK = Heartbeat(role="test", pid=1, status="running")  # any message will do as a tick
+
+
 class Ticker(Role):
-    """The smallest role: counts the ticks (pings on the bench channel) it receives."""
+    """The smallest role: counts the ticks (messages on the bench channel) it receives."""
 
     def __init__(self, session: HammerSession, **kw) -> None:
         super().__init__(session, "ticker", **kw)
-        self.ticks = session.subscribe(self.keys.bench("tick"), Control)
+        self.ticks = session.subscribe(self.keys.bench("tick"), Heartbeat)
         self.received = 0
         self.started = self.stopped = False
 
@@ -76,14 +79,14 @@ def test_role_stops_on_a_stop_addressed_to_it_and_not_on_one_for_another_role(hu
     assert role.stop_reason == "stop command from test"
 
 
-def test_role_stops_on_a_shutdown_for_everyone(hub_and_role_session):
+def test_role_stops_on_a_stop_for_everyone(hub_and_role_session):
     hub, s = hub_and_role_session
     role = Ticker(s)
     thread = _start(role)
     _settle()
-    hub.publish(hub.keys.ctl("all"), Control(command="shutdown"))
+    hub.publish(hub.keys.ctl("all"), Control(command="stop"))  # target "*"
     thread.join(timeout=5.0)
-    assert not thread.is_alive() and role.stop_reason.startswith("shutdown command")
+    assert not thread.is_alive() and role.stop_reason.startswith("stop command")
 
 
 def test_role_exits_after_idle_exit_s_without_input_and_not_while_input_comes(hub_and_role_session):
@@ -93,7 +96,7 @@ def test_role_exits_after_idle_exit_s_without_input_and_not_while_input_comes(hu
     thread = _start(role)
     _settle()
     while time.monotonic() - t0 < 2.0:  # input keeps it alive past idle_exit_s
-        hub.publish(hub.keys.bench("tick"), Control(command="ping"))
+        hub.publish(hub.keys.bench("tick"), TICK)
         time.sleep(0.1)
     assert thread.is_alive()
     thread.join(timeout=5.0)
@@ -114,7 +117,7 @@ def test_role_says_it_is_alive_and_heartbeats_carry_its_counters(hub_and_role_se
     first = beats.get(timeout=5.0)  # published at once, before any input
     assert first is not None and first.role == "ticker" and first.counters["ticks"] == 0
     for _ in range(3):
-        hub.publish(hub.keys.bench("tick"), Control(command="ping"))
+        hub.publish(hub.keys.bench("tick"), TICK)
     deadline, ticks = time.monotonic() + 5.0, 0
     while ticks < 3 and time.monotonic() < deadline:
         hb = beats.get(timeout=0.5)
