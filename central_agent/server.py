@@ -81,6 +81,7 @@ class CentralServer(Role):
         dims = Dims(num_envs=cfg.num_envs, n_agents=cfg.n_agents, obs_dim=spec.obs_dim,
                     action_dim=spec.action_dim, discrete=spec.discrete)
         self.states = session.subscribe(self.keys.state(), GlobalState, dims)
+        self.handle(self.states, self.on_state)
         self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s)
                         if self.acting.has_network else None)
         self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=True), session, step_log,
@@ -96,13 +97,6 @@ class CentralServer(Role):
         return {**self.counts.as_dict(), "policy_version": self.version}
 
     # ----- a step, in the order it flows ---------------------------------------------------------
-    def poll(self, timeout: float) -> bool:
-        state = self.states.get(timeout=timeout)
-        if state is None:
-            return False
-        self.on_state(state)
-        return True
-
     def on_state(self, state: GlobalState) -> None:
         """Serve one vector step: load the version it names, then send the messages of the newest state queued."""
         if state.step <= self.last_step:

@@ -70,6 +70,9 @@ class LearnerWorker(Role):
         self.chunks = session.subscribe(self.keys.exp("team"), ExperienceChunk, dims)
         self.central_records = (session.subscribe(self.keys.exp("central"), ExperienceChunk, dims)
                                 if cfg.wiring.needs_central_record else None)
+        if self.central_records is not None:
+            self.handle_queued(self.central_records, self.on_central_record)
+        self.handle(self.chunks, self.on_chunk)
         self.local_weights_pub = session.publisher(self.keys.weights("local"))
         self.central_weights_pub = (session.publisher(self.keys.weights("central"))
                                     if self.team.central is not None else None)
@@ -100,16 +103,6 @@ class LearnerWorker(Role):
         self.behaviour.keep(self.update)
 
     # ----- an update, in the order it flows ------------------------------------------------------
-    def poll(self, timeout: float) -> bool:
-        if self.central_records is not None:
-            for rec in self.central_records.drain():
-                self.on_central_record(rec)
-        chunk = self.chunks.get(timeout=timeout)
-        if chunk is None:
-            return False
-        self.on_chunk(chunk)
-        return True
-
     def on_central_record(self, rec: ExperienceChunk) -> None:
         """Hold a central record of a version the next update can use (others can never be joined)."""
         if self.update - self.max_policy_lag <= rec.policy_version <= self.update:

@@ -168,6 +168,7 @@ class LocalAgentClient(Role):
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
                     msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
         self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
+        self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
         self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
         self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s)
         self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
@@ -177,13 +178,6 @@ class LocalAgentClient(Role):
         return {**self.counts.as_dict(), "policy_version": self.agent.version}
 
     # ----- a step, in the order it flows ---------------------------------------------------------
-    def poll(self, timeout: float) -> bool:
-        obs = self.observations.get(timeout=timeout)
-        if obs is None:
-            return False
-        self.on_obs(obs)
-        return True
-
     def on_obs(self, obs: LocalObs) -> None:
         """Act on one vector step's observation with the version it names and its message (or a fallback)."""
         if obs.step <= self.last_step:

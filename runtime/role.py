@@ -20,17 +20,21 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable
+from typing import Any
 
 from faults.links import flat_fault_counters
 from faults.steplog import StepLog
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
-from protocol.session import HammerSession
+from protocol.session import HammerSession, Subscription
 
 STOP_COMMANDS = ("stop",)
 
 
 class Role:
-    """One role's event loop; subclasses implement `poll` and the `on_*` handlers it calls."""
+    """One role's event loop. A subclass declares its inputs with `handle` (one main input the loop
+    waits on) and `handle_queued` (inputs taken whenever they are there, before each wait), each
+    with the `on_*` handler that takes a message; or overrides `poll` for any other kind of wait."""
 
     heartbeat_every_s = 1.0
     poll_s = 0.2  # how long `poll` may block: the loop's reaction time to control and heartbeats
@@ -47,11 +51,31 @@ class Role:
         self._heartbeat_pub = session.publisher(self.keys.heartbeat(name), reliable=False)
         self._last_heartbeat = 0.0  # the first loop turn says at once that this role is up
         self._last_input = time.monotonic()
+        self._main: tuple[Subscription, Callable[[Any], None]] | None = None
+        self._queued: list[tuple[Subscription, Callable[[Any], None]]] = []
+
+    def handle(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
+        """The role's main input: the loop waits up to `poll_s` on it and gives each message to `handler`."""
+        self._main = (subscription, handler)
+
+    def handle_queued(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
+        """An input drained into `handler` before each wait on the main input (it never blocks the loop)."""
+        self._queued.append((subscription, handler))
 
     # ----- what a role declares -----------------------------------------------------------------
     def poll(self, timeout: float) -> bool:
         """Wait up to `timeout` s for the role's main input and handle what came; True if anything did."""
-        raise NotImplementedError
+        for subscription, handler in self._queued:
+            for msg in subscription.drain():
+                handler(msg)
+        if self._main is None:
+            raise NotImplementedError(f"{type(self).__name__}: declare an input with handle() or override poll()")
+        subscription, handler = self._main
+        msg = subscription.get(timeout=timeout)
+        if msg is None:
+            return False
+        handler(msg)
+        return True
 
     def on_start(self) -> None:
         """The role is declared alive and about to take input (e.g. publish the first weights)."""
