@@ -102,6 +102,9 @@ def up_command(
     resume: Annotated[Path | None, typer.Option(
         help="Continue this `hammer up` run directory from its latest checkpoint (only --episodes may change).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
+    external: Annotated[list[str] | None, typer.Option(
+        "--external", help="Role started by hand instead (repeatable, e.g. local-2): the launcher prints its "
+                           "command, waits for its liveliness and never restarts it; docs/wire-format.md.")] = None,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -130,7 +133,8 @@ def up_command(
     if resume is not None:
         given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
-                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
+                 "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
+                 "--external": external}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -167,6 +171,8 @@ def up_command(
         rt["fault_links"] = [lf.model_dump() for lf in plan.links]
     if chaos_items:
         rt["chaos"] = chaos_items
+    if external:
+        rt["external"] = external
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:

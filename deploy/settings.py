@@ -58,6 +58,9 @@ class RuntimeSettings(BaseModel):
     secure: bool = Field(
         False, description="mutual TLS with per-run identities (RUN/identity/) and per-role access rules "
                            "(protocol.access); see docs/security.md")
+    external: list[str] = Field(
+        default_factory=list, description="roles `hammer up` does not start (started by hand, e.g. local-2): it waits "
+                                          "for their liveliness like any other, never restarts them")
     resume_step: int | None = Field(
         None, ge=0, description="resume: the env host's step counter starts after this, above every step number "
                                 "an earlier session may have used (step logs are joined to episodes by step)")
@@ -103,8 +106,8 @@ class RuntimeSettings(BaseModel):
             "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents)})
 
     def save(self, run_dir: Path) -> None:
-        # `secure` is written only when set, so the runtime.json of a plain run is what it always was.
-        exclude = None if self.secure else {"secure"}
+        # `secure` and `external` are written only when set: a plain run's runtime.json is what it always was.
+        exclude = {k for k in ("secure", "external") if not getattr(self, k)} or None
         (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 
     @classmethod

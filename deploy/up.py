@@ -16,6 +16,7 @@ import json
 import logging
 import re
 import secrets
+import shlex
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +71,17 @@ def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
     specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)]
     specs.append(RoleSpec("env", ["env-host", *rd]))
     return specs
+
+
+def external_commands(cfg, run_dir: Path, external: list[str]) -> dict[str, str]:
+    """The command that starts each role `hammer up --external NAME` leaves to the user (its log
+    going where the launcher would put it, so the run directory is the same)."""
+    specs = {s.name: s for s in role_specs(cfg, run_dir)}
+    unknown = [n for n in external if n not in specs]
+    if unknown:
+        raise UpError(f"--external {', '.join(unknown)}: not a role of this run; fix: use one of {', '.join(specs)}")
+    logs = Path(run_dir) / "logs"
+    return {n: f"hammer {shlex.join(specs[n].args)} 2>> {shlex.quote(str(logs / f'{n}.log'))}" for n in external}
 
 
 # What a session leaves besides the learning results; an earlier attempt's copies must not mix
@@ -188,6 +200,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     run_dir = Path(run_dir)
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
+    external = external_commands(cfg, run_dir, settings.external)
     if chaos is None and settings.chaos:
         from faults.chaos import ChaosScheduler
 
@@ -202,7 +215,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     hub_transport = settings.hub_transport()
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos)
+    launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos, external)
     with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
@@ -223,9 +236,10 @@ class Launcher:
     tick_s = 0.25
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
-                 chaos=None) -> None:
+                 chaos=None, external: dict[str, str] | None = None) -> None:
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.on_tick, self.chaos = on_tick, chaos
+        self.external = external or {}  # role -> the command that starts it by hand; never started here
         self.names = {s.name for s in specs}
         self.sup = Supervisor(run_dir / "logs")
         self.board = Board(restarts={n: 0 for n in self.names})
@@ -236,24 +250,34 @@ class Launcher:
         self.watch = hub.watch_alive()
         self.heartbeats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
         try:
+            for name, cmd in self.external.items():
+                log.warning("external role %s: start it by hand with: %s", name, cmd)
+            # A hand-started role must be subscribed before step 0: the env host then starts last.
+            later = [s for s in self.specs if s.name == "env" and self.external and "env" not in self.external]
             for spec in self.specs:
-                self.sup.start(spec)
+                if spec.name not in self.external and spec not in later:
+                    self.sup.start(spec)
+            if later:
+                self.wait_alive(self.names - {"env"})
+                self.sup.start(later[0])
             self.wait_alive()
             while not self.done:
                 self.tick()
         finally:
             self.stop_all(hub)
 
-    def wait_alive(self) -> None:
+    def wait_alive(self, names: set[str] | None = None) -> None:
         """Until every role's liveliness token is up; a role that exits meanwhile ends the run."""
+        names = self.names if names is None else names
         deadline = time.monotonic() + self.startup_timeout_s
-        while not self.names <= self.board.alive:
+        while not names <= self.board.alive:
             self.on_liveliness()
             for rp in self.sup.poll():
                 raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
                               f"{_tail(rp.log_path)} (log: {rp.log_path})")
             if time.monotonic() > deadline:
-                missing = ", ".join(sorted(self.names - self.board.alive))
+                missing = ", ".join(f"{n} (external: start it by hand)" if n in self.external else n
+                                    for n in sorted(names - self.board.alive))
                 raise UpError(f"roles not alive after {self.startup_timeout_s:.0f}s: {missing} "
                               f"(logs in {self.run_dir / 'logs'})")
             time.sleep(0.05)
@@ -274,6 +298,8 @@ class Launcher:
     def on_liveliness(self) -> None:
         for ev in self.watch.drain():
             (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
+            if not ev.alive and ev.role == "env" and "env" in self.external:
+                self.done = True  # a hand-started env host is gone: nothing of ours to wait for
 
     def on_heartbeat(self, h: Heartbeat) -> None:
         board = self.board
