@@ -1,0 +1,336 @@
+"""A hammer local agent written from docs/wire-format.md alone: zenoh, msgpack, numpy, stdlib.
+
+It imports nothing of the project on purpose (tests/test_foreign_client.py checks that): it is
+what someone writing a local agent in another language would write, in Python only because the
+test suite runs Python. Usage:
+
+    python foreign_local_agent.py RUN_DIR AGENT
+
+It reads RUN_DIR/config.json, env_spec.json and runtime.json, connects to the hub of
+`hammer up` on 127.0.0.1 (runtime.json hub_port), declares itself alive as `local-AGENT`, acts on
+every observation with the policy version it names and the randomness contract (so its actions
+equal those of `hammer local`), and exits 0 on a stop command.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import queue
+import struct
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import zenoh
+
+SCHEMA_VERSION = 2
+DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?"}
+ST_DTYPES = {"F32": "<f4", "F64": "<f8", "I64": "<i8", "I32": "<i4", "U8": "u1", "BOOL": "?"}
+LOCAL_STREAM = 1  # the randomness contract: local agent i draws from default_rng([seed, 1, i])
+
+
+class Rejected(Exception):
+    """A payload this client does not accept (skipped, counted)."""
+
+
+# ----- wire format --------------------------------------------------------------------------------
+def to_array(d: object, dtype: str, ndim: int) -> np.ndarray:
+    if not isinstance(d, dict) or set(d) != {"dtype", "shape", "data"} or d["dtype"] != dtype:
+        raise Rejected(f"expected a {dtype} array map")
+    shape = d["shape"]
+    if not isinstance(shape, list) or len(shape) != ndim or not all(type(n) is int and n >= 0 for n in shape):
+        raise Rejected(f"bad shape {shape!r}")
+    dt = np.dtype(DTYPES[dtype])
+    if not isinstance(d["data"], bytes) or len(d["data"]) != int(np.prod(shape)) * dt.itemsize:
+        raise Rejected("data length disagrees with the shape")
+    a = np.frombuffer(d["data"], dt).reshape(shape)
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise Rejected("non-finite floats")
+    return a
+
+
+def from_array(a: np.ndarray, dtype: str) -> dict:
+    a = np.ascontiguousarray(a, dtype=DTYPES[dtype])
+    return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def parse(payload: bytes, run: str, tag: str) -> dict:
+    """The header checks every receiver makes; the message as a dict."""
+    try:
+        m = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except Exception as e:  # noqa: BLE001 - any malformed payload is rejected
+        raise Rejected(f"not msgpack: {e}") from None
+    if not isinstance(m, dict) or m.get("v") != SCHEMA_VERSION or m.get("type") != tag or m.get("run") != run:
+        raise Rejected("wrong version, type or run")
+    if type(m.get("step")) is not int or m["step"] < 0:
+        raise Rejected("bad step")
+    m["env_idx"] = to_array(m.get("env_idx"), "int64", 1)
+    return m
+
+
+class Stamper:
+    """The header of every message this agent sends: a sequence number per key from 0."""
+
+    def __init__(self, run: str, sender: str) -> None:
+        self.run, self.sender, self.seq = run, sender, {}
+
+    def header(self, key: str, tag: str, step: int, env_idx: np.ndarray) -> dict:
+        seq = self.seq.get(key, 0)
+        self.seq[key] = seq + 1
+        return {"v": SCHEMA_VERSION, "type": tag, "run": self.run, "step": step,
+                "env_idx": from_array(env_idx, "int64"), "ts": time.time_ns(), "seq": seq, "sender": self.sender}
+
+
+# ----- the policy ---------------------------------------------------------------------------------
+def read_safetensors(blob: bytes) -> dict[str, np.ndarray]:
+    """safetensors: u64 little-endian header length, JSON header, then the tensors' bytes."""
+    (n,) = struct.unpack("<Q", blob[:8])
+    header = json.loads(blob[8:8 + n])
+    data = blob[8 + n:]
+    out = {}
+    for name, t in header.items():
+        if name == "__metadata__":
+            continue
+        b, e = t["data_offsets"]
+        out[name] = np.frombuffer(data[b:e], ST_DTYPES[t["dtype"]]).reshape(t["shape"])
+    return out
+
+
+def layers(params: dict[str, np.ndarray], prefix: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    out, i = [], 0
+    while f"{prefix}.layers.{i}.weight" in params:
+        out.append((params[f"{prefix}.layers.{i}.weight"].astype(np.float32),
+                    params[f"{prefix}.layers.{i}.bias"].astype(np.float32)))
+        i += 1
+    return out
+
+
+class Policy:
+    def __init__(self, params: dict[str, np.ndarray]) -> None:
+        self.actor = layers(params, "actor")
+        self.log_std = params.get("log_std")  # present only for continuous actions
+
+    def actor_out(self, x: np.ndarray) -> np.ndarray:
+        """x W^T + b per layer, tanh between layers, none after the last: logits or Gaussian mean."""
+        for j, (w, b) in enumerate(self.actor):
+            x = x @ w.T + b
+            if j < len(self.actor) - 1:
+                x = np.tanh(x)
+        return x
+
+
+# ----- the agent ----------------------------------------------------------------------------------
+class ForeignLocalAgent:
+    def __init__(self, run_dir: Path, agent: int) -> None:
+        cfg = json.loads((run_dir / "config.json").read_text())
+        spec = json.loads((run_dir / "env_spec.json").read_text())
+        rt = json.loads((run_dir / "runtime.json").read_text())
+        self.run_dir, self.agent, self.name = run_dir, agent, f"local-{agent}"
+        self.run_id, self.n = rt["run_id"], cfg["n_agents"]
+        self.discrete, self.action_dim = spec["discrete"], spec["action_dim"]
+        self.msg_dim = cfg["msg_dim"] if cfg["variant"] in ("hammer", "random") else 0
+        self.onehot = cfg["variant"] == "centralized"  # joint observation + one-hot(agent)
+        self.fallback, self.fallback_k = rt["fallback"], rt["fallback_k"]
+        self.msg_deadline_s, self.weights_timeout_s = rt["msg_deadline_ms"] / 1e3, rt["weights_timeout_s"]
+        self.rng = np.random.default_rng([cfg["seed"], LOCAL_STREAM, agent])
+        k = cfg["num_envs"]
+        self.last_msg, self.msg_age = np.zeros((k, self.msg_dim), np.float32), np.zeros(k, np.int64)
+        self.policy, self.version, self.held = None, -1, {}
+        self.pending, self.last_step = {}, -1
+        self.counters = {"steps": 0, "msgs_on_time": 0, "msgs_late": 0, "msgs_duplicate": 0, "fallback_copies": 0,
+                         "obs_stale": 0, "rejected": 0}
+        self.stamper = Stamper(self.run_id, self.name)
+        self.stop = False
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{rt['hub_port']}"]))
+        self.z = zenoh.open(conf)
+        p = f"hammer/{self.run_id}"
+        self.queues: dict[str, queue.SimpleQueue] = {}
+        self.subs = [self._subscribe(name, key) for name, key in [
+            ("obs", f"{p}/env/obs/{agent}"), ("weights", f"{p}/learn/local/weights"), ("ctl", f"{p}/ctl/all"),
+            *([("msg", f"{p}/central/msg/{agent}")] if self.msg_dim else [])]]
+        self.act_key, self.hb_key = f"{p}/agent/act/{agent}", f"{p}/ctl/hb/{self.name}"
+        self.act_pub = self.z.declare_publisher(self.act_key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                express=True)
+        self.hb_pub = self.z.declare_publisher(self.hb_key, congestion_control=zenoh.CongestionControl.DROP)
+        # Alive only once every subscription is in place: the launcher starts the env host after this.
+        self.token = self.z.liveliness().declare_token(f"{p}/alive/{self.name}")
+        self.last_hb = 0.0
+
+    def _subscribe(self, name: str, key: str):
+        q = self.queues[name] = queue.SimpleQueue()
+        return self.z.declare_subscriber(key, lambda s: q.put(s.payload.to_bytes()))
+
+    def take(self, name: str, tag: str, timeout: float = 0.0) -> dict | None:
+        """The next accepted message of queue `name` within `timeout` s (None: nothing came)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                raw = self.queues[name].get(timeout=left) if left > 0 else self.queues[name].get_nowait()
+            except queue.Empty:
+                return None
+            try:
+                return parse(raw, self.run_id, tag)
+            except Rejected:
+                self.counters["rejected"] += 1
+
+    # ----- inputs -------------------------------------------------------------------------------
+    def on_control(self) -> None:
+        while (c := self.take("ctl", "control")) is not None:
+            if c.get("command") == "stop" and c.get("target") in ("*", self.name):
+                self.stop = True
+
+    def on_weights(self, w: dict) -> None:
+        blob, version = w.get("blob"), w.get("version")
+        if not isinstance(blob, bytes) or hashlib.sha256(blob).hexdigest() != w.get("sha256"):
+            self.counters["rejected"] += 1
+        elif type(version) is int and version > self.version:
+            self.held[version] = blob
+
+    def preload(self) -> None:
+        while (w := self.take("weights", "weights")) is not None:
+            self.on_weights(w)
+        if self.held:
+            self.use_version(min(self.held))
+
+    def use_version(self, need: int) -> None:
+        """Load the newest held version <= need, waiting up to weights_timeout_s while we hold an older one."""
+        deadline = time.monotonic() + self.weights_timeout_s
+        while True:
+            while (w := self.take("weights", "weights")) is not None:
+                self.on_weights(w)
+            usable = [v for v in self.held if v <= need]
+            if usable:
+                v = max(usable)
+                self.policy, self.version = Policy(read_safetensors(self.held[v])), v
+                self.held = {u: b for u, b in self.held.items() if u > v}
+            if self.version >= need or time.monotonic() > deadline:
+                return
+            w = self.take("weights", "weights", timeout=0.05)
+            if w is not None:
+                self.on_weights(w)
+
+    def message_for(self, step: int, env_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """This step's message (waiting up to msg_deadline_ms), else the fallback; and the fallback mask."""
+        deadline = time.monotonic() + self.msg_deadline_s
+        while step not in self.pending:
+            m = self.take("msg", "central_msg", timeout=max(deadline - time.monotonic(), 1e-6))
+            if m is None:
+                break
+            if m["step"] in self.pending:
+                self.counters["msgs_duplicate"] += 1
+            elif m["step"] <= self.last_step:
+                self.counters["msgs_late"] += 1
+            else:  # this step's or a future step's: kept until its step comes
+                try:
+                    m["msg"] = to_array(m["msg"], "float32", 2)
+                except Rejected:
+                    self.counters["rejected"] += 1
+                    continue
+                if m["msg"].shape != (len(m["env_idx"]), self.msg_dim) or np.abs(m["msg"]).max(initial=0) > 1:
+                    self.counters["rejected"] += 1
+                    continue
+                self.pending[m["step"]] = m
+        got = self.pending.pop(step, None)
+        for s in [s for s in self.pending if s < step]:
+            del self.pending[s]
+            self.counters["msgs_late"] += 1
+        msg = np.zeros((len(env_idx), self.msg_dim), np.float32)
+        have = np.zeros(len(env_idx), bool)
+        if got is not None:
+            rows = {int(e): j for j, e in enumerate(got["env_idx"])}
+            for j, e in enumerate(env_idx):
+                if int(e) in rows:
+                    msg[j], have[j] = got["msg"][rows[int(e)]], True
+            self.last_msg[env_idx[have]], self.msg_age[env_idx[have]] = msg[have], 0
+            self.counters["msgs_on_time"] += 1
+        miss = ~have
+        if miss.any():
+            idx = env_idx[miss]
+            self.msg_age[idx] += 1
+            if self.fallback != "zeros":
+                fill = self.last_msg[idx].copy()
+                if self.fallback == "last_k":
+                    fill[self.msg_age[idx] > self.fallback_k] = 0.0
+                msg[miss] = fill
+            self.counters["fallback_copies"] += int(miss.sum())
+        return msg, miss
+
+    def on_obs(self, o: dict) -> None:
+        step, env_idx = o["step"], o["env_idx"]
+        if step <= self.last_step:
+            self.counters["obs_stale"] += 1
+            return
+        obs = to_array(o["obs"], "float32", 2)
+        self.use_version(o["policy_version"])
+        k = len(env_idx)
+        parts = [obs]
+        if self.onehot:
+            parts.append(np.tile(np.eye(self.n, dtype=np.float32)[self.agent], (k, 1)))
+        msg, fallback = (self.message_for(step, env_idx) if self.msg_dim else (None, np.zeros(k, bool)))
+        if msg is not None:
+            parts.append(msg)
+        out = self.policy.actor_out(np.concatenate(parts, axis=1).astype(np.float32))
+        if self.discrete:  # inverse CDF of softmax (float64) at one uniform per env copy
+            z = out.astype(np.float64)
+            p = np.exp(z - z.max(axis=1, keepdims=True))
+            p /= p.sum(axis=1, keepdims=True)
+            u = self.rng.random(k)
+            action = np.minimum((np.cumsum(p, axis=1) <= u[:, None]).sum(axis=1), self.action_dim - 1)
+            wire_action = from_array(action, "int64")
+        else:
+            z = self.rng.standard_normal((k, self.action_dim))
+            wire_action = from_array(out + np.exp(self.log_std) * z, "float32")
+        m = {**self.stamper.header(self.act_key, "action", step, env_idx), "agent": self.agent,
+             "action": wire_action, "policy_version": max(self.version, 0), "fallback": from_array(fallback, "bool"),
+             "msg": from_array(msg, "float32") if msg is not None else None}
+        self.act_pub.put(msgpack.packb(m, use_bin_type=True))
+        self.last_step = step
+        self.counters["steps"] += 1
+
+    # ----- the loop -----------------------------------------------------------------------------
+    def heartbeat(self, status: str = "running", force: bool = False) -> None:
+        if not force and time.monotonic() - self.last_hb < 1.0:
+            return
+        self.last_hb = time.monotonic()
+        hb = {**self.stamper.header(self.hb_key, "heartbeat", 0, np.zeros(0, np.int64)), "role": self.name,
+              "pid": os.getpid(), "status": status, "counters": {**self.counters, "policy_version": self.version},
+              "detail": "foreign client"}
+        self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
+
+    def run(self) -> None:
+        while not self.stop:
+            self.heartbeat()
+            o = self.take("obs", "local_obs", timeout=0.2)
+            if o is not None:
+                try:
+                    self.on_obs(o)
+                except (Rejected, KeyError, TypeError, ValueError):  # a field missing or of the wrong type
+                    self.counters["rejected"] += 1
+            elif self.version < 0:  # idle without a policy: load the first one now
+                self.preload()
+            self.on_control()
+        self.heartbeat("stopped", force=True)
+        counters = {**self.counters, "policy_version": self.version}
+        try:  # final counters for the launcher's links.json, when we share the run directory
+            (self.run_dir / "counters").mkdir(exist_ok=True)
+            (self.run_dir / "counters" / f"{self.name}-{os.getpid()}.json").write_text(
+                json.dumps({"role": self.name, "pid": os.getpid(), "counters": counters}))
+        except OSError:
+            pass
+        print(f"{self.name} stopped: {json.dumps(counters)}", file=sys.stderr, flush=True)
+        self.token.undeclare()
+        self.z.close()
+
+
+if __name__ == "__main__":
+    ForeignLocalAgent(Path(sys.argv[1]), int(sys.argv[2])).run()

@@ -1,0 +1,118 @@
+"""A local agent written from docs/wire-format.md alone (tests/foreign_local_agent.py: zenoh,
+msgpack, numpy, no project import) takes agent 1's place in a `hammer up --external local-1` run.
+
+The client follows the documented randomness contract, so beyond completing the run it must act
+exactly as `hammer local` would: the run's episodes equal `hammer train`'s.
+"""
+
+from __future__ import annotations
+
+import ast
+import csv
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from learning.rundir import CSV_HEADER
+from tests.runtime_helpers import ENV, ROOT, hammer, processes_mentioning
+
+AGENT_FILE = Path(__file__).with_name("foreign_local_agent.py")
+ALLOWED = {"zenoh", "msgpack", "numpy"}
+
+
+def _metric_column(run_dir: Path) -> list[float]:
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return [float(r["paper_metric"]) for r in csv.DictReader(f)]
+
+
+def test_foreign_client_imports_only_zenoh_msgpack_numpy_and_the_stdlib():
+    tree = ast.parse(AGENT_FILE.read_text())
+    imported = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imported |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, "no relative imports"
+            imported.add(node.module.split(".")[0])
+    foreign = imported - set(sys.stdlib_module_names) - {"__future__"}
+    assert foreign == ALLOWED, f"the foreign client may import only {ALLOWED} and the stdlib, got {foreign}"
+
+
+def test_external_role_must_be_a_role_of_the_run(tmp_path):
+    res = hammer("up", "--episodes", "1", "--variant", "il", "--run-dir", str(tmp_path / "r"), "--no-dashboard",
+                 "--external", "central")
+    assert res.returncode != 0
+    assert "error: --external central: not a role of this run; fix: use one of learner, local-0" in res.stderr
+    assert not (tmp_path / "r" / "config.json").exists()  # refused before anything was written
+
+
+def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tmp_path):
+    run = tmp_path / "up"
+    # Generous deadlines: equality is the point here, not behaviour under a loaded machine's delays.
+    up = subprocess.Popen(
+        [sys.executable, "-m", "hammer.cli", "up", "--episodes", "40", "--central-mode", "rl", "--run-dir", str(run),
+         "--no-dashboard", "--external", "local-1", "--runtime", "msg_deadline_ms=5000",
+         "--runtime", "act_deadline_ms=10000"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+    lines: list[str] = []
+    announced = threading.Event()
+    command = f"hammer local --run-dir {run} --agent 1 2>> {run / 'logs' / 'local-1.log'}"
+
+    def read() -> None:
+        for line in up.stderr:
+            lines.append(line)
+            if command in line:
+                announced.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert announced.wait(120), "".join(lines)[-2000:]
+        # A clean environment: no PYTHONPATH, started outside the repository.
+        clean = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+        with open(run / "logs" / "local-1.log", "ab") as log:
+            agent = subprocess.run([sys.executable, str(AGENT_FILE), str(run), "1"], cwd=tmp_path, env=clean,
+                                   stdout=subprocess.DEVNULL, stderr=log, timeout=300, check=False)
+        up.wait(timeout=120)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    reader.join(5)
+    out = "".join(lines)
+    assert agent.returncode == 0, (run / "logs" / "local-1.log").read_text()[-2000:]
+    assert up.returncode == 0, out[-2000:]
+    assert "done: 40 episodes" in out
+
+    summary = json.loads((run / "summary.json").read_text())
+    links = summary["links"]
+    # every action of the foreign agent was accepted, on time, with the version the step named
+    assert links["default_actions"] == 0 and links["off_policy_actions"] == 0 and links["actions_late"] == 0
+    assert links["msg_fallback_copies"] == 0
+    (counters_file,) = (run / "counters").glob("local-1-*.json")
+    mine = json.loads(counters_file.read_text())["counters"]
+    assert mine["steps"] == summary["step"] == mine["msgs_on_time"] and mine["rejected"] == 0
+    table = json.loads((run / "links.json").read_text())["links"]
+    assert table["local->env"]["delivered"] == table["local->env"]["sent"] == summary["step"] * 3
+
+    # the same run directory as a plain `hammer up`
+    assert sorted(p.name for p in (run / "logs").iterdir()) == [f"{r}.log" for r in
+                                                                 ("central", "env", "learner", "local-0", "local-1",
+                                                                  "local-2")]
+    with open(run / "metrics.csv", newline="") as f:
+        assert next(csv.reader(f)) == CSV_HEADER
+    assert processes_mentioning(str(run)) == []
+
+    # the documented randomness contract, followed from the docs: the episodes of hammer train
+    tr = tmp_path / "train"
+    r = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--episodes", "40",
+               "--run-dir", str(tr), "--quiet")
+    assert r.returncode == 0, r.stderr[-2000:]
+    a, b = _metric_column(run), _metric_column(tr)
+    assert len(a) == len(b) == 40 and len(set(a)) > 20
+    assert a == pytest.approx(b, abs=1e-5)
