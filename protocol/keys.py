@@ -8,11 +8,17 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/env/state                GlobalState to the central agent
   hammer/<run>/central/msg/<agent>      CentralMsg to local agent <agent>
   hammer/<run>/agent/act/<agent>        Action from local agent <agent>
-  hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner of <role>
-  hammer/<run>/learn/<role>/weights     Weights from the learner of <role>
-  hammer/<run>/ctl/<name>               Control (name "all" for broadcast) and Heartbeat ("hb/<role>")
+  hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner: role "team" (env host's rollout),
+                                        "central" (the central agent's per-step record)
+  hammer/<run>/learn/<role>/weights     Weights from the learner: role "local" or "central"
+  hammer/<run>/ctl/<name>               Control: "all" is the one every role listens to (stop, target
+                                        "*" or a role name); ctl/<role> is reserved, nothing subscribes
+  hammer/<run>/ctl/hb/<role>            Heartbeat of one role
   hammer/<run>/alive/<role>             liveliness token of one process
   hammer/<run>/bench/<name>             benchmark traffic
+
+Role names: env, central, learner, local-<i>; the launcher sends as "launcher" and has no token.
+docs/wire-format.md is this contract written for a client in another language.
 """
 
 from __future__ import annotations
