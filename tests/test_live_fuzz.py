@@ -16,6 +16,7 @@ from __future__ import annotations
 import collections
 import json
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -225,6 +226,17 @@ def _logged_rejections(text: str) -> dict[tuple[str, str], int]:
     return seen
 
 
+def _wait_listening(port: int, proc: subprocess.Popen, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            time.sleep(0.1)
+    raise AssertionError(f"nothing listens on 127.0.0.1:{port} (hammer up exited: {proc.poll()})")
+
+
 def test_live_fuzz_on_every_key_is_rejected_counted_and_the_run_completes(tmp_path):
     targets = _targets()
     payloads = _payloads(targets)
@@ -238,7 +250,7 @@ def test_live_fuzz_on_every_key_is_rejected_counted_and_the_run_completes(tmp_pa
          "--run-dir", str(run), "--no-dashboard", "--runtime", f"hub_port={port}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
     try:
-        time.sleep(1.0)  # the launcher's hub session must be listening before ours connects
+        _wait_listening(port, up)  # the launcher's hub session, before ours connects to it
         with HammerSession(RUN, TransportConfig.connector(port), sender="fuzz") as s:
             env_hb = s.subscribe(s.keys.heartbeat("env"), Heartbeat)
             deadline = time.monotonic() + 120
