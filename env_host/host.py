@@ -100,6 +100,7 @@ class EnvHost(Role):
             self._restore(self.resume_from, self.resume_step)
         else:  # rows of an earlier attempt in this directory must not precede ours (save appends)
             self.episodes.path.unlink(missing_ok=True)
+            self.rd.truncate_metrics(0)  # header only, also in a run dir not made by `hammer up`
         if not self.wait_weights(st.update):
             return self.summary(t_start)
         while self.stop_reason is None:
@@ -188,6 +189,7 @@ class EnvHost(Role):
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
         st = self.state
         t_start = st.wall_start = time.perf_counter()
+        self.rd.truncate_metrics(0)
         if not self.wait_weights(0) or not self._wait_actors_ready():
             return self.summary(t_start)
         obs, active = self._reset_env(0)

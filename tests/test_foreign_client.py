@@ -14,6 +14,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -116,3 +117,50 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
     a, b = _metric_column(run), _metric_column(tr)
     assert len(a) == len(b) == 40 and len(set(a)) > 20
     assert a == pytest.approx(b, abs=1e-5)
+
+
+def test_roles_started_by_hand_without_the_launcher_write_metrics_with_their_header(tmp_path):
+    """Only config.json, env_spec.json and runtime.json, a `hammer hub` and each role by hand (the
+    docs' two-machine recipe on one host): metrics.csv starts with its header like hammer up's."""
+    from deploy.roles import write_env_spec
+    from deploy.settings import RuntimeSettings
+    from envs.registry import make_vec_env
+    from learning.config import merge_config
+    from protocol.session import free_loopback_port
+
+    run, port = tmp_path / "hand", free_loopback_port()
+    run.mkdir()
+    cfg = merge_config("cn3", overrides=["variant=il", "episodes=1"])
+    (run / "config.json").write_text(json.dumps(cfg.model_dump(mode="json")))
+    env = make_vec_env(cfg.env, cfg.n_agents, 1)
+    write_env_spec(run, env.spec)
+    env.close()
+    RuntimeSettings(run_id="hand", hub_port=port).save(run)
+
+    def start(*args: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], cwd=ROOT, env=ENV,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    hub = start("hub", "--listen", f"tcp/127.0.0.1:{port}")
+    roles = [start("learner", "--run-dir", str(run)),
+             *(start("local", "--run-dir", str(run), "--agent", str(i)) for i in range(3))]
+    try:
+        from protocol.session import HammerSession, TransportConfig
+
+        with HammerSession("hand", TransportConfig.connector(port)) as s:  # start the env host last
+            deadline = time.monotonic() + 120
+            while not {"learner", "local-0", "local-1", "local-2"} <= s.alive_roles() and time.monotonic() < deadline:
+                time.sleep(0.2)
+        env = start("env-host", "--run-dir", str(run))
+        assert env.wait(timeout=240) == 0
+        for p in roles:
+            assert p.wait(timeout=60) == 0  # the env host's stop ended every role
+    finally:
+        for p in [*roles, hub]:
+            if p.poll() is None:
+                p.terminate()
+                p.wait(10)
+    with open(run / "metrics.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == CSV_HEADER and len(rows) == 1 + 1
+    assert json.loads((run / "summary.json").read_text())["completed"]
