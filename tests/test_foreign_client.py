@@ -44,6 +44,15 @@ def test_foreign_client_imports_only_zenoh_msgpack_numpy_and_the_stdlib():
     assert foreign == ALLOWED, f"the foreign client may import only {ALLOWED} and the stdlib, got {foreign}"
 
 
+def test_runtime_json_names_external_roles_only_when_there_are_some(tmp_path):
+    from deploy.settings import RuntimeSettings
+
+    RuntimeSettings(run_id="a").save(tmp_path)
+    assert "external" not in json.loads((tmp_path / "runtime.json").read_text())  # a plain run's file is unchanged
+    RuntimeSettings(run_id="a", external=["local-2"]).save(tmp_path)
+    assert RuntimeSettings.load(tmp_path).external == ["local-2"]
+
+
 def test_external_role_must_be_a_role_of_the_run(tmp_path):
     res = hammer("up", "--episodes", "1", "--variant", "il", "--run-dir", str(tmp_path / "r"), "--no-dashboard",
                  "--external", "central")
