@@ -62,12 +62,14 @@ class Board:
         return (s1 - s0) / max(t1 - t0, 1e-9)
 
 
-def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
+def role_specs(cfg, run_dir: Path, external_agents=()) -> list[RoleSpec]:
+    """external_agents: local agents started elsewhere (`hammer local --bundle`): not launched here."""
     rd = ["--run-dir", str(run_dir)]
     specs = [RoleSpec("learner", ["learner", *rd])]
     if cfg.wiring.uses_central:
         specs.append(RoleSpec("central", ["central", *rd], restart=True))
-    specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)]
+    specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)
+              if i not in external_agents]
     specs.append(RoleSpec("env", ["env-host", *rd]))
     return specs
 
@@ -179,12 +181,14 @@ def _tail(path: Path, lines: int = 3) -> str:
     return " | ".join(text[-lines:])
 
 
-def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False) -> UpResult:
+def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False,
+           external_agents: tuple[int, ...] = ()) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
     `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
     `resume=True`: continue `run_dir` (its config.json / runtime.json as `cfg` / `settings`) from
-    its latest checkpoint instead of starting a new run."""
+    its latest checkpoint instead of starting a new run. `external_agents`: local agents joining from
+    elsewhere (not launched; the run waits for their liveliness like any role's)."""
     run_dir = Path(run_dir)
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
@@ -202,7 +206,8 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     hub_transport = settings.hub_transport()
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos)
+    launcher = Launcher(role_specs(cfg, run_dir, external_agents), run_dir, settings.startup_timeout_s, on_tick, chaos,
+                        external={f"local-{i}" for i in external_agents})
     with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
@@ -223,10 +228,10 @@ class Launcher:
     tick_s = 0.25
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
-                 chaos=None) -> None:
+                 chaos=None, external: set[str] = frozenset()) -> None:
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.on_tick, self.chaos = on_tick, chaos
-        self.names = {s.name for s in specs}
+        self.names = {s.name for s in specs} | set(external)  # external roles: awaited, not started
         self.sup = Supervisor(run_dir / "logs")
         self.board = Board(restarts={n: 0 for n in self.names})
         self.t_start = time.monotonic()

@@ -31,9 +31,11 @@ def _register_all() -> None:
     from faults import cli as faults_cli
     from learning import cli as learning_cli
     from protocol import cli as protocol_cli
+    from serve import cli as serve_cli
 
     app.command("hub")(hub_command)
-    for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli):
+    for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli,
+                 serve_cli):
         area.register(app)
 
 
