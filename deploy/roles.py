@@ -264,7 +264,7 @@ def learner_command(run_dir: RunDirOpt,
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network).run()
+                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network, run_dir=run_dir).run()
         except PolicyDirError as e:
             _fail(str(e))
         except KeyboardInterrupt:

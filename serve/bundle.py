@@ -99,8 +99,9 @@ class Bundle:
         return EnvSpec(**{**d, "agent_ids": tuple(d["agent_ids"])})
 
     def check_env(self, spec) -> None:
-        """The env a server built must be the one the team was trained on (dims the weights fit)."""
-        have = {f: getattr(spec, f) for f in SPEC_FIELDS}
+        """The env a server built (an EnvSpec, or an env_spec.json mapping) must be the one the team was
+        trained on (dims the weights fit)."""
+        have = {f: spec[f] if isinstance(spec, dict) else getattr(spec, f) for f in SPEC_FIELDS}
         want = {f: self.env_spec_data[f] for f in SPEC_FIELDS}
         bad = [f"{f} {want[f]} (env has {have[f]})" for f in SPEC_FIELDS if have[f] != want[f]]
         if bad:

@@ -23,6 +23,8 @@ def _fail(msg: str, code: int = 2) -> None:
 def register(app: typer.Typer) -> None:
     app.command("export")(export_command)
     app.command("serve")(serve_command)
+    app.command("push")(push_command)
+    app.command("rollback")(rollback_command)
 
 
 def export_command(
@@ -135,3 +137,35 @@ def _agents(text: str | None, n: int) -> list[int]:
     if any(not 0 <= i < n for i in out):
         raise ValueError(f"--external {text!r}: this team has agents 0..{n - 1}")
     return out
+
+
+def push_command(
+    bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
+    to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve`.")],
+) -> None:
+    """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
+    same step boundary (the first step that names it). The dashboard shows the version per role."""
+    from serve.bundle import BundleError
+    from serve.push import push
+
+    try:
+        e = push(bundle, to)
+    except (BundleError, ValueError, OSError) as err:
+        _fail(str(err))
+    typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
+               "previous one)")
+
+
+def rollback_command(
+    run: Annotated[Path, typer.Argument(help="The run directory of a running `hammer serve`.")],
+) -> None:
+    """Return a served team to the policy in effect before its latest push (served as a new version)."""
+    from serve.bundle import BundleError
+    from serve.push import rollback
+
+    try:
+        e = rollback(run)
+    except (BundleError, ValueError, OSError) as err:
+        _fail(str(err))
+    typer.echo(f"rolled back {run}: version {e['version']} serves the policy of version {e['restores_version']} "
+               f"({e['policy_dir']})")
