@@ -25,6 +25,7 @@ def register(app: typer.Typer) -> None:
     app.command("serve")(serve_command)
     app.command("push")(push_command)
     app.command("rollback")(rollback_command)
+    app.command("play")(play_command)
 
 
 def export_command(
@@ -169,3 +170,27 @@ def rollback_command(
         _fail(str(err))
     typer.echo(f"rolled back {run}: version {e['version']} serves the policy of version {e['restores_version']} "
                f"({e['policy_dir']})")
+
+
+def play_command(
+    bundle: Annotated[Path, typer.Argument(help="A bundle made by `hammer export`.")],
+    out: Annotated[Path, typer.Option(help="The GIF to write.")] = Path("team.gif"),
+    episodes: Annotated[int, typer.Option(min=1, help="Episodes to render.")] = 3,
+    seed: Annotated[int | None, typer.Option(help="Seed of resets and sampling (default: the team's).")] = None,
+    max_steps: Annotated[int, typer.Option(min=1, help="At most this many steps per episode (multiwalker runs 500).")] = 200,
+    fps: Annotated[float, typer.Option(min=1, help="Frames per second of the GIF.")] = 8.0,
+) -> None:
+    """Watch a trained team: a few episodes drawn by the environment's own renderer (mpe2, multiwalker),
+    each agent's message beside the frame. Needs the training install."""
+    import os
+
+    from serve.bundle import BundleError, load_bundle
+    from serve.play import PlayError, play
+
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
+    try:
+        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps)
+    except (BundleError, PlayError) as e:
+        _fail(str(e))
+    typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "
+               f"paper metric per episode {', '.join(f'{x:.2f}' for x in r['paper_metric'])}")

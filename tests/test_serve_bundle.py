@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -131,3 +132,20 @@ def test_an_edge_agent_from_the_bundle_joins_a_served_run(trained, tmp_path):
     assert res.summary["completed"] and edge.returncode == 0, out
     assert "'steps': 25," in out and "'weights_loaded': 1" in out  # 8 copies x 1 episode of 25 steps, one policy
     assert _metrics(tmp_path / "edge") == _metrics(tmp_path / "all")
+
+
+def test_play_renders_the_team_with_its_messages(trained, tmp_path, monkeypatch):
+    from PIL import Image, ImageSequence
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    export_bundle(trained, tmp_path / "b")
+    runner = CliRunner()
+    r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(tmp_path / "team.gif"), "--episodes", "1",
+                            "--max-steps", "6"])
+    assert r.exit_code == 0, r.output
+    frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(tmp_path / "team.gif"))]
+    assert len(frames) == 6 and frames[0].shape[1] > frames[0].shape[0]  # the env's frame with the panel beside it
+    half = frames[0].shape[1] * 2 // 3
+    assert not np.array_equal(frames[0][:, half:], frames[3][:, half:])  # the messages panel changes
+    r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(tmp_path / "team.mp4")])
+    assert r.exit_code == 2 and "error:" in r.output and "GIF" in r.output
