@@ -122,9 +122,9 @@ def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2) -> dict:
     hammer = [sys.executable, "-m", "hammer.cli", "local", "--agent", "0"]
     runs: dict[str, list[EdgeFigures]] = {"run dir (hammer local --run-dir)": [], "edge (hammer local --bundle)": []}
     for r in range(repeats):
-        for entry in runs:
+        for entry, done in runs.items():
             port = free_loopback_port()
-            run_id = f"bench-edge-{r}-{len(runs[entry])}-{'b' if 'bundle' in entry else 'r'}"
+            run_id = f"bench-edge-{r}-{len(done)}-{'b' if 'bundle' in entry else 'r'}"
             if "bundle" in entry:
                 cmd = [*hammer, "--bundle", str(bundle.path), "--run-id", run_id,
                        "--connect", f"tcp/127.0.0.1:{port}"]
@@ -133,7 +133,7 @@ def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2) -> dict:
                 cmd = [*hammer, "--run-dir", str(run)]
             f = measure(cmd, run_id, port, cfg, spec, blob, act_s)
             f.entry = entry
-            runs[entry].append(f)
+            done.append(f)
     med = {e: {k: float(np.median([getattr(f, k) for f in fs])) for k in ("cold_start_s", "rss_mb", "step_ms_p50")}
            for e, fs in runs.items()}
     return {"median": med, "runs": [asdict(f) for fs in runs.values() for f in fs], "repeats": repeats,

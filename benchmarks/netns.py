@@ -31,7 +31,7 @@ class NetnsUnavailable(RuntimeError):
 
 def _ip(*args: str, ns: str | None = None) -> str:
     cmd = ["ip", *(["-n", ns] if ns else []), *args]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=10)
+    r = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=10)
     if r.returncode != 0:
         raise NetnsUnavailable(f"{' '.join(cmd)}: {r.stderr.strip()}")
     return r.stdout
@@ -61,14 +61,13 @@ def topology(n_agents: int, tag: str, rate_kbit: int = 0):
             if i == 0 and rate_kbit:
                 for dev, n in ((h, hub), (a, ns)):
                     r = subprocess.run(["ip", "netns", "exec", n, "tc", "qdisc", "add", "dev", dev, "root", "tbf",
-                                        "rate", f"{rate_kbit}kbit", "burst", "16kb", "latency", "400ms"],
-                                       capture_output=True, text=True, timeout=10)
+                                        "rate", f"{rate_kbit}kbit", "burst", "16kb", "latency", "400ms"], check=False, capture_output=True, text=True, timeout=10)
                     if r.returncode != 0:
                         raise NetnsUnavailable(f"tc tbf on {dev}: {r.stderr.strip()}")
         yield hub, agents, veths
     finally:
         for ns in reversed(made):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+            subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True, timeout=10)
 
 
 def link_bytes(ns: str, dev: str) -> int:

@@ -64,7 +64,7 @@ def push(bundle_path: Path, run_dir: Path) -> dict:
     from learning.config import build_config
 
     run_dir = Path(run_dir)
-    rt, cfg_data = _served(run_dir)
+    _, cfg_data = _served(run_dir)
     b = load_bundle(bundle_path)
     served, new = build_config(cfg_data), b.config()
     spec = json.loads((run_dir / "env_spec.json").read_text())
