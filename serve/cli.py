@@ -110,6 +110,7 @@ def serve_command(
     try:
         b = load_bundle(bundle)
         cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
+        _check_env(b, cfg)
         skip = _agents(external, cfg.n_agents)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
         settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, runtime)
@@ -126,6 +127,18 @@ def serve_command(
         console.print(f"waiting for external agents {', '.join(map(str, skip))}: hammer local --bundle {bundle} "
                       f"--agent I --run-id {settings.run_id} --connect tcp/<this host>:{settings.hub_port or '<port>'}")
     _run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
+
+
+def _check_env(bundle, cfg) -> None:
+    """The env this machine builds from the manifest must have the dims the weights were trained on
+    (an env library of another version may not)."""
+    from envs.registry import make_vec_env
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    try:
+        bundle.check_env(env.spec)
+    finally:
+        env.close()
 
 
 def _agents(text: str | None, n: int) -> list[int]:
