@@ -10,6 +10,7 @@ part against a baseline taken in the same run:
   train        the in-process trainer's speed, PPO updates included         (benchmarks.train)
   runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
   security     `hammer up --secure` vs plain, same run                       (benchmarks.security)
+  edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
 
 The measuring code is imported inside each command, so `hammer --help` stays fast.
 """
@@ -262,6 +263,40 @@ def bench_security(
     q = r["secure_over_plain"]
     t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
     t.caption = f"same metrics.csv: {r['same_metrics']}"
+    table_console().print(t)
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1))
+
+
+@bench.command("edge")
+def bench_edge_command(
+    act_s: Annotated[float, typer.Option(help="Seconds each agent acts (lock-step) while its RSS is sampled.")] = 3.0,
+    repeats: Annotated[int, typer.Option(min=1, help="Measurements per entry, alternated (medians are shown).")] = 3,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+) -> None:
+    """An edge agent's footprint: RSS while acting and cold start (process start to first action), for
+    `hammer local --bundle` (no run directory) and today's `hammer local --run-dir`, in one run."""
+    import tempfile
+
+    from rich.table import Table
+
+    from benchmarks.edge import bench_edge
+    from hammer.console import table_console
+
+    logging.basicConfig(level=logging.WARNING)
+    with tempfile.TemporaryDirectory(prefix="hammer-bench-edge-") as work:
+        r = bench_edge(Path(work), act_s, repeats)
+    tg = r["targets"]
+    t = Table(title=f"hammer bench edge (cn3 local agent, median of {repeats}, load {os.getloadavg()[0]:.1f} "
+                    f"on {os.cpu_count()} cores)")
+    for col in ("entry", "RSS MB", "cold start s", "step p50 ms"):
+        t.add_column(col, justify="left" if col == "entry" else "right")
+    for entry, m in r["median"].items():
+        t.add_row(entry, f"{m['rss_mb']:.1f}", f"{m['cold_start_s']:.2f}", f"{m['step_ms_p50']:.2f}")
+    edge = r["median"]["edge (hammer local --bundle)"]
+    t.caption = (f"targets: RSS <= {tg['rss_mb']:.0f} MB ({'met' if edge['rss_mb'] <= tg['rss_mb'] else 'missed'}), "
+                 f"cold start <= {tg['cold_start_s']:.0f} s "
+                 f"({'met' if edge['cold_start_s'] <= tg['cold_start_s'] else 'missed'})")
     table_console().print(t)
     if json_out is not None:
         json_out.write_text(json.dumps(r, indent=1))

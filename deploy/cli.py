@@ -222,7 +222,8 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
     return cfg, settings
 
 
-def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False) -> None:
+def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
+            external_agents: tuple[int, ...] = ()) -> None:
     from rich.live import Live
 
     from deploy.up import UpError, launch
@@ -250,7 +251,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
     try:
-        res = launch(cfg, settings, path, on_tick=tick, resume=resume)
+        res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents)
     except UpError as e:
         if live is not None:
             live.stop()

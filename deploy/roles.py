@@ -114,8 +114,16 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
-def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="Local agent index i (0-based).")],
-                  connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
+def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (0-based).")],
+                  run_dir: Annotated[Path | None, typer.Option(
+                      help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")] = None,
+                  connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None,
+                  bundle: Annotated[Path | None, typer.Option(
+                      help="Join without a run directory: a bundle made by `hammer export` (with --run-id, --connect).")] = None,
+                  run_id: Annotated[str | None, typer.Option(help="With --bundle: the run id of the run to join.")] = None,
+                  seed: Annotated[int | None, typer.Option(
+                      help="With --bundle: the run's seed (the agent's sampling stream); default the bundle's.")] = None,
+                  ) -> None:
     """A local-agent client: acts on its observation + central message. Runs without torch."""
     _setup(f"local-{agent}")
     # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
@@ -123,8 +131,13 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
     from protocol.session import HammerSession
 
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
-        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
+        if bundle is not None:
+            settings, transport, cfg, spec = _bundle_inputs(bundle, run_dir, run_id, connect, zenoh_config, seed)
+        elif run_dir is None:
+            _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
+        else:
+            settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
+            cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     if not 0 <= agent < cfg.n_agents:
@@ -134,12 +147,39 @@ def local_command(run_dir: RunDirOpt, agent: Annotated[int, typer.Option(help="L
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
             client = LocalAgentClient(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
                                       settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                      step_log_dir=_step_log_dir(run_dir))
+                                      step_log_dir=_step_log_dir(run_dir) if run_dir else None)
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
-            _write_counters(run_dir, f"local-{agent}", {**client.counts.as_dict(), **_fault_counters(s)})
+            if run_dir is not None:
+                _write_counters(run_dir, f"local-{agent}", {**client.counts.as_dict(), **_fault_counters(s)})
     except KeyboardInterrupt:
         pass
+
+
+def _bundle_inputs(bundle: Path, run_dir: Path | None, run_id: str | None, connect: str | None,
+                   zenoh_config: Path | None, seed: int | None):
+    """An edge agent's settings, transport, config and env spec from a bundle (serve.bundle), no run directory."""
+    from deploy.settings import RuntimeSettings
+    from protocol.session import TransportConfig
+    from serve.bundle import load_bundle
+
+    if run_dir is not None:
+        raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
+    if not run_id:
+        raise ValueError("--bundle needs --run-id: the id of the run to join (`hammer serve` prints it)")
+    if connect is None and zenoh_config is None:
+        raise ValueError("--bundle needs --connect tcp/<hub>:<port> (or --zenoh-config): where the run's hub listens")
+    b = load_bundle(bundle)
+    fb = b.manifest.get("fallback", {})
+    settings = RuntimeSettings(run_id=run_id, fallback=fb.get("mode", "zeros"), fallback_k=fb.get("k", 3))
+    if zenoh_config is not None:
+        transport = TransportConfig(zenoh_config_file=zenoh_config)
+    else:
+        host = connect.split("/", 1)[-1].rsplit(":", 1)[0]  # a hub on this host: stay on loopback
+        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if host in ("127.0.0.1", "localhost", "[::1]")
+                                            else "tcp/0.0.0.0:0"], connect=[connect])
+    cfg = b.config(**({} if seed is None else {"seed": seed}))
+    return settings, transport, cfg, b.env_spec()
 
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
@@ -224,7 +264,7 @@ def learner_command(run_dir: RunDirOpt,
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network).run()
+                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network, run_dir=run_dir).run()
         except PolicyDirError as e:
             _fail(str(e))
         except KeyboardInterrupt:

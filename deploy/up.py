@@ -191,15 +191,20 @@ def _tail(path: Path, lines: int = 3) -> str:
     return " | ".join(text[-lines:])
 
 
-def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False) -> UpResult:
+def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False,
+           external_agents: tuple[int, ...] = ()) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
     `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
     `resume=True`: continue `run_dir` (its config.json / runtime.json as `cfg` / `settings`) from
-    its latest checkpoint instead of starting a new run."""
+    its latest checkpoint instead of starting a new run. `external_agents`: local agents joining from
+    elsewhere (`hammer serve --external-agent`; as `settings.external`: not launched, awaited)."""
     run_dir = Path(run_dir)
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
+    if external_agents:
+        settings = settings.model_copy(update={"external": [*settings.external, *(
+            f"local-{i}" for i in external_agents if f"local-{i}" not in settings.external)]})
     external = external_commands(cfg, run_dir, settings.external)
     if chaos is None and settings.chaos:
         from faults.chaos import ChaosScheduler

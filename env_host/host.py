@@ -41,7 +41,7 @@ from protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbe
 from protocol.session import HammerSession
 from runtime.role import Role
 
-TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted")
+TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
 
 
 class EnvHost(Role):
@@ -169,7 +169,8 @@ class EnvHost(Role):
         self.episodes.count(got.fallback, got.defaulted)
         step = self.env.step(self.spec.env_action(got.actions))
         if self.trace is not None:
-            for name, v in zip(TRACE_ARRAYS, (st.step, obs, got.msgs, got.actions, got.fallback, got.defaulted)):
+            for name, v in zip(TRACE_ARRAYS, (st.step, obs, got.msgs, got.actions, got.fallback, got.defaulted,
+                                              self.rollout_version)):
                 self.trace[name].append(np.copy(v))
         return step, got
 
@@ -196,6 +197,7 @@ class EnvHost(Role):
         prev = zero_prev_actions(self.spec, self.k)
         while not self.stop_requested():
             self.heartbeat()
+            self._take_pushed_version()
             step, got = self._vector_step(obs, prev, active)
             prev = next_prev_actions(self.spec, got.actions, step).prev
             obs, active = step.obs, step.next_active
@@ -204,6 +206,15 @@ class EnvHost(Role):
                 break
         self.rd.flush()
         return self.summary(t_start)
+
+    def _take_pushed_version(self) -> None:
+        """Eval: a newer policy version published (`hammer push` / `hammer rollback`) is named from the
+        next step on, by every observation and global state of that step (actors hold it until then)."""
+        for w in self.weights_in.drain():
+            self.weights_version = max(self.weights_version, w.version)
+        if self.weights_version > self.rollout_version:
+            self.log.info("policy version %d from step %d", self.weights_version, self.state.step + 1)
+            self.rollout_version = self.weights_version
 
     def _wait_actors_ready(self) -> bool:
         """Eval: start stepping only once the central agent and every local agent hold the policy

@@ -36,8 +36,9 @@ def _team_arg(item: str) -> tuple[str, Path]:
 
 @faults_app.command("sweep")
 def sweep_command(
-    runs: Annotated[list[str], typer.Argument(help="Trained run directories to evaluate (their final/ policy), "
-                                                   "optionally LABEL=DIR, e.g. hammer=runs/a hammer+dropout=runs/b.")],
+    runs: Annotated[list[str], typer.Argument(help="Trained teams to evaluate: bundles (`hammer export`) or run "
+                                                   "directories (their final/ policy), optionally LABEL=DIR, "
+                                                   "e.g. hammer=runs/a hammer+dropout=runs/b.")],
     il: Annotated[Path | None, typer.Option(help="A trained IL run: evaluated without faults as the reference line.")] = None,
     drops: Annotated[str, typer.Option(help="central->local drop rates.")] = "0,0.1,0.25,0.5,1.0",
     delays_ms: Annotated[str, typer.Option(help="central->local delays in ms (0 = none), at drop 0.")] = "25,100",
@@ -51,12 +52,18 @@ def sweep_command(
     """Evaluate trained teams (real runtime, frozen weights) under a grid of message drop rates and
     delays, several seeds each; writes a CSV, a markdown table and a plot with the IL reference line."""
     from faults.sweep import grid, run_sweep
+    from serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     teams = dict(_team_arg(r) for r in runs)
     for label, path in [*teams.items(), *([("il", il)] if il else [])]:
-        if not (path / "final" / "local.safetensors").is_file():
-            _fail(f"{label}: {path}/final/local.safetensors is missing; fix: pass a finished run directory")
+        if is_bundle(path):
+            try:
+                load_bundle(path)
+            except BundleError as e:
+                _fail(f"{label}: {e}")
+        elif not (path / "final" / "local.safetensors").is_file():
+            _fail(f"{label}: {path}/final/local.safetensors is missing; fix: pass a bundle or a finished run directory")
     points = grid(teams, il, _floats(drops, "drops"), _floats(delays_ms, "delays-ms"), list(range(seeds)))
     typer.echo(f"{len(points)} evaluation runs ({episodes} episodes each, {parallel} at a time) -> {out}")
 
@@ -71,7 +78,8 @@ def sweep_command(
 
 @faults_app.command("eval")
 def eval_command(
-    run: Annotated[Path, typer.Argument(help="Trained run directory (its final/ policy is evaluated).")],
+    run: Annotated[Path, typer.Argument(help="Trained team: a bundle (`hammer export`) or a run directory "
+                                             "(its final/ policy).")],
     fault: Annotated[list[str] | None, typer.Option(
         "--fault", help="LINK:FIELD=VALUE,... e.g. 'central->local:agent=1,drop=0.2,delay_ms=5,jitter_ms=2'.")] = None,
     fault_seed: Annotated[int, typer.Option(help="Seed of the fault streams.")] = 0,
@@ -93,7 +101,8 @@ def eval_command(
     from deploy.up import UpError, launch
     from faults.chaos import ChaosSpecError, parse_chaos
     from faults.spec import FaultSpecError, build_plan
-    from faults.sweep import eval_config
+    from faults.sweep import eval_config, team_source
+    from serve.bundle import BundleError
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -101,10 +110,11 @@ def eval_command(
         for c in chaos or []:
             parse_chaos(c)
         cfg = eval_config(run, episodes, seed)
-    except (FaultSpecError, ChaosSpecError, FileNotFoundError) as e:
+        policy_dir = team_source(run)[1]
+    except (FaultSpecError, ChaosSpecError, FileNotFoundError, BundleError) as e:
         _fail(str(e))
     path = run_dir or run.parent / f"{run.name}-eval-{time.strftime('%Y%m%d-%H%M%S')}"
-    rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(run / "final"),
+    rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
           "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
     for item in runtime or []:
         key, eq, val = item.partition("=")

@@ -30,7 +30,7 @@ log = logging.getLogger("hammer.faults.sweep")
 @dataclass(frozen=True)
 class Point:
     team: str  # a label, e.g. "hammer" or "hammer+dropout"
-    run: str  # the trained run directory (its final/ is evaluated)
+    run: str  # the trained team: a bundle, or a run directory (its final/ is evaluated)
     drop: float
     delay_ms: float
     seed: int
@@ -58,15 +58,28 @@ class PointResult:
     wall_s: float
 
 
+def team_source(run: Path) -> tuple[dict, Path]:
+    """(config fields, policy directory) of a trained team: a bundle (`hammer export`, checked whole)
+    or a run directory (its final/ policy)."""
+    from serve.bundle import is_bundle, load_bundle
+
+    run = Path(run)
+    if is_bundle(run):
+        b = load_bundle(run)
+        return b.config_data, b.policy_dir
+    path = run / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: pass a bundle (`hammer export`) or a run directory made by "
+                                "`hammer train` or `hammer up`")
+    return json.loads(path.read_text()), run / "final"
+
+
 def eval_config(run: Path, episodes: int, seed: int):
-    """The trained run's config for evaluation: its task and networks, a new seed and budget,
+    """The trained team's config for evaluation: its task and networks, a new seed and budget,
     no message dropout (the evaluation's faults come from the fault layer)."""
     from learning.config import build_config
 
-    path = Path(run) / "config.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: pass a run directory made by `hammer train` or `hammer up`")
-    data = json.loads(path.read_text())
+    data, _ = team_source(run)
     data.update(episodes=episodes, seed=seed, msg_dropout=0.0)
     return build_config(data)
 
@@ -77,7 +90,7 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
     from faults.spec import FaultPlan, LinkFault
 
     run = Path(p.run)
-    policy = run / "final"
+    trained, policy = team_source(run)
     cfg = eval_config(run, episodes, p.seed)
     links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
     plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
@@ -90,8 +103,7 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
         metrics = [float(r["paper_metric"]) for r in csv.DictReader(f)]
     c2l = res.links.get("central->local", {})
     n_entries = max(int(res.summary.get("step", 0)) * cfg.n_agents * cfg.num_envs, 1)
-    return PointResult(team=p.team, variant=cfg.variant, train_msg_dropout=float(json.loads(
-        (run / "config.json").read_text()).get("msg_dropout", 0.0)), drop=p.drop, delay_ms=p.delay_ms, seed=p.seed,
+    return PointResult(team=p.team, variant=cfg.variant, train_msg_dropout=float(trained.get("msg_dropout", 0.0)), drop=p.drop, delay_ms=p.delay_ms, seed=p.seed,
         episodes=len(metrics), paper_metric=sum(metrics) / len(metrics), msgs_sent=c2l.get("sent", 0),
         msgs_dropped=c2l.get("dropped", 0), msgs_late=c2l.get("late", 0),
         msg_fallback_rate=c2l.get("fallbacks", 0) / n_entries, default_actions=res.links["local->env"]["defaults"],

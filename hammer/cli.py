@@ -31,17 +31,34 @@ def _register_all() -> None:
     from faults import cli as faults_cli
     from learning import cli as learning_cli
     from protocol import cli as protocol_cli
+    from serve import cli as serve_cli
 
     app.command("hub")(hub_command)
-    for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli):
+    for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli,
+                 serve_cli):
         area.register(app)
 
 
 _register_all()
 
 
+# Installed by the `train` extra only: a base (edge) install has none of them.
+TRAIN_ONLY = {"torch", "pettingzoo", "mpe2", "matplotlib", "tensorboard", "psutil", "scipy", "gymnasium", "pymunk"}
+
+
 def main() -> None:
-    app()
+    """Run the CLI; a command that needs the training install, used on an edge install, fails in one line."""
+    import sys
+
+    try:
+        app()
+    except ModuleNotFoundError as e:
+        root = (e.name or "").split(".")[0]
+        if root not in TRAIN_ONLY:
+            raise
+        typer.secho(f"error: this command needs the training install ({root} is not installed); "
+                    "fix: pip install 'hammer[train]'", fg=typer.colors.RED, err=True)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

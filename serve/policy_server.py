@@ -5,6 +5,10 @@ policy, so the learner role is taken by this server: it publishes the exported
 `local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0, and republishes
 them every second so a restarted agent gets them too. The files are sent as they are
 (safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
+
+Given the run directory, it also follows the run's update history (serve/push.py: `hammer push`,
+`hammer rollback`): the newest entry's weights, checked against their recorded sha256, become the
+published version (the env host names it from the next step on).
 """
 
 from __future__ import annotations
@@ -38,16 +42,19 @@ class PolicyServer(Role):
     """Publishes the frozen weights as version 0 every `republish_s` until a stop command."""
 
     def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
-                 republish_s: float = 1.0) -> None:
+                 republish_s: float = 1.0, run_dir: Path | None = None) -> None:
         blobs = policy_blobs(policy_dir, needs_central)  # a missing file fails before anything is declared
         super().__init__(session, "learner", report_faults=False)
-        self.blobs, self.republish_s = blobs, republish_s
+        self.blobs, self.republish_s, self.needs_central = blobs, republish_s, needs_central
         self.pubs = {role: session.publisher(self.keys.weights(role)) for role in blobs}
         self.published = 0
         self.last_publish = 0.0
+        self.version, self.run_dir, self.history_seen = 0, run_dir, 0
+        self.updates_rejected = 0
 
     def counters(self) -> dict[str, int]:
-        return {"policy_version": 0, "frozen_publishes": self.published}
+        return {"policy_version": self.version, "frozen_publishes": self.published,
+                "updates_rejected": self.updates_rejected}
 
     def on_start(self) -> None:
         self.publish()
@@ -58,12 +65,43 @@ class PolicyServer(Role):
         return False
 
     def on_idle(self) -> None:
+        if self.run_dir is not None:
+            self.follow_history()
         if time.monotonic() - self.last_publish >= self.republish_s:
             self.publish()
 
+    def follow_history(self) -> None:
+        """A new entry in RUN/pushes.json: load its weights (hash-checked) and publish them as its version."""
+        from serve.bundle import BundleError, sha256
+        from serve.push import read_history
+
+        try:
+            entries = read_history(self.run_dir)
+        except BundleError as e:
+            if self.history_seen >= 0:
+                self.log.error("%s", e)
+            self.history_seen = -1
+            return
+        if len(entries) <= max(self.history_seen, 0):
+            return
+        self.history_seen, e = len(entries), entries[-1]
+        try:
+            blobs = policy_blobs(Path(e["policy_dir"]), self.needs_central)
+            bad = [n for n, d in e.get("files", {}).items() if sha256(Path(e["policy_dir"]) / n) != d]
+            if bad:
+                raise PolicyDirError(f"{', '.join(bad)}: sha256 differs from pushes.json")
+        except PolicyDirError as err:
+            self.updates_rejected += 1
+            self.log.error("update to version %d rejected: %s", e["version"], err)
+            return
+        self.blobs, self.version = blobs, e["version"]
+        self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
+        self.publish()
+        self.heartbeat_soon()
+
     def publish(self) -> None:
         for role, blob in self.blobs.items():
-            self.pubs[role].publish(Weights.from_blob(role, 0, blob))
+            self.pubs[role].publish(Weights.from_blob(role, self.version, blob))
         self.published += 1
         self.last_publish = time.monotonic()
 

@@ -1,0 +1,229 @@
+"""A trained team as a self-contained, versioned bundle: what serving and an edge agent need, no run directory.
+
+    BUNDLE/manifest.json        bundle format, wire SCHEMA_VERSION, env id/kwargs/spec, variant, central
+                                mode, message length, fallback, the run it came from (+ final metric),
+                                the full RunConfig, sha256 of every other file
+    BUNDLE/local.safetensors    the shared local policy (numpy dict, never pickle)
+    BUNDLE/central.safetensors  the central agent (variants with a central network)
+
+A bundle is read once, checked whole before anything uses it: a newer format, another wire schema,
+a file whose hash differs, or weights whose shapes do not fit the env's dimensions each fail in one
+line naming the field and the fix. Torch-free (json, hashlib, numpy, safetensors): an edge device
+loads it with the base install.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from protocol.schemas import SCHEMA_VERSION
+
+BUNDLE_FORMAT = 1
+MANIFEST = "manifest.json"
+LOCAL, CENTRAL = "local.safetensors", "central.safetensors"
+SPEC_FIELDS = ("name", "n_agents", "obs_dim", "discrete", "action_dim")  # what the weights must fit
+
+
+class BundleError(ValueError):
+    """The bundle cannot be used; the message is the one-line reason and its fix."""
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _weight_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    """Tensor shapes from the safetensors header only (never the payload, never pickle)."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="numpy") as f:
+        return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118 - not a dict
+
+
+def check_local_weights(shapes: dict[str, tuple[int, ...]], input_dim: int, env: dict, what: str) -> None:
+    """The local policy's first layer takes `input_dim` inputs and its head gives the env's action width."""
+    first = shapes.get("actor.layers.0.weight")
+    if first is None:
+        raise BundleError(f"{what}: no 'actor.layers.0.weight' tensor; fix: export the bundle from a run's final/ policy")
+    if first[1] != input_dim:
+        raise BundleError(f"{what}: the local policy takes {first[1]} inputs but env {env['name']} "
+                          f"(obs_dim {env['obs_dim']}) with this variant gives {input_dim}; fix: serve it on the "
+                          "env it was trained on")
+    i = max(int(k.split(".")[2]) for k in shapes if k.startswith("actor.layers.") and k.endswith(".weight"))
+    out = shapes[f"actor.layers.{i}.weight"][0]
+    if out != env["action_dim"]:
+        raise BundleError(f"{what}: the local policy has {out} action outputs, env {env['name']} has "
+                          f"action_dim {env['action_dim']}; fix: serve it on the env it was trained on")
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A checked bundle: its directory and manifest."""
+
+    path: Path
+    manifest: dict[str, Any]
+
+    @property
+    def policy_dir(self) -> Path:
+        """What `RuntimeSettings.policy_dir` takes: the directory holding the safetensors files."""
+        return self.path
+
+    @property
+    def config_data(self) -> dict[str, Any]:
+        return dict(self.manifest["config"])
+
+    @property
+    def env_spec_data(self) -> dict[str, Any]:
+        return dict(self.manifest["env_spec"])
+
+    def config(self, **update: Any):
+        """The team's RunConfig (pydantic, no torch), with fields replaced (e.g. episodes, seed)."""
+        from learning.config import build_config
+
+        return build_config({**self.config_data, **update})
+
+    def env_spec(self):
+        from envs.base import EnvSpec
+
+        d = self.env_spec_data
+        return EnvSpec(**{**d, "agent_ids": tuple(d["agent_ids"])})
+
+    def check_env(self, spec) -> None:
+        """The env a server built (an EnvSpec, or an env_spec.json mapping) must be the one the team was
+        trained on (dims the weights fit)."""
+        have = {f: spec[f] if isinstance(spec, dict) else getattr(spec, f) for f in SPEC_FIELDS}
+        want = {f: self.env_spec_data[f] for f in SPEC_FIELDS}
+        bad = [f"{f} {want[f]} (env has {have[f]})" for f in SPEC_FIELDS if have[f] != want[f]]
+        if bad:
+            raise BundleError(f"{self.path}: the bundle was trained on {', '.join(bad)}; fix: serve it with "
+                              "the env id and env_kwargs in its manifest")
+
+
+def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
+    """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded back."""
+    from learning.config import build_config
+
+    run_dir, out = Path(run_dir), Path(out)
+    cfg_file, final = run_dir / "config.json", run_dir / "final"
+    if not cfg_file.is_file():
+        raise BundleError(f"{cfg_file} is missing: pass a run directory made by `hammer train` or `hammer up`")
+    cfg = build_config(json.loads(cfg_file.read_text()))
+    files = [LOCAL, *([CENTRAL] if cfg.wiring.has_central_network else [])]
+    for name in files:
+        if not (final / name).is_file():
+            raise BundleError(f"{final / name} is missing: the run has not finished (final/ is written at its end); "
+                              "fix: export a finished run")
+    if out.exists() and not force:
+        raise BundleError(f"{out} exists; fix: choose another --out or pass --force to replace it")
+    env_spec = _env_spec(run_dir, cfg)
+    check_local_weights(_weight_shapes(final / LOCAL), cfg.wiring.local_input_dim(env_spec["obs_dim"]), env_spec,
+                        str(final / LOCAL))
+    summary = _read_json(run_dir / "summary.json")
+    runtime = _read_json(run_dir / "runtime.json")
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for name in files:
+        shutil.copyfile(final / name, tmp / name)
+    w = cfg.wiring
+    manifest = {
+        "bundle_format": BUNDLE_FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "created_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "env": {"id": cfg.env, "kwargs": cfg.env_kwargs or {}},
+        "env_spec": env_spec,
+        "variant": cfg.variant,
+        "central_mode": cfg.central_mode if w.has_central_network else None,
+        "msg_dim": w.msg_dim,
+        "local_input_dim": w.local_input_dim(env_spec["obs_dim"]),
+        "fallback": {"mode": runtime.get("fallback", "zeros"), "k": runtime.get("fallback_k", 3)},
+        "source": {"run": run_dir.name, "path": str(run_dir.resolve()), "seed": cfg.seed,
+                   "episodes": summary.get("episodes"),
+                   "final_paper_metric_last500": summary.get("final_paper_metric_last500")},
+        "config": cfg.model_dump(mode="json"),
+        "files": {name: sha256(tmp / name) for name in files},
+    }
+    (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    return load_bundle(out)
+
+
+def _read_json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _env_spec(run_dir: Path, cfg) -> dict:
+    """env_spec.json of a `hammer up` run; a `hammer train` run has none, so the env is built once."""
+    from dataclasses import asdict
+
+    d = _read_json(run_dir / "env_spec.json")
+    if not d:
+        from envs.registry import make_vec_env
+
+        env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+        d = asdict(env.spec)
+        env.close()
+    d["agent_ids"] = list(d["agent_ids"])
+    return d
+
+
+def load_bundle(path: Path) -> Bundle:
+    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims."""
+    path = Path(path)
+    mf = path / MANIFEST
+    if not mf.is_file():
+        raise BundleError(f"{mf} is missing: pass a directory made by `hammer export RUN --out BUNDLE`")
+    try:
+        m = json.loads(mf.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BundleError(f"{mf}: not valid JSON ({e}); fix: export the bundle again") from None
+    if not isinstance(m, dict):
+        raise BundleError(f"{mf}: expected a JSON object; fix: export the bundle again")
+    fmt = m.get("bundle_format")
+    if not isinstance(fmt, int) or fmt < 1:
+        raise BundleError(f"{mf}: bundle_format {fmt!r} is not a format number; fix: export the bundle again")
+    if fmt > BUNDLE_FORMAT:
+        raise BundleError(f"{mf}: bundle_format {fmt} is newer than this hammer reads ({BUNDLE_FORMAT}); "
+                          "fix: upgrade hammer on this machine")
+    if m.get("schema_version") != SCHEMA_VERSION:
+        raise BundleError(f"{mf}: schema_version {m.get('schema_version')!r}, this hammer speaks {SCHEMA_VERSION}; "
+                          "fix: run a hammer of the same wire schema, or export the team again")
+    missing = [k for k in ("env_spec", "config", "files", "variant", "msg_dim", "local_input_dim") if k not in m]
+    if missing:
+        raise BundleError(f"{mf}: no {', '.join(missing)}; fix: export the bundle again")
+    files = m["files"]
+    if LOCAL not in files or (m.get("central_mode") is not None and CENTRAL not in files):
+        raise BundleError(f"{mf}: files lacks the policy this variant needs; fix: export the bundle again")
+    for name, digest in files.items():
+        f = path / name
+        if Path(name).name != name or not f.is_file():
+            raise BundleError(f"{path}: {name} is missing; fix: copy the whole bundle directory")
+        if sha256(f) != digest:
+            raise BundleError(f"{f}: sha256 differs from the manifest (corrupted or changed); "
+                              "fix: copy the bundle again or export it again")
+    try:
+        shapes = _weight_shapes(path / LOCAL)
+    except Exception as e:  # noqa: BLE001 - a malformed header: say so in one line
+        raise BundleError(f"{path / LOCAL}: not a safetensors file ({e})") from None
+    try:
+        wiring = Bundle(path, m).config().wiring
+    except ValueError as e:
+        raise BundleError(f"{mf}: config: {' '.join(str(e).split())[:300]}; fix: export the bundle again") from None
+    check_local_weights(shapes, wiring.local_input_dim(int(m["env_spec"]["obs_dim"])), m["env_spec"], str(path / LOCAL))
+    return Bundle(path, m)
+
+
+def is_bundle(path: Path) -> bool:
+    return (Path(path) / MANIFEST).is_file()

@@ -1,0 +1,209 @@
+"""`hammer export` and `hammer serve`: a trained team out of its run directory, and back into the runtime.
+
+export writes a bundle (serve/bundle.py); serve runs it as `hammer up` does (same processes, same
+dashboard, same run directory) with the learner replaced by the frozen-policy server
+(serve/policy_server.py): env host, central agent, local agents, no learning.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _fail(msg: str, code: int = 2) -> None:
+    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("export")(export_command)
+    app.command("serve")(serve_command)
+    app.command("push")(push_command)
+    app.command("rollback")(rollback_command)
+    app.command("play")(play_command)
+
+
+def export_command(
+    run: Annotated[Path, typer.Argument(help="A finished run directory (`hammer train` or `hammer up`): its final/ policy.")],
+    out: Annotated[Path, typer.Option(help="The bundle directory to write (manifest.json + safetensors).")],
+    force: Annotated[bool, typer.Option(help="Replace an existing bundle at --out.")] = False,
+) -> None:
+    """Write a self-contained bundle of a trained team: the weights (safetensors) and a manifest (env, spaces,
+    variant, message length, fallback, source run and its final metric, sha256 of every file).
+
+    `hammer serve BUNDLE` runs it; `hammer local --bundle BUNDLE` joins a run with it on an edge machine."""
+    from serve.bundle import BundleError, export_bundle
+
+    try:
+        b = export_bundle(run, out, force=force)
+    except (BundleError, ValueError) as e:
+        _fail(str(e))
+    m = b.manifest
+    metric = m["source"]["final_paper_metric_last500"]
+    typer.echo(f"bundle {out}: {m['env']['id']} N={m['env_spec']['n_agents']} {m['variant']}"
+               f"{'/' + m['central_mode'] if m['central_mode'] else ''}, message length {m['msg_dim']}, "
+               f"final metric {'-' if metric is None else f'{metric:.3f}'}, files {', '.join(m['files'])}")
+
+
+def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_seed: int = 0,
+                   chaos: list[str] | None = None, runtime: list[str] | None = None):
+    """RuntimeSettings of a served bundle: eval mode, its policy, its fallback, faults, chaos, --runtime items.
+    Raises ValueError with a one-line reason."""
+    import yaml
+
+    from deploy.settings import RuntimeSettings
+    from faults.chaos import parse_chaos
+    from faults.spec import build_plan
+
+    plan = build_plan(fault, fault_seed)
+    for c in chaos or []:
+        parse_chaos(c)
+    fb = bundle.manifest.get("fallback", {})
+    rt = {"run_id": run_id.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(bundle.policy_dir),
+          "fallback": fb.get("mode", "zeros"), "fallback_k": fb.get("k", 3), "chaos": chaos or []}
+    if plan.links:
+        rt.update(faults=plan.to_spec(), fault_links=[lf.model_dump() for lf in plan.links])
+    for item in runtime or []:
+        key, eq, val = item.partition("=")
+        if not eq:
+            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
+        rt[key.strip()] = yaml.safe_load(val)
+    try:
+        return RuntimeSettings.model_validate(rt), plan
+    except Exception as e:  # noqa: BLE001 - pydantic's multi-line report, in one line
+        raise ValueError(f"--runtime: {' '.join(str(e).split())}") from None
+
+
+def serve_command(
+    bundle: Annotated[Path, typer.Argument(help="A bundle made by `hammer export`.")],
+    episodes: Annotated[int, typer.Option(help="Episodes to run.")] = 100,
+    seed: Annotated[int | None, typer.Option(
+        help="Seed of env resets and the agents' sampling (default: the team's training seed, which edge agents "
+             "started from the bundle use too).")] = None,
+    fault: Annotated[list[str] | None, typer.Option(
+        "--fault", help="Link fault, repeatable: LINK:FIELD=VALUE,... e.g. 'central->local:drop=0.2'.")] = None,
+    fault_seed: Annotated[int, typer.Option(help="Seed of the link faults.")] = 0,
+    chaos: Annotated[list[str] | None, typer.Option(
+        "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S], e.g. 'kill:central@step=200'.")] = None,
+    runtime: Annotated[list[str] | None, typer.Option(
+        "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447.")] = None,
+    external: Annotated[str | None, typer.Option(
+        help="Agents started elsewhere (`hammer local --bundle`), e.g. 0,2: not launched here; the run waits for them.")] = None,
+    out: Annotated[Path, typer.Option(help="Root directory for run directories.")] = Path("runs"),
+    run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/serve-<bundle>-<time>).")] = None,
+    dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
+) -> None:
+    """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
+    local agents and the policy server, with the dashboard and run directory of `hammer up`."""
+    from rich.console import Console
+
+    from deploy.cli import _run_up
+    from serve.bundle import BundleError, load_bundle
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    console = Console(stderr=True)
+    try:
+        b = load_bundle(bundle)
+        cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
+        _check_env(b, cfg)
+        skip = _agents(external, cfg.n_agents)
+        path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, runtime)
+        if skip and settings.hub_port == 0 and not settings.zenoh_config_file:  # the agents need the port now
+            from protocol.session import free_loopback_port
+
+            settings = settings.model_copy(update={"hub_port": free_loopback_port()})
+    except (BundleError, ValueError) as e:
+        _fail(str(e))
+    console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}) -> {path}")
+    for lf in plan.links:
+        console.print(f"fault: {lf.describe()} (seed {plan.seed})")
+    if skip:
+        console.print(f"waiting for external agents {', '.join(map(str, skip))}: hammer local --bundle {bundle} "
+                      f"--agent I --run-id {settings.run_id} --connect tcp/<this host>:{settings.hub_port or '<port>'}")
+    _run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
+
+
+def _check_env(bundle, cfg) -> None:
+    """The env this machine builds from the manifest must have the dims the weights were trained on
+    (an env library of another version may not)."""
+    from envs.registry import make_vec_env
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    try:
+        bundle.check_env(env.spec)
+    finally:
+        env.close()
+
+
+def _agents(text: str | None, n: int) -> list[int]:
+    if not text:
+        return []
+    try:
+        out = sorted({int(x) for x in text.split(",") if x.strip()})
+    except ValueError:
+        raise ValueError(f"--external {text!r}: expected agent indices, e.g. 0,2") from None
+    if any(not 0 <= i < n for i in out):
+        raise ValueError(f"--external {text!r}: this team has agents 0..{n - 1}")
+    return out
+
+
+def push_command(
+    bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
+    to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve`.")],
+) -> None:
+    """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
+    same step boundary (the first step that names it). The dashboard shows the version per role."""
+    from serve.bundle import BundleError
+    from serve.push import push
+
+    try:
+        e = push(bundle, to)
+    except (BundleError, ValueError, OSError) as err:
+        _fail(str(err))
+    typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
+               "previous one)")
+
+
+def rollback_command(
+    run: Annotated[Path, typer.Argument(help="The run directory of a running `hammer serve`.")],
+) -> None:
+    """Return a served team to the policy in effect before its latest push (served as a new version)."""
+    from serve.bundle import BundleError
+    from serve.push import rollback
+
+    try:
+        e = rollback(run)
+    except (BundleError, ValueError, OSError) as err:
+        _fail(str(err))
+    typer.echo(f"rolled back {run}: version {e['version']} serves the policy of version {e['restores_version']} "
+               f"({e['policy_dir']})")
+
+
+def play_command(
+    bundle: Annotated[Path, typer.Argument(help="A bundle made by `hammer export`.")],
+    out: Annotated[Path, typer.Option(help="The GIF to write.")] = Path("team.gif"),
+    episodes: Annotated[int, typer.Option(min=1, help="Episodes to render.")] = 3,
+    seed: Annotated[int | None, typer.Option(help="Seed of resets and sampling (default: the team's).")] = None,
+    max_steps: Annotated[int, typer.Option(min=1, help="At most this many steps per episode (multiwalker runs 500).")] = 200,
+    fps: Annotated[float, typer.Option(min=1, help="Frames per second of the GIF.")] = 8.0,
+) -> None:
+    """Watch a trained team: a few episodes drawn by the environment's own renderer (mpe2, multiwalker),
+    each agent's message beside the frame. Needs the training install."""
+    import os
+
+    from serve.bundle import BundleError, load_bundle
+    from serve.play import PlayError, play
+
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
+    try:
+        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps)
+    except (BundleError, PlayError) as e:
+        _fail(str(e))
+    typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "
+               f"paper metric per episode {', '.join(f'{x:.2f}' for x in r['paper_metric'])}")

@@ -1,0 +1,135 @@
+"""`hammer play BUNDLE --out team.gif`: watch a trained team, with the messages it sends.
+
+Runs a few episodes in this process with the bundle's frozen weights and the acting code the
+runtime uses (numpy forwards: `local_agent.client.LocalAgent`, `learning.central_acting.CentralActing`,
+the same random streams), on the PettingZoo env behind the bundle's env id (cooperative navigation:
+mpe2 simple_spread; multiwalker: SISL) created with render_mode="rgb_array", so the picture is the
+environment's own renderer. Beside each frame a panel shows every agent's message vector at that
+step, so a person sees what the team does and how the messages change. Writes a GIF (Pillow).
+Needs the training install (PettingZoo, matplotlib).
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import numpy as np
+
+# The bundle's env id -> the PettingZoo catalog entry that renders it, and how its kwargs are named there.
+RENDERED = {"cn": ("cn-mpe2", {"max_steps": "max_cycles", "local_ratio": "local_ratio"}),
+            "cn-mpe2": ("cn-mpe2", None), "mw": ("mw-pettingzoo", None), "mw-pettingzoo": ("mw-pettingzoo", None)}
+
+
+class PlayError(ValueError):
+    """The team cannot be played; the message says why and what to do."""
+
+
+def render_env(env_id: str, n_agents: int, env_kwargs: dict):
+    """The PettingZoo parallel env of `env_id`, rendering rgb_array frames."""
+    from envs.catalog import _PETTINGZOO
+
+    if env_id not in RENDERED:
+        raise PlayError(f"env {env_id!r}: play renders {', '.join(RENDERED)}; fix: export a team of one of those")
+    name, rename = RENDERED[env_id]
+    kwargs = dict(env_kwargs)
+    if rename is not None:
+        unknown = sorted(set(kwargs) - set(rename))
+        if unknown:
+            raise PlayError(f"env_kwargs {', '.join(unknown)}: mpe2's renderer has no such option; fix: play a team "
+                            "trained with the default observations")
+        kwargs = {rename[k]: v for k, v in kwargs.items()}
+    e = _PETTINGZOO[name]
+    factory = getattr(importlib.import_module(e.module), e.factory)
+    return factory(**{**e.defaults, e.n_key: n_agents, **kwargs, "render_mode": "rgb_array"})
+
+
+def message_panel(msgs: np.ndarray, height: int, step: int, reward: float) -> np.ndarray:
+    """(H, W, 3) uint8: one bar group per agent, its message components in [-1, 1]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n, m = msgs.shape
+    fig, ax = plt.subplots(figsize=(height / 100 * 0.8, height / 100), dpi=100)
+    width = 0.8 / max(m, 1)
+    for j in range(m):
+        ax.bar(np.arange(n) + (j - (m - 1) / 2) * width, msgs[:, j], width, label=f"u[{j}]")
+    ax.set_ylim(-1.05, 1.05)
+    ax.axhline(0, color="black", linewidth=0.6)
+    ax.set_xticks(range(n), [f"agent {i}" for i in range(n)])
+    ax.set_title(f"messages, step {step}\nstep reward {reward:+.2f}", fontsize=9)
+    if m:
+        ax.legend(fontsize=7, loc="lower right")
+    else:
+        ax.text(0.5, 0.5, "no messages (variant without them)", ha="center", transform=ax.transAxes)
+    fig.tight_layout()
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    return img
+
+
+def _side_by_side(frame: np.ndarray, panel: np.ndarray) -> np.ndarray:
+    h = max(frame.shape[0], panel.shape[0])
+    pad = [np.pad(a, ((0, h - a.shape[0]), (0, 0), (0, 0)), constant_values=255) for a in (frame, panel)]
+    return np.concatenate(pad, axis=1).astype(np.uint8)
+
+
+def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
+         fps: float = 8.0) -> dict:
+    """Render `episodes` episodes of the bundle's team into the GIF `out`; returns what was played."""
+    from PIL import Image
+    from safetensors.numpy import load as load_safetensors
+
+    from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
+    from learning.numpy_policy import NumpyCentralAgent
+    from learning.sampling import ActingStreams
+    from local_agent.client import AgentSpec, LocalAgent
+
+    if Path(out).suffix.lower() != ".gif":
+        raise PlayError(f"--out {out}: play writes a GIF; fix: name it *.gif")
+    cfg = bundle.config(msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
+    spec, w = bundle.env_spec(), cfg.wiring
+    env = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
+    local_blob = (bundle.path / "local.safetensors").read_bytes()
+    agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
+    for a in agents:
+        a.load_weights(local_blob, 0)
+    acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
+    net = (NumpyCentralAgent(load_safetensors((bundle.path / "central.safetensors").read_bytes()))
+           if w.has_central_network else None)
+    frames, returns = [], []
+    try:
+        for ep in range(episodes):
+            obs_d, _ = env.reset(seed=cfg.seed + ep)
+            prev, ret, t = zero_prev_actions(spec, 1), 0.0, 0
+            while env.agents and t < max_steps:
+                t += 1
+                present = np.array([[aid in obs_d for aid in spec.agent_ids]])
+                obs = np.stack([np.asarray(obs_d.get(aid, np.zeros(spec.obs_dim)), np.float32)
+                                for aid in spec.agent_ids])[None]
+                msgs = acting.messages(acting.global_state(obs, prev), streams, 0.0,
+                                       net.message_mean if net is not None else None,
+                                       net.values if net is not None and acting.rl else None).sent
+                joint = obs.reshape(1, -1)
+                acts = [a.act(joint if w.joint_obs else obs[:, i], msgs[:, i] if w.msg_dim else None)[0]
+                        for i, a in enumerate(agents)]
+                act_arr = np.array(acts)[None]
+                frame = env.render()
+                step = {aid: (int(acts[i]) if spec.discrete else np.clip(acts[i], spec.action_low, spec.action_high))
+                        for i, aid in enumerate(spec.agent_ids) if aid in env.agents}
+                obs_d, rew, _, _, _ = env.step(step)
+                r = float(np.mean(list(rew.values()))) if rew else 0.0
+                ret += r
+                frames.append(_side_by_side(frame, message_panel(msgs[0], frame.shape[0], t, r)))
+                prev = encode_actions(spec, act_arr, present)
+            returns.append(ret)
+    finally:
+        env.close()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    imgs = [Image.fromarray(f) for f in frames]
+    imgs[0].save(out, save_all=True, append_images=imgs[1:], duration=int(1000 / fps), loop=0, optimize=False)
+    return {"frames": len(frames), "episodes": episodes, "paper_metric": returns, "size": imgs[0].size}

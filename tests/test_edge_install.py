@@ -1,0 +1,66 @@
+"""The edge install: a fresh venv with only the base distribution (no torch, PettingZoo, matplotlib) runs
+`hammer local --bundle` inside a real served run on 127.0.0.1, and the CLI names the extra a training
+command needs. Builds the venv with pip (the project with --no-deps, then its base dependencies)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from deploy.up import launch
+from learning.config import merge_config
+from learning.rundir import RunDir
+from learning.trainer import train
+from protocol.session import free_loopback_port
+from serve.bundle import export_bundle
+from serve.cli import serve_settings
+from tests.runtime_helpers import ROOT
+
+pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
+
+
+def _edge_venv(path) -> str:
+    subprocess.run([sys.executable, "-m", "venv", str(path)], check=True, timeout=60)
+    py = str(path / "bin" / "python")
+    base = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    pip = [py, "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, "--no-deps", str(ROOT)], check=True, timeout=120, capture_output=True)
+    subprocess.run([*pip, *base], check=True, timeout=120, capture_output=True)
+    return py
+
+
+def test_an_edge_only_install_serves_in_a_real_run(tmp_path):
+    py = _edge_venv(tmp_path / "venv")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # the venv's install, not this checkout
+    probe = "import importlib.util as u; print([m for m in ('torch', 'pettingzoo', 'matplotlib', 'mpe2', 'scipy') if u.find_spec(m)])"
+    missing = subprocess.run([py, "-c", probe],
+                             capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
+    assert missing.stdout.strip() == "[]"
+    hammer = str(tmp_path / "venv" / "bin" / "hammer")
+    assert subprocess.run([hammer, "--help"], check=False, capture_output=True, env=env, cwd=tmp_path).returncode == 0
+    r = subprocess.run([hammer, "train", "--episodes", "1"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer[train]'" in r.stderr
+
+    run = tmp_path / "run"
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=24", "seed=2"])
+    train(cfg, RunDir.create(run, cfg), tensorboard=False)
+    bundle = export_bundle(run, tmp_path / "bundle")
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "edge-venv", runtime=[f"hub_port={port}"])
+    edge = subprocess.Popen([hammer, "local", "--bundle", str(bundle.path), "--agent", "2", "--run-id", "edge-venv",
+                             "--connect", f"tcp/127.0.0.1:{port}"], env=env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        res = launch(bundle.config(episodes=16, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(2,))
+        out, _ = edge.communicate(timeout=30)
+    finally:
+        if edge.poll() is None:
+            edge.kill()
+    assert res.summary["completed"] and res.summary["episodes"] == 16
+    assert edge.returncode == 0, out
+    assert "'steps': 50," in out and "'weights_loaded': 1" in out  # 16 episodes on 8 copies: 2 x 25 steps
+    assert res.links["local->env"]["defaults"] == 0  # every action of agent 2 came from the edge venv in time

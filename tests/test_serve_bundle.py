@@ -1,0 +1,151 @@
+"""Bundles of trained teams (serve/bundle.py): export from a real run, every check a loader makes, and a
+served run an edge agent joins from the bundle alone (real processes, real Zenoh on 127.0.0.1)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from deploy.up import launch
+from envs.registry import make_vec_env
+from hammer.cli import app
+from learning.config import merge_config
+from learning.rundir import RunDir
+from learning.trainer import train
+from protocol.session import free_loopback_port
+from serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle
+from serve.cli import serve_settings
+from tests.runtime_helpers import ENV, ROOT
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A short real cn3 HAMMER (rl mode) training run: final/ has a local and a central policy."""
+    d = tmp_path_factory.mktemp("team") / "run"
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
+                                         "episodes=48", "seed=4"])
+    train(cfg, RunDir.create(d, cfg), tensorboard=False)
+    return d
+
+
+def _copy(bundle, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(bundle, dst)
+    return dst
+
+
+def test_export_writes_a_checked_bundle(trained, tmp_path):
+    b = export_bundle(trained, tmp_path / "b")
+    m = b.manifest
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["central.safetensors", "local.safetensors",
+                                                                  "manifest.json"]
+    assert m["bundle_format"] == BUNDLE_FORMAT and m["variant"] == "hammer" and m["central_mode"] == "rl"
+    assert m["env"]["id"] == "cn" and m["env_spec"]["obs_dim"] == 18 and m["msg_dim"] == 4
+    assert m["source"]["run"] == "run" and m["source"]["episodes"] == 48
+    summary = json.loads((trained / "summary.json").read_text())
+    assert m["source"]["final_paper_metric_last500"] == summary["final_paper_metric_last500"]
+    assert b.config().seed == 4 and b.env_spec().n_agents == 3
+    with pytest.raises(BundleError, match="exists"):
+        export_bundle(trained, tmp_path / "b")
+
+
+def test_a_corrupted_file_fails_on_its_hash(trained, tmp_path):
+    b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
+    data = bytearray((b / "central.safetensors").read_bytes())
+    data[-1] ^= 0x01  # one bit of one weight
+    (b / "central.safetensors").write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="central.safetensors: sha256 differs"):
+        load_bundle(b)
+
+
+def test_a_newer_format_or_wire_schema_fails(trained, tmp_path):
+    b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
+    m = json.loads((b / "manifest.json").read_text())
+    (b / "manifest.json").write_text(json.dumps({**m, "bundle_format": BUNDLE_FORMAT + 1}))
+    with pytest.raises(BundleError, match="newer than this hammer reads"):
+        load_bundle(b)
+    (b / "manifest.json").write_text(json.dumps({**m, "schema_version": 999}))
+    with pytest.raises(BundleError, match="schema_version 999"):
+        load_bundle(b)
+
+
+def test_weights_that_do_not_fit_the_env_fail(trained, tmp_path):
+    b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
+    m = json.loads((b / "manifest.json").read_text())
+    m["env_spec"]["obs_dim"] = 26  # what cn5 observes: the first layer takes 22 inputs
+    (b / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match="takes 22 inputs"):
+        load_bundle(b)
+    env = make_vec_env("cn", 5, 1)
+    try:
+        with pytest.raises(BundleError, match="n_agents 3 \\(env has 5\\)"):
+            load_bundle(tmp_path / "b").check_env(env.spec)
+    finally:
+        env.close()
+
+
+def test_cli_export_and_serve_errors_are_one_line(trained, tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(app, ["export", str(trained), "--out", str(tmp_path / "b")])
+    assert r.exit_code == 0, r.output
+    assert "message length 4" in r.output
+    r = runner.invoke(app, ["export", str(tmp_path / "nowhere"), "--out", str(tmp_path / "c")])
+    assert r.exit_code == 2 and r.output.count("\n") == 1 and "error:" in r.output and "config.json" in r.output
+    (tmp_path / "b" / "local.safetensors").write_bytes(b"x")
+    r = runner.invoke(app, ["serve", str(tmp_path / "b"), "--episodes", "4"])
+    assert r.exit_code == 2 and r.output.count("\n") == 1 and "sha256 differs" in r.output
+
+
+def _metrics(run_dir):
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
+
+
+def test_an_edge_agent_from_the_bundle_joins_a_served_run(trained, tmp_path):
+    """The same served run twice: every role launched, then local-1 started by hand from the bundle alone
+    (no run directory): both complete with the same episodes, so the edge agent acted exactly as the
+    launched one did."""
+    bundle = export_bundle(trained, tmp_path / "b")
+    cfg = bundle.config(episodes=8, msg_dropout=0.0)
+    settings, _ = serve_settings(bundle, "served-all")
+    launch(cfg, settings, tmp_path / "all")
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "served-edge", runtime=[f"hub_port={port}"])
+    edge = subprocess.Popen([sys.executable, "-m", "hammer.cli", "local", "--bundle", str(bundle.path), "--agent", "1",
+                             "--run-id", "served-edge", "--connect", f"tcp/127.0.0.1:{port}"],
+                            cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        res = launch(cfg, settings, tmp_path / "edge", external_agents=(1,))
+        out, _ = edge.communicate(timeout=30)
+    finally:
+        if edge.poll() is None:
+            edge.kill()
+    assert res.summary["completed"] and edge.returncode == 0, out
+    assert "'steps': 25," in out and "'weights_loaded': 1" in out  # 8 copies x 1 episode of 25 steps, one policy
+    assert _metrics(tmp_path / "edge") == _metrics(tmp_path / "all")
+
+
+def test_play_renders_the_team_with_its_messages(trained, tmp_path, monkeypatch):
+    from PIL import Image, ImageSequence
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    export_bundle(trained, tmp_path / "b")
+    runner = CliRunner()
+    r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(tmp_path / "team.gif"), "--episodes", "1",
+                            "--max-steps", "6"])
+    assert r.exit_code == 0, r.output
+    frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(tmp_path / "team.gif"))]
+    assert len(frames) == 6 and frames[0].shape[1] > frames[0].shape[0]  # the env's frame with the panel beside it
+    half = frames[0].shape[1] * 2 // 3
+    assert not np.array_equal(frames[0][:, half:], frames[3][:, half:])  # the messages panel changes
+    r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(tmp_path / "team.mp4")])
+    assert r.exit_code == 2 and "error:" in r.output and "GIF" in r.output
