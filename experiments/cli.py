@@ -146,18 +146,44 @@ def report(
     best_window: Annotated[int | None, typer.Option(
         help="Rank each run by its best rolling mean over this many episodes instead of its final mean: "
              "how high it got, not where it ended (runs that learn and then fall back differ).", min=1)] = None,
+    comparisons: Annotated[str | None, typer.Option(
+        help="The study's declared comparisons as A:B pairs, e.g. 'hammer-rl:il,random:il' (hammer-rl "
+             "names hammer-rl-m4 at any message length); Holm's correction runs over exactly these. "
+             "Default: every variant against il.")] = None,
+    plan: Annotated[Path | None, typer.Option(
+        help="Read the comparisons from a pre-registered plan's `comparisons:` line "
+             "(docs/results/plan-*.md) instead of --comparisons.", exists=True, dir_okay=False)] = None,
 ) -> None:
-    """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL.
+    """Table of final performance: mean ± standard error, IQM with a bootstrap CI, team return,
+    Welch's t-test vs IL; then the declared comparisons with probability of improvement and
+    Holm-corrected p-values (experiments/stats.py).
 
     One row per setting and variant. A setting is the env and N plus every config field the runs
     changed from their paper preset (e.g. `cn N=3 (lr_local=0.0001)`): runs are pooled as seeds
     only when nothing but the seed differs, and IL is compared within the same setting.
     """
-    from experiments.report import build_rows, to_markdown
+    from experiments.report import (
+        build_comparisons,
+        build_rows,
+        comparisons_from_plan,
+        default_comparisons,
+        parse_comparisons,
+        to_markdown,
+    )
 
+    if plan is not None and comparisons is not None:
+        _fail("--plan and --comparisons both declare the comparisons: give one")
     loaded = _load(runs)
     try:
-        md = to_markdown(build_rows(loaded, last, best_window), last, best_window)
+        rows = build_rows(loaded, last, best_window)
+        if plan is not None:
+            pairs = comparisons_from_plan(plan)
+        elif comparisons is not None:
+            pairs = parse_comparisons(comparisons)
+        else:
+            pairs = default_comparisons(rows)
+        comps = build_comparisons(rows, pairs) if pairs else []
+        md = to_markdown(rows, last, best_window, comps)
     except ValueError as e:
         _fail(str(e))
     typer.echo(md)
