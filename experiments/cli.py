@@ -129,11 +129,16 @@ def plot(
     runs: Annotated[list[Path], typer.Argument(help="Run directories or folders holding them.")],
     out: Annotated[Path, typer.Option(help="Output path without extension; writes .png and .svg.")] = Path("curves"),
     window: Annotated[int, typer.Option(help="Rolling-mean window in episodes.")] = 500,
+    band: Annotated[str, typer.Option(
+        help="se: mean over seeds with a standard-error band; iqm: interquartile mean over seeds with a "
+             "95 % stratified-bootstrap CI (robust to one outlying seed).")] = "se",
 ) -> None:
-    """Learning curves: paper metric vs episodes, mean over seeds with a standard-error band."""
-    from experiments.plot import plot_runs
+    """Learning curves: paper metric vs episodes, one line per variant, a band over seeds."""
+    from experiments.plot import BANDS, plot_runs
 
-    for p in plot_runs(_load(runs), out, window=window):
+    if band not in BANDS:
+        _fail(f"--band must be one of {', '.join(BANDS)}, got {band!r}")
+    for p in plot_runs(_load(runs), out, window=window, band=band):
         typer.echo(f"wrote {p}")
 
 

@@ -4,9 +4,23 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from experiments.report import build_comparisons, build_rows, comparisons_from_plan, parse_comparisons, to_markdown
+from experiments.report import (
+    build_comparisons,
+    build_rows,
+    comparisons_from_plan,
+    parse_comparisons,
+    to_markdown,
+)
 from experiments.runs import find_runs, load_run
-from experiments.stats import holm, iqm, iqm_band, iqm_ci, iqm_difference_ci, poi_ci, probability_of_improvement
+from experiments.stats import (
+    holm,
+    iqm,
+    iqm_band,
+    iqm_ci,
+    iqm_difference_ci,
+    poi_ci,
+    probability_of_improvement,
+)
 from tests.test_experiments_report import runs_dir  # noqa: F401  (the fixture)
 
 
@@ -61,3 +75,19 @@ def test_report_lists_declared_comparisons_with_holm(runs_dir, tmp_path):  # noq
     assert comparisons_from_plan(plan) == [("hammer-rl", "il"), ("random", "il")]
     with pytest.raises(ValueError, match="A:B"):
         parse_comparisons("hammer-rl il")
+
+
+def test_iqm_band_plot_centres_on_the_seed_iqm(runs_dir, tmp_path):  # noqa: F811
+    from experiments.plot import plot_runs, seed_band
+    from experiments.runs import rolling_mean
+
+    runs = [load_run(p) for p in find_runs([runs_dir]) if "il-" in p.name]
+    _x, centre, lo, hi = seed_band(runs, 100, "iqm")
+    curves = np.stack([rolling_mean(r.paper_metric, 100) for r in runs])
+    np.testing.assert_allclose(centre, iqm(curves, axis=0))
+    assert np.all(lo <= centre + 1e-12) and np.all(centre <= hi + 1e-12) and np.any(hi > lo)
+    out = plot_runs(runs, tmp_path / "c", window=100, band="iqm")
+    assert [p.read_bytes() for p in plot_runs(runs, tmp_path / "d", window=100, band="iqm")] == [
+        p.read_bytes() for p in out]
+    with pytest.raises(ValueError, match="band"):
+        seed_band(runs, 100, "median")
