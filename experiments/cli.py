@@ -151,6 +151,9 @@ def report(
     best_window: Annotated[int | None, typer.Option(
         help="Rank each run by its best rolling mean over this many episodes instead of its final mean: "
              "how high it got, not where it ended (runs that learn and then fall back differ).", min=1)] = None,
+    auc: Annotated[int | None, typer.Option(
+        help="Rank each run by its area under the learning curve: the mean paper metric over its first N "
+             "episodes (\"learns faster\"), instead of its final mean.", min=1)] = None,
     comparisons: Annotated[str | None, typer.Option(
         help="The study's declared comparisons as A:B pairs, e.g. 'hammer-rl:il,random:il' (hammer-rl "
              "names hammer-rl-m4 at any message length); Holm's correction runs over exactly these. "
@@ -180,7 +183,7 @@ def report(
         _fail("--plan and --comparisons both declare the comparisons: give one")
     loaded = _load(runs)
     try:
-        rows = build_rows(loaded, last, best_window)
+        rows = build_rows(loaded, last, best_window, auc)
         if plan is not None:
             pairs = comparisons_from_plan(plan)
         elif comparisons is not None:
@@ -188,7 +191,7 @@ def report(
         else:
             pairs = default_comparisons(rows)
         comps = build_comparisons(rows, pairs) if pairs else []
-        md = to_markdown(rows, last, best_window, comps)
+        md = to_markdown(rows, last, best_window, comps, auc)
     except ValueError as e:
         _fail(str(e))
     typer.echo(md)

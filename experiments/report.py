@@ -71,10 +71,26 @@ def sem(x: np.ndarray) -> float:
     return float(np.std(x, ddof=1) / np.sqrt(len(x))) if len(x) > 1 else float("nan")
 
 
-def build_rows(runs: list[Run], last: int = 500, best_window: int | None = None) -> list[Row]:
+def area_under_curve(run: Run, episodes: int) -> float:
+    """Mean paper metric over the run's first `episodes` episodes (in the order they finished): the
+    area under its raw learning curve up to that point divided by its width, so higher = better
+    sooner. The plans' measure of "learns faster" (docs/results/plan-dose-response.md)."""
+    m = _episodes(run)
+    if len(m) < episodes:
+        raise ValueError(f"{run.path} has {len(m)} episodes, fewer than the AUC's {episodes}")
+    return float(np.mean(m[:episodes]))
+
+
+def build_rows(runs: list[Run], last: int = 500, best_window: int | None = None,
+               auc: int | None = None) -> list[Row]:
     """One row per (setting, variant). Each run counts with its final performance, or with its best
-    rolling-`best_window` mean if that is given."""
+    rolling-`best_window` mean, or with its area under the curve over the first `auc` episodes."""
+    if best_window is not None and auc is not None:
+        raise ValueError("best_window and auc are two different measures: give one")
+
     def value(r: Run) -> float:
+        if auc is not None:
+            return area_under_curve(r, auc)
         return final_performance(r, last) if best_window is None else best_performance(r, best_window)
 
     groups = group_runs(runs)
@@ -86,7 +102,7 @@ def build_rows(runs: list[Run], last: int = 500, best_window: int | None = None)
         il = finals.get((setting, "il"))
         if label.startswith("hammer") and il is not None:
             p = welch_p(x, il)
-        team = float(np.mean([np.mean(r.team_return[-last:]) for r in rs]))
+        team = float(np.mean([np.mean(r.team_return[:auc] if auc else r.team_return[-last:]) for r in rs]))
         q, lo, hi = iqm_ci(x)
         rows.append(Row(setting, label, len(rs), int(min(len(r.paper_metric) for r in rs)),
                         float(np.mean(x)), sem(x), p, [float(v) for v in x], team, q, lo, hi))
@@ -157,8 +173,13 @@ def comparisons_from_plan(path: Path) -> list[tuple[str, str]]:
 
 
 def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
-                comparisons: list[Comparison] | None = None) -> str:
-    if best_window is None:
+                comparisons: list[Comparison] | None = None, auc: int | None = None) -> str:
+    team_window = f"the first {auc} episodes" if auc else f"the last {last} episodes"
+    if auc is not None:
+        col = f"AUC {auc}"
+        what = (f"AUC {auc} = mean paper metric (average reward per local agent per episode) over each seed's "
+                f"first {auc} episodes (area under the learning curve / {auc}; higher = better sooner)")
+    elif best_window is None:
         col = "final"
         what = (f"Final performance = mean paper metric (average reward per local agent per episode) over each "
                 f"seed's last {last} episodes")
@@ -168,7 +189,7 @@ def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
                 f"local agent per episode) over {best_window} episodes, wherever in the run it was")
     out = [
         (f"{what}; mean ± standard error over seeds; IQM = interquartile mean over seeds with a 95 % "
-        "stratified-bootstrap CI; team return = the same window of the summed team reward; "
+        f"stratified-bootstrap CI; team return = mean summed team reward over {team_window}; "
         "p = Welch's t-test against IL in the same setting (uncorrected)."),
         "",
         f"| setting | variant | seeds | episodes | {col} (mean ± s.e.) | IQM [95% CI] | team return | p vs IL |",

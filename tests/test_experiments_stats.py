@@ -91,3 +91,14 @@ def test_iqm_band_plot_centres_on_the_seed_iqm(runs_dir, tmp_path):  # noqa: F81
         p.read_bytes() for p in out]
     with pytest.raises(ValueError, match="band"):
         seed_band(runs, 100, "median")
+
+
+def test_auc_is_the_mean_over_the_first_episodes(runs_dir):  # noqa: F811
+    runs = [load_run(p) for p in find_runs([runs_dir])]
+    rows = {r.label: r for r in build_rows(runs, auc=200)}
+    il = np.array([load_run(runs_dir / f"il-s{s}").paper_metric[:200].mean() for s in range(4)])
+    assert rows["il"].mean == pytest.approx(il.mean())
+    assert rows["il"].team == pytest.approx(3 * il.mean())
+    assert "| AUC 200 (mean ± s.e.) |" in to_markdown(list(rows.values()), 500, auc=200)
+    with pytest.raises(ValueError, match="fewer than"):
+        build_rows(runs, auc=5000)
