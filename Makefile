@@ -87,6 +87,11 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN3_OWNOBS_REP) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
 
+# The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
+# msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
+REANALYSIS_CN = $(A)/cn3 $(wildcard $(A)/cn3-msglen/*msg_dim=1-s*) $(wildcard $(A)/cn3-msglen/*msg_dim=2-s*) \
+	$(wildcard $(A)/cn3-msglen/*msg_dim=8-s*) $(A)/cn5 $(A)/cn3-paperppo $(A)/cn3-ownobs $(A)/cn3-ownobs-rep
+REANALYSIS = $(REANALYSIS_CN) $(A)/mw3 $(A)/mw3-pilot $(A)/mw5-pilot
 paper-report: $(STAMP)
 	-$(H) plot $(A)/cn3 --out docs/results/cn3-curves
 	-$(H) report $(A)/cn3 --out docs/results/cn3-table.md --export docs/results/cn3-runs.json
@@ -107,6 +112,9 @@ paper-report: $(STAMP)
 	-$(H) diagnose $(A)/mw3 --out docs/results/mw3-diagnostics --table docs/results/mw3-diagnostics.md
 	-$(H) plot $(A)/mw5-pilot --out docs/results/mw5-pilot-curves
 	-$(H) report $(A)/mw5-pilot --out docs/results/mw5-pilot-table.md --export docs/results/mw5-pilot-runs.json
+	-$(H) plot $(A)/cn3-ownobs $(A)/cn3-ownobs-rep --band iqm --out docs/results/cn3-ownobs-all-iqm-curves
+	-$(H) report $(REANALYSIS) --plan docs/results/plan-reanalysis.md --out docs/results/reanalysis-table.md
+	-$(H) report $(REANALYSIS_CN) --auc 10000 --comparisons hammer-rl:il --out docs/results/reanalysis-auc-table.md
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds

@@ -115,8 +115,10 @@ def _matches(label: str, name: str) -> bool:
 
 
 def default_comparisons(rows: list[Row]) -> list[tuple[str, str]]:
-    """Every variant against IL: the family today's tables test, as (A, B) label pairs."""
-    return sorted({(r.label, "il") for r in rows if r.label != "il"})
+    """Every variant against IL in each setting that has IL runs, as (A, B) label pairs (none
+    when no setting has IL, e.g. an ablation grid that borrows its IL from another grid)."""
+    with_il = {r.setting for r in rows if r.label == "il"}
+    return sorted({(r.label, "il") for r in rows if r.label != "il" and r.setting in with_il})
 
 
 def build_comparisons(rows: list[Row], pairs: list[tuple[str, str]]) -> list[Comparison]:
