@@ -85,3 +85,22 @@ def local_view_for(env: str, n_agents: int, env_kwargs: dict[str, Any], joint_ob
 def local_view_from_config(cfg) -> LocalView:
     """`local_view_for` from a RunConfig (the fully centralised wiring always sees everything)."""
     return local_view_for(cfg.env, cfg.n_agents, dict(cfg.env_kwargs), joint_obs=cfg.wiring.joint_obs)
+
+
+def spread_hidden_fraction(radius: float, n_agents: int = 3, copies: int = 512, steps: int = 75,
+                           seed: int = 0) -> float:
+    """The fraction of relative-position slots (landmarks and other agents) a radius hides over
+    uniformly random play: the fixed x-axis of the dose-response study
+    (docs/results/plan-dose-response.md), computed without any trained policy."""
+    from envs.spread import VecSimpleSpread
+
+    env = VecSimpleSpread(copies, n_agents=n_agents)
+    obs, _ = env.reset(seed)
+    rng = np.random.default_rng(seed)
+    states = [obs]
+    for _ in range(steps):
+        states.append(env.step(rng.integers(0, 5, (copies, n_agents))).obs)
+    o = np.concatenate(states)
+    pairs = 2 * n_agents - 1
+    rel = o[..., 4:4 + 2 * pairs].reshape(*o.shape[:-1], pairs, 2).astype(np.float64)
+    return float(np.mean(np.square(rel).sum(axis=-1) >= radius * radius))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 
 import numpy as np
@@ -132,3 +133,11 @@ def test_up_with_a_local_view_completes_and_matches_the_trainer(tmp_path):
     up_host = json.loads((up / "summary.json").read_text())["host"]
     assert up_host["torch"] is None  # the env host never loads torch; the learner reports it
     assert json.loads((up / "learner_summary.json").read_text())["host"]["torch"]["cpu_capability"]
+
+
+def test_hidden_fraction_is_the_fixed_x_axis_of_the_plan():
+    from envs.local_view import spread_hidden_fraction
+
+    h = [spread_hidden_fraction(r, copies=64, steps=25) for r in (100.0, 1.5, 1.0, 0.6, 0.3, 0.0)]
+    assert h[0] == 0.0 and h[-1] == 1.0
+    assert all(a < b for a, b in itertools.pairwise(h))  # more hidden as the radius shrinks
