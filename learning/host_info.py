@@ -22,7 +22,8 @@ from typing import Any
 # CPU flags that decide which SIMD kernels the libraries may dispatch to.
 _SIMD_FLAG = re.compile(r"^(sse\d.*|ssse3|avx.*|amx.*|fma.?|f16c|bmi\d|vnni.*)$")
 # Environment variables that change the maths libraries' thread counts or kernel choice.
-_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS",
+_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OPENBLAS_CORETYPE", "MKL_CBWR",
+             "MKL_ENABLE_INSTRUCTIONS",
              "ATEN_CPU_CAPABILITY", "DNNL_MAX_CPU_ISA", "ONEDNN_MAX_CPU_ISA", "DNNL_DEFAULT_FPMATH_MODE",
              "KMP_AFFINITY", "KMP_DETERMINISTIC_REDUCTION", "TORCHINDUCTOR_FREEZING")
 
