@@ -1,4 +1,4 @@
-"""`hammer sweep`, `hammer plot`, `hammer report`, `hammer diagnose`."""
+"""`hammer sweep`, `hammer plot`, `hammer report`, `hammer dose`, `hammer diagnose`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ def register(app: typer.Typer) -> None:
     app.command("sweep")(sweep)
     app.command("plot")(plot)
     app.command("report")(report)
+    app.command("dose")(dose)
     app.command("diagnose")(diagnose)
 
 
@@ -201,6 +202,40 @@ def report(
         from experiments.export import export_runs
 
         export_runs(loaded, export)
+
+
+def dose(
+    runs: Annotated[list[Path], typer.Argument(help="Run directories or folders of the dose-response grid "
+                                               "(cn runs with and without env_kwargs.obs_radius).")],
+    variants: Annotated[str, typer.Option(help="Variants compared with il at each level, comma-separated.")] = (
+        "hammer-rl,hammer-backprop,random"),
+    auc: Annotated[int | None, typer.Option(
+        help="Use the area under the curve over the first N episodes instead of the final value.", min=1)] = None,
+    last: Annotated[int, typer.Option(help="Final value = mean of each run's last N episodes.")] = 500,
+    out: Annotated[Path | None, typer.Option(help="Write <out>.md (table) and <out>.png/.svg (Δ against h).")] = None,
+) -> None:
+    """Dose-response of hidden information (docs/results/plan-dose-response.md): Δ = IQM(variant) −
+    IQM(IL) per obs_radius level with bootstrap CIs, and the slope of Δ on the fraction hidden."""
+    from experiments.dose import cells, dose_levels, dose_slope, plot_dose, to_markdown
+
+    loaded = _load(runs)
+    measure = "final" if auc is None else "auc"
+    try:
+        values = cells(loaded, measure, last=last, auc=auc or 0)
+    except ValueError as e:
+        _fail(str(e))
+    names = [v for v in variants.split(",") if v]
+    levels = [lv for v in names for lv in dose_levels(values, v)]
+    if not levels:
+        _fail(f"no level has runs of both il and one of {', '.join(names)}")
+    slopes = [s for v in names if (s := dose_slope(values, v)) is not None]
+    md = to_markdown(levels, slopes, measure if auc is None else f"AUC {auc}")
+    typer.echo(md)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".md").write_text(md)
+        for p in plot_dose(levels, out):
+            typer.echo(f"wrote {p}")
 
 
 def diagnose(
