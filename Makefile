@@ -8,7 +8,9 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report snapshot status faults-ownobs
+.PHONY: setup up test bench lint clean paper paper-report paper-dose snapshot status faults-ownobs
+# A literal comma for arguments inside $(if ...).
+, := ,
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +50,15 @@ G_CN3_PAPERPPO := --out runs/paper/cn3-paperppo --archive $(A)/cn3-paperppo --pr
 G_CN3_OWNOBS := --out runs/paper/cn3-ownobs --archive $(A)/cn3-ownobs --presets cn3 --variants hammer-rl,hammer-backprop,il,random,centralized --seeds 0-4 --grid env_kwargs.observe_others=false
 # Its replication on five new seeds, archived and reported on its own.
 G_CN3_OWNOBS_REP := --out runs/paper/cn3-ownobs-rep --archive $(A)/cn3-ownobs-rep --presets cn3 --variants hammer-rl,il --seeds 5-9 --grid env_kwargs.observe_others=false
+# The dose-response study (docs/results/plan-dose-response.md, declared before its runs): local agents
+# see only what lies within obs_radius; 300 runs, so its own target, not part of `paper`.
+DOSE_VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
+G_CN3_DOSE := --out runs/paper/cn3-dose --archive $(A)/cn3-dose --presets cn3 --variants $(DOSE_VARIANTS) --seeds 0-9 --grid env_kwargs.obs_radius=1.5,1.0,0.6,0.3,0.0
+G_CN3_DOSE_FULL := --out runs/paper/cn3-dose-full --archive $(A)/cn3-dose-full --presets cn3 --variants $(DOSE_VARIANTS) --seeds 0-9
+paper-dose: $(STAMP)
+	$(H) sweep $(G_CN3_DOSE_FULL)
+	$(H) sweep $(G_CN3_DOSE)
+	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN)
@@ -74,6 +85,8 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_CN3_OWNOBS) --snapshot
 	$(H) sweep $(G_CN3_OWNOBS_REP) --snapshot
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
+	$(H) sweep $(G_CN3_DOSE_FULL) --snapshot
+	$(H) sweep $(G_CN3_DOSE) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
@@ -86,7 +99,14 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN3_OWNOBS) --status
 	@$(H) sweep $(G_CN3_OWNOBS_REP) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
+	@$(H) sweep $(G_CN3_DOSE_FULL) --status
+	@$(H) sweep $(G_CN3_DOSE) --status
 
+# The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
+# msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
+REANALYSIS_CN = $(A)/cn3 $(wildcard $(A)/cn3-msglen/*msg_dim=1-s*) $(wildcard $(A)/cn3-msglen/*msg_dim=2-s*) \
+	$(wildcard $(A)/cn3-msglen/*msg_dim=8-s*) $(A)/cn5 $(A)/cn3-paperppo $(A)/cn3-ownobs $(A)/cn3-ownobs-rep
+REANALYSIS = $(REANALYSIS_CN) $(A)/mw3 $(A)/mw3-pilot $(A)/mw5-pilot
 paper-report: $(STAMP)
 	-$(H) plot $(A)/cn3 --out docs/results/cn3-curves
 	-$(H) report $(A)/cn3 --out docs/results/cn3-table.md --export docs/results/cn3-runs.json
@@ -107,6 +127,13 @@ paper-report: $(STAMP)
 	-$(H) diagnose $(A)/mw3 --out docs/results/mw3-diagnostics --table docs/results/mw3-diagnostics.md
 	-$(H) plot $(A)/mw5-pilot --out docs/results/mw5-pilot-curves
 	-$(H) report $(A)/mw5-pilot --out docs/results/mw5-pilot-table.md --export docs/results/mw5-pilot-runs.json
+	-$(H) plot $(A)/cn3-ownobs $(A)/cn3-ownobs-rep --band iqm --out docs/results/cn3-ownobs-all-iqm-curves
+	-$(H) report $(REANALYSIS) --plan docs/results/plan-reanalysis.md --out docs/results/reanalysis-table.md
+	-$(H) report $(REANALYSIS_CN) --auc 10000 --comparisons hammer-rl:il --out docs/results/reanalysis-auc-table.md
+	$(if $(wildcard $(A)/cn3-dose),-$(H) report $(A)/cn3-dose $(A)/cn3-dose-full --plan docs/results/plan-dose-response.md --out docs/results/cn3-dose-table.md)
+	$(if $(wildcard $(A)/cn3-dose),-$(H) report $(A)/cn3-dose $(A)/cn3-dose-full --auc 10000 --comparisons hammer-rl:il$(,)hammer-backprop:il --out docs/results/cn3-dose-auc-table.md)
+	$(if $(wildcard $(A)/cn3-dose),-$(H) dose $(A)/cn3-dose $(A)/cn3-dose-full --out docs/results/cn3-dose-delta)
+	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds

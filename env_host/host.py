@@ -30,6 +30,7 @@ from env_host import checkpoint
 from env_host.actions import ActionCollector, StepActions
 from env_host.checkpoint import EpisodeRows, HostState
 from envs.base import VecEnv, VecStep
+from envs.local_view import local_view_from_config
 from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
 from learning.central_acting import zero_prev_actions
 from learning.config import RunConfig
@@ -55,6 +56,7 @@ class EnvHost(Role):
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
         self.wiring = cfg.wiring
         self.n, self.k = cfg.n_agents, cfg.num_envs
+        self.local_view = local_view_from_config(cfg)  # LocalObs only; GlobalState stays full
         self.weights_timeout_s, self.max_policy_lag = weights_timeout_s, max_policy_lag
         self.resume_from, self.resume_step = resume_from, resume_step
         # Link events per step (faults.steplog), joined with the episodes' spans by `hammer up`.
@@ -180,9 +182,10 @@ class EnvHost(Role):
             self.state_out.publish(GlobalState(step=step, env_idx=self.env_idx, obs=obs, prev_actions=prev,
                                                active=active, policy_version=version))
         joint = obs.reshape(self.k, -1) if self.wiring.joint_obs else None
+        seen = self.local_view(obs)
         for i in range(self.n):
             self.obs_out[i].publish(LocalObs(step=step, env_idx=self.env_idx, agent=i,
-                                             obs=joint if joint is not None else np.ascontiguousarray(obs[:, i]),
+                                             obs=joint if joint is not None else np.ascontiguousarray(seen[:, i]),
                                              active=active[:, i], policy_version=version))
 
     # ----- evaluation ---------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 Names:
   cn        vectorised cooperative navigation (`envs.spread.VecSimpleSpread`, numpy, all K copies
             in one array program); local_ratio 0.5, 25 steps; observe_others=False hides the
-            other agents from each local observation (not in mpe2).
+            other agents from each local observation (not in mpe2); obs_radius=r masks, in the
+            local agents' inputs only, landmarks and agents at distance >= r (`envs.local_view`).
   cn-mpe2   the same task through PettingZoo: mpe2 simple_spread_v3, discrete actions, 25 steps,
             local_ratio 0.5 (the reference the vectorised version is checked against).
   mw        SISL multiwalker_v9 with the paper's settings (individual rewards, fallen walkers

@@ -37,6 +37,10 @@ One option goes beyond mpe2: `observe_others=False` drops the other agents' posi
 The world, the rewards and the random streams are unchanged. It exists to test the paper's premise
 that the central agent helps when it knows what the local agents do not: the central agent's
 input (every local observation) still holds every agent's position, a local agent's no longer does.
+
+`obs_radius=r` grades the same premise: the env still returns the full observations (they build the
+central agent's state), and `envs.local_view` masks, in the local agents' copy only, every landmark
+and other agent at distance >= r. The env itself only validates the value.
 """
 
 from __future__ import annotations
@@ -81,7 +85,7 @@ class VecSimpleSpread(VecEnv):
 
     def __init__(
         self, num_envs: int, n_agents: int = 3, local_ratio: float = 0.5, max_steps: int = 25,
-        observe_others: bool = True,
+        observe_others: bool = True, obs_radius: float | None = None,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -93,11 +97,19 @@ class VecSimpleSpread(VecEnv):
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         if not isinstance(observe_others, bool):
             raise TypeError(f"observe_others must be true or false, got {observe_others!r}")
+        if obs_radius is not None:
+            if isinstance(obs_radius, bool) or not isinstance(obs_radius, (int, float)) or not obs_radius >= 0:
+                raise ValueError(f"obs_radius must be a distance >= 0 (or unset for the full view), got {obs_radius!r}")
+            if not observe_others:
+                raise ValueError("obs_radius masks the other agents' slots, which observe_others=false removes: "
+                                 "set one of them, not both")
         self.num_envs = num_envs
         self.n_agents = n_agents
         self.local_ratio = float(local_ratio)
         self.max_steps = max_steps
         self.observe_others = observe_others
+        # The local agents' view (envs.local_view masks it); this env still returns full observations.
+        self.obs_radius = None if obs_radius is None else float(obs_radius)
         self.spec = EnvSpec(
             name="cn",
             n_agents=n_agents,

@@ -1,4 +1,4 @@
-"""`hammer sweep`, `hammer plot`, `hammer report`, `hammer diagnose`."""
+"""`hammer sweep`, `hammer plot`, `hammer report`, `hammer dose`, `hammer diagnose`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ def register(app: typer.Typer) -> None:
     app.command("sweep")(sweep)
     app.command("plot")(plot)
     app.command("report")(report)
+    app.command("dose")(dose)
     app.command("diagnose")(diagnose)
 
 
@@ -129,11 +130,16 @@ def plot(
     runs: Annotated[list[Path], typer.Argument(help="Run directories or folders holding them.")],
     out: Annotated[Path, typer.Option(help="Output path without extension; writes .png and .svg.")] = Path("curves"),
     window: Annotated[int, typer.Option(help="Rolling-mean window in episodes.")] = 500,
+    band: Annotated[str, typer.Option(
+        help="se: mean over seeds with a standard-error band; iqm: interquartile mean over seeds with a "
+             "95 % stratified-bootstrap CI (robust to one outlying seed).")] = "se",
 ) -> None:
-    """Learning curves: paper metric vs episodes, mean over seeds with a standard-error band."""
-    from experiments.plot import plot_runs
+    """Learning curves: paper metric vs episodes, one line per variant, a band over seeds."""
+    from experiments.plot import BANDS, plot_runs
 
-    for p in plot_runs(_load(runs), out, window=window):
+    if band not in BANDS:
+        _fail(f"--band must be one of {', '.join(BANDS)}, got {band!r}")
+    for p in plot_runs(_load(runs), out, window=window, band=band):
         typer.echo(f"wrote {p}")
 
 
@@ -146,18 +152,47 @@ def report(
     best_window: Annotated[int | None, typer.Option(
         help="Rank each run by its best rolling mean over this many episodes instead of its final mean: "
              "how high it got, not where it ended (runs that learn and then fall back differ).", min=1)] = None,
+    auc: Annotated[int | None, typer.Option(
+        help="Rank each run by its area under the learning curve: the mean paper metric over its first N "
+             "episodes (\"learns faster\"), instead of its final mean.", min=1)] = None,
+    comparisons: Annotated[str | None, typer.Option(
+        help="The study's declared comparisons as A:B pairs, e.g. 'hammer-rl:il,random:il' (hammer-rl "
+             "names hammer-rl-m4 at any message length); Holm's correction runs over exactly these. "
+             "Default: every variant against il.")] = None,
+    plan: Annotated[Path | None, typer.Option(
+        help="Read the comparisons from a pre-registered plan's `comparisons:` line "
+             "(docs/results/plan-*.md) instead of --comparisons.", exists=True, dir_okay=False)] = None,
 ) -> None:
-    """Table of final performance: mean ± standard error over seeds, Welch's t-test vs IL.
+    """Table of final performance: mean ± standard error, IQM with a bootstrap CI, team return,
+    Welch's t-test vs IL; then the declared comparisons with probability of improvement and
+    Holm-corrected p-values (experiments/stats.py).
 
     One row per setting and variant. A setting is the env and N plus every config field the runs
     changed from their paper preset (e.g. `cn N=3 (lr_local=0.0001)`): runs are pooled as seeds
     only when nothing but the seed differs, and IL is compared within the same setting.
     """
-    from experiments.report import build_rows, to_markdown
+    from experiments.report import (
+        build_comparisons,
+        build_rows,
+        comparisons_from_plan,
+        default_comparisons,
+        parse_comparisons,
+        to_markdown,
+    )
 
+    if plan is not None and comparisons is not None:
+        _fail("--plan and --comparisons both declare the comparisons: give one")
     loaded = _load(runs)
     try:
-        md = to_markdown(build_rows(loaded, last, best_window), last, best_window)
+        rows = build_rows(loaded, last, best_window, auc)
+        if plan is not None:
+            pairs = comparisons_from_plan(plan)
+        elif comparisons is not None:
+            pairs = parse_comparisons(comparisons)
+        else:
+            pairs = default_comparisons(rows)
+        comps = build_comparisons(rows, pairs) if pairs else []
+        md = to_markdown(rows, last, best_window, comps, auc)
     except ValueError as e:
         _fail(str(e))
     typer.echo(md)
@@ -167,6 +202,40 @@ def report(
         from experiments.export import export_runs
 
         export_runs(loaded, export)
+
+
+def dose(
+    runs: Annotated[list[Path], typer.Argument(help="Run directories or folders of the dose-response grid "
+                                               "(cn runs with and without env_kwargs.obs_radius).")],
+    variants: Annotated[str, typer.Option(help="Variants compared with il at each level, comma-separated.")] = (
+        "hammer-rl,hammer-backprop,random"),
+    auc: Annotated[int | None, typer.Option(
+        help="Use the area under the curve over the first N episodes instead of the final value.", min=1)] = None,
+    last: Annotated[int, typer.Option(help="Final value = mean of each run's last N episodes.")] = 500,
+    out: Annotated[Path | None, typer.Option(help="Write <out>.md (table) and <out>.png/.svg (Δ against h).")] = None,
+) -> None:
+    """Dose-response of hidden information (docs/results/plan-dose-response.md): Δ = IQM(variant) −
+    IQM(IL) per obs_radius level with bootstrap CIs, and the slope of Δ on the fraction hidden."""
+    from experiments.dose import cells, dose_levels, dose_slope, plot_dose, to_markdown
+
+    loaded = _load(runs)
+    measure = "final" if auc is None else "auc"
+    try:
+        values = cells(loaded, measure, last=last, auc=auc or 0)
+    except ValueError as e:
+        _fail(str(e))
+    names = [v for v in variants.split(",") if v]
+    levels = [lv for v in names for lv in dose_levels(values, v)]
+    if not levels:
+        _fail(f"no level has runs of both il and one of {', '.join(names)}")
+    slopes = [s for v in names if (s := dose_slope(values, v)) is not None]
+    md = to_markdown(levels, slopes, measure if auc is None else f"AUC {auc}")
+    typer.echo(md)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".md").write_text(md)
+        for p in plot_dose(levels, out):
+            typer.echo(f"wrote {p}")
 
 
 def diagnose(

@@ -1,5 +1,7 @@
 """Learning curves like the paper's figures: rolling mean of the paper metric against episodes,
-mean over seeds with a standard-error band, one line per variant, one panel per setting."""
+one line per variant, one panel per setting; the line and band are the mean over seeds with a
+standard-error band (`band="se"`, the default) or the interquartile mean with a 95 % bootstrap CI
+over seeds (`band="iqm"`, experiments.stats)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,29 @@ def seed_curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, n
     return np.arange(1, n + 1), mean, se
 
 
-def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None = None) -> list[Path]:
+BANDS = ("se", "iqm")
+
+
+def seed_band(runs: list[Run], window: int, band: str, stride_to: int = 3000
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(episodes, centre, low, high) over seeds, every `len // stride_to`-th point."""
+    if band not in BANDS:
+        raise ValueError(f"band must be one of {', '.join(BANDS)}, got {band!r}")
+    x, mean, se = seed_curves(runs, window)
+    stride = max(1, len(x) // stride_to)  # a smoothed curve loses nothing; keeps the SVG small
+    if band == "se":
+        x, mean, se = x[::stride], mean[::stride], se[::stride]
+        return x, mean, mean - se, mean + se
+    from experiments.stats import iqm_band
+
+    n = len(x)
+    curves = np.stack([rolling_mean(r.paper_metric[:n], window)[::stride] for r in runs])
+    centre, lo, hi = iqm_band(curves)
+    return x[::stride], centre, lo, hi
+
+
+def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None = None, band: str = "se"
+              ) -> list[Path]:
     """Write `<out>.png` and `<out>.svg`; returns the paths written."""
     import matplotlib
 
@@ -33,12 +57,10 @@ def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None =
         for (s, label), rs in sorted(groups.items()):
             if s != setting:
                 continue
-            x, mean, se = seed_curves(rs, window)
-            stride = max(1, len(x) // 3000)  # a smoothed curve loses nothing; keeps the SVG small
-            x, mean, se = x[::stride], mean[::stride], se[::stride]
-            (line,) = ax.plot(x, mean, label=f"{label} ({len(rs)} seeds)", lw=1.4)
-            ax.fill_between(x, mean - se, mean + se, color=line.get_color(), alpha=0.2, lw=0)
-        ax.set_title(title or setting)
+            x, centre, lo, hi = seed_band(rs, window, band)
+            (line,) = ax.plot(x, centre, label=f"{label} ({len(rs)} seeds)", lw=1.4)
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+        ax.set_title((title or setting) + ("" if band == "se" else "\nIQM over seeds, 95% bootstrap CI"))
         ax.set_xlabel("episode")
         ax.set_ylabel(f"average reward per local agent (rolling mean {window})")
         ax.grid(alpha=0.3)

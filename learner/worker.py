@@ -34,6 +34,7 @@ from safetensors.numpy import save as save_safetensors
 from envs.base import EnvSpec
 from learner.remote_rollout import BehaviourSnapshots, RemoteRollout
 from learning.config import RunConfig
+from learning.host_info import host_info
 from learning.learner import TeamLearner
 from learning.rundir import RunDir
 from protocol.rollout_layout import RolloutLayout
@@ -178,7 +179,7 @@ class LearnerWorker(Role):
                               {"variant": self.cfg.variant, "central_mode": self.cfg.central_mode,
                                "version": str(self.update)})
         (self.rd.path / "learner_summary.json").write_text(json.dumps(
-            {**self.counters(), "resumed_from": self.resume_from}, indent=1))
+            {**self.counters(), "resumed_from": self.resume_from, "host": host_info()}, indent=1))
         self.log.info("stopped: %s", self.counters())
 
 

@@ -88,7 +88,7 @@ class TeamLearner:
         def flat(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(a.reshape(buf.t * buf.k, *a.shape[2:])))
 
-        b = {"obs": flat(buf.obs), "state": flat(buf.state), "msg": flat(buf.msg), "keep": flat(buf.keep),
+        b = {"obs": flat(team.local_view(buf.obs)), "state": flat(buf.state), "msg": flat(buf.msg), "keep": flat(buf.keep),
              "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
              "mask": flat(buf.active.astype(np.float32))}
         # All agents present (and no message dropped): the losses skip their masking ops.

@@ -9,7 +9,8 @@
                                 states and optimiser hyper-parameters (JSON); never pickle
     final/local.safetensors, final/central.safetensors
                                 the trained policy weights as exported numpy dicts (edge devices)
-    summary.json                written when the run finishes (experiments treat it as "done")
+    summary.json                written when the run finishes (experiments treat it as "done"),
+                                with the CPU, BLAS/oneDNN versions and thread settings under "host"
 """
 
 from __future__ import annotations
@@ -193,7 +194,10 @@ class RunDir:
             save_numpy(central, str(d / "central.safetensors"), metadata=meta)
 
     def write_summary(self, summary: dict[str, Any]) -> None:
-        summary = dict(summary, written_at=time.strftime("%Y-%m-%dT%H:%M:%S"))
+        """summary.json, with the machine's maths path (`learning.host_info`) under "host"."""
+        from learning.host_info import host_info
+
+        summary = dict(summary, written_at=time.strftime("%Y-%m-%dT%H:%M:%S"), host=host_info())
         (self.path / "summary.json").write_text(json.dumps(summary, indent=1))
 
     def close(self) -> None:

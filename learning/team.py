@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from envs.base import EnvSpec
+from envs.local_view import local_view_from_config
 from learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from learning.config import RunConfig
 from learning.networks import CentralAgent, LocalPolicy
@@ -43,6 +44,9 @@ class Team:
                                         cfg.critic_hidden if self.wiring.central_rl else None)
         self._eye = torch.eye(self.n)
         self.acting = CentralActing.from_config(cfg)
+        # What a local agent may see of the full observation (identity unless env_kwargs asks):
+        # applied to every local-policy input here, never to the global state.
+        self.local_view = local_view_from_config(cfg)
 
     @property
     def central_rl(self) -> bool:
@@ -106,7 +110,7 @@ class Team:
         Gaussian sample (its logp is what PPO trains; `env_action` clips it for the env).
         """
         k = obs.shape[0]
-        x = self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
+        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
         out = self.local.actor_out(x).numpy()
         value = self.local.value(x).numpy()
         if self.discrete:
@@ -124,7 +128,7 @@ class Team:
     def local_evaluate(self, obs: np.ndarray, msg: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(logp, value) of given actions, computed as `local_act` computes them: the distributed
         learner uses this to rebuild exactly the trainer's rollout from remote actions."""
-        x = self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))
+        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
         out = self.local.actor_out(x).numpy()
         value = self.local.value(x).numpy()
         if self.discrete:
@@ -136,7 +140,8 @@ class Team:
 
     @torch.inference_mode()
     def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:
-        return self.local.value(self.local_input(torch.from_numpy(obs), torch.from_numpy(msg))).numpy()
+        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
+        return self.local.value(x).numpy()
 
     def env_action(self, action: np.ndarray) -> np.ndarray:
         return self.spec.env_action(action)
