@@ -16,6 +16,29 @@ def _fail(msg: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def settings_error(err: Exception, flag: str = "--runtime") -> str:
+    """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
+    import difflib
+
+    from pydantic import ValidationError
+
+    from deploy.settings import RuntimeSettings
+
+    if not isinstance(err, ValidationError):
+        return f"{flag}: {' '.join(str(err).split())}"
+    parts = []
+    for e in err.errors(include_url=False):
+        field = ".".join(str(x) for x in e["loc"]) or "settings"
+        if e["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
+            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
+            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
+        else:
+            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
+            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
+    return "; ".join(parts)
+
+
 def register(app: typer.Typer) -> None:
     from deploy import roles
 
@@ -80,7 +103,10 @@ def _dashboard_table(board, cfg, started: float, settings=None):
 
 
 def up_command(
-    config: Annotated[Path | None, typer.Argument(help="Optional YAML file of RunConfig fields.")] = None,
+    config_arg: Annotated[Path | None, typer.Argument(
+        metavar="[CONFIG]", help="YAML file of RunConfig fields (the same as --config).")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="YAML file of RunConfig fields (as `hammer train --config`).")] = None,
     preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings; default cn3).")] = None,
     variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized (default hammer).")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code).")] = None,
@@ -127,8 +153,11 @@ def up_command(
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
+    if config_arg is not None and config is not None:
+        _fail("a config file twice (CONFIG and --config); fix: pass one of them")
+    config = config if config is not None else config_arg
     if resume is not None:
-        given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
+        given = {"--config": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
                  "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir}
         bad = [k for k, v in given.items() if v is not None]
@@ -180,7 +209,7 @@ def up_command(
     try:
         settings = RuntimeSettings.model_validate(rt)
     except Exception as e:  # noqa: BLE001
-        _fail(f"--runtime: {' '.join(str(e).split())}")
+        _fail(settings_error(e))
     console.print(f"run dir: {path}")
     if plan.links:
         for lf in plan.links:
@@ -220,6 +249,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     from rich.live import Live
 
     from deploy.up import UpError, launch
+    from envs.registry import EnvConfigError
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
@@ -245,6 +275,10 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     try:
         res = launch(cfg, settings, path, on_tick=tick, resume=resume)
+    except EnvConfigError as e:  # a bad or refused env: a config mistake, found before any file is written
+        if live is not None:
+            live.stop()
+        _fail(str(e))
     except UpError as e:
         if live is not None:
             live.stop()

@@ -293,7 +293,8 @@ class Launcher:
         elif code == 0:  # a clean exit: it was told to stop (the run is ending)
             return
         elif name in self.board.held:  # killed on purpose by the chaos schedule
-            log.warning("role %s killed by chaos (code %s); not restarted", name, code)
+            log.warning("role %s killed by chaos (code %s); held down: only a scheduled chaos restart (or for=) brings it back",
+                        name, code)
         elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
             rp.restarts += 1
             self.board.restarts[name] = rp.restarts

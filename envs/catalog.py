@@ -102,6 +102,30 @@ def _kwarg_names(fn: Callable[..., Any]) -> set[str] | None:
     return {p.name for p in params if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
 
+def _valid_from_type_error(err: TypeError) -> set[str] | None:
+    """The keywords of the callable a `TypeError` names ("X.__init__() got an unexpected keyword
+    argument"), looked up in the frame that called it: factories behind **kwargs (multiwalker's
+    raw_env passes them on to MultiWalkerEnv) cannot be checked up front, but can name the fields."""
+    import re
+
+    m = re.match(r"([\w.]+)\(\) got an unexpected keyword argument", str(err))
+    tb = err.__traceback__
+    if m is None or tb is None:
+        return None
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    parts = [p for p in m.group(1).split(".") if p != "__init__"]
+    names = {**tb.tb_frame.f_globals, **tb.tb_frame.f_locals}  # by name, or by qualname when imported "as"
+    obj = names.get(parts[0]) or next((v for v in names.values() if getattr(v, "__qualname__", None) == parts[0]),
+                                      None)
+    for p in parts[1:]:
+        obj = getattr(obj, p, None)
+    try:
+        return _kwarg_names(obj) if callable(obj) else None
+    except (TypeError, ValueError):
+        return None
+
+
 def _check_kwargs(name: str, kwargs: dict[str, Any], valid: set[str] | None, reserved: str | None) -> None:
     if valid is not None:
         unknown = sorted(set(kwargs) - valid)
@@ -143,7 +167,10 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
             try:
                 return fn(**kwargs)
             except TypeError as e:
-                raise EnvConfigError(f"env {desc.name!r}: the factory rejected env_kwargs {sorted(kwargs)}: {e}") from e
+                valid_here = _valid_from_type_error(e)
+                hint = f"; valid fields: {', '.join(sorted(valid_here))}" if valid_here else ""
+                raise EnvConfigError(f"env {desc.name!r}: the factory rejected env_kwargs {sorted(kwargs)}: {e}"
+                                     f"{hint}") from e
 
         max_cycles = kwargs.get("max_cycles")
         return factory, desc.name, (int(max_cycles) if max_cycles is not None else None)

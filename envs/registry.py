@@ -12,7 +12,8 @@ Names:
   mw-pettingzoo
             the same env through PettingZoo's parallel wrapper all the way (the reference).
   module:factory
-            any PettingZoo parallel env, e.g. `pettingzoo.sisl.pursuit_v4:parallel_env`; env_kwargs
+            any PettingZoo parallel env, e.g. `pettingzoo.sisl.multiwalker_v9:parallel_env`
+            or `mpe2.simple_reference_v3:parallel_env`; env_kwargs
             are passed to the factory and n_agents must match its possible_agents.
 
 `env_kwargs` override the defaults field by field; unknown fields are refused with the list of valid

@@ -47,6 +47,9 @@ def train_command(
                                                                                      config)):
                 raise ConfigError("--branch: needs --run-dir for the new run and takes only --set, --seed and "
                                   "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.01")
+            if (branch / "runtime.json").is_file():
+                raise ConfigError(f"--branch '{branch}': a `hammer up` run (it has runtime.json); fix: branch a "
+                                  "`hammer train` run, or continue this one with `hammer up --resume`")
             src, src_cfg = RunDir.open(branch)
             cfg = merge_config(None, None, set_ or [], {"seed": seed, "episodes": episodes},
                                base=src_cfg.model_dump(mode="json"))
@@ -57,12 +60,14 @@ def train_command(
         elif resume is not None:
             if any(v is not None for v in (preset, variant, central_mode, seed, config, set_)):
                 raise ConfigError("--resume: only --episodes may be changed when resuming; fix: drop the other options")
+            if (resume / "runtime.json").is_file():  # checked before RunDir.open or any write
+                raise ConfigError(f"--resume '{resume}': a `hammer up` run (it has runtime.json); fix: continue it "
+                                  f"with `hammer up --resume {resume}`")
             rd, cfg = RunDir.open(resume)
-            if episodes is not None:
-                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
-                rd.write_config(cfg)
             if rd.latest_checkpoint() is None:
                 raise ConfigError(f"--resume '{resume}': no checkpoint yet; fix: start it again with --run-dir")
+            if episodes is not None:
+                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
         else:
             extra = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes,
                      "out": out}
@@ -76,6 +81,8 @@ def train_command(
             env = make_env(cfg)
         except EnvConfigError as e:
             raise ConfigError(str(e)) from None
+        if resume is not None and episodes is not None:
+            rd.write_config(cfg)  # only now that the env, the config and the checkpoint are known good
         if resume is None:
             path = run_dir if run_dir is not None else Path(cfg.out) / (name or cfg.run_name())
             try:

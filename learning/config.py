@@ -114,6 +114,8 @@ _FIXES = {
     "gae_lambda": "use a value in [0, 1], e.g. gae_lambda=0.95",
     "clip": "use a clip epsilon in (0, 1), e.g. clip=0.2",
     "msg_dropout": "use a probability in [0, 1]",
+    "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
+    "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
 }
 
 
