@@ -74,7 +74,18 @@ def _links_table(board, cfg, settings):
     return t
 
 
-def _dashboard_table(board, cfg, started: float, settings=None):
+def _eta(board, cfg, rate: dict) -> str:
+    """Time left at the episode rate seen since the first finished episode of this session."""
+    from learning.cli import eta
+
+    env = board.heartbeats.get("env")
+    episodes = int(env.counters.get("episodes", 0)) if env else 0
+    if "start" not in rate and episodes > 0:
+        rate["start"] = (time.monotonic(), episodes)
+    return eta(rate["start"], episodes, cfg.episodes) if "start" in rate else "-"
+
+
+def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None):
     from rich.console import Group
     from rich.table import Table
 
@@ -96,7 +107,7 @@ def _dashboard_table(board, cfg, started: float, settings=None):
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
-    t.add_row("elapsed", f"{time.monotonic() - started:,.0f} s")
+    t.add_row("elapsed / eta", f"{time.monotonic() - started:,.0f} s / {_eta(board, cfg, rate if rate is not None else {})}")
     if settings is None:
         return t
     return Group(t, _links_table(board, cfg, settings))
@@ -253,7 +264,12 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
+    central = cfg.variant in ("hammer", "random")
+    console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
+                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
+                  f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
     started = time.monotonic()
+    rate: dict = {}
     live = None
     last_line = [0.0]
     if dashboard and sys.stderr.isatty():
@@ -262,7 +278,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     def tick(board) -> None:
         if live is not None:
-            live.update(_dashboard_table(board, cfg, started, settings))
+            live.update(_dashboard_table(board, cfg, started, settings, rate))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
             env = board.heartbeats.get("env")
@@ -271,6 +287,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
                           f"env-steps/s {board.env_rate():,.0f}  metric(100) {c.get('paper_metric_100', 0):.2f}  "
                           f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "
                           f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}"
+                          f"  eta {_eta(board, cfg, rate)}"
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
     try:
@@ -293,9 +310,12 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     s = res.summary
     if s.get("resumed_from") is not None:
         console.print(f"resumed at update {s['resumed_from']}; this session ran {res.wall_time:.0f}s")
-    console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-500 paper metric "
+    console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-{min(500, s['episodes'])} paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))
+    from learning.cli import print_next_steps
+
+    print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

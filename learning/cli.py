@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -97,26 +98,33 @@ def train_command(
 
 def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
 
     from learning.trainer import train
 
     console = Console(stderr=True)
     console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
+    console.print(f"will run: {cfg.episodes:,} episodes in this process ({cfg.num_envs} env copies at a time, "
+                  f"{env.spec.max_steps} steps each); Ctrl-C stops, `hammer train --resume {rd.path}` continues "
+                  "from the last checkpoint")
+    started = [None]
     if quiet or not sys.stderr.isatty():
         last = [0]
 
         def report(p) -> None:  # a line every ~5% for logs
+            if started[0] is None:
+                started[0] = (time.monotonic(), p.episodes)
             if p.episodes - last[0] >= max(1, p.budget // 20):
                 last[0] = p.episodes
                 console.print(f"episodes {p.episodes}/{p.budget}  env-steps/s {p.steps_per_s:,.0f}  "
-                              f"metric(100) {p.running_metric:.2f}")
+                              f"metric(100) {p.running_metric:.2f}  eta {eta(started[0], p.episodes, p.budget)}")
 
         summary = train(cfg, rd, resume=resume, env=env, on_progress=None if quiet else report)
     else:
         with Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
                       TextColumn("{task.fields[sps]} env-steps/s"), TextColumn("metric {task.fields[metric]}"),
-                      TimeElapsedColumn(), console=console) as bar:
+                      TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=console) as bar:
             task = bar.add_task("train", total=cfg.episodes, sps="-", metric="-")
 
             def report(p) -> None:
@@ -124,9 +132,32 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
                            metric=f"{p.running_metric:.2f}")
 
             summary = train(cfg, rd, resume=resume, env=env, on_progress=report)
-    console.print(f"done: {summary['episodes']} episodes, last-500 paper metric "
-                  f"{summary['final_paper_metric_last500']:.3f}, "
-                  f"{summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+    metric = summary["final_paper_metric_last500"]
+    console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
+                  f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+    print_next_steps(console, cfg, metric, rd.path, "hammer train")
+
+
+def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
+    """Time left at this session's episode rate, as h:mm:ss ('-' until there is a rate)."""
+    t0, e0 = start
+    done, elapsed = episodes - e0, time.monotonic() - t0
+    if done <= 0 or elapsed <= 0:
+        return "-"
+    left = max(0, budget - episodes) * elapsed / done
+    return time.strftime("%H:%M:%S", time.gmtime(left))
+
+
+def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
+    """The result among the preset's references and what to run next (shared by both runners)."""
+    from learning.baselines import in_context
+
+    line = in_context(cfg, metric)
+    if line:
+        console.print(line, soft_wrap=True)
+    console.print(f"next: `hammer report {path}` (final table), `hammer plot {path} --out {path}/curves` "
+                  f"(learning curve), `tensorboard --logdir {path}`; `{runner} --resume {path} --episodes N` "
+                  "continues it (also after Ctrl-C)", soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:
