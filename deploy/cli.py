@@ -53,7 +53,7 @@ def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
     from rich.table import Table
 
-    from faults.links import COLUMNS, collect_role_counters, link_table
+    from faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
     from faults.spec import LinkFault
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
@@ -68,9 +68,10 @@ def _links_table(board, cfg, settings):
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
     for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+    t.caption = COUNTERS_NOTE
     if board.chaos_log:
-        t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
-                                                for e in board.chaos_log[-3:])
+        t.caption += "\nchaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
+                                                    for e in board.chaos_log[-3:])
     return t
 
 
@@ -316,6 +317,9 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))
+        from faults.links import COUNTERS_NOTE
+
+        console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
     from learning.cli import print_next_steps
 
     print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

@@ -19,6 +19,14 @@ def seed_curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, n
     return np.arange(1, n + 1), mean, se
 
 
+def plotted_curve(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`seed_curves` from the episode where the rolling mean holds a tenth of its window: before that
+    it averages a handful of episodes, and one run's first episode would draw a spike at episode 0."""
+    x, mean, se = seed_curves(runs, window)
+    skip = min(window, len(x)) // 10
+    return x[skip:], mean[skip:], se[skip:]
+
+
 def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None = None) -> list[Path]:
     """Write `<out>.png` and `<out>.svg`; returns the paths written."""
     import matplotlib
@@ -33,10 +41,10 @@ def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None =
         for (s, label), rs in sorted(groups.items()):
             if s != setting:
                 continue
-            x, mean, se = seed_curves(rs, window)
+            x, mean, se = plotted_curve(rs, window)
             stride = max(1, len(x) // 3000)  # a smoothed curve loses nothing; keeps the SVG small
             x, mean, se = x[::stride], mean[::stride], se[::stride]
-            (line,) = ax.plot(x, mean, label=f"{label} ({len(rs)} seeds)", lw=1.4)
+            (line,) = ax.plot(x, mean, label=f"{label} ({len(rs)} seed{'s' if len(rs) != 1 else ''})", lw=1.4)
             ax.fill_between(x, mean - se, mean + se, color=line.get_color(), alpha=0.2, lw=0)
         ax.set_title(title or setting)
         ax.set_xlabel("episode")

@@ -64,22 +64,26 @@ def build_rows(runs: list[Run], last: int = 500, best_window: int | None = None)
 
 
 def to_markdown(rows: list[Row], last: int, best_window: int | None = None) -> str:
+    shortest = min((r.episodes for r in rows), default=last)
     if best_window is None:
         col = "final"
+        span = (f"last {last} episodes" if shortest >= last else
+                f"last {last} episodes (all of them for runs shorter than that: fewest {shortest})")
         what = (f"Final performance = mean paper metric (average reward per local agent per episode) over each "
-                f"seed's last {last} episodes")
+                f"seed's {span}")
     else:
         col = "best"
         what = (f"Best performance = each seed's best rolling mean of the paper metric (average reward per "
                 f"local agent per episode) over {best_window} episodes, wherever in the run it was")
     out = [
-        f"{what}; mean ± standard error over seeds; p = Welch's t-test against IL in the same setting.",
+        f"{what}; mean ± standard error over seeds (no ± with one seed); p = Welch's t-test against IL in the "
+        "same setting.",
         "",
         f"| setting | variant | seeds | episodes | {col} (mean ± s.e.) | p vs IL |",
         "| --- | --- | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         p = "" if r.p_vs_il is None else f"{r.p_vs_il:.3g}"
-        se = "n/a" if np.isnan(r.sem) else f"{r.sem:.2f}"
-        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f} ± {se} | {p} |")
+        se = "" if np.isnan(r.sem) else f" ± {r.sem:.2f}"  # one seed has no standard error
+        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f}{se} | {p} |")
     return "\n".join(out) + "\n"
