@@ -76,8 +76,8 @@ def to_markdown(rows: list[Row], last: int, best_window: int | None = None) -> s
         what = (f"Best performance = each seed's best rolling mean of the paper metric (average reward per "
                 f"local agent per episode) over {best_window} episodes, wherever in the run it was")
     out = [
-        f"{what}; mean ± standard error over seeds (no ± with one seed); p = Welch's t-test against IL in the "
-        "same setting.",
+        (f"{what}; mean ± standard error over seeds (no ± with one seed); p = Welch's t-test against IL in the "
+         "same setting."),
         "",
         f"| setting | variant | seeds | episodes | {col} (mean ± s.e.) | p vs IL |",
         "| --- | --- | ---: | ---: | ---: | ---: |",
