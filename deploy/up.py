@@ -84,7 +84,7 @@ def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
     from learning.config import ConfigError
     from learning.rundir import RunDir
 
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
     spec = env.spec
     env.close()
     try:

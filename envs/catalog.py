@@ -11,6 +11,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import logging
+import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -81,6 +83,8 @@ def valid_names() -> str:
 
 def _import_attr(path: str, what: str) -> Any:
     mod_name, _, attr = path.partition(":")
+    if os.getcwd() not in sys.path:  # a user's module next to their config, as `python -m` finds it (appended:
+        sys.path.append(os.getcwd())  # never shadows an installed package)
     try:
         mod = importlib.import_module(mod_name)
     except ImportError as e:
@@ -150,8 +154,8 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
         fn = _import_attr(f"{entry.module}:{entry.factory}", desc.name)
         if entry.wrap is not None:
             wrap = _import_attr(entry.wrap, desc.name)
-            return (lambda: wrap(fn(**full), full)), desc.name, int(full["max_cycles"])
-        return (lambda: fn(**full)), desc.name, int(full["max_cycles"])
+            return _adapted(lambda: wrap(fn(**full), full), desc), desc.name, int(full["max_cycles"])
+        return _adapted(lambda: fn(**full), desc), desc.name, int(full["max_cycles"])
     if ":" in desc.name:
         fn = _import_attr(desc.name, desc.name)
         if not callable(fn):
@@ -173,8 +177,16 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
                                      f"{hint}") from e
 
         max_cycles = kwargs.get("max_cycles")
-        return factory, desc.name, (int(max_cycles) if max_cycles is not None else None)
+        return _adapted(factory, desc), desc.name, (int(max_cycles) if max_cycles is not None else None)
     raise EnvConfigError(f"env: unknown name {desc.name!r}; valid names: {valid_names()}")
+
+
+def _adapted(factory: Callable[[], Any], desc: EnvDescription) -> Callable[[], Any]:
+    if not desc.adapters:
+        return factory
+    from envs.adapters import apply_adapters
+
+    return lambda: apply_adapters(factory(), desc.adapters)
 
 
 def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:

@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
-BRANCH_FIXED = ("env", "env_kwargs", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
+BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
                 "use_prev_actions", "actor_hidden", "critic_hidden", "central_hidden")
 
 

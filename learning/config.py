@@ -36,6 +36,9 @@ class RunConfig(BaseModel):
     env: str = Field("cn", description="registry name: cn, cn-mpe2, mw or module:factory")
     n_agents: int = Field(3, ge=1, description="number of local agents N")
     env_kwargs: dict[str, Any] = Field(default_factory=dict, description="extra env constructor kwargs")
+    env_adapters: list[str] = Field(
+        default_factory=list, description="PettingZoo adapters (envs.adapters): flatten, one_hot, pad, agent_id, gray, "
+                                          "resize:WxH; `hammer envs check ENV` says which an env needs")
     env_workers: int = Field(0, ge=0, description="env slices stepped in parallel processes (0 = in-process)")
     env_parent_slice: bool = Field(
         True, description="with env_workers=W: this process steps one slice itself (W-1 subprocesses) "
