@@ -82,11 +82,13 @@ def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
 
     from envs.registry import make_vec_env
     from learning.config import ConfigError
+    from learning.run_env import check_env_fits
     from learning.rundir import RunDir
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
     spec = env.spec
     env.close()
+    check_env_fits(cfg, spec)  # a config asking more of the env than it gives: refused before any file is written
     try:
         rd = RunDir.create(run_dir, cfg)
     except ConfigError as e:

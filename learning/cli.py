@@ -12,7 +12,7 @@ import typer
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
-                "use_prev_actions", "actor_hidden", "critic_hidden", "central_hidden")
+                "use_prev_actions", "obs_conv", "actor_hidden", "critic_hidden", "central_hidden")
 
 
 def _fail(msg: str) -> None:
@@ -76,10 +76,11 @@ def train_command(
                 extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
             cfg = merge_config(preset, config, set_ or [], extra)
         from envs.registry import EnvConfigError
-        from learning.run_env import make_env
+        from learning.run_env import check_env_fits, make_env
 
         try:  # build the env first so a bad env name/kwarg fails before any file is written
             env = make_env(cfg)
+            check_env_fits(cfg, env.spec)
         except EnvConfigError as e:
             raise ConfigError(str(e)) from None
         if resume is not None and episodes is not None:
