@@ -35,7 +35,8 @@ bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseli
 def bench_all(
     ctx: typer.Context,
     episodes: int = typer.Option(320, help="Episodes per runner and preset."),
-    json_dir: str = typer.Option("docs/results", "--json-dir", help="Write bench-<date>.json here ('' to skip)."),
+    json_dir: str = typer.Option("runs/bench", "--json-dir", help="Write bench-<date>.json here ('' to skip; "
+                                  "--json-dir docs/results to publish the figures)."),
 ) -> None:
     """Whole-system figures in one run; subcommands measure one part each."""
     if ctx.invoked_subcommand is not None:

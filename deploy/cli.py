@@ -16,6 +16,29 @@ def _fail(msg: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def settings_error(err: Exception, flag: str = "--runtime") -> str:
+    """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
+    import difflib
+
+    from pydantic import ValidationError
+
+    from deploy.settings import RuntimeSettings
+
+    if not isinstance(err, ValidationError):
+        return f"{flag}: {' '.join(str(err).split())}"
+    parts = []
+    for e in err.errors(include_url=False):
+        field = ".".join(str(x) for x in e["loc"]) or "settings"
+        if e["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
+            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
+            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
+        else:
+            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
+            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
+    return "; ".join(parts)
+
+
 def register(app: typer.Typer) -> None:
     from deploy import roles
 
@@ -30,7 +53,7 @@ def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
     from rich.table import Table
 
-    from faults.links import COLUMNS, collect_role_counters, link_table
+    from faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
     from faults.spec import LinkFault
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
@@ -45,13 +68,25 @@ def _links_table(board, cfg, settings):
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
     for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+    t.caption = COUNTERS_NOTE
     if board.chaos_log:
-        t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
-                                                for e in board.chaos_log[-3:])
+        t.caption += "\nchaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
+                                                    for e in board.chaos_log[-3:])
     return t
 
 
-def _dashboard_table(board, cfg, started: float, settings=None):
+def _eta(board, cfg, rate: dict) -> str:
+    """Time left at the episode rate seen since the first finished episode of this session."""
+    from learning.cli import eta
+
+    env = board.heartbeats.get("env")
+    episodes = int(env.counters.get("episodes", 0)) if env else 0
+    if "start" not in rate and episodes > 0:
+        rate["start"] = (time.monotonic(), episodes)
+    return eta(rate["start"], episodes, cfg.episodes) if "start" in rate else "-"
+
+
+def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None):
     from rich.console import Group
     from rich.table import Table
 
@@ -73,14 +108,17 @@ def _dashboard_table(board, cfg, started: float, settings=None):
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
-    t.add_row("elapsed", f"{time.monotonic() - started:,.0f} s")
+    t.add_row("elapsed / eta", f"{time.monotonic() - started:,.0f} s / {_eta(board, cfg, rate if rate is not None else {})}")
     if settings is None:
         return t
     return Group(t, _links_table(board, cfg, settings))
 
 
 def up_command(
-    config: Annotated[Path | None, typer.Argument(help="Optional YAML file of RunConfig fields.")] = None,
+    config_arg: Annotated[Path | None, typer.Argument(
+        metavar="[CONFIG]", help="YAML file of RunConfig fields (the same as --config).")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="YAML file of RunConfig fields (as `hammer train --config`).")] = None,
     preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings; default cn3).")] = None,
     variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized (default hammer).")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code).")] = None,
@@ -130,8 +168,11 @@ def up_command(
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
+    if config_arg is not None and config is not None:
+        _fail("a config file twice (CONFIG and --config); fix: pass one of them")
+    config = config if config is not None else config_arg
     if resume is not None:
-        given = {"CONFIG": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
+        given = {"--config": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
                  "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
                  "--external": external}
@@ -186,7 +227,7 @@ def up_command(
     try:
         settings = RuntimeSettings.model_validate(rt)
     except Exception as e:  # noqa: BLE001
-        _fail(f"--runtime: {' '.join(str(e).split())}")
+        _fail(settings_error(e))
     console.print(f"run dir: {path}")
     if plan.links:
         for lf in plan.links:
@@ -227,10 +268,16 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     from rich.live import Live
 
     from deploy.up import UpError, launch
+    from envs.registry import EnvConfigError
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
+    central = cfg.variant in ("hammer", "random")
+    console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
+                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
+                  f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
     started = time.monotonic()
+    rate: dict = {}
     live = None
     last_line = [0.0]
     if dashboard and sys.stderr.isatty():
@@ -239,7 +286,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     def tick(board) -> None:
         if live is not None:
-            live.update(_dashboard_table(board, cfg, started, settings))
+            live.update(_dashboard_table(board, cfg, started, settings, rate))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
             env = board.heartbeats.get("env")
@@ -248,10 +295,15 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
                           f"env-steps/s {board.env_rate():,.0f}  metric(100) {c.get('paper_metric_100', 0):.2f}  "
                           f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "
                           f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}"
+                          f"  eta {_eta(board, cfg, rate)}"
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
     try:
         res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents)
+    except EnvConfigError as e:  # a bad or refused env: a config mistake, found before any file is written
+        if live is not None:
+            live.stop()
+        _fail(str(e))
     except UpError as e:
         if live is not None:
             live.stop()
@@ -266,9 +318,15 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     s = res.summary
     if s.get("resumed_from") is not None:
         console.print(f"resumed at update {s['resumed_from']}; this session ran {res.wall_time:.0f}s")
-    console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-500 paper metric "
+    console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-{min(500, s['episodes'])} paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))
+        from faults.links import COUNTERS_NOTE
+
+        console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
+    from learning.cli import print_next_steps
+
+    print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

@@ -25,17 +25,35 @@ ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub,
 ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
 
 
-def _setup(role: str) -> None:
+def _setup(role: str, run_dir: Path | None = None) -> None:
+    """Logging of a role process: line by line to stderr (the launcher's RUN/logs/<role>.log), so a
+    killed role's log ends at its last line; Python warnings too; first a line of what it runs."""
+    sys.stderr.reconfigure(line_buffering=True)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
+    logging.captureWarnings(True)
+    log = logging.getLogger("hammer.deploy")
+    try:
+        cfg = json.loads((Path(run_dir) / "config.json").read_text()) if run_dir is not None else None
+        rt = json.loads((Path(run_dir) / "runtime.json").read_text()) if run_dir is not None else None
+    except (OSError, ValueError):
+        cfg = rt = None
+    if cfg and rt:
+        log.info("%s: run dir %s; %s N=%s %s/%s seed %s, %s episodes; mode %s, msg deadline %s ms, act deadline "
+                 "%s ms, max policy lag %s, fallback %s%s", role, run_dir, cfg.get("env"), cfg.get("n_agents"),
+                 cfg.get("variant"), cfg.get("central_mode"), cfg.get("seed"), cfg.get("episodes"), rt.get("mode"),
+                 rt.get("msg_deadline_ms"), rt.get("act_deadline_ms"), rt.get("max_policy_lag"), rt.get("fallback"),
+                 f", resume from update {rt['resume_from']}" if rt.get("resume_from") is not None else "")
     from deploy.supervisor import parent_watchdog
 
     parent_watchdog()
 
-    def on_term(signum, frame):  # turn SIGTERM into a clean exit so the Zenoh session closes
+    def on_term(signum, frame):  # turn SIGTERM (and Ctrl-C) into a clean exit so the Zenoh session closes
+        log.warning("%s: %s, stopping", role, signal.Signals(signum).name)
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)
 
 
 def write_env_spec(run_dir: Path, spec) -> None:
@@ -125,7 +143,7 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
                       help="With --bundle: the run's seed (the agent's sampling stream); default the bundle's.")] = None,
                   ) -> None:
     """A local-agent client: acts on its observation + central message. Runs without torch."""
-    _setup(f"local-{agent}")
+    _setup(f"local-{agent}", run_dir)
     # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
     from local_agent.client import AgentSpec, LocalAgentClient
     from protocol.session import HammerSession
@@ -184,7 +202,7 @@ def _bundle_inputs(bundle: Path, run_dir: Path | None, run_id: str | None, conne
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
-    _setup("central")
+    _setup("central", run_dir)
     from central_agent.server import CentralServer
     from protocol.session import HammerSession
 
@@ -206,7 +224,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
 
 def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The env host: steps the K env copies and drives the step loop; writes metrics and the summary."""
-    _setup("env")
+    _setup("env", run_dir)
     from env_host.host import EnvHost
     from learning.run_env import make_env
     from learning.rundir import RunDir
@@ -227,6 +245,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
                            resume_from=settings.resume_from, resume_step=settings.resume_step)
             summary = host.run_eval() if settings.mode == "eval" else host.run()
+            host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
+                          else host.stop_reason or "ended before the budget", host.state.step, host.state.episodes)
             summary["faults"] = s.fault_report()
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
@@ -237,7 +257,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             # Tell everyone the run is over (the launcher also stops them).
             s.publish(s.keys.ctl("all"), Control(command="stop"))
     except KeyboardInterrupt:
-        pass
+        logging.getLogger("hammer.env").warning("env stopped: interrupted")
     finally:
         rd.close()
         env.close()
@@ -248,7 +268,7 @@ def learner_command(run_dir: RunDirOpt,
                                                           "(needed for backprop mode; the default).")] = "team",
                     connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
-    _setup(f"learner-{role}")
+    _setup(f"learner-{role}", run_dir)
     from protocol.session import HammerSession
 
     if role != "team":

@@ -94,11 +94,13 @@ def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
 
     from envs.registry import make_vec_env
     from learning.config import ConfigError
+    from learning.run_env import check_env_fits
     from learning.rundir import RunDir
 
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
     spec = env.spec
     env.close()
+    check_env_fits(cfg, spec)  # a config asking more of the env than it gives: refused before any file is written
     try:
         rd = RunDir.create(run_dir, cfg)
     except ConfigError as e:
@@ -324,7 +326,8 @@ class Launcher:
         elif code == 0:  # a clean exit: it was told to stop (the run is ending)
             return
         elif name in self.board.held:  # killed on purpose by the chaos schedule
-            log.warning("role %s killed by chaos (code %s); not restarted", name, code)
+            log.warning("role %s killed by chaos (code %s); held down: only a scheduled chaos restart (or for=) brings it back",
+                        name, code)
         elif rp.spec.restart and rp.restarts < rp.spec.max_restarts:
             rp.restarts += 1
             self.board.restarts[name] = rp.restarts

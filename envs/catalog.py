@@ -11,6 +11,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import logging
+import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -81,6 +83,8 @@ def valid_names() -> str:
 
 def _import_attr(path: str, what: str) -> Any:
     mod_name, _, attr = path.partition(":")
+    if os.getcwd() not in sys.path:  # a user's module next to their config, as `python -m` finds it (appended:
+        sys.path.append(os.getcwd())  # never shadows an installed package)
     try:
         mod = importlib.import_module(mod_name)
     except ImportError as e:
@@ -100,6 +104,30 @@ def _kwarg_names(fn: Callable[..., Any]) -> set[str] | None:
     if any(p.kind is p.VAR_KEYWORD for p in params):
         return None
     return {p.name for p in params if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def _valid_from_type_error(err: TypeError) -> set[str] | None:
+    """The keywords of the callable a `TypeError` names ("X.__init__() got an unexpected keyword
+    argument"), looked up in the frame that called it: factories behind **kwargs (multiwalker's
+    raw_env passes them on to MultiWalkerEnv) cannot be checked up front, but can name the fields."""
+    import re
+
+    m = re.match(r"([\w.]+)\(\) got an unexpected keyword argument", str(err))
+    tb = err.__traceback__
+    if m is None or tb is None:
+        return None
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    parts = [p for p in m.group(1).split(".") if p != "__init__"]
+    names = {**tb.tb_frame.f_globals, **tb.tb_frame.f_locals}  # by name, or by qualname when imported "as"
+    obj = names.get(parts[0]) or next((v for v in names.values() if getattr(v, "__qualname__", None) == parts[0]),
+                                      None)
+    for p in parts[1:]:
+        obj = getattr(obj, p, None)
+    try:
+        return _kwarg_names(obj) if callable(obj) else None
+    except (TypeError, ValueError):
+        return None
 
 
 def _check_kwargs(name: str, kwargs: dict[str, Any], valid: set[str] | None, reserved: str | None) -> None:
@@ -126,8 +154,8 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
         fn = _import_attr(f"{entry.module}:{entry.factory}", desc.name)
         if entry.wrap is not None:
             wrap = _import_attr(entry.wrap, desc.name)
-            return (lambda: wrap(fn(**full), full)), desc.name, int(full["max_cycles"])
-        return (lambda: fn(**full)), desc.name, int(full["max_cycles"])
+            return _adapted(lambda: wrap(fn(**full), full), desc), desc.name, int(full["max_cycles"])
+        return _adapted(lambda: fn(**full), desc), desc.name, int(full["max_cycles"])
     if ":" in desc.name:
         fn = _import_attr(desc.name, desc.name)
         if not callable(fn):
@@ -143,11 +171,22 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
             try:
                 return fn(**kwargs)
             except TypeError as e:
-                raise EnvConfigError(f"env {desc.name!r}: the factory rejected env_kwargs {sorted(kwargs)}: {e}") from e
+                valid_here = _valid_from_type_error(e)
+                hint = f"; valid fields: {', '.join(sorted(valid_here))}" if valid_here else ""
+                raise EnvConfigError(f"env {desc.name!r}: the factory rejected env_kwargs {sorted(kwargs)}: {e}"
+                                     f"{hint}") from e
 
         max_cycles = kwargs.get("max_cycles")
-        return factory, desc.name, (int(max_cycles) if max_cycles is not None else None)
+        return _adapted(factory, desc), desc.name, (int(max_cycles) if max_cycles is not None else None)
     raise EnvConfigError(f"env: unknown name {desc.name!r}; valid names: {valid_names()}")
+
+
+def _adapted(factory: Callable[[], Any], desc: EnvDescription) -> Callable[[], Any]:
+    if not desc.adapters:
+        return factory
+    from envs.adapters import apply_adapters
+
+    return lambda: apply_adapters(factory(), desc.adapters)
 
 
 def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:

@@ -22,4 +22,5 @@ class EnvDescription:
     name: str
     n_agents: int
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+    adapters: tuple[str, ...] = ()  # envs.adapters names, applied to each parallel env built
 

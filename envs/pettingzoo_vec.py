@@ -47,22 +47,22 @@ def spec_from_parallel_env(env: Any, name: str, max_steps: int | None = None) ->
     o0, a0 = obs_spaces[0], act_spaces[0]
     if not isinstance(o0, spaces.Box) or len(o0.shape) != 1:
         raise EnvSpaceError(
-            f"env {name!r}: observation_space of {agents[0]!r} is {o0}; hammer needs a flat Box (1-D "
-            "vector). Wrap the env with a flattening wrapper (e.g. supersuit.flatten_v0) first."
+            f"env {name!r}: observation_space of {agents[0]!r} is {o0}; hammer needs a flat Box (1-D vector); "
+            f"fix: {_adapter_fix(o0)} (`hammer envs check {name}` says what the env needs)"
         )
     for a, o in zip(agents, obs_spaces):
         if not isinstance(o, spaces.Box) or o.shape != o0.shape:
             raise EnvSpaceError(
                 f"env {name!r}: observation_space of {a!r} is {o} but {agents[0]!r} has {o0}; agents must "
-                "be homogeneous (same observation shape) because they share one policy. Pad the "
-                "observations to one size (e.g. supersuit.pad_observations_v0)."
+                "be homogeneous (same observation shape) because they share one policy; fix: --set "
+                "env_adapters=[pad,agent_id] (pads every space to the largest and tells the agents apart)"
             )
     for a, s in zip(agents, act_spaces):
         if s != a0:
             raise EnvSpaceError(
                 f"env {name!r}: action_space of {a!r} is {s} but {agents[0]!r} has {a0}; agents must be "
-                "homogeneous (same action space) because they share one policy. Pad the action spaces "
-                "to one size (e.g. supersuit.pad_action_space_v0)."
+                "homogeneous (same action space) because they share one policy; fix: --set "
+                "env_adapters=[pad,agent_id] (pads every space to the largest and tells the agents apart)"
             )
     if max_steps is None:  # PettingZoo envs keep it as max_cycles, some one level down (multiwalker)
         raw = env.unwrapped
@@ -86,6 +86,18 @@ def spec_from_parallel_env(env: Any, name: str, max_steps: int | None = None) ->
     raise EnvSpaceError(
         f"env {name!r}: action_space {a0} is neither Discrete nor a flat Box; hammer supports those two only."
     )
+
+
+def _adapter_fix(space: Any) -> str:
+    from gymnasium import spaces
+
+    if isinstance(space, spaces.Discrete):
+        return "--set env_adapters=[one_hot]"
+    if isinstance(space, spaces.Box) and len(space.shape) == 3:
+        return "--set env_adapters=[gray,resize:32x32,flatten] (an image: grey, small, flat)"
+    if isinstance(space, spaces.Box):
+        return "--set env_adapters=[flatten]"
+    return "no adapter fits this space (Box or Discrete only)"
 
 
 class PettingZooVecEnv(VecEnv):

@@ -13,8 +13,14 @@ Names:
   mw-pettingzoo
             the same env through PettingZoo's parallel wrapper all the way (the reference).
   module:factory
-            any PettingZoo parallel env, e.g. `pettingzoo.sisl.pursuit_v4:parallel_env`; env_kwargs
+            any PettingZoo parallel env, e.g. `pettingzoo.sisl.multiwalker_v9:parallel_env`
+            or `mpe2.simple_reference_v3:parallel_env`; env_kwargs
             are passed to the factory and n_agents must match its possible_agents.
+
+`env_adapters` (`envs.adapters`: flatten, one_hot, pad, agent_id, gray, resize:WxH) make envs
+with image or Discrete observations or with different spaces per agent fit; `hammer envs check
+module:factory` says which an env needs. A `module:factory` module is imported from the current
+folder too (as `python -m` does), so a wrapper module next to the config needs no PYTHONPATH.
 
 `env_kwargs` override the defaults field by field; unknown fields are refused with the list of valid
 ones. `workers=0` steps the K copies in this process; `workers>=1` splits them over that many
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from envs.adapters import parse_adapters
 from envs.base import VecEnv
 from envs.catalog import build_cn, build_local, parallel_env_factory, valid_names
 from envs.description import EnvConfigError, EnvDescription
@@ -33,13 +40,13 @@ from envs.workers import SubprocVecEnv
 
 
 def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str, Any] | None = None,
-                 workers: int = 0, parent_slice: bool = False) -> VecEnv:
+                 workers: int = 0, parent_slice: bool = False, adapters: list[str] | tuple[str, ...] = ()) -> VecEnv:
     """Build K = num_envs copies of the N = n_agents env `env` (see module docstring for the names).
 
     Seeding happens in `reset(seed)` (copy k gets seed + k). `workers=0` runs in-process;
     `workers>=1` splits the copies into that many slices stepped in parallel subprocesses, with
     identical results; `parent_slice=True` steps slice 0 in this process instead (W-1 subprocesses;
-    workers=1 is then simply in-process).
+    workers=1 is then simply in-process). `adapters` (`envs.adapters`) wrap each PettingZoo env.
     """
     if not isinstance(env, str) or not env:
         raise EnvConfigError(f"env: expected a name, got {env!r}; valid names: {valid_names()}")
@@ -51,9 +58,13 @@ def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str
         raise EnvConfigError(f"workers: must be an int in [0, num_envs={num_envs}], got {workers!r} "
                              "(0 = in-process)")
     kwargs = dict(env_kwargs or {})
+    adapters = parse_adapters(adapters)
     if env == "cn":
+        if adapters:
+            raise EnvConfigError("env_adapters: env 'cn' is vectorised numpy, not PettingZoo, and needs none; fix: "
+                                 "remove env_adapters")
         return build_cn(n_agents, num_envs, kwargs, workers)
-    desc = EnvDescription(env, n_agents, kwargs)
+    desc = EnvDescription(env, n_agents, kwargs, adapters)
     parallel_env_factory(desc)  # validate the name and kwargs here, before any process starts
     if workers == 0 or (workers == 1 and parent_slice):
         return build_local(desc, num_envs)

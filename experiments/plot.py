@@ -21,6 +21,20 @@ def seed_curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, n
     return np.arange(1, n + 1), mean, se
 
 
+def first_plotted(window: int, n: int) -> int:
+    """The episode index where a curve starts being drawn: where the rolling mean holds a tenth of
+    its window. Before that it averages a handful of episodes, and one run's first episode would
+    draw a spike at episode 0."""
+    return min(window, n) // 10
+
+
+def plotted_curve(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`seed_curves` from `first_plotted` on."""
+    x, mean, se = seed_curves(runs, window)
+    skip = first_plotted(window, len(x))
+    return x[skip:], mean[skip:], se[skip:]
+
+
 BANDS = ("se", "iqm")
 
 
@@ -29,15 +43,16 @@ def seed_band(runs: list[Run], window: int, band: str, stride_to: int = 3000
     """(episodes, centre, low, high) over seeds, every `len // stride_to`-th point."""
     if band not in BANDS:
         raise ValueError(f"band must be one of {', '.join(BANDS)}, got {band!r}")
-    x, mean, se = seed_curves(runs, window)
+    x, mean, se = plotted_curve(runs, window)
     stride = max(1, len(x) // stride_to)  # a smoothed curve loses nothing; keeps the SVG small
     if band == "se":
         x, mean, se = x[::stride], mean[::stride], se[::stride]
         return x, mean, mean - se, mean + se
     from experiments.stats import iqm_band
 
-    n = len(x)
-    curves = np.stack([rolling_mean(r.paper_metric[:n], window)[::stride] for r in runs])
+    n = len(seed_curves(runs, window)[0])
+    skip = first_plotted(window, n)
+    curves = np.stack([rolling_mean(r.paper_metric[:n], window)[skip:][::stride] for r in runs])
     centre, lo, hi = iqm_band(curves)
     return x[::stride], centre, lo, hi
 
@@ -58,7 +73,7 @@ def plot_runs(runs: list[Run], out: Path, window: int = 500, title: str | None =
             if s != setting:
                 continue
             x, centre, lo, hi = seed_band(rs, window, band)
-            (line,) = ax.plot(x, centre, label=f"{label} ({len(rs)} seeds)", lw=1.4)
+            (line,) = ax.plot(x, centre, label=f"{label} ({len(rs)} seed{'s' if len(rs) != 1 else ''})", lw=1.4)
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
         ax.set_title((title or setting) + ("" if band == "se" else "\nIQM over seeds, 95% bootstrap CI"))
         ax.set_xlabel("episode")

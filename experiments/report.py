@@ -177,21 +177,24 @@ def comparisons_from_plan(path: Path) -> list[tuple[str, str]]:
 def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
                 comparisons: list[Comparison] | None = None, auc: int | None = None) -> str:
     team_window = f"the first {auc} episodes" if auc else f"the last {last} episodes"
+    shortest = min((r.episodes for r in rows), default=last)
     if auc is not None:
         col = f"AUC {auc}"
         what = (f"AUC {auc} = mean paper metric (average reward per local agent per episode) over each seed's "
                 f"first {auc} episodes (area under the learning curve / {auc}; higher = better sooner)")
     elif best_window is None:
         col = "final"
+        span = (f"last {last} episodes" if shortest >= last else
+                f"last {last} episodes (all of them for runs shorter than that: fewest {shortest})")
         what = (f"Final performance = mean paper metric (average reward per local agent per episode) over each "
-                f"seed's last {last} episodes")
+                f"seed's {span}")
     else:
         col = "best"
         what = (f"Best performance = each seed's best rolling mean of the paper metric (average reward per "
                 f"local agent per episode) over {best_window} episodes, wherever in the run it was")
     out = [
-        (f"{what}; mean ± standard error over seeds; IQM = interquartile mean over seeds with a 95 % "
-        f"stratified-bootstrap CI; team return = mean summed team reward over {team_window}; "
+        (f"{what}; mean ± standard error over seeds (no ± with one seed); IQM = interquartile mean over "
+        f"seeds with a 95 % stratified-bootstrap CI; team return = mean summed team reward over {team_window}; "
         "p = Welch's t-test against IL in the same setting (uncorrected)."),
         "",
         f"| setting | variant | seeds | episodes | {col} (mean ± s.e.) | IQM [95% CI] | team return | p vs IL |",
@@ -199,8 +202,8 @@ def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
     ]
     for r in rows:
         p = "" if r.p_vs_il is None else f"{r.p_vs_il:.3g}"
-        se = "n/a" if np.isnan(r.sem) else f"{r.sem:.2f}"
-        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f} ± {se} | "
+        se = "" if np.isnan(r.sem) else f" ± {r.sem:.2f}"  # one seed has no standard error
+        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f}{se} | "
                    f"{r.iqm:.2f} [{r.iqm_lo:.2f}, {r.iqm_hi:.2f}] | {r.team:.1f} | {p} |")
     if comparisons:
         out += comparisons_markdown(comparisons)

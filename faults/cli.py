@@ -124,7 +124,9 @@ def eval_command(
     try:
         settings = RuntimeSettings.model_validate(rt)
     except ValueError as e:
-        _fail(f"--runtime: {' '.join(str(e).split())}")
+        from deploy.cli import settings_error
+
+        _fail(settings_error(e))
     for lf in plan.links:
         typer.echo(f"fault: {lf.describe()} (seed {plan.seed})")
     try:

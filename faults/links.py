@@ -27,6 +27,9 @@ from faults.spec import LINKS
 
 LINK_IDS = {link: link.replace("->", "_") for link in LINKS}
 _FAULT_FIELDS = ("matched", "sent", "dropped", "duplicated", "delayed", "reordered")
+# Shown under every link table: why delivered can exceed sent, and why live figures may not add up.
+COUNTERS_NOTE = ("delivered counts every copy a receiver got: duplicated copies included, so it can exceed sent - "
+                 "dropped; while a run is live each role's counters come from its last heartbeat (up to ~1 s apart)")
 COLUMNS = ("sent", "dropped", "duplicated", "delayed", "delivered", "late", "duplicate", "fallbacks", "defaults")
 
 

@@ -175,19 +175,23 @@ def write_outputs(results: list[PointResult], out: Path, msg_deadline_ms: float,
     conds = sorted({(r.drop, r.delay_ms) for r in results if r.team != "il"}, key=lambda c: (c[1] > 0, c[1], c[0]))
     seeds = sorted({r.seed for r in results})
     il = agg.get(("il", 0.0, 0.0))
-    header = (f"Paper metric (mean reward per local agent per episode, higher is better), mean ± std over "
-              f"{len(seeds)} seeds × {episodes} episodes; central→local faults; message deadline "
+    def pm(a: dict) -> str:  # one seed has no spread to show
+        return f"{a['mean']:.2f} ± {a['std']:.2f}" if a["n"] > 1 else f"{a['mean']:.2f}"
+
+    header = (f"Paper metric (mean reward per local agent per episode, higher is better), "
+              f"{'mean ± std over ' if len(seeds) > 1 else ''}{len(seeds)} seed{'s' if len(seeds) > 1 else ''} "
+              f"× {episodes} episodes; central→local faults; message deadline "
               f"{msg_deadline_ms:g} ms; fallback: zeros. In brackets: share of agent-steps acting on a fallback message.")
     lines = [header, ""]
     if il is not None:
-        lines += [f"IL reference (no messages, no faults): **{il['mean']:.2f} ± {il['std']:.2f}**", ""]
+        lines += [f"IL reference (no messages, no faults): **{pm(il)}**", ""]
     lines += ["| condition | " + " | ".join(teams) + " |", "|---|" + "---|" * len(teams)]
     for drop, delay in conds:
         label = f"drop {drop:g}" if delay == 0 else f"delay {delay:g} ms ({'beyond' if delay > msg_deadline_ms else 'within'} deadline)"
         cells = []
         for t in teams:
             a = agg.get((t, drop, delay))
-            cells.append("-" if a is None else f"{a['mean']:.2f} ± {a['std']:.2f} ({a['fallback']:.0%})")
+            cells.append("-" if a is None else f"{pm(a)} ({a['fallback']:.0%})")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     (out / "sweep.md").write_text("\n".join(lines) + "\n")
     _plot(agg, teams, conds, il, msg_deadline_ms, out / "sweep.png")

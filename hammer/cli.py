@@ -11,14 +11,34 @@ import typer
 
 app = typer.Typer(
     name="hammer",
-    help=(
-        "Train and run HAMMER teams: one central agent learns to send each lightweight local agent "
-        "a short message; local agents act on their own observation plus that message."
-    ),
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
 )
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        from hammer import __version__
+
+        try:
+            typer.echo(f"hammer {version('hammer')}")
+        except PackageNotFoundError:  # run from a checkout without installing
+            typer.echo(f"hammer {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """Train and run HAMMER teams: a central agent learns to message lightweight local agents.
+
+    Start with `hammer train --preset cn3` (one process) or `hammer up` (one process per role, over Zenoh).
+
+    `hammer envs check module:factory` says whether a PettingZoo parallel env can run, and how.
+    """
 
 
 def _register_all() -> None:

@@ -33,6 +33,7 @@ from safetensors.numpy import save as save_safetensors
 
 from envs.base import EnvSpec
 from learner.remote_rollout import BehaviourSnapshots, RemoteRollout
+from learner.tb_curve import TrainCurve
 from learning.config import RunConfig
 from learning.host_info import host_info
 from learning.learner import TeamLearner
@@ -78,8 +79,9 @@ class LearnerWorker(Role):
         self.central_weights_pub = (session.publisher(self.keys.weights("central"))
                                     if self.team.central is not None else None)
         self.update = 0 if resume_from is None else load_checkpoint(self.learner, rd, resume_from)
-        # A resumed run drops the killed session's TensorBoard points after the checkpoint.
-        self.tb = rd.tensorboard(purge_step=self.update + 1 if resume_from is not None else None)
+        # TensorBoard on `hammer train`'s tags and env-step axis; a resume drops the points logged after the checkpoint.
+        self.curve = TrainCurve(cfg, rd, self.update)
+        self.tb = rd.tensorboard(purge_step=self.curve.purge_step(self.update) if resume_from is not None else None)
         self.stats: dict[str, Any] = {
             "updates": self.update, "stale_chunks": 0, "central_steps_missing": 0, "samples": 0,
             "max_policy_lag": max_policy_lag, "lagged_updates": 0, "policy_lag_max": 0,
@@ -141,6 +143,7 @@ class LearnerWorker(Role):
             del self.held_records[step]
         stats["lagged_updates"] += int(lag > 0)
         stats["policy_lag_max"] = max(stats["policy_lag_max"], lag)
+        self.curve.add(rollout)
         logs = self.learner.learn(rollout["last_obs"], rollout["last_prev"], self.update)
         t2 = time.perf_counter()
         self.update += 1
@@ -152,8 +155,7 @@ class LearnerWorker(Role):
         stats["time_publish_s"] += time.perf_counter() - t2
         self.behaviour.keep(self.update)
         logs["policy_lag"] = lag
-        for name, v in logs.items():
-            self.tb.add_scalar(f"train/{name}", v, self.update)
+        self.curve.log(self.tb, self.update, logs)
         if self.update % self.cfg.checkpoint_every == 0:
             tensors, meta = self.learner.state_tensors()
             meta.update(update=self.update, config=self.cfg.model_dump(mode="json"))

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
-BRANCH_FIXED = ("env", "env_kwargs", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
-                "use_prev_actions", "actor_hidden", "critic_hidden", "central_hidden")
+BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
+                "use_prev_actions", "obs_conv", "actor_hidden", "critic_hidden", "central_hidden")
 
 
 def _fail(msg: str) -> None:
@@ -47,6 +48,9 @@ def train_command(
                                                                                      config)):
                 raise ConfigError("--branch: needs --run-dir for the new run and takes only --set, --seed and "
                                   "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.01")
+            if (branch / "runtime.json").is_file():
+                raise ConfigError(f"--branch '{branch}': a `hammer up` run (it has runtime.json); fix: branch a "
+                                  "`hammer train` run, or continue this one with `hammer up --resume`")
             src, src_cfg = RunDir.open(branch)
             cfg = merge_config(None, None, set_ or [], {"seed": seed, "episodes": episodes},
                                base=src_cfg.model_dump(mode="json"))
@@ -57,12 +61,14 @@ def train_command(
         elif resume is not None:
             if any(v is not None for v in (preset, variant, central_mode, seed, config, set_)):
                 raise ConfigError("--resume: only --episodes may be changed when resuming; fix: drop the other options")
+            if (resume / "runtime.json").is_file():  # checked before RunDir.open or any write
+                raise ConfigError(f"--resume '{resume}': a `hammer up` run (it has runtime.json); fix: continue it "
+                                  f"with `hammer up --resume {resume}`")
             rd, cfg = RunDir.open(resume)
-            if episodes is not None:
-                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
-                rd.write_config(cfg)
             if rd.latest_checkpoint() is None:
                 raise ConfigError(f"--resume '{resume}': no checkpoint yet; fix: start it again with --run-dir")
+            if episodes is not None:
+                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
         else:
             extra = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes,
                      "out": out}
@@ -70,12 +76,15 @@ def train_command(
                 extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
             cfg = merge_config(preset, config, set_ or [], extra)
         from envs.registry import EnvConfigError
-        from learning.run_env import make_env
+        from learning.run_env import check_env_fits, make_env
 
         try:  # build the env first so a bad env name/kwarg fails before any file is written
             env = make_env(cfg)
+            check_env_fits(cfg, env.spec)
         except EnvConfigError as e:
             raise ConfigError(str(e)) from None
+        if resume is not None and episodes is not None:
+            rd.write_config(cfg)  # only now that the env, the config and the checkpoint are known good
         if resume is None:
             path = run_dir if run_dir is not None else Path(cfg.out) / (name or cfg.run_name())
             try:
@@ -90,26 +99,39 @@ def train_command(
 
 def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     from learning.trainer import train
 
     console = Console(stderr=True)
     console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
+    console.print(f"will run: {cfg.episodes:,} episodes in this process ({cfg.num_envs} env copies at a time, "
+                  f"{env.spec.max_steps} steps each); Ctrl-C stops, `hammer train --resume {rd.path}` continues "
+                  "from the last checkpoint")
+    started = [None]
     if quiet or not sys.stderr.isatty():
         last = [0]
 
         def report(p) -> None:  # a line every ~5% for logs
+            if started[0] is None:
+                started[0] = (time.monotonic(), p.episodes)
             if p.episodes - last[0] >= max(1, p.budget // 20):
                 last[0] = p.episodes
                 console.print(f"episodes {p.episodes}/{p.budget}  env-steps/s {p.steps_per_s:,.0f}  "
-                              f"metric(100) {p.running_metric:.2f}")
+                              f"metric(100) {p.running_metric:.2f}  eta {eta(started[0], p.episodes, p.budget)}")
 
         summary = train(cfg, rd, resume=resume, env=env, on_progress=None if quiet else report)
     else:
         with Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
                       TextColumn("{task.fields[sps]} env-steps/s"), TextColumn("metric {task.fields[metric]}"),
-                      TimeElapsedColumn(), console=console) as bar:
+                      TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=console) as bar:
             task = bar.add_task("train", total=cfg.episodes, sps="-", metric="-")
 
             def report(p) -> None:
@@ -117,9 +139,32 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
                            metric=f"{p.running_metric:.2f}")
 
             summary = train(cfg, rd, resume=resume, env=env, on_progress=report)
-    console.print(f"done: {summary['episodes']} episodes, last-500 paper metric "
-                  f"{summary['final_paper_metric_last500']:.3f}, "
-                  f"{summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+    metric = summary["final_paper_metric_last500"]
+    console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
+                  f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+    print_next_steps(console, cfg, metric, rd.path, "hammer train")
+
+
+def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
+    """Time left at this session's episode rate, as h:mm:ss ('-' until there is a rate)."""
+    t0, e0 = start
+    done, elapsed = episodes - e0, time.monotonic() - t0
+    if done <= 0 or elapsed <= 0:
+        return "-"
+    left = max(0, budget - episodes) * elapsed / done
+    return time.strftime("%H:%M:%S", time.gmtime(left))
+
+
+def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
+    """The result among the preset's references and what to run next (shared by both runners)."""
+    from learning.baselines import in_context
+
+    line = in_context(cfg, metric)
+    if line:
+        console.print(line, soft_wrap=True)
+    console.print(f"next: `hammer report {path}` (final table), `hammer plot {path} --out {path}/curves` "
+                  f"(learning curve), `tensorboard --logdir {path}`; `{runner} --resume {path} --episodes N` "
+                  "continues it (also after Ctrl-C)", soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:

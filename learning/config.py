@@ -36,6 +36,9 @@ class RunConfig(BaseModel):
     env: str = Field("cn", description="registry name: cn, cn-mpe2, mw or module:factory")
     n_agents: int = Field(3, ge=1, description="number of local agents N")
     env_kwargs: dict[str, Any] = Field(default_factory=dict, description="extra env constructor kwargs")
+    env_adapters: list[str] = Field(
+        default_factory=list, description="PettingZoo adapters (envs.adapters): flatten, one_hot, pad, agent_id, gray, "
+                                          "resize:WxH; `hammer envs check ENV` says which an env needs")
     env_workers: int = Field(0, ge=0, description="env slices stepped in parallel processes (0 = in-process)")
     env_parent_slice: bool = Field(
         True, description="with env_workers=W: this process steps one slice itself (W-1 subprocesses) "
@@ -69,6 +72,10 @@ class RunConfig(BaseModel):
     critic_hidden: list[int] = Field(default_factory=lambda: [64, 32])
     central_hidden: list[int] = Field(default_factory=lambda: [64, 64])
     log_std_init: float = Field(-0.5, description="initial log-std of the Gaussian local policy")
+    obs_conv: list[int] = Field(
+        default_factory=list, description="[H, W, C]: the first H*W*C observation values are an image (HWC, e.g. "
+                                          "[32, 32, 1] from env_adapters [gray, resize:32x32, flatten]); the local "
+                                          "networks read it through a small conv encoder. Empty: MLP only")
 
     # --- run ---------------------------------------------------------------------------------
     episodes: int = Field(30_000, ge=1, description="budget in finished episodes")
@@ -89,6 +96,10 @@ class RunConfig(BaseModel):
                 raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
         if self.variant in MESSAGE_VARIANTS and self.msg_dim < 1:
             raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
+        if self.obs_conv and (len(self.obs_conv) != 3 or min(self.obs_conv) < 1):
+            raise ValueError("obs_conv: needs [H, W, C], three positive sizes, e.g. [32, 32, 1]")
+        if self.obs_conv and self.variant == "centralized":
+            raise ValueError("obs_conv: not with variant centralized (its local input is every agent's observation)")
         if self.minibatches > self.rollout_steps * self.num_envs:
             raise ValueError("minibatches: must be <= rollout_steps * num_envs")
         return self
@@ -114,6 +125,8 @@ _FIXES = {
     "gae_lambda": "use a value in [0, 1], e.g. gae_lambda=0.95",
     "clip": "use a clip epsilon in (0, 1), e.g. clip=0.2",
     "msg_dropout": "use a probability in [0, 1]",
+    "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
+    "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
 }
 
 

@@ -99,28 +99,66 @@ class _Exportable(nn.Module):
         return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in self.state_dict().items()}
 
 
+class ConvEncoder(nn.Module):
+    """A small conv stem for image observations (`cfg.obs_conv` = [H, W, C]): the first H*W*C input
+    values are an image in HWC order (what env_adapters [gray, resize:WxH, flatten] produce); two
+    stride-2 convolutions with tanh turn it into features, the rest of the input (message, agent id)
+    is passed on beside them. A flattened image through the MLP alone costs a first layer of H*W*C x
+    hidden weights; the convolutions share theirs over the image. Numpy twin: `numpy_policy.conv_encode`."""
+
+    channels, kernel, stride = (16, 32), 4, 2
+
+    def __init__(self, image: tuple[int, int, int], in_dim: int) -> None:
+        super().__init__()
+        h, w, c = image
+        self.register_buffer("image", torch.tensor([h, w, c], dtype=torch.float32))
+        self.hwc, self.shape = h * w * c, (h, w, c)
+        layers, ch = [], c
+        for out in self.channels:
+            layers.append(nn.Conv2d(ch, out, self.kernel, self.stride))
+            ch, h, w = out, (h - self.kernel) // self.stride + 1, (w - self.kernel) // self.stride + 1
+        if h < 1 or w < 1:
+            raise ValueError(f"obs_conv: image {image} is too small for two {self.kernel}x{self.kernel} stride-"
+                             f"{self.stride} convolutions; fix: at least 10x10 (e.g. env_adapters resize:32x32)")
+        self.convs = nn.ModuleList(layers)
+        self.out_dim = ch * h * w + in_dim - self.hwc
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = x.shape[:-1]
+        h, w, c = self.shape
+        img = x[..., : self.hwc].reshape(-1, h, w, c).permute(0, 3, 1, 2)
+        for conv in self.convs:
+            img = torch.tanh(conv(img))
+        return torch.cat([img.reshape(*lead, -1), x[..., self.hwc:]], dim=-1)
+
+
 class LocalPolicy(_Exportable):
-    """Shared local actor-critic: categorical head (discrete) or Gaussian with a free log-std."""
+    """Shared local actor-critic: categorical head (discrete) or Gaussian with a free log-std.
+    With `image` ([H, W, C], cfg.obs_conv) the actor and the critic each read the input through their
+    own `ConvEncoder` first."""
 
     def __init__(self, in_dim: int, action_dim: int, discrete: bool, actor_hidden: list[int],
-                 critic_hidden: list[int], log_std_init: float = -0.5) -> None:
+                 critic_hidden: list[int], log_std_init: float = -0.5,
+                 image: tuple[int, int, int] | None = None) -> None:
         super().__init__()
         self.in_dim, self.action_dim, self.discrete = in_dim, action_dim, discrete
-        self.actor = TanhMLP([in_dim, *actor_hidden, action_dim], out_std=0.01)
-        self.critic = TanhMLP([in_dim, *critic_hidden, 1], out_std=1.0)
+        self.actor_enc = ConvEncoder(image, in_dim) if image else None
+        self.critic_enc = ConvEncoder(image, in_dim) if image else None
+        self.actor = TanhMLP([self.actor_enc.out_dim if image else in_dim, *actor_hidden, action_dim], out_std=0.01)
+        self.critic = TanhMLP([self.critic_enc.out_dim if image else in_dim, *critic_hidden, 1], out_std=1.0)
         if not discrete:
             self.log_std = nn.Parameter(torch.full((action_dim,), float(log_std_init)))
 
     def actor_out(self, x: torch.Tensor) -> torch.Tensor:
         """Logits (discrete) or the Gaussian mean (continuous)."""
-        return self.actor(x)
+        return self.actor(x if self.actor_enc is None else self.actor_enc(x))
 
     def value(self, x: torch.Tensor) -> torch.Tensor:
-        return self.critic(x).squeeze(-1)
+        return self.critic(x if self.critic_enc is None else self.critic_enc(x)).squeeze(-1)
 
     def logp_entropy(self, x: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """log π(a|x) and the policy entropy, for stored actions (unclipped samples if continuous)."""
-        out = self.actor(x)
+        out = self.actor_out(x)
         if self.discrete:
             logp_all = torch.log_softmax(out, dim=-1)
             logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)

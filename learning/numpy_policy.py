@@ -50,22 +50,58 @@ def gaussian_logp_of_draw(z: np.ndarray, log_std: np.ndarray | float) -> np.ndar
     return (-0.5 * z**2 - log_std - 0.5 * LOG_2PI).sum(-1).astype(np.float32)
 
 
+def _conv(params: dict[str, np.ndarray], prefix: str) -> tuple[tuple[int, int, int], list] | None:
+    if f"{prefix}.image" not in params:
+        return None
+    h, w, c = (int(v) for v in params[f"{prefix}.image"])
+    convs, i = [], 0
+    while f"{prefix}.convs.{i}.weight" in params:
+        convs.append((np.asarray(params[f"{prefix}.convs.{i}.weight"], dtype=np.float32),
+                      np.asarray(params[f"{prefix}.convs.{i}.bias"], dtype=np.float32)))
+        i += 1
+    return (h, w, c), convs
+
+
+CONV_STRIDE = 2  # networks.ConvEncoder.stride
+
+
+def conv_encode(enc: tuple[tuple[int, int, int], list] | None, x: np.ndarray) -> np.ndarray:
+    """Same maths as networks.ConvEncoder: the first H*W*C values as an HWC image through the
+    stride-2 convolutions with tanh, flattened channel-first, then the rest of x beside them."""
+    if enc is None:
+        return x
+    (h, w, c), convs = enc
+    x = np.asarray(x, dtype=np.float32)
+    lead, hwc = x.shape[:-1], h * w * c
+    img = x[..., :hwc].reshape(-1, h, w, c).transpose(0, 3, 1, 2)
+    for weight, bias in convs:
+        k = weight.shape[-1]
+        win = np.lib.stride_tricks.sliding_window_view(img, (k, k), axis=(2, 3))[:, :, ::CONV_STRIDE, ::CONV_STRIDE]
+        img = np.tanh(np.einsum("bchwij,ocij->bohw", win, weight, optimize=True) + bias[None, :, None, None])
+    return np.concatenate([img.reshape(*lead, -1), x[..., hwc:]], axis=-1)
+
+
 class NumpyLocalPolicy:
     """The shared local actor-critic; discrete iff there is no `log_std`."""
 
     def __init__(self, params: dict[str, np.ndarray]) -> None:
         self.actor = _layers(params, "actor")
         self.critic = _layers(params, "critic")
+        self.actor_enc, self.critic_enc = _conv(params, "actor_enc"), _conv(params, "critic_enc")
         self.discrete = "log_std" not in params
         self.log_std = None if self.discrete else np.asarray(params["log_std"], dtype=np.float32)
         self.in_dim = self.actor[0][0].shape[1]
+        if self.actor_enc is not None:  # the input the encoder takes, not what the MLP after it sees
+            (h, w, c), _ = self.actor_enc
+            probe = conv_encode(self.actor_enc, np.zeros((1, h * w * c), np.float32))
+            self.in_dim += h * w * c - probe.shape[-1]
 
     def actor_out(self, x: np.ndarray) -> np.ndarray:
         """Logits (discrete) or Gaussian mean (continuous)."""
-        return mlp_forward(self.actor, x, final_tanh=False)
+        return mlp_forward(self.actor, conv_encode(self.actor_enc, x), final_tanh=False)
 
     def value(self, x: np.ndarray) -> np.ndarray:
-        return mlp_forward(self.critic, x, final_tanh=False)[..., 0]
+        return mlp_forward(self.critic, conv_encode(self.critic_enc, x), final_tanh=False)[..., 0]
 
     @property
     def std(self) -> np.ndarray:

@@ -20,6 +20,7 @@ from learning.central_acting import CentralActing, CentralOut, encode_actions, z
 from learning.config import RunConfig
 from learning.networks import CentralAgent, LocalPolicy
 from learning.numpy_policy import gaussian_logp_of_draw, softmax
+from learning.run_env import check_env_fits
 from learning.sampling import ActingStreams, categorical_inverse_cdf
 
 
@@ -36,8 +37,10 @@ class Team:
         self.state_dim = self.n * self.obs_dim + (self.n * self.act_dim if cfg.use_prev_actions else 0)
         self.wiring = cfg.wiring
         self.local_in_dim = self.wiring.local_input_dim(self.obs_dim)
+        image = tuple(cfg.obs_conv) if cfg.obs_conv else None
+        check_env_fits(cfg, spec)
         self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
-                                 cfg.critic_hidden, cfg.log_std_init)
+                                 cfg.critic_hidden, cfg.log_std_init, image=image)
         self.central: CentralAgent | None = None
         if self.wiring.has_central_network:
             self.central = CentralAgent(self.state_dim, self.n, self.msg_dim, cfg.central_hidden,

@@ -116,7 +116,7 @@ class Trainer:
             sps = (self.env_steps - steps_at_start) / max(time.perf_counter() - t_start, 1e-9)
             running = float(np.mean(list(self.recent)[-100:])) if self.recent else float("nan")
             if tb is not None:
-                for name, val in stats.items():
+                for name, val in {**stats, "policy_lag": 0}.items():  # the tags of `hammer up` (synchronous: lag 0)
                     tb.add_scalar(f"train/{name}", val, self.env_steps)
                 tb.add_scalar("perf/env_steps_per_s", sps, self.env_steps)
                 if self.recent:

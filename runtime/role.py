@@ -37,6 +37,7 @@ class Role:
     with the `on_*` handler that takes a message; or overrides `poll` for any other kind of wait."""
 
     heartbeat_every_s = 1.0
+    progress_every_s = 30.0  # a progress line in the role's log (its counters): enough to follow, not a flood
     poll_s = 0.2  # how long `poll` may block: the loop's reaction time to control and heartbeats
 
     def __init__(self, session: HammerSession, name: str, *, step_log: StepLog | None = None,
@@ -53,6 +54,11 @@ class Role:
         self._last_input = time.monotonic()
         self._main: tuple[Subscription, Callable[[Any], None]] | None = None
         self._queued: list[tuple[Subscription, Callable[[Any], None]]] = []
+        self._last_progress = time.monotonic()
+        t = session.transport
+        self.log.info("%s started: %s, pid %d, run %s, %s listen %s connect %s%s", name, type(self).__name__,
+                      os.getpid(), session.run_id, t.mode, t.listen or "-", t.connect or "-",
+                      f", zenoh config {t.zenoh_config_file}" if t.zenoh_config_file else "")
 
     def handle(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
         """The role's main input: the loop waits up to `poll_s` on it and gives each message to `handler`."""
@@ -110,6 +116,9 @@ class Role:
         self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status, counters=counters))
         if self.step_log is not None:
             self.step_log.flush()
+        if now - self._last_progress >= self.progress_every_s:
+            self._last_progress = now
+            self.log.info("%s progress: %s", self.name, _brief(counters))
 
     def heartbeat_soon(self) -> None:
         """Make the next loop turn publish a heartbeat (something the launcher waits for changed)."""
@@ -134,3 +143,8 @@ class Role:
             self.step_log.flush()
         self.on_stop()
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
+
+
+def _brief(counters: dict[str, int | float]) -> str:
+    """Counters for a log line: the non-zero ones, floats rounded."""
+    return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in counters.items() if v) or "-"

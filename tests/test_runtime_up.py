@@ -72,6 +72,26 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     assert len(a) == len(b) == 100
     assert a == pytest.approx(b, abs=1e-5)
     assert len(set(a)) > 50  # real, varied episodes, not a constant
+    # TensorBoard: the same tags on the same env-step axis, the same reward curve
+    tb_up, tb_tr = _tensorboard(up), _tensorboard(tr)
+    assert set(tb_up) == set(tb_tr), set(tb_up) ^ set(tb_tr)
+    assert "episode/paper_metric_100" in tb_up and "perf/env_steps_per_s" in tb_up
+    assert [s for s, _ in tb_up["episode/paper_metric_100"]] == [s for s, _ in tb_tr["episode/paper_metric_100"]]
+    assert [s for s, _ in tb_up["train/local/policy_loss"]] == [800, 1600, 2400]  # K=32 x T=25 env steps per update
+    assert [v for _, v in tb_up["episode/paper_metric_100"]] == pytest.approx(
+        [v for _, v in tb_tr["episode/paper_metric_100"]], abs=1e-4)
+    # every role's log says how it started and why it stopped
+    for log in sorted((up / "logs").glob("*.log")):
+        text = log.read_text()
+        assert " started: " in text and " stopped: " in text, (log.name, text[-500:])
+
+
+def _tensorboard(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tb"))
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
 
 
 def _rows(run_dir: Path) -> list[dict[str, str]]:
