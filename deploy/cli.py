@@ -43,11 +43,17 @@ def _links_table(board, cfg, settings):
     for col in COLUMNS:
         t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
+    notes = []
     for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+        if row.get("unreported"):
+            notes.append(f"{link} sent includes {row['unreported']:,} its sender has not reported yet (restarted "
+                         "or between heartbeats)")
     if board.chaos_log:
-        t.caption = "chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
-                                                for e in board.chaos_log[-3:])
+        notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
+                                                 for e in board.chaos_log[-3:]))
+    if notes:
+        t.caption = "\n".join(notes)
     return t
 
 
@@ -73,6 +79,13 @@ def _dashboard_table(board, cfg, started: float, settings=None):
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
+    rejected = {r: {k[9:]: int(v) for k, v in h.counters.items() if k.startswith("rejected.") and v}
+                for r, h in sorted(board.heartbeats.items())}
+    t.add_row("rejected messages", "; ".join(f"{r} " + ", ".join(f"{k} {v}" for k, v in c.items())
+                                             for r, c in rejected.items() if c) or "0")
+    stalled = [f"{r}: {h.detail}" for r, h in sorted(board.heartbeats.items()) if h.detail.startswith("stalled")]
+    if stalled:
+        t.add_row("[bold red]stalled[/]", "\n".join(stalled))
     t.add_row("elapsed", f"{time.monotonic() - started:,.0f} s")
     if settings is None:
         return t
@@ -262,6 +275,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-500 paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
+    if s.get("degraded"):
+        console.print(f"[bold red]degraded:[/] {'; '.join(s['degraded_reasons'])} (summary.json)")
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))
