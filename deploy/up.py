@@ -26,6 +26,7 @@ from pathlib import Path
 from deploy.roles import write_env_spec
 from deploy.settings import RuntimeSettings
 from deploy.supervisor import RoleSpec, Supervisor
+from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat
 from protocol.session import HammerSession, free_loopback_port
 
@@ -206,7 +207,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
     launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos)
-    with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
+    with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}

@@ -32,11 +32,11 @@ from typing import Any
 
 from faults.links import flat_fault_counters
 from faults.steplog import StepLog
+from protocol.access import LAUNCHER  # the only sender whose control commands a role obeys (the session stamps it)
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
 from protocol.session import HammerSession, Subscription
 
 STOP_COMMANDS = ("stop",)
-LAUNCHER = "launcher"  # the only sender whose control commands a role obeys (the session stamps it)
 DEFAULT_STALL_WARN_S = 30.0
 
 

@@ -84,3 +84,28 @@ def test_a_run_whose_messages_never_arrive_is_reported_degraded(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["completed"] and summary["degraded"] is True
     assert summary["degraded_reasons"][0].startswith("fallback messages")
+
+
+def test_a_learner_that_dies_names_its_last_log_lines_and_the_resume_command(tmp_path):
+    import os
+    import signal
+
+    import pytest
+
+    from deploy.up import UpError
+
+    cfg = merge_config("cn3", overrides=["episodes=2000", "variant=il"])
+    killed: list[int] = []
+
+    def chaos(sup, board) -> None:
+        env = board.heartbeats.get("env")
+        if not killed and env is not None and env.counters.get("step", 0) >= 5:
+            killed.append(sup.pid("learner"))
+            os.kill(killed[0], signal.SIGKILL)
+
+    with pytest.raises(UpError) as err:
+        launch(cfg, RuntimeSettings(run_id="learner-death"), tmp_path / "run", chaos=chaos)
+    msg = str(err.value)
+    assert killed and msg.startswith(f"learner exited with code {-signal.SIGKILL}: ")
+    assert "INFO" in msg  # the tail of learner.log
+    assert msg.endswith(f"hammer up --resume {tmp_path / 'run'}")
