@@ -305,7 +305,8 @@ class Launcher:
             log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts, rp.spec.max_restarts)
             self.sup.start(rp.spec)
         elif name == "learner":
-            raise UpError(f"learner exited with code {code}: {_tail(rp.log_path, 5)} (log: {rp.log_path}); "
+            raise UpError(f"learner exited with code {code}: {_tail(rp.log_path, 5) or 'nothing in its log'} "
+                          f"(log: {rp.log_path}); "
                           f"fix the cause, then continue from the last checkpoint: hammer up --resume {self.run_dir}")
         else:
             raise UpError(f"role {name} exited with code {code} and cannot be restarted: "

@@ -176,6 +176,7 @@ class Role:
         """Declare this role alive (its subscriptions are in place), then handle input until a
         stop command, or `idle_exit_s` without input."""
         self.session.declare_alive(self.name)
+        self.log.info("%s alive (pid %d)", self.name, os.getpid())  # a log's tail tells how far a dead role got
         self.on_start()
         self._last_input = time.monotonic()
         while not self.stop_requested():
