@@ -47,7 +47,7 @@ def _links_table(board, cfg, settings):
     for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
         if row.get("unreported"):
-            notes.append(f"{link} sent includes {row['unreported']:,} its sender has not reported yet (restarted "
+            notes.append(f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted "
                          "or between heartbeats)")
     if board.chaos_log:
         notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
