@@ -32,11 +32,11 @@ from typing import Any
 
 from faults.links import flat_fault_counters
 from faults.steplog import StepLog
-from protocol.access import LAUNCHER  # the only sender whose control commands a role obeys (the session stamps it)
+from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
 from protocol.session import HammerSession, Subscription
 
-STOP_COMMANDS = ("stop",)
+STOP_COMMANDS = ("stop",)  # obeyed only from LAUNCHER, the sender the launcher's session stamps
 DEFAULT_STALL_WARN_S = 30.0
 
 
