@@ -56,7 +56,7 @@ class StallPeer(threading.Thread):
             self._send("state_step", lambda m: s.publish(k.state(), m), state.model_copy(update={"step": HUGE_STATE_STEP}))
             # a step inside the window, naming a policy version no learner has published
             self._send("obs_version", lambda m: s.publish(k.obs(0), m),
-                       obs0.model_copy(update={"step": now + 3, "policy_version": HUGE_VERSION}))
+                       obs0.model_copy(update={"step": now + 50, "policy_version": HUGE_VERSION}))
             for net in ("local", "central"):
                 self._send(f"weights_{net}", lambda m, net=net: s.publish(k.weights(net), m),
                            Weights.from_blob(net, HUGE_VERSION, junk))

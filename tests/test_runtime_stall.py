@@ -27,14 +27,16 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
 
 
 def _run(run_dir: Path, run_id: str, peers: list | None = None):
-    cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
+    # 6 updates: the env host reads weights only between rollouts, and the peer (which starts at
+    # the first heartbeat of a live run) must be in before its last wait for a version.
+    cfg = merge_config("cn3", overrides=["episodes=192", "variant=hammer"])
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
     # slow message into a fallback.
     settings = RuntimeSettings(run_id=run_id, msg_deadline_ms=5000, act_deadline_ms=10000)
 
     def chaos(sup, board) -> None:
         env = board.heartbeats.get("env")
-        if peers is not None and not peers and env is not None and env.counters.get("step", 0) >= 5:
+        if peers is not None and not peers and env is not None and env.counters.get("step", 0) >= 1:
             rt = RuntimeSettings.load(run_dir)
             peer = StallPeer(rt.run_id, TransportConfig(listen=["tcp/127.0.0.1:0"],
                                                         connect=[f"tcp/127.0.0.1:{rt.hub_port}"]), cfg.n_agents)
@@ -58,7 +60,7 @@ def test_stall_messages_are_rejected_counted_and_change_nothing(tmp_path):
     assert peer.sent.get("oversize") == 1, f"the peer did not get through its attempts: {peer.sent}"
     assert calm.summary["completed"] and attacked.summary["completed"]
     a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
-    assert len(a) == 100 and a == b
+    assert len(a) == 192 and a == b
     assert calm.summary["degraded"] is False and calm.summary["rejected"] == {}
     # every attempt is in the counters the roles persisted (links.json <- counters/*.json)
     roles = json.loads((tmp_path / "attacked" / "links.json").read_text())["roles"]
@@ -99,7 +101,7 @@ def test_a_learner_that_dies_names_its_last_log_lines_and_the_resume_command(tmp
 
     def chaos(sup, board) -> None:
         env = board.heartbeats.get("env")
-        if not killed and env is not None and env.counters.get("step", 0) >= 5:
+        if not killed and env is not None and env.counters.get("step", 0) >= 1:
             killed.append(sup.pid("learner"))
             os.kill(killed[0], signal.SIGKILL)
 
