@@ -37,6 +37,7 @@ from learning.numpy_policy import NumpyCentralAgent
 from learning.sampling import ActingStreams
 from protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
 from protocol.session import HammerSession
+from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 from runtime.weights import WeightsIntake
 
@@ -66,7 +67,8 @@ class CentralServer(Role):
 
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float, *,
                  idle_exit_s: float | None = None, load_when_idle: bool = False,
-                 step_log_dir: Path | None = None) -> None:
+                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
+                 max_policy_lag: int = 0) -> None:
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
         super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
@@ -78,11 +80,14 @@ class CentralServer(Role):
         self.counts = CentralCounters()
         self.net: NumpyCentralAgent | None = None
         self.last_step = -1
+        self.window = StepWindow(step_window)
+        self.stall_what = "global states"
         dims = Dims(num_envs=cfg.num_envs, n_agents=cfg.n_agents, obs_dim=spec.obs_dim,
                     action_dim=spec.action_dim, discrete=spec.discrete)
         self.states = session.subscribe(self.keys.state(), GlobalState, dims)
         self.handle(self.states, self.on_state)
-        self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s)
+        self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s, reject=self.reject,
+                                      max_policy_lag=max_policy_lag)
                         if self.acting.has_network else None)
         self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=True), session, step_log,
                                          "central->local") for i in range(cfg.n_agents)]
@@ -103,6 +108,12 @@ class CentralServer(Role):
             self.counts.states_stale += 1
             self.log_late(state.step)
             return
+        if self.window.ahead(state.step, self.last_step):
+            self.reject("step_ahead", f"global state for step {state.step} while at {self.last_step}")
+            return
+        if self.weights is not None and self.weights.ahead(state.policy_version):
+            self.reject("version_ahead", f"global state names policy version {state.policy_version}")
+            return
         self.take_weights(state.policy_version)
         state = self.newest_queued(state)
         if self.acting.has_network and self.net is None:
@@ -118,6 +129,7 @@ class CentralServer(Role):
         self.last_step = state.step
         self.counts.steps += 1
         self.step_log.add(state.step, DELIVERED)
+        self.progressed()
 
     def take_weights(self, need: int | None) -> None:
         if self.weights is None:
@@ -138,6 +150,9 @@ class CentralServer(Role):
     def newest_queued(self, state: GlobalState) -> GlobalState:
         """Serve the newest queued state only: the others are for steps the local agents have acted on."""
         for newer in self.states.drain():
+            if newer.step > state.step and self.window.ahead(newer.step, state.step):
+                self.reject("step_ahead", f"global state for step {newer.step} while at {state.step}")
+                continue
             self.log_late(min(newer.step, state.step))  # the older of the two is not served
             if newer.step > state.step:
                 self.counts.states_skipped += 1

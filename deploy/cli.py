@@ -66,12 +66,16 @@ def _links_table(board, cfg, settings):
     for col in COLUMNS:
         t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    for link, row in link_table(roles, cfg.n_agents, cfg.variant in ("hammer", "random")).items():
+    notes = []
+    for link, row in link_table(roles, cfg.n_agents, cfg.wiring.uses_central).items():
         t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
-    t.caption = COUNTERS_NOTE
+        if row.get("unreported"):
+            notes.append(f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted "
+                         "or between heartbeats)")
     if board.chaos_log:
-        t.caption += "\nchaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
-                                                    for e in board.chaos_log[-3:])
+        notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
+                                                 for e in board.chaos_log[-3:]))
+    t.caption = "\n".join([COUNTERS_NOTE, *notes])
     return t
 
 
@@ -108,6 +112,13 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
+    rejected = {r: {k[9:]: int(v) for k, v in h.counters.items() if k.startswith("rejected.") and v}
+                for r, h in sorted(board.heartbeats.items())}
+    t.add_row("rejected messages", "; ".join(f"{r} " + ", ".join(f"{k} {v}" for k, v in c.items())
+                                             for r, c in rejected.items() if c) or "0")
+    stalled = [f"{r}: {h.detail}" for r, h in sorted(board.heartbeats.items()) if h.detail.startswith("stalled")]
+    if stalled:
+        t.add_row("[bold red]stalled[/]", "\n".join(stalled))
     t.add_row("elapsed / eta", f"{time.monotonic() - started:,.0f} s / {_eta(board, cfg, rate if rate is not None else {})}")
     if settings is None:
         return t
@@ -272,7 +283,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    central = cfg.variant in ("hammer", "random")
+    central = cfg.wiring.uses_central
     console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
                   f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
                   f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
@@ -321,6 +332,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-{min(500, s['episodes'])} paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
                   f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
+    if s.get("degraded"):
+        console.print(f"[bold red]degraded:[/] {'; '.join(s['degraded_reasons'])} (summary.json)")
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))

@@ -165,11 +165,13 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
             client = LocalAgentClient(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
                                       settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                      step_log_dir=_step_log_dir(run_dir) if run_dir else None)
+                                      step_log_dir=_step_log_dir(run_dir) if run_dir else None,
+                                      step_window=settings.step_window, max_policy_lag=settings.max_policy_lag)
+            client.stall_warn_s = settings.stall_warn_s
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
             if run_dir is not None:
-                _write_counters(run_dir, f"local-{agent}", {**client.counts.as_dict(), **_fault_counters(s)})
+                _write_counters(run_dir, f"local-{agent}", client.final_counters())
     except KeyboardInterrupt:
         pass
 
@@ -214,10 +216,12 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
-                                   step_log_dir=_step_log_dir(run_dir))
+                                   step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
+                                   max_policy_lag=settings.max_policy_lag)
+            server.stall_warn_s = settings.stall_warn_s
             server.run()
             logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())
-            _write_counters(run_dir, "central", {**server.counts.as_dict(), **_fault_counters(s)})
+            _write_counters(run_dir, "central", server.final_counters())
     except KeyboardInterrupt:
         pass
 
@@ -228,7 +232,6 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     from env_host.host import EnvHost
     from learning.run_env import make_env
     from learning.rundir import RunDir
-    from protocol.schemas import Control
     from protocol.session import HammerSession
 
     try:
@@ -244,18 +247,18 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
                            resume_from=settings.resume_from, resume_step=settings.resume_step)
+            host.stall_warn_s = settings.stall_warn_s
             summary = host.run_eval() if settings.mode == "eval" else host.run()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
                           else host.stop_reason or "ended before the budget", host.state.step, host.state.episodes)
             summary["faults"] = s.fault_report()
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
-                                             "episodes": host.state.episodes})
+                                             "episodes": host.state.episodes, **host.rejection_counters()})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
-            # Tell everyone the run is over (the launcher also stops them).
-            s.publish(s.keys.ctl("all"), Control(command="stop"))
+            # The run is over: the launcher, the only sender roles obey, stops everyone when this exits.
     except KeyboardInterrupt:
         logging.getLogger("hammer.env").warning("env stopped: interrupted")
     finally:
@@ -296,8 +299,11 @@ def learner_command(run_dir: RunDirOpt,
     rd = RunDir(run_dir)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-            LearnerWorker(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag,
-                          resume_from=settings.resume_from).run()
+            worker = LearnerWorker(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag,
+                                   resume_from=settings.resume_from, step_window=settings.step_window)
+            worker.stall_warn_s = settings.stall_warn_s
+            worker.run()
+            _write_counters(run_dir, "learner", worker.final_counters())
     except KeyboardInterrupt:
         pass
     finally:

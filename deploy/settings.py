@@ -23,6 +23,9 @@ Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
 
 
+_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections")
+
+
 class RuntimeSettings(BaseModel):
     """How the roles of one run talk. Defaults suit one host on loopback."""
 
@@ -65,6 +68,18 @@ class RuntimeSettings(BaseModel):
         None, ge=0, description="resume: the env host's step counter starts after this, above every step number "
                                 "an earlier session may have used (step logs are joined to episodes by step)")
 
+    step_window: int = Field(
+        10_000, ge=1, description="a role adopts step s only if last < s <= last + step_window (runtime/bounds.py): "
+                                  "one message with an absurd step cannot freeze it")
+    stall_warn_s: float = Field(
+        30.0, gt=0, description="a role that made progress and then none for this long logs a WARNING and "
+                                "reports 'stalled' in its heartbeat")
+    degraded_fraction: float = Field(
+        0.05, ge=0, le=1, description="the run is reported degraded when default actions or fallback messages "
+                                      "exceed this fraction of agent x env-copy steps")
+    degraded_rejections: int = Field(
+        0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
+
     @model_validator(mode="after")
     def _eval_needs_policy(self) -> RuntimeSettings:
         if self.mode == "eval" and not self.policy_dir:
@@ -106,8 +121,8 @@ class RuntimeSettings(BaseModel):
             "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents)})
 
     def save(self, run_dir: Path) -> None:
-        # `secure` and `external` are written only when set: a plain run's runtime.json is what it always was.
-        exclude = {k for k in ("secure", "external") if not getattr(self, k)} or None
+        # `secure`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
+        exclude = {f for f in ("secure", "external", *_BOUNDS) if getattr(self, f) == type(self).model_fields[f].default}
         (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 
     @classmethod

@@ -4,7 +4,10 @@ The launcher writes the run directory (config.json, runtime.json, env_spec.json)
 Zenoh session every role connects to, starts each role as a fresh interpreter, waits until every
 role's liveliness token is up, shows a live dashboard from the roles' heartbeats, restarts local
 agents and the central agent if they die, and stops everything at the end of the budget or on
-Ctrl-C. A role that cannot be kept alive ends the run with a one-line reason.
+Ctrl-C. A role that cannot be kept alive ends the run with a one-line reason (a learner that
+dies: its last log lines and the `hammer up --resume` command). A run that completes with too
+many default actions, fallback messages or rejected messages is marked degraded in summary.json
+(`degraded`, `degraded_reasons`; thresholds in RuntimeSettings), not silently "completed".
 
 `launch(..., resume=True)` continues a run directory whose session died (`hammer up --resume`):
 see `prepare_resume` and docs/runtime.md ("Resuming a run").
@@ -24,6 +27,7 @@ from pathlib import Path
 from deploy.roles import write_env_spec
 from deploy.settings import RuntimeSettings
 from deploy.supervisor import RoleSpec, Supervisor
+from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat
 from protocol.session import HammerSession, free_loopback_port
 
@@ -223,14 +227,15 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
     launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos, external)
-    with HammerSession(settings.run_id, hub_transport, sender="launcher") as hub:
+    with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
-    links = _write_links(cfg, run_dir, launcher.board)
+    links, roles = _write_links(cfg, run_dir, launcher.board)
     _write_episode_links(run_dir, list(links))
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
+    summary = _verdict(cfg, settings, run_dir, summary, links, roles)
     return UpResult(run_dir, summary, dict(launcher.board.restarts), time.monotonic() - launcher.t_start, links,
                     list(launcher.board.chaos_log))
 
@@ -333,6 +338,10 @@ class Launcher:
             self.board.restarts[name] = rp.restarts
             log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts, rp.spec.max_restarts)
             self.sup.start(rp.spec)
+        elif name == "learner":
+            raise UpError(f"learner exited with code {code}: {_tail(rp.log_path, 5) or 'nothing in its log'} "
+                          f"(log: {rp.log_path}); "
+                          f"fix the cause, then continue from the last checkpoint: hammer up --resume {self.run_dir}")
         else:
             raise UpError(f"role {name} exited with code {code} and cannot be restarted: "
                           f"{_tail(rp.log_path)} (log: {rp.log_path})")
@@ -371,7 +380,23 @@ def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:
     links = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
     (run_dir / "links.json").write_text(json.dumps({"links": links, "roles": roles, "chaos": board.chaos_log},
                                                    indent=1))
-    return links
+    return links, roles
+
+
+def _verdict(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, links: dict, roles: dict) -> dict:
+    """summary.json (and env_summary.json) gain `degraded`, its reasons and the rejections per role."""
+    from faults.links import degraded_reasons, rejections
+
+    steps = int(roles.get("env", {}).get("step", 0)) - (settings.resume_step or 0)
+    reasons = degraded_reasons(roles, links, max(steps, 0) * cfg.num_envs * cfg.n_agents,
+                               settings.degraded_fraction, settings.degraded_rejections)
+    summary = {**summary, "degraded": bool(reasons), "degraded_reasons": reasons, "rejected": rejections(roles)}
+    for name in ("summary.json", "env_summary.json"):
+        path = run_dir / name
+        if path.is_file():
+            path.write_text(json.dumps({**json.loads(path.read_text()), **{k: summary[k] for k in (
+                "degraded", "degraded_reasons", "rejected")}}, indent=1))
+    return summary
 
 
 def _write_episode_links(run_dir: Path, links: list[str]) -> None:

@@ -5,13 +5,16 @@ So each step gets a deadline; an agent whose action has not arrived by then play
 declared default action in every copy (counted, and marked in the rollout as `defaulted`). An
 action that arrives for an earlier step is either a second copy of one already applied
 (duplicate) or missed its deadline (late); both are counted and dropped, never applied to the
-wrong step. What the step needs comes back in one `StepActions`.
+wrong step. An action for a step not published yet (only a buggy or hostile peer sends one) is
+rejected and counted (`rejected.step_ahead` of the env host). What the step needs comes back in
+one `StepActions`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +57,9 @@ class ActionCollector:
     """Gathers the agents' actions of a step from `actions_in` until all are in or the deadline passes."""
 
     def __init__(self, actions_in: Subscription, spec, num_envs: int, msg_dim: int, deadline_s: float,
-                 step_log: StepLog) -> None:
+                 step_log: StepLog, reject: Callable[[str, str], None] | None = None) -> None:
         self.actions_in, self.spec = actions_in, spec
+        self._reject = reject or (lambda reason, what: log.warning("rejected (%s): %s", reason, what))
         self.n, self.k, self.msg_dim = spec.n_agents, num_envs, msg_dim
         self.deadline_s = deadline_s
         self.step_log = step_log
@@ -88,7 +92,7 @@ class ActionCollector:
         """Whether `a` is the first action of its agent for `step`; counts and logs it either way."""
         c, cols = self.counters, self._cols
         if a.step > step:  # cannot happen without a bug upstream: we have not published it yet
-            log.warning("action for future step %d (now %d) from agent %d ignored", a.step, step, a.agent)
+            self._reject("step_ahead", f"action for future step {a.step} (now {step}) from agent {a.agent}")
             return False
         self.step_log.add(a.step, cols["delivered"])
         if a.step < step:

@@ -68,7 +68,7 @@ class EnvHost(Role):
         dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
                     msg_dim=msg_dim or None)
         self.collector = ActionCollector(session.subscribe(keys.act("*"), Action, dims), self.spec, self.k,
-                                         msg_dim, act_deadline_s, self.step_log)
+                                         msg_dim, act_deadline_s, self.step_log, reject=self.reject)
         self.links = self.collector.counters
         self.weights_in = session.subscribe(keys.weights("local"), Weights)
         self.state_out = LoggedPublisher(session.publisher(keys.state(), express=True), session, self.step_log,
@@ -122,6 +122,7 @@ class EnvHost(Role):
             if not self.wait_weights(st.update - self.max_policy_lag):
                 break
             self.rollout_version = self.weights_version if self.max_policy_lag else st.update
+        self.take_queued_weights()
         self.rd.flush()
         return self.summary(t_start)
 
@@ -144,19 +145,34 @@ class EnvHost(Role):
         return obs, prev, active, False
 
     def wait_weights(self, version: int) -> bool:
-        """Block until the learner has published local weights >= version (or stop/timeout)."""
+        """Block until the learner has published local weights >= version (or stop/timeout). The
+        learner cannot be ahead of the chunks it got: a version above version + max_policy_lag is
+        forged or a bug, rejected and counted (runtime.bounds)."""
         deadline = time.monotonic() + self.weights_timeout_s
+        self.stall_what = f"policy version {version} from the learner"
         while self.weights_version < version:
             if self.stop_requested():
                 return False
             self.heartbeat("ready")
             w = self.weights_in.get(timeout=0.2)
             if w is not None:
-                self.weights_version = max(self.weights_version, w.version)
+                self.on_weights(w, version)
             elif time.monotonic() > deadline:
                 raise TimeoutError(f"learner did not publish policy version {version} within "
                                    f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")
         return True
+
+    def on_weights(self, w: Weights, version: int) -> None:
+        """A weights announcement while `version` is the newest this host may see (+ the lag)."""
+        if w.version > version + self.max_policy_lag:
+            self.reject("weights_ahead", f"local weights version {w.version} while waiting for {version}")
+        else:
+            self.weights_version = max(self.weights_version, w.version)
+
+    def take_queued_weights(self) -> None:
+        """At the end of a run: weights that arrived while stepping are checked and counted too."""
+        for w in self.weights_in.drain():
+            self.on_weights(w, self.state.update)
 
     # ----- one vector step ----------------------------------------------------------------------
     def _vector_step(self, obs: np.ndarray, prev: np.ndarray, active: np.ndarray) -> tuple[VecStep, StepActions]:
@@ -165,7 +181,10 @@ class EnvHost(Role):
         st.step += 1
         t0 = time.perf_counter()
         self._send_observations(obs, prev, active)
+        self.stall_what = "actions"
         got = self.collector.collect(st.step, self.rollout_version)
+        if not got.defaulted.all():  # a step of default actions only is no progress of the team
+            self.progressed()
         # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
         st.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
         self.episodes.count(got.fallback, got.defaulted)

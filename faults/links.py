@@ -15,6 +15,14 @@ row per link:
     fallbacks   central->local: agent x env-copy entries acted on a fallback message
     defaults    local->env: agent x env-copy entries that used the declared default action
 
+A sender's counters of a process killed between two heartbeats lag behind what its receivers
+counted; a row where `delivered` would exceed `sent` (plus the fault layer's copies) gets `sent`
+raised to match and the difference in `unreported` (only on such rows), so the table stays
+consistent and says why.
+
+`degraded_reasons` is the end-of-run verdict: default actions or fallback messages above a
+fraction of the agent x env-copy steps, or messages rejected by the roles (`rejected.<reason>`).
+
 Imports stay light (no torch): the local-agent client uses `flat_fault_counters`.
 """
 
@@ -121,5 +129,38 @@ def link_table(roles: dict[str, dict], n_agents: int, uses_central: bool) -> dic
             row[f] = int(sum(_fault(c, link, f) for c in faults))
         for col in COLUMNS:
             row.setdefault(col, 0)
+        unreported = row["delivered"] - row["duplicated"] - row["sent"]
         rows[link] = {col: row[col] for col in COLUMNS}
+        if unreported > 0:  # the sender died between heartbeats: its last count lags its receivers'
+            rows[link]["sent"] += unreported
+            rows[link]["unreported"] = unreported
     return rows
+
+
+def rejections(roles: dict[str, dict]) -> dict[str, dict[str, int]]:
+    """Messages each role rejected, by reason ({role: {reason: n}}; roles with none left out)."""
+    out: dict[str, dict[str, int]] = {}
+    for role, counters in sorted(roles.items()):
+        got = {k.split(".", 1)[1]: int(v) for k, v in counters.items() if k.startswith("rejected.") and v}
+        if got:
+            out[role] = got
+    return out
+
+
+def degraded_reasons(roles: dict[str, dict], links: dict[str, dict[str, int]], agent_steps: int,
+                     fraction: float, max_rejections: int) -> list[str]:
+    """Why a run counts as degraded (empty: it does not). agent_steps: agent x env-copy entries
+    of the session (vector steps x K x N)."""
+    reasons = []
+    defaults = links.get("local->env", {}).get("defaults", 0)
+    fallbacks = links.get("central->local", {}).get("fallbacks", 0)
+    for what, n in (("default actions", defaults), ("fallback messages", fallbacks)):
+        if agent_steps and n > fraction * agent_steps:
+            reasons.append(f"{what} {n:,} of {agent_steps:,} agent-steps ({n / agent_steps:.1%} > {fraction:.1%})")
+    rejected = rejections(roles)
+    total = sum(sum(r.values()) for r in rejected.values())
+    if total > max_rejections:
+        per = "; ".join(f"{role} " + ", ".join(f"{k} {v}" for k, v in sorted(r.items()))
+                        for role, r in rejected.items())
+        reasons.append(f"{total} messages rejected ({per})")
+    return reasons

@@ -41,6 +41,7 @@ from learning.rundir import RunDir
 from protocol.rollout_layout import RolloutLayout
 from protocol.schemas import Dims, ExperienceChunk, Weights
 from protocol.session import HammerSession
+from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 
 
@@ -59,8 +60,15 @@ class LearnerWorker(Role):
     republish_s = 1.0  # while no experience comes, late joiners (a restarted agent) get the current policy
 
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir, *,
-                 central_wait_s: float = 5.0, max_policy_lag: int = 0, resume_from: int | None = None) -> None:
+                 central_wait_s: float = 5.0, max_policy_lag: int = 0, resume_from: int | None = None,
+                 step_window: int = DEFAULT_STEP_WINDOW) -> None:
         super().__init__(session, "learner", report_faults=False)
+        self.stall_what = "experience chunks"
+        self.last_step = -1  # the env host's step at the last chunk learned from
+        # a chunk comes every rollout_steps steps (records are up to L+1 rollouts ahead of the last chunk)
+        width = max(step_window, (max_policy_lag + 2) * cfg.rollout_steps)
+        self.window = StepWindow(width)
+        self.record_window = StepWindow(width, resync_s=None)
         self.cfg, self.rd = cfg, rd
         self.central_wait_s, self.max_policy_lag, self.resume_from = central_wait_s, max_policy_lag, resume_from
         self.learner = TeamLearner(cfg, spec)
@@ -107,13 +115,23 @@ class LearnerWorker(Role):
 
     # ----- an update, in the order it flows ------------------------------------------------------
     def on_central_record(self, rec: ExperienceChunk) -> None:
-        """Hold a central record of a version the next update can use (others can never be joined)."""
+        """Hold a central record of a version the next update can use (others can never be joined);
+        one for a step beyond the window would be held for ever: rejected."""
+        if self.record_window.ahead(rec.step, self.last_step):
+            self.reject("step_ahead", f"central record for step {rec.step} while at {self.last_step}")
+            return
         if self.update - self.max_policy_lag <= rec.policy_version <= self.update:
             self.held_records[rec.step] = rec.arrays
 
     def on_chunk(self, chunk: ExperienceChunk) -> None:
         """One rollout: check it, join it with the central records of its steps, learn, publish."""
         lag = self.update - chunk.policy_version
+        if lag < 0:
+            self.reject("version_ahead", f"experience of version {chunk.policy_version} while at {self.update}")
+            return
+        if self.window.ahead(chunk.step, self.last_step):
+            self.reject("step_ahead", f"experience up to step {chunk.step} while at {self.last_step}")
+            return
         if not 0 <= lag <= self.max_policy_lag:
             self.stats["stale_chunks"] += 1
             self.log.warning("experience of version %d while at %d (max lag %d): discarded",
@@ -122,6 +140,8 @@ class LearnerWorker(Role):
         if self.central_records is not None:
             self.wait_central_records({int(s) for s in chunk.arrays["steps"]})
         self.learn_from(chunk.arrays, chunk.policy_version, lag)
+        self.last_step = max(self.last_step, chunk.step)
+        self.progressed()
 
     def wait_central_records(self, steps: set[int]) -> None:
         """The central agent's records of these steps, waiting up to `central_wait_s` for them."""
@@ -181,7 +201,8 @@ class LearnerWorker(Role):
                               {"variant": self.cfg.variant, "central_mode": self.cfg.central_mode,
                                "version": str(self.update)})
         (self.rd.path / "learner_summary.json").write_text(json.dumps(
-            {**self.counters(), "resumed_from": self.resume_from, "host": host_info()}, indent=1))
+            {**self.counters(), **self.rejection_counters(), "resumed_from": self.resume_from, "host": host_info()},
+            indent=1))
         self.log.info("stopped: %s", self.counters())
 
 

@@ -13,6 +13,8 @@ or fall back, act, publish the action. `LocalAgent` is the transport-free acting
 Messages are matched to steps by their `step` header: a message for a step already acted on is
 counted late and discarded, a second copy of a message is counted as a duplicate, a message for a
 future step is kept until that step comes. So nothing is applied to the wrong step or twice.
+An observation or message for a step beyond the step window (runtime.bounds) is rejected and
+counted, never adopted: one forged step number cannot make every real step look stale.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from learning.numpy_policy import NumpyLocalPolicy, softmax
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from protocol.schemas import Action, CentralMsg, Dims, LocalObs
 from protocol.session import HammerSession
+from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 from runtime.weights import WeightsIntake
 
@@ -153,7 +156,8 @@ class LocalAgentClient(Role):
 
     def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
                  msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
-                 step_log_dir: Path | None = None) -> None:
+                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
+                 max_policy_lag: int = 0) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, [*OBS_EVENTS.values(), *MSG_EVENTS.values(),
                                                 *(column("local->env", e) for e in ("sent", "dropped", "duplicated"))])
@@ -165,12 +169,16 @@ class LocalAgentClient(Role):
         self.pending: dict[int, CentralMsg] = {}  # messages for steps not acted on yet
         self.seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
         self.last_step = -1
+        self.window = StepWindow(step_window)
+        self.msg_window = StepWindow(step_window, resync_s=None)  # messages follow the observations' window
+        self.stall_what = "observations"
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
                     msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
         self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
         self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
         self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
-        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s)
+        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
+                                     reject=self.reject, max_policy_lag=max_policy_lag)
         self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
                                           step_log, "local->env")
 
@@ -185,6 +193,12 @@ class LocalAgentClient(Role):
             self.step_log.add(obs.step, OBS_EVENTS["delivered"])
             self.step_log.add(obs.step, OBS_EVENTS["late"])
             return
+        if self.window.ahead(obs.step, self.last_step):
+            self.reject("step_ahead", f"observation for step {obs.step} while at {self.last_step}")
+            return
+        if self.weights.ahead(obs.policy_version):
+            self.reject("version_ahead", f"observation names policy version {obs.policy_version}")
+            return
         self.weights.take(obs.policy_version)
         self.sync_weight_counters()
         if self.messages is not None:
@@ -197,6 +211,7 @@ class LocalAgentClient(Role):
         self.last_step = obs.step
         self.counts.steps += 1
         self.step_log.add(obs.step, OBS_EVENTS["delivered"])
+        self.progressed()
 
     def message_for(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
         """The message of each env copy of this step (waiting for it up to the deadline), and the
@@ -242,7 +257,10 @@ class LocalAgentClient(Role):
         return have
 
     def on_message(self, m: CentralMsg) -> None:
-        """Keep a message for a step to come; count a duplicate or a late one."""
+        """Keep a message for a step to come; count a duplicate or a late one; reject one beyond the window."""
+        if self.msg_window.ahead(m.step, self.last_step):
+            self.reject("step_ahead", f"message for step {m.step} while at {self.last_step}")
+            return
         if m.step in self.seen:
             self.counts.msgs_duplicate += 1
             self.log_msg(m.step, "duplicate")

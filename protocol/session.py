@@ -35,7 +35,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol.access import SecureLink
-from protocol.codec import Expected, decode, encode
+from protocol.codec import Expected, _expected_types, decode, encode
 from protocol.errors import ProtocolError, RunMismatchError
 from protocol.fault_injection import FaultInjector, FaultSpec
 from protocol.keys import Keys
@@ -135,7 +135,8 @@ class TransportConfig(BaseModel):
 class SubscriptionStats:
     """received: payloads taken off the queue; delivered: valid messages returned;
     rejected: invalid payloads per reason (size, decode, version, type, field, dtype, shape,
-    nonfinite, range, checksum, run); overflow: payloads dropped because the queue was full."""
+    nonfinite, range, checksum, run); overflow: payloads dropped because the queue was full.
+    An oversize payload is counted (`size`) on arrival, without being copied or queued."""
 
     received: int = 0
     delivered: int = 0
@@ -149,6 +150,8 @@ class SubscriptionStats:
 
 class _QueueSub:
     """Shared part: a Zenoh subscriber whose callback only enqueues raw bytes."""
+
+    cap: int | None = None  # payloads longer than this are rejected on arrival (None: no cap)
 
     def __init__(self, key_expr: str, maxsize: int) -> None:
         self.key_expr = key_expr
@@ -164,6 +167,11 @@ class _QueueSub:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
         if self._maxsize and self._q.qsize() >= self._maxsize:  # only the consumer shrinks it meanwhile
             self.stats.overflow += 1
+            return
+        if self.cap is not None and (n := len(sample.payload)) > self.cap:
+            self.stats.rejected["size"] += 1  # Counter update on one key: atomic enough under the GIL
+            if self.stats.rejected["size"] <= 10:
+                log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, self.key_expr)
             return
         self._q.put(sample.payload.to_bytes())
 
@@ -200,6 +208,7 @@ class Subscription(_QueueSub):
                  maxsize: int, max_bytes: int | None) -> None:
         super().__init__(key_expr, maxsize)
         self.expected, self.dims, self.run, self.max_bytes = expected, dims, run, max_bytes
+        self.cap = max_bytes if max_bytes is not None else max(t.MAX_BYTES for t in _expected_types(expected))
 
     def _decode(self, data: bytes) -> Message | None:
         self.stats.received += 1
@@ -455,6 +464,17 @@ class HammerSession:
             if reply.ok is not None:
                 roles.add(self.keys.role_of_alive_key(str(reply.ok.key_expr)))
         return roles
+
+    def rejection_counts(self) -> dict[str, int]:
+        """Payloads this session's subscriptions refused, by reason (`overflow`: dropped, queue full)."""
+        total: collections.Counter[str] = collections.Counter()
+        for sub in self._subs:
+            stats = getattr(sub, "stats", None)
+            if isinstance(sub, Subscription) and stats is not None:
+                total.update(stats.rejected)
+                if stats.overflow:
+                    total["overflow"] += stats.overflow
+        return dict(total)
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}

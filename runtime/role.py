@@ -8,6 +8,12 @@ with no input. `Role` owns that housekeeping once; a role subclass says only wha
 its messages: `poll` waits for the role's main input and hands each message to an `on_*`
 handler, `on_idle` runs when nothing came, `counters` is what its heartbeat reports.
 
+What a role refuses is counted by reason (`reject`), next to what its subscriptions rejected as
+malformed (`HammerSession.rejection_counts`): both go into every heartbeat and the role's final
+counters as `rejected.<reason>`, so a degraded run is visible in the run directory. A stop command
+is obeyed only from the launcher (`LAUNCHER`). A role that has made progress once and then makes
+none for `stall_warn_s` says so: a WARNING in its log and `stalled: ...` in its heartbeat's detail.
+
 A role that drives the loop itself instead of reacting to input (the env host) does not call
 `run`; it calls `stop_requested` and `heartbeat` from its own loop.
 
@@ -17,6 +23,7 @@ algorithm (acting, learning) in `learning/` and the acting cores; this module is
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import time
@@ -25,10 +32,12 @@ from typing import Any
 
 from faults.links import flat_fault_counters
 from faults.steplog import StepLog
+from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
 from protocol.session import HammerSession, Subscription
 
-STOP_COMMANDS = ("stop",)
+STOP_COMMANDS = ("stop",)  # obeyed only from LAUNCHER, the sender the launcher's session stamps
+DEFAULT_STALL_WARN_S = 30.0
 
 
 class Role:
@@ -54,11 +63,16 @@ class Role:
         self._last_input = time.monotonic()
         self._main: tuple[Subscription, Callable[[Any], None]] | None = None
         self._queued: list[tuple[Subscription, Callable[[Any], None]]] = []
-        self._last_progress = time.monotonic()
+        self._last_progress_log = time.monotonic()
         t = session.transport
         self.log.info("%s started: %s, pid %d, run %s, %s listen %s connect %s%s", name, type(self).__name__,
                       os.getpid(), session.run_id, t.mode, t.listen or "-", t.connect or "-",
                       f", zenoh config {t.zenoh_config_file}" if t.zenoh_config_file else "")
+        self.rejected: collections.Counter[str] = collections.Counter()  # refused by this role, by reason
+        self.stall_warn_s: float | None = DEFAULT_STALL_WARN_S
+        self.stall_what = "input"  # what a stalled role is waiting for (its heartbeat says)
+        self._progress_t: float | None = None  # None until the role's first progress
+        self._stalled = False
 
     def handle(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
         """The role's main input: the loop waits up to `poll_s` on it and gives each message to `handler`."""
@@ -97,11 +111,52 @@ class Role:
         return {}
 
     # ----- the shell ----------------------------------------------------------------------------
+    def reject(self, reason: str, what: str) -> None:
+        """Count a message this role refused (valid on the wire, not acceptable here) and log the first ones."""
+        self.rejected[reason] += 1
+        n = self.rejected[reason]
+        if n <= 10 or n % 1000 == 0:
+            self.log.warning("%s rejected #%d (%s): %s", self.name, n, reason, what)
+
+    def rejection_counters(self) -> dict[str, int]:
+        """Every rejection of this process by reason: the role's own and its subscriptions'."""
+        total = collections.Counter(self.session.rejection_counts())
+        total.update(self.rejected)
+        return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
+
+    def final_counters(self) -> dict[str, int | float]:
+        """What the process writes at exit (faults.links.write_role_counters): counters, rejections, faults."""
+        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.session.fault_report())}
+
+    def progressed(self) -> None:
+        """The role did its work once more (acted on a step, learned from a chunk)."""
+        self._progress_t = time.monotonic()
+        if self._stalled:
+            self._stalled = False
+            self.log.warning("%s progressing again", self.name)
+
+    def stall_detail(self) -> str:
+        """'stalled: ...' once the role made progress and then none for `stall_warn_s` (logged once per stall)."""
+        if self._progress_t is None or self.stall_warn_s is None:
+            return ""
+        idle = time.monotonic() - self._progress_t
+        if idle <= self.stall_warn_s:
+            return ""
+        if not self._stalled:
+            self._stalled = True
+            self.log.warning("%s STALLED: no progress for %.0f s (waiting for %s)", self.name, idle, self.stall_what)
+        return f"stalled: no progress for {idle:.0f} s (waiting for {self.stall_what})"
+
     def stop_requested(self) -> bool:
-        """True once a stop command for everyone or for this role has arrived."""
+        """True once a stop command for everyone or for this role has arrived from the launcher
+        (a command from any other sender is counted, logged with its sender and ignored)."""
         for cmd in self._control.drain():
-            if cmd.command in STOP_COMMANDS and cmd.target in ("*", self.name) and self.stop_reason is None:
-                self.stop_reason = f"{cmd.command} command from {cmd.sender or 'an unnamed sender'}"
+            if cmd.command not in STOP_COMMANDS or cmd.target not in ("*", self.name):
+                continue
+            if cmd.sender != LAUNCHER:
+                self.reject("control_sender", f"{cmd.command} command from {cmd.sender or 'an unnamed sender'}")
+            elif self.stop_reason is None:
+                self.stop_reason = f"{cmd.command} command from {cmd.sender}"
         return self.stop_reason is not None
 
     def heartbeat(self, status: HeartbeatStatus = "running") -> None:
@@ -110,14 +165,16 @@ class Role:
         if now - self._last_heartbeat <= self.heartbeat_every_s:
             return
         self._last_heartbeat = now
-        counters = self.counters()
+        counters = {**self.counters(), **self.rejection_counters()}
         if self.report_faults:
             counters = {**counters, **flat_fault_counters(self.session.fault_report())}
-        self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status, counters=counters))
+        self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status,
+                                              counters=dict(list(counters.items())[:64]),
+                                              detail=self.stall_detail()))
         if self.step_log is not None:
             self.step_log.flush()
-        if now - self._last_progress >= self.progress_every_s:
-            self._last_progress = now
+        if now - self._last_progress_log >= self.progress_every_s:
+            self._last_progress_log = now
             self.log.info("%s progress: %s", self.name, _brief(counters))
 
     def heartbeat_soon(self) -> None:
@@ -128,6 +185,7 @@ class Role:
         """Declare this role alive (its subscriptions are in place), then handle input until a
         stop command, or `idle_exit_s` without input."""
         self.session.declare_alive(self.name)
+        self.log.info("%s alive (pid %d)", self.name, os.getpid())  # a log's tail tells how far a dead role got
         self.on_start()
         self._last_input = time.monotonic()
         while not self.stop_requested():

@@ -5,7 +5,9 @@ observation / global state carries it). Weights can arrive before that step (pol
 little after the step that needs them (the learner publishes as the env host moves on), so an
 acting role holds received versions (`learning.policy_versions.WeightsInbox`) and, when a step
 names a version it has not loaded, waits for it up to a timeout, then acts with what it has and
-counts the timeout. Torch-free: the edge local agent uses it.
+counts the timeout. A version further ahead than the learner can be (runtime.bounds) is
+rejected, never held: one forged `Weights` of version 2^62 must not become "the newest".
+Torch-free: the edge local agent uses it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from collections.abc import Callable
 from learning.policy_versions import WeightsInbox
 from protocol.schemas import Weights
 from protocol.session import HammerSession
+from runtime.bounds import version_ahead
 
 log = logging.getLogger("hammer.weights")
 
@@ -25,9 +28,12 @@ class WeightsIntake:
     """The subscription to one network's weights (`local` or `central`) and the versions held."""
 
     def __init__(self, session: HammerSession, network: str, load: Callable[[bytes, int], None],
-                 timeout_s: float, version: int = -1) -> None:
+                 timeout_s: float, version: int = -1, *, reject: Callable[[str, str], None] | None = None,
+                 max_policy_lag: int = 0) -> None:
         self.network = network
         self.timeout_s = timeout_s
+        self.max_policy_lag = max_policy_lag
+        self._reject = reject or (lambda reason, what: log.warning("rejected (%s): %s", reason, what))
         self._sub = session.subscribe(session.keys.weights(network), Weights)
         self._inbox = WeightsInbox(load, version)
         self.loaded = 0  # versions loaded
@@ -38,10 +44,21 @@ class WeightsIntake:
         """The loaded version (-1: none yet)."""
         return self._inbox.version
 
+    @property
+    def known(self) -> int:
+        """The newest version loaded or held (-1: none yet)."""
+        return max(self._inbox.version, max(self._inbox.held, default=-1))
+
+    def ahead(self, need: int) -> bool:
+        """A step naming version `need` names one the learner cannot have published yet."""
+        return version_ahead(need, self.known, self.max_policy_lag)
+
     def take(self, need: int | None) -> None:
         """Load the version `need` names, never a newer one (see WeightsInbox), waiting for it up to
         `timeout_s`; need=None: load the newest received, without waiting."""
         deadline = time.monotonic() + self.timeout_s
+        if need is not None and self.version < need and self._inbox.select(need):
+            self.loaded += 1  # received during an earlier take (policy lag): held, not waited for
         while True:
             wait = 0.0 if need is None or self.version >= need else deadline - time.monotonic()
             w = self._sub.get(timeout=max(wait, 0.0))
@@ -71,4 +88,7 @@ class WeightsIntake:
         return False
 
     def _offer(self, w: Weights) -> None:
+        if version_ahead(w.version, self.known, self.max_policy_lag):
+            self._reject("weights_ahead", f"{self.network} weights version {w.version} while at {self.known}")
+            return
         self._inbox.offer(w.version, w.blob)

@@ -132,7 +132,7 @@ class _Server:
         port = int(t.listen[0].rsplit(":", 1)[1])
         self.arg = json.dumps({"cfg": cfg.model_dump(mode="json"), "spec": asdict(spec), "run": "cnp",
                                "port": port, "weights_timeout_s": weights_timeout_s})
-        self.session = HammerSession("cnp", t, sender="test")
+        self.session = HammerSession("cnp", t, sender="launcher")
         self.n = cfg.n_agents
 
     def __enter__(self):

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 
 from faults.chaos import ChaosScheduler, ChaosSpecError, parse_chaos
-from faults.links import flat_fault_counters, link_of_pattern, link_table
+from faults.links import degraded_reasons, flat_fault_counters, link_of_pattern, link_table, rejections
 from faults.spec import FaultSpecError, build_plan, parse_link_fault
 from protocol.fault_injection import FaultInjector, key_matches
 
@@ -73,6 +73,26 @@ def test_flat_counters_per_link_and_link_table():
     assert t["central->local"]["sent"] == 30 and t["central->local"]["dropped"] == 3
     assert t["central->local"]["late"] == 3 and t["central->local"]["fallbacks"] == 48
     assert t["local->env"]["delivered"] == 30
+    assert all("unreported" not in row for row in t.values())
+
+
+def test_a_sender_whose_count_lags_its_receivers_is_raised_and_says_so():
+    # central was SIGKILLed 4 steps after its last heartbeat: the local agents got 12 more messages
+    roles = {"env": {"step": 14, "actions_on_time": 42},
+             "central": {"steps": 10},
+             **{f"local-{i}": {"steps": 14, "msgs_on_time": 14} for i in range(3)}}
+    row = link_table(roles, 3, True)["central->local"]
+    assert row["sent"] == row["delivered"] == 42 and row["unreported"] == 12
+
+
+def test_degraded_reasons_name_defaults_fallbacks_and_rejections():
+    links = {"local->env": {"defaults": 10}, "central->local": {"fallbacks": 600}}
+    roles = {"env": {"rejected.step_ahead": 2}, "local-0": {"rejected.size": 1, "rejected.other": 0}}
+    assert rejections(roles) == {"env": {"step_ahead": 2}, "local-0": {"size": 1}}
+    reasons = degraded_reasons(roles, links, agent_steps=3000, fraction=0.05, max_rejections=0)
+    assert len(reasons) == 2 and reasons[0].startswith("fallback messages 600 of 3,000 agent-steps (20.0% > 5.0%)")
+    assert reasons[1] == "3 messages rejected (env step_ahead 2; local-0 size 1)"
+    assert degraded_reasons({}, links, agent_steps=3000, fraction=0.25, max_rejections=0) == []
 
 
 def test_chaos_parse_and_schedule():

@@ -31,7 +31,7 @@ def test_agent_holds_the_policy_before_its_first_observation():
     spec = AgentSpec(agent=0, n_agents=3, obs_dim=6, msg_dim=2, discrete=True, action_dim=5, seed=0)
     t = TransportConfig.listener()
     port = int(t.listen[0].rsplit(":", 1)[1])
-    with HammerSession("pre", t, sender="test") as hub, \
+    with HammerSession("pre", t, sender="launcher") as hub, \
             HammerSession("pre", TransportConfig.connector(port), sender="local-0") as s:
         hb = hub.subscribe(hub.keys.heartbeat("local-0"), Heartbeat)
         client = LocalAgentClient(s, spec, 4, "zeros", 1, 0.02, 5.0, idle_exit_s=4.0)

@@ -20,7 +20,7 @@ def hub_and_role_session():
     """Two sessions of one run: the test's `hub` listens, the role's session connects to it."""
     t = TransportConfig.listener()
     port = int(t.listen[0].rsplit(":", 1)[1])
-    with HammerSession("rl", t, sender="test") as hub, \
+    with HammerSession("rl", t, sender="launcher") as hub, \
             HammerSession("rl", TransportConfig.connector(port), sender="ticker") as s:
         yield hub, s
 
@@ -76,7 +76,7 @@ def test_role_stops_on_a_stop_addressed_to_it_and_not_on_one_for_another_role(hu
     thread.join(timeout=5.0)
     assert not thread.is_alive()
     assert role.started and role.stopped
-    assert role.stop_reason == "stop command from test"
+    assert role.stop_reason == "stop command from launcher"
 
 
 def test_role_stops_on_a_stop_for_everyone(hub_and_role_session):
@@ -186,3 +186,69 @@ def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
     _publish_versions(hub, [4, 5])
     time.sleep(0.3)
     assert intake.preload_oldest() and loads == [4] and intake.version == 4
+
+
+def test_a_stop_from_anyone_but_the_launcher_is_counted_and_ignored(hub_and_role_session):
+    hub, s = hub_and_role_session
+    role = Ticker(s)
+    thread = _start(role)
+    _settle()
+    s.publish(s.keys.ctl("all"), Control(command="stop"))  # sender "ticker": a peer, not the launcher
+    deadline = time.monotonic() + 5.0
+    while not role.rejected and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert thread.is_alive() and role.stop_reason is None
+    assert role.rejection_counters() == {"rejected.control_sender": 1}
+    hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+    thread.join(timeout=5.0)
+    assert not thread.is_alive() and role.stop_reason == "stop command from launcher"
+
+
+def test_a_role_that_stops_progressing_says_so_in_its_heartbeat(hub_and_role_session):
+    hub, s = hub_and_role_session
+    beats = hub.subscribe(hub.keys.heartbeat("ticker"), Heartbeat)
+    _settle()
+    role = Ticker(s, report_faults=False)
+    role.stall_warn_s, role.stall_what = 0.3, "ticks"
+    role.heartbeat()
+    assert beats.get(timeout=5.0).detail == ""  # no progress yet: not armed (a role waiting to start)
+    role.progressed()
+    time.sleep(0.5)
+    role._last_heartbeat = 0.0
+    role.heartbeat()
+    hb = beats.get(timeout=5.0)
+    assert hb.detail.startswith("stalled: no progress for") and "ticks" in hb.detail
+    role.progressed()
+    role._last_heartbeat = 0.0
+    role.heartbeat()
+    assert beats.get(timeout=5.0).detail == ""
+
+
+def test_weights_intake_rejects_a_version_further_ahead_than_the_learner_can_be(hub_and_role_session):
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    refused: list[str] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=1.0,
+                           reject=lambda reason, what: refused.append(reason), max_policy_lag=1)
+    _settle()
+    _publish_versions(hub, [0, 2**62, 2, 1, 3])  # 2^62: forged; 2 and 3 are within the lag bound
+    time.sleep(0.3)
+    intake.take(1)
+    assert intake.version == 1 and refused == ["weights_ahead"]
+    assert intake.ahead(2**62) and not intake.ahead(4)
+    intake.take(3)
+    assert intake.version == 3 and 2**62 not in loads
+
+
+def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on():
+    from runtime.bounds import StepWindow
+
+    w = StepWindow(width=100, resync_s=0.2)
+    assert not w.ahead(5, -1)  # nothing acted on yet: the first step anchors
+    assert w.ahead(2**63, 5) and not w.ahead(6, 5)  # one forged step: rejected, the real stream goes on
+    time.sleep(0.3)
+    assert w.ahead(2**63, 6)  # alone after a quiet spell: still rejected (nothing continues it)
+    assert not w.ahead(7, 6)
+    time.sleep(0.3)
+    assert w.ahead(5000, 7)  # a real stream beyond the window (a role paused for long) ...
+    assert not w.ahead(5001, 7)  # ... is followed once it continues after resync_s of nothing else

@@ -1,0 +1,70 @@
+"""A buggy or hostile peer in the plain profile that tries, once each, every message that used to
+stall or silence a role (issue 18): absurd step numbers, a far-future weights version, a stop from
+a non-launcher, actions for future steps, a policy version no learner has published, and a 50 MB
+payload. It copies real messages of the live run and changes one header, so each forged message
+is well formed and passes validation: only the roles' bounds (runtime/bounds.py) stand in the way.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
+from protocol.session import HammerSession, TransportConfig
+
+HUGE_OBS_STEP = 2**64 - 1
+HUGE_STATE_STEP = 2**63
+HUGE_VERSION = 2**62
+
+
+class StallPeer(threading.Thread):
+    def __init__(self, run_id: str, transport: TransportConfig, n_agents: int) -> None:
+        super().__init__(daemon=True, name="stall-peer")
+        self.run_id, self.transport, self.n = run_id, transport, n_agents
+        self.stop_event = threading.Event()
+        self.sent: dict[str, int] = {}
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self._attack()
+        except BaseException as e:  # noqa: BLE001 - the test reports it
+            self.error = e
+
+    def _send(self, what: str, publish, msg) -> None:
+        publish(msg)
+        self.sent[what] = self.sent.get(what, 0) + 1
+
+    def _attack(self) -> None:
+        with HammerSession(self.run_id, self.transport, sender="local-1") as s:
+            k = s.keys
+            state_in = s.subscribe(k.state(), GlobalState)
+            obs_in = [s.subscribe(k.obs(i), LocalObs) for i in range(2)]
+            state = obs0 = obs1 = None
+            while not self.stop_event.is_set() and (state is None or obs0 is None or obs1 is None):
+                state = state or state_in.get(timeout=0.1)
+                obs0, obs1 = obs0 or obs_in[0].get(timeout=0.05), obs1 or obs_in[1].get(timeout=0.05)
+            if self.stop_event.is_set():
+                return
+            now = max(state.step, obs0.step)
+            junk = np.random.default_rng(0).bytes(4096)
+            for i, o in enumerate((obs0, obs1)):
+                self._send(f"obs_step_local-{i}", lambda m, i=i: s.publish(k.obs(i), m),
+                           o.model_copy(update={"step": HUGE_OBS_STEP}))
+            self._send("state_step", lambda m: s.publish(k.state(), m), state.model_copy(update={"step": HUGE_STATE_STEP}))
+            # a step inside the window, naming a policy version no learner has published
+            self._send("obs_version", lambda m: s.publish(k.obs(0), m),
+                       obs0.model_copy(update={"step": now + 50, "policy_version": HUGE_VERSION}))
+            for net in ("local", "central"):
+                self._send(f"weights_{net}", lambda m, net=net: s.publish(k.weights(net), m),
+                           Weights.from_blob(net, HUGE_VERSION, junk))
+            self._send("stop", lambda m: s.publish(k.ctl("all"), m), Control(command="stop"))
+            env_idx = np.arange(len(obs0.env_idx), dtype=np.int64)
+            for step in (now + 1000, HUGE_VERSION):  # never current in a run this short
+                self._send("future_action", lambda m: s.publish(k.act(0), m),
+                           Action(agent=0, step=step, env_idx=env_idx, action=np.zeros(len(env_idx), np.int64)))
+            s.put_bytes(k.obs(2), b"\0" * (50 * 2**20))  # 50 MB where a LocalObs (cap 4 MiB) is expected
+            self.sent["oversize"] = 1
+            self.stop_event.wait(3.0)  # stay joined while the big payload is delivered
