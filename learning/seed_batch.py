@@ -106,6 +106,14 @@ class SeedBatch:
         for s, p in enumerate(per_seed):  # each seed's parameters become views of its slice
             for n in self.names:
                 p[n].data = self.params[n][s]
+        # compile=true: the batched gradient and the acting forward passes as torch.compile graphs
+        self._grad = self._grads
+        self._central_fwd, self._local_fwd = self._central_forward, self._local_forward
+        if self.cfg.compile:
+            opts = {"fullgraph": True, "dynamic": False}
+            self._grad = torch.compile(self._grads, **opts)
+            self._central_fwd = torch.compile(self._central_forward, **opts)
+            self._local_fwd = torch.compile(self._local_forward, **opts)
         # one stacked Adam per network, in the order of each seed's own updaters
         self.groups: list[tuple[list[str], torch.optim.Adam, float]] = []
         for prefix, upd in (("local.", lead.learner.local_opt), ("central.", lead.learner.central_opt)):
@@ -170,11 +178,7 @@ class SeedBatch:
         all_states = self._stack_all(live, states)
         mean = values = None
         if lead.central is not None:
-            if lead.central_rl:
-                mean, values = self._vmapped(lambda st: (lead.central.message_mean(st), lead.central.values(st)),
-                                             all_states)
-            else:
-                mean = self._vmapped(lead.central.message_mean, all_states)
+            mean, values = self._central_fwd(self.params, all_states)
         outs = []
         for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
             mean_s = None if mean is None else (lambda _st, s=s: mean[s].numpy())
@@ -183,17 +187,41 @@ class SeedBatch:
         sent = self._stack_all(live, [c.sent for c in outs])
         all_obs = self._stack_all(live, [obs[s] for s in live])
 
-        def local(o: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            x = lead.local_input(o, m)
-            return lead.local.actor_out(x), lead.local.value(x)
-
-        out, value = self._vmapped(local, all_obs, sent)
+        out, value = self._local_fwd(self.params, all_obs, sent)
         for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
             action, logp, v = tr.team.sample_local(out[s].numpy(), value[s].numpy(), tr.streams)
             st = tr.env.step(tr.team.env_action(action))
             obs[s], prev[s], spent = tr._record(t, obs[s], prev[s], states[i], outs[i], action, logp, v, st)
             if spent:
                 self._done[s] = True
+
+    def _central_forward(self, params: dict[str, torch.Tensor], states: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(S, K, N, M) message means and (rl) (S, K, N) central values for (S, K, state) states."""
+        central = self.trainers[0].team.central
+        rl = self.trainers[0].team.central_rl
+
+        def one(p: dict[str, torch.Tensor], st: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            def fwd(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                mean = central.message_mean(x)
+                return mean, (central.values(x) if rl else mean.new_zeros(()))
+            return functional_call(self.call, p, (fwd, st))
+
+        mean, values = vmap(one)(params, states)
+        return mean, (values if rl else None)
+
+    def _local_forward(self, params: dict[str, torch.Tensor], obs: torch.Tensor, msg: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(S, K, N, A) actor outputs and (S, K, N) values of the local policy."""
+        team = self.trainers[0].team
+
+        def one(p: dict[str, torch.Tensor], o: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            def fwd(o: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                x = team.local_input(o, m)
+                return team.local.actor_out(x), team.local.value(x)
+            return functional_call(self.call, p, (fwd, o, m))
+
+        return vmap(one)(params, obs, msg)
 
     def _stack_all(self, live: list[int], arrays: list[np.ndarray]) -> torch.Tensor:
         """(S, ...) tensor of the live seeds' arrays; finished seeds' slices are zeros."""
@@ -233,16 +261,21 @@ class SeedBatch:
         per_seed = (total / cfg.minibatches).T.tolist()
         return [dict(zip(keys, row, strict=True)) for row in per_seed]
 
-    def _step(self, mb: dict[str, torch.Tensor], with_stats: bool) -> torch.Tensor:
-        """One minibatch step for every seed; returns (n_stats, S) statistics and grad norms."""
+    def _grads(self, params: dict[str, torch.Tensor], mb: dict[str, torch.Tensor], with_stats: bool
+               ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+        """Every seed's gradient of `TeamLearner.losses` on its slice of the minibatch, and the
+        statistics (each (S,))."""
         learner = self.trainers[0].learner
 
-        def loss(params: dict[str, torch.Tensor], r: dict[str, torch.Tensor]
-                 ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-            local, central, stats = functional_call(self.call, params, (learner.losses, r, with_stats))
+        def loss(p: dict[str, torch.Tensor], r: dict[str, torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+            local, central, stats = functional_call(self.call, p, (learner.losses, r, with_stats))
             return (local if central is None else local + central), stats
 
-        grads, stats = vmap(grad(loss, has_aux=True))(self.params, mb)
+        return vmap(grad(loss, has_aux=True))(params, mb)
+
+    def _step(self, mb: dict[str, torch.Tensor], with_stats: bool) -> torch.Tensor:
+        """One minibatch step for every seed; returns (n_stats, S) statistics and grad norms."""
+        grads, stats = self._grad(self.params, mb, with_stats)
         norms = []
         with torch.no_grad():
             for names, opt, max_norm in self.groups:
