@@ -279,7 +279,9 @@ class SeedBatch:
         norms = []
         with torch.no_grad():
             for names, opt, max_norm in self.groups:
-                gs = [grads[n] for n in names]
+                # the fused Adam kernel reads a gradient in its parameter's memory layout: vmap can
+                # return a permuted one (the central heads), so lay every gradient out densely
+                gs = [grads[n].contiguous() for n in names]
                 norms.append(clip_grad_norm_per_slice(gs, max_norm))
                 ps = [self.params[n] for n in names]
                 for p, g in zip(ps, gs, strict=True):
