@@ -47,3 +47,30 @@ def train_seeds_command(seeds: str, preset: str | None, variant: str | None, cen
     for path, sm in zip(paths, summaries, strict=True):
         console.print(f"done: {sm['episodes']} episodes, last-500 paper metric "
                       f"{sm['final_paper_metric_last500']:.3f} -> {path}")
+
+
+def main(argv: list[str]) -> int:
+    """`python -m learning.seeds_cli RUN_DIR...`: train run directories that hold only their config
+    (as `hammer sweep` creates them) as one seed batch. Exit status 0 when every seed finished."""
+    from learning.config import ConfigError
+    from learning.rundir import RunDir
+    from learning.seed_batch import train_seeds
+
+    if not argv:
+        print("error: usage: python -m learning.seeds_cli RUN_DIR... (fresh run directories with a config.json)")
+        return 2
+    try:
+        opened = [RunDir.open(p) for p in argv]
+        summaries = train_seeds([c for _, c in opened], [rd for rd, _ in opened], tensorboard=True)
+    except ConfigError as e:
+        print(f"error: {e}")
+        return 2
+    for path, sm in zip(argv, summaries, strict=True):
+        print(f"done: {sm['episodes']} episodes, last-500 paper metric {sm['final_paper_metric_last500']:.3f} -> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main(sys.argv[1:]))

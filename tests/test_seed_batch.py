@@ -124,3 +124,25 @@ def test_batched_and_solo_final_metrics_are_indistinguishable(tmp_path: Path) ->
     assert stats.ks_2samp(b, o).pvalue > 0.05
     start = np.array([first(tmp_path / f"b{s}") for s in seeds])
     assert b.mean() > start.mean()
+
+
+def test_sweep_batches_points_that_differ_only_in_seed(tmp_path: Path) -> None:
+    """Two seeds of one setting: one seed-batched process, two ordinary run directories; a second
+    sweep skips them; a seed whose summary is lost resumes alone."""
+    from experiments.sweep import expand, run_sweep, state_of
+
+    pts = expand(["cn3"], ["il"], [0, 1], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
+    events: list[tuple[str, str]] = []
+    res = run_sweep(pts, tmp_path, jobs=2, episodes=8, seed_batch=4, on_event=lambda k, n: events.append((k, n)))
+    assert sorted(res.done) == sorted(p.name for p in pts) and not res.failed
+    assert all(state_of(tmp_path / p.name) == "done" for p in pts)
+    logs = [p.name for p in pts if "seed batch: log in" in (tmp_path / p.name / "train.log").read_text()]
+    assert logs == [pts[1].name]  # the second seed points at its batch's log
+    assert [k for k, _ in events].count("start") == 2 and len(events) == 4
+    solo = pts[0]
+    cfg = merge_config("cn3", None, ["num_envs=4", "rollout_steps=25"], {"variant": "il", "seed": 0, "episodes": 8})
+    train(cfg, RunDir.create(tmp_path / "solo", cfg), tensorboard=False)
+    assert _metrics(tmp_path / solo.name) == _metrics(tmp_path / "solo")  # first rollout: initial weights
+    (tmp_path / solo.name / "summary.json").unlink()
+    res2 = run_sweep(pts, tmp_path, jobs=2, episodes=8, seed_batch=4)
+    assert res2.done == [solo.name] and res2.skipped == [pts[1].name]
