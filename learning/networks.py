@@ -60,6 +60,8 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
         return _traced_tanh(x)
     if x.numel() < _FAST_TANH_MIN:
         return torch.tanh(x)
+    if torch._C._are_functorch_transforms_active():  # seed batches (vmap): plain ops batch cheaply
+        return _traced_tanh(x)
     if x.requires_grad:
         return _SigmoidTanh.apply(x)
     return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
