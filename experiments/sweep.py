@@ -243,7 +243,8 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                         RunDir.create(d, build_config(q.expected_config(budget)))
                     args = ["-m", "learning.seeds_cli", *(str(d) for _, d in group)]
                     for _, d in group[1:]:
-                        (d / "train.log").open("a").write(f"seed batch: log in {run_dir / 'train.log'}\n")
+                        with open(d / "train.log", "a") as f:
+                            f.write(f"seed batch: log in {run_dir / 'train.log'}\n")
                 else:
                     args = ["-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
                                                  else p.train_args(run_dir, budget))]

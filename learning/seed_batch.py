@@ -293,7 +293,8 @@ class SeedBatch:
     def run(self) -> list[dict[str, Any]]:
         """Train every seed to its budget; returns the seeds' summaries (in seed order)."""
         cfg = self.cfg
-        resumed = [tr.start() for tr in self.trainers][0]
+        starts = [tr.start() for tr in self.trainers]
+        resumed = starts[0]
         self._done = [tr.episodes >= tr.cfg.episodes for tr in self.trainers]
         summaries: list[dict[str, Any] | None] = [None] * self.s
         obs: list[Any] = [None] * self.s
