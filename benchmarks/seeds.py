@@ -3,8 +3,8 @@
 For cn3 and cn5 (hammer-rl, the presets) and S = 1, 2, 4, 8, 16 seeds, the aggregate env-copy
 steps per second of the training loop (acting, env stepping, GAE, PPO epochs) of one
 `learning.seed_batch.SeedBatch` process over a few updates, next to a solo `Trainer` run of the
-same config measured in the same run (the baseline every ratio is against). Construction and
-imports are outside the timed loop. From those figures: the wall time of the paper's cn3 grid
+same config measured in the same run (the baseline every ratio is against). The clock starts
+when the first update is done: construction, imports, first calls and compiling are left out. From those figures: the wall time of the paper's cn3 grid
 (5 variants x 5 seeds x 30,000 episodes) run one solo process after another, and as five
 seed-batched processes (S=5, throughput interpolated between S=4 and S=8). The estimate uses
 hammer-rl's throughput for every variant (the slowest of them), so it is an upper bound.
@@ -39,23 +39,30 @@ def _cfgs(preset: str, seeds: list[int], updates: int, compile_: bool) -> list:
 
 
 def measure(preset: str, s: int, updates: int, compile_: bool = False) -> dict[str, Any]:
-    """One timed run: S seeds batched (s > 0) or one solo Trainer (s == 0)."""
+    """One timed run of `updates` + 1 updates: S seeds batched (s > 0) or one solo Trainer (s == 0)."""
     with tempfile.TemporaryDirectory() as tmp:
-        cfgs = _cfgs(preset, list(range(max(s, 1))), updates, compile_)
+        cfgs = _cfgs(preset, list(range(max(s, 1))), updates + 1, compile_)
         dirs = [RunDir.create(Path(tmp) / f"s{c.seed}", c) for c in cfgs]
+        first: list[float] = []  # (time, lead seed's env steps) when the first update is done
+
+        def mark(p: Any) -> None:
+            if not first:
+                first.extend((time.perf_counter(), p.env_steps))
+
         if s == 0:
-            runner: Any = Trainer(cfgs[0], dirs[0], tensorboard=False)
+            runner: Any = Trainer(cfgs[0], dirs[0], tensorboard=False, on_progress=mark)
             closers = [runner.env]
         else:
-            runner = SeedBatch(cfgs, dirs, tensorboard=False)
+            runner = SeedBatch(cfgs, dirs, tensorboard=False, on_progress=mark)
             closers = [tr.env for tr in runner.trainers]
-        t0 = time.perf_counter()
         out = runner.run()
-        dt = time.perf_counter() - t0
+        t_end = time.perf_counter()
         for env in closers:
             env.close()
     summaries = out if isinstance(out, list) else [out]
-    steps = sum(sm["env_steps"] for sm in summaries)
+    # timed from the end of the first update: compiling (compile=true) and first calls are left out
+    dt = t_end - first[0]
+    steps = sum(sm["env_steps"] - first[1] for sm in summaries)
     return {"preset": preset, "seeds": max(s, 1), "mode": "solo" if s == 0 else "batched", "seconds": round(dt, 2),
             "env_steps_per_s": round(steps / dt), "load": _load()}
 
@@ -64,7 +71,7 @@ def run_bench(presets: tuple[str, ...] = ("cn3", "cn5"), sizes: tuple[int, ...] 
               updates: int = 3, compile_: bool = False) -> list[dict[str, Any]]:
     rows = []
     for preset in presets:
-        measure(preset, 1, 1, compile_)  # warm-up: imports, first-call costs, compiled graphs
+        measure(preset, 1, 1, compile_)  # warm-up: imports, the inductor cache (compile=true)
         solo = measure(preset, 0, updates)
         rows.append({**solo, "ratio": 1.0})
         for s in sizes:

@@ -166,3 +166,14 @@ def test_batched_mw_seed_matches_solo_run(tmp_path: Path) -> None:
     assert update >= 1
     cb, co = _ckpt(tmp_path / "b1", update), _ckpt(tmp_path / "s1", update)
     assert max(float((cb[k].double() - co[k].double()).abs().max()) for k in cb) < TOL
+
+
+def test_bench_seeds_measures_solo_and_batched() -> None:
+    from benchmarks.seeds import grid_estimate, run_bench
+
+    rows = run_bench(("cn3",), (4,), updates=1)
+    assert [(r["mode"], r["seeds"]) for r in rows] == [("solo", 1), ("batched", 4)]
+    assert all(r["env_steps_per_s"] > 0 and r["seconds"] > 0 for r in rows)
+    assert rows[1]["ratio"] == pytest.approx(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], rel=0.01)
+    grid = grid_estimate(rows)
+    assert grid["solo_s"] > 0 and grid["batched_s"] > 0
