@@ -72,7 +72,7 @@ def run_bench(presets: tuple[str, ...] = ("cn3", "cn5"), sizes: tuple[int, ...] 
     rows = []
     for preset in presets:
         measure(preset, 1, 1, compile_)  # warm-up: imports, the inductor cache (compile=true)
-        solo = measure(preset, 0, updates)
+        solo = measure(preset, 0, updates, compile_)  # the baseline runs with the same compile setting
         rows.append({**solo, "ratio": 1.0})
         for s in sizes:
             r = measure(preset, s, updates, compile_)
