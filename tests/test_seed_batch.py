@@ -6,6 +6,7 @@ first updates agree with the solo run's to a tolerance measured on this machine 
 difference over every variant of cn3 after two updates, weights and Adam state: 6e-8 absolute;
 the test allows 1e-5), every seed's directory is an ordinary run directory that `hammer train --resume` continues,
 and over eight seeds the final metrics of batched and solo runs are statistically the same.
+Multiwalker (masked losses, seeds finishing apart) and `hammer sweep`'s grouping are checked too.
 """
 
 from __future__ import annotations
