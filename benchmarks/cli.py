@@ -11,6 +11,7 @@ part against a baseline taken in the same run:
   runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
   security     `hammer up --secure` vs plain, same run                       (benchmarks.security)
   edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
+  seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
 
 The measuring code is imported inside each command, so `hammer --help` stays fast.
 """
@@ -206,6 +207,49 @@ def bench_train(
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2))
         err.print(f"wrote {json_out}")
+
+
+@bench.command("seeds")
+def bench_seeds(
+    presets: Annotated[str, typer.Option(help="comma-separated presets")] = "cn3,cn5",
+    sizes: Annotated[str, typer.Option(help="comma-separated seed counts S")] = "1,2,4,8,16",
+    updates: Annotated[int, typer.Option(min=1, help="timed PPO updates per measurement")] = 3,
+    compile_: Annotated[bool, typer.Option("--compile", help="compile=true for the batched runs (the first "
+                                                             "compile takes minutes)")] = False,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
+) -> None:
+    """Aggregate env-steps/s of S seeds trained as one batch (`hammer train --seeds`) vs one solo run,
+    and the cn3 grid's wall time (5 variants x 5 seeds x 30,000 episodes) with and without batching."""
+    from rich.table import Table
+
+    from benchmarks.seeds import grid_estimate, run_bench
+    from hammer.console import table_console
+
+    try:
+        ps = tuple(p.strip() for p in presets.split(",") if p.strip())
+        ss = tuple(int(x) for x in sizes.split(","))
+    except ValueError:
+        typer.secho("error: --sizes takes integers, e.g. 1,2,4,8,16", fg="red", err=True)
+        raise typer.Exit(2) from None
+    rows = run_bench(ps, ss, updates, compile_)
+    table = Table(title="hammer bench seeds (hammer-rl, aggregate env-copy steps/s of the training loop)")
+    for col in ("preset", "mode", "S", "seconds", "env-steps/s", "x solo", "load"):
+        table.add_column(col, justify="left" if col in ("preset", "mode") else "right")
+    for r in rows:
+        table.add_row(r["preset"], r["mode"], str(r["seeds"]), f"{r['seconds']:.1f}", f"{r['env_steps_per_s']:,}",
+                      f"{r['ratio']:.2f}", f"{r['load']:.2f}")
+    console = table_console()
+    console.print(table)
+    grid = None
+    if "cn3" in ps:
+        grid = grid_estimate(rows)
+        console.print(f"cn3 grid (25 runs x 30,000 episodes, estimated from hammer-rl rows): solo one after another "
+                      f"{grid['solo_s'] / 60:.0f} min, seed-batched (S=5) {grid['batched_s'] / 60:.0f} min "
+                      f"({grid['speedup']:.2f}x)")
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps({"rows": rows, "grid": grid}, indent=2))
+        typer.echo(f"wrote {json_out}")
 
 
 @bench.command("runtime")

@@ -132,8 +132,34 @@ class SweepResult:
     broken: list[tuple[str, str]] = field(default_factory=list)  # (name, reason): snapshot unusable, ran fresh
 
 
+SEED_MEMORY = 200 * 2**20  # bytes a seed of a seed batch may take (networks, buffers, env copies, slack)
+MAX_SEEDS = 16
+
+
+def seed_cap() -> int:
+    """Most seeds one batched process takes: MAX_SEEDS, fewer if the free memory is short."""
+    try:
+        with open("/proc/meminfo") as f:
+            free = next(int(line.split()[1]) * 1024 for line in f if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration, ValueError):
+        return MAX_SEEDS
+    return max(1, min(MAX_SEEDS, free // SEED_MEMORY))
+
+
+def _batch_key(p: SweepPoint, budget: int | None) -> tuple | None:
+    """Points with equal keys differ only in seed and train as one seed batch; None: run alone
+    (multiwalker steps its walkers in worker processes, which a batch would multiply by S)."""
+    if p.preset.startswith("mw"):
+        return None
+    cfg = p.expected_config(budget)
+    if cfg.get("env_workers", 0) or cfg["env"] != "cn":
+        return None
+    return (p.preset, p.variant, p.overrides, p.episodes, budget)
+
+
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
-              on_event=None, archive: Path | None = None, snapshot_every_s: float | None = None) -> SweepResult:
+              on_event=None, archive: Path | None = None, snapshot_every_s: float | None = None,
+              seed_batch: int | None = None) -> SweepResult:
     """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress.
 
     With `archive`, a point already archived there counts as finished, and every run that finishes
@@ -144,10 +170,15 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
 
     `snapshot_every_s` (with `archive`): every so often, snapshot the runs in progress into
     `archive/_partial/` too (event "snap"), so a session that ends without warning still leaves its
-    progress in the working tree, where the next session can find it even if nothing was committed."""
+    progress in the working tree, where the next session can find it even if nothing was committed.
+
+    `seed_batch`: most seeds per process (default `seed_cap()`, 1 = every point alone). Fresh cn
+    points that differ only in seed start as one seed-batched process (`learning.seed_batch`),
+    one ordinary run directory each; points to resume or restore, and mw points, run alone."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = jobs or max(1, os.cpu_count() or 1)
+    cap = seed_cap() if seed_batch is None else max(1, seed_batch)
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", HAMMER_TORCH_THREADS="1")
     result = SweepResult()
     queue: list[tuple[SweepPoint, Path, str]] = []
@@ -200,48 +231,94 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
                         result.broken.append((p.name, str(e)))
                         if on_event:
                             on_event("broken", f"{p.name}: snapshot unusable ({e}); starting fresh")
-                args = (["train", "--resume", str(run_dir)] if st == "resume"
-                        else p.train_args(run_dir, budget))
+                key = _batch_key(p, budget) if st == "new" and cap > 1 else None
+                group = [(p, run_dir)]
+                if key is not None:
+                    group += _take_batch(queue, key, cap - 1, out, archive, budget, result, on_event)
+                if len(group) > 1:
+                    from learning.config import build_config
+                    from learning.rundir import RunDir
+
+                    for q, d in group:
+                        RunDir.create(d, build_config(q.expected_config(budget)))
+                    args = ["-m", "learning.seeds_cli", *(str(d) for _, d in group)]
+                    for _, d in group[1:]:
+                        with open(d / "train.log", "a") as f:
+                            f.write(f"seed batch: log in {run_dir / 'train.log'}\n")
+                else:
+                    args = ["-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
+                                                 else p.train_args(run_dir, budget))]
                 logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
-                proc = subprocess.Popen([sys.executable, "-m", "hammer.cli", *args], stdout=logf,
+                proc = subprocess.Popen([sys.executable, *args], stdout=logf,
                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-                _lock(run_dir, child=proc.pid)
-                running[p.name] = (proc, logf)
+                names = [q.name for q, _ in group]
+                for _, d in group:
+                    _lock(d, child=proc.pid)
+                running[p.name] = (proc, logf, names)
                 if on_event:
-                    on_event("restore" if restored else "resume" if st == "resume" else "start", p.name)
+                    for name in names:
+                        on_event("restore" if restored else "resume" if st == "resume" else "start", name)
             time.sleep(0.2)
             if archive is not None and snapshot_every_s and time.monotonic() - last_snap >= snapshot_every_s:
                 last_snap = time.monotonic()
-                _snapshot_running(list(running), out, archive, on_event)
-            for name, (proc, logf) in list(running.items()):
+                _snapshot_running([n for _, _, names in running.values() for n in names], out, archive, on_event)
+            for key, (proc, logf, names) in list(running.items()):
                 if proc.poll() is None:
                     continue
                 logf.close()
-                del running[name]
-                _unlock(out / name)
-                if proc.returncode == 0:
-                    if archive is not None:
-                        archive_run(out / name, archive)
-                        drop_partial(archive, name)
-                    result.done.append(name)
-                    if on_event:
-                        on_event("done", name)
-                else:
-                    result.failed.append((name, proc.returncode))
-                    if on_event:
-                        on_event("fail", name)
+                del running[key]
+                for name in names:
+                    _unlock(out / name)
+                    # a seed batch can fail after some seeds finished: each seed is judged by its summary
+                    ok = proc.returncode == 0 or (len(names) > 1 and state_of(out / name) == "done")
+                    if ok:
+                        if archive is not None:
+                            archive_run(out / name, archive)
+                            drop_partial(archive, name)
+                        result.done.append(name)
+                        if on_event:
+                            on_event("done", name)
+                    else:
+                        result.failed.append((name, proc.returncode))
+                        if on_event:
+                            on_event("fail", name)
     finally:
-        for name, (proc, logf) in running.items():
+        for proc, logf, names in running.values():
             proc.terminate()
             try:
                 proc.wait(10)
             except subprocess.TimeoutExpired:
                 proc.kill()
             logf.close()
-            _unlock(out / name)
+            for name in names:
+                _unlock(out / name)
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
     return result
+
+
+def _take_batch(queue: list[tuple[SweepPoint, Path, str]], key: tuple, n: int, out: Path, archive: Path | None,
+                budget: int | None, result: SweepResult, on_event) -> list[tuple[SweepPoint, Path]]:
+    """Take up to n more fresh points with this batch key off the queue, locked for this sweep
+    (the others stay queued: busy, finished meanwhile, or with a snapshot to restore)."""
+    taken: list[tuple[SweepPoint, Path]] = []
+    for item in list(queue):
+        if len(taken) >= n:
+            break
+        q, d, _ = item
+        if _batch_key(q, budget) != key:
+            continue
+        if archive is not None and partial_dir(archive, q.name).is_dir():
+            continue  # restored and resumed alone
+        d.mkdir(parents=True, exist_ok=True)
+        if not _lock(d):
+            continue
+        if state_of(d) != "new" or (archive is not None and is_archived(archive, q.name)):
+            _unlock(d)
+            continue
+        queue.remove(item)
+        taken.append((q, d))
+    return taken
 
 
 def _exit_on_sigterm(signum: int, frame: object) -> None:

@@ -37,11 +37,22 @@ def train_command(
              "changes (e.g. --set ent_coef=0.01): what would have happened from there with another setting. "
              "The original is not touched.")] = None,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+    seeds: Annotated[str | None, typer.Option(
+        help="train these seeds as one batched computation, e.g. 0-7 or 0,3,5: one ordinary run directory "
+             "per seed under --out (each resumable alone with --resume); not with --seed, --run-dir, "
+             "--resume or --branch")] = None,
 ) -> None:
     """Train a HAMMER team (or a baseline) in-process; writes a run directory."""
     from learning.config import ConfigError, build_config, merge_config
     from learning.rundir import RunDir
 
+    if seeds is not None:
+        from learning.seeds_cli import train_seeds_command
+
+        train_seeds_command(seeds, preset, variant, central_mode, episodes, config, set_ or [], out, name,
+                            conflicts={"--seed": seed, "--run-dir": run_dir, "--resume": resume, "--branch": branch},
+                            quiet=quiet)
+        return
     try:
         if branch is not None:
             if resume is not None or run_dir is None or any(v is not None for v in (preset, variant, central_mode,

@@ -29,6 +29,8 @@ def _init(layer: nn.Linear, std: float) -> nn.Linear:
 class _SigmoidTanh(torch.autograd.Function):
     """tanh(x) = 2σ(2x) − 1 with tanh's own backward (1 − y²)·g."""
 
+    generate_vmap_rule = True  # the seed-batched trainer differentiates it under torch.func.vmap
+
     @staticmethod
     def forward(x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
@@ -58,6 +60,8 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
         return _traced_tanh(x)
     if x.numel() < _FAST_TANH_MIN:
         return torch.tanh(x)
+    if torch._C._are_functorch_transforms_active():  # seed batches (vmap): plain ops batch cheaply
+        return _traced_tanh(x)
     if x.requires_grad:
         return _SigmoidTanh.apply(x)
     return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)

@@ -110,6 +110,18 @@ def clip_grad_norm(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
     return norm
 
 
+def clip_grad_norm_per_slice(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """`clip_grad_norm` for S stacked networks: every tensor is (S, ...) and slice s is network s's
+    gradient, clipped by its own total norm. Returns the (S,) norms before clipping."""
+    s = grads[0].shape[0]
+    per_tensor = torch.stack([torch.linalg.vector_norm(g.reshape(s, -1), dim=1) for g in grads], dim=1)
+    norm = torch.linalg.vector_norm(per_tensor, dim=1)
+    scale = (max_norm / (norm + 1e-6)).clamp_(max=1.0)
+    for g in grads:
+        g.mul_(scale.reshape(s, *([1] * (g.dim() - 1))))
+    return norm
+
+
 class PPOUpdater:
     """One network's Adam optimiser with its own learning rate and grad-norm clip.
 

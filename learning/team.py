@@ -112,10 +112,14 @@ class Team:
         Discrete: int64 (K, N) sampled by inverse CDF. Continuous: float32 (K, N, A) unclipped
         Gaussian sample (its logp is what PPO trains; `env_action` clips it for the env).
         """
-        k = obs.shape[0]
         x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
-        out = self.local.actor_out(x).numpy()
-        value = self.local.value(x).numpy()
+        return self.sample_local(self.local.actor_out(x).numpy(), self.local.value(x).numpy(), streams)
+
+    def sample_local(self, out: np.ndarray, value: np.ndarray, streams: ActingStreams
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`local_act` after the forward pass: the stream draws and the sampling from the actor's
+        output (K, N, A) (the seed-batched trainer runs the forward for many seeds at once)."""
+        k = out.shape[0]
         if self.discrete:
             u = streams.local_uniforms(k)
             probs = softmax(out)  # float64, as the randomness contract specifies

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.base import VecEnv
+from envs.base import VecEnv, VecStep
+from learning.central_acting import CentralOut
 from learning.config import RunConfig
 from learning.learner import TeamLearner
 from learning.rollout import RolloutWriter
@@ -91,13 +92,7 @@ class Trainer:
     # ----- main loop ----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
         cfg, team, env = self.cfg, self.team, self.env
-        self._t0 = time.perf_counter()
-        resumed = getattr(self, "_resumed", False)
-        steps_at_start, t_start = self.env_steps, time.perf_counter()
-        # a resumed run drops what its last life logged after the checkpoint; the update logged at
-        # the checkpoint's own env-step count came before it and stays (purge = steps >= this)
-        purge = self.env_steps + 1 if resumed else None
-        tb = self.rd.tensorboard(purge_step=purge) if self.tensorboard else None
+        resumed = self.start()
         k = cfg.num_envs
         done_training = self.episodes >= cfg.episodes
         obs = prev = None
@@ -111,22 +106,42 @@ class Trainer:
             obs, prev, done_training = self._collect(obs, prev)
             if done_training:
                 break
-            stats = self.learner.learn(obs, prev, self.update)
-            self.update += 1
-            sps = (self.env_steps - steps_at_start) / max(time.perf_counter() - t_start, 1e-9)
-            running = float(np.mean(list(self.recent)[-100:])) if self.recent else float("nan")
-            if tb is not None:
-                for name, val in {**stats, "policy_lag": 0}.items():  # the tags of `hammer up` (synchronous: lag 0)
-                    tb.add_scalar(f"train/{name}", val, self.env_steps)
-                tb.add_scalar("perf/env_steps_per_s", sps, self.env_steps)
-                if self.recent:
-                    tb.add_scalar("episode/paper_metric_100", running, self.env_steps)
-            self.rd.flush()
-            if self.on_progress:
-                self.on_progress(Progress(self.episodes, cfg.episodes, self.env_steps, sps, running, self.update))
+            self.log_update(self.learner.learn(obs, prev, self.update))
+        return self.finish()
+
+    def start(self) -> bool:
+        """Start the clocks and the TensorBoard log; returns whether this session resumes a run."""
+        self._t0 = time.perf_counter()
+        resumed = getattr(self, "_resumed", False)
+        self._steps_at_start, self._t_start = self.env_steps, time.perf_counter()
+        # a resumed run drops what its last life logged after the checkpoint; the update logged at
+        # the checkpoint's own env-step count came before it and stays (purge = steps >= this)
+        purge = self.env_steps + 1 if resumed else None
+        self._tb = self.rd.tensorboard(purge_step=purge) if self.tensorboard else None
+        return resumed
+
+    def log_update(self, stats: dict[str, float]) -> None:
+        """Count the update just learned and log its statistics."""
+        self.update += 1
+        sps = (self.env_steps - self._steps_at_start) / max(time.perf_counter() - self._t_start, 1e-9)
+        running = float(np.mean(list(self.recent)[-100:])) if self.recent else float("nan")
+        tb = self._tb
+        if tb is not None:
+            for name, val in {**stats, "policy_lag": 0}.items():  # the tags of `hammer up` (synchronous: lag 0)
+                tb.add_scalar(f"train/{name}", val, self.env_steps)
+            tb.add_scalar("perf/env_steps_per_s", sps, self.env_steps)
+            if self.recent:
+                tb.add_scalar("episode/paper_metric_100", running, self.env_steps)
         self.rd.flush()
-        elapsed = time.perf_counter() - t_start
-        summary = self._summary(elapsed, self.env_steps - steps_at_start)
+        if self.on_progress:
+            self.on_progress(Progress(self.episodes, self.cfg.episodes, self.env_steps, sps, running, self.update))
+
+    def finish(self) -> dict[str, Any]:
+        """Export the final policy and write the summary; returns it."""
+        cfg, team = self.cfg, self.team
+        self.rd.flush()
+        elapsed = time.perf_counter() - self._t_start
+        summary = self._summary(elapsed, self.env_steps - self._steps_at_start)
         self.rd.export_policy(team.local.export_numpy(),
                               team.central.export_numpy() if team.central is not None else None,
                               {"variant": cfg.variant, "central_mode": cfg.central_mode})
@@ -158,37 +173,50 @@ class Trainer:
 
     def _collect(self, obs: np.ndarray, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """Fill the rollout buffer; returns the next obs/prev actions and whether the budget is spent."""
-        cfg, team, buf, streams = self.cfg, self.team, self.buf, self.streams
+        cfg, team, streams = self.cfg, self.team, self.streams
         self.writer.begin()
         for t in range(cfg.rollout_steps):
             state = team.global_state(obs, prev)
             c = team.central_messages(state, streams, cfg.msg_dropout)
             action, logp, value = team.local_act(obs, c.sent, streams)
             st = self.env.step(team.env_action(action))
-            buf.state[t], buf.msg_raw[t], buf.keep[t], buf.logp[t], buf.values[t] = state, c.raw, c.keep, logp, value
-            buf.c_logp[t], buf.c_values[t] = c.logp, c.value
-            nxt = self.writer.write(t, obs, prev, c.sent, action, st)
-            prev, idx = nxt.prev, nxt.reset_idx
-            if idx.size:
-                fstate = team.global_state(st.final_obs[idx], nxt.final_prev)
-                buf.final_values[t, idx] = team.local_values(st.final_obs[idx], team.bootstrap_messages(fstate))
-                buf.c_final_values[t, idx] = team.central_values(fstate)
-            obs = st.obs
-            self.env_steps += cfg.num_envs
-            if st.episodes:
-                wall = round(self._wall(), 3)
-                rows = []
-                for e in st.episodes:
-                    if self.episodes >= cfg.episodes:
-                        break
-                    self.episodes += 1
-                    self.recent.append(e.paper_metric)
-                    rows.append((self.episodes, self.env_steps, repr(e.paper_metric), repr(e.team_return),
-                                 e.length, wall))
-                self.rd.append_episodes(rows)
-                if self.episodes >= cfg.episodes:
-                    return obs, prev, True
+            obs, prev, spent = self._record(t, obs, prev, state, c, action, logp, value, st)
+            if spent:
+                return obs, prev, True
         return obs, prev, False
+
+    def _record(self, t: int, obs: np.ndarray, prev: np.ndarray, state: np.ndarray, c: CentralOut,
+                action: np.ndarray, logp: np.ndarray, value: np.ndarray, st: VecStep
+                ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Write vector step t into the buffer, value the copies it reset and log the episodes it
+        finished; returns the next obs/prev actions and whether the budget is spent. (The
+        seed-batched trainer acts for many seeds at once, then records each seed through this.)"""
+        cfg, team, buf = self.cfg, self.team, self.buf
+        buf.state[t], buf.msg_raw[t], buf.keep[t], buf.logp[t], buf.values[t] = state, c.raw, c.keep, logp, value
+        buf.c_logp[t], buf.c_values[t] = c.logp, c.value
+        nxt = self.writer.write(t, obs, prev, c.sent, action, st)
+        prev, idx = nxt.prev, nxt.reset_idx
+        if idx.size:
+            fstate = team.global_state(st.final_obs[idx], nxt.final_prev)
+            buf.final_values[t, idx] = team.local_values(st.final_obs[idx], team.bootstrap_messages(fstate))
+            buf.c_final_values[t, idx] = team.central_values(fstate)
+        obs = st.obs
+        self.env_steps += cfg.num_envs
+        if st.episodes:
+            wall = round(self._wall(), 3)
+            rows = []
+            for e in st.episodes:
+                if self.episodes >= cfg.episodes:
+                    break
+                self.episodes += 1
+                self.recent.append(e.paper_metric)
+                rows.append((self.episodes, self.env_steps, repr(e.paper_metric), repr(e.team_return),
+                             e.length, wall))
+            self.rd.append_episodes(rows)
+            if self.episodes >= cfg.episodes:
+                return obs, prev, True
+        return obs, prev, False
+
 
 def train(cfg: RunConfig, run_dir: RunDir, resume: bool = False, env: VecEnv | None = None,
           on_progress: Callable[[Progress], None] | None = None, tensorboard: bool = True) -> dict[str, Any]:
