@@ -258,7 +258,11 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
-            # The run is over: the launcher, the only sender roles obey, stops everyone when this exits.
+            # The run is over: tell everyone (roles started by hand have no launcher to stop them). In a
+            # secure run the access rules keep control to the launcher, which stops everyone as this exits.
+            from protocol.schemas import Control
+
+            s.publish(s.keys.ctl("all"), Control(command="stop"))
     except KeyboardInterrupt:
         logging.getLogger("hammer.env").warning("env stopped: interrupted")
     finally:

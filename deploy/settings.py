@@ -122,7 +122,9 @@ class RuntimeSettings(BaseModel):
 
     def save(self, run_dir: Path) -> None:
         # `secure`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
-        exclude = {f for f in ("secure", "external", *_BOUNDS) if getattr(self, f) == type(self).model_fields[f].default}
+        fields = type(self).model_fields
+        exclude = {f for f in ("secure", "external", *_BOUNDS)
+                   if getattr(self, f) == fields[f].get_default(call_default_factory=True)}
         (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 
     @classmethod

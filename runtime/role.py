@@ -11,7 +11,8 @@ handler, `on_idle` runs when nothing came, `counters` is what its heartbeat repo
 What a role refuses is counted by reason (`reject`), next to what its subscriptions rejected as
 malformed (`HammerSession.rejection_counts`): both go into every heartbeat and the role's final
 counters as `rejected.<reason>`, so a degraded run is visible in the run directory. A stop command
-is obeyed only from the launcher (`LAUNCHER`). A role that has made progress once and then makes
+is obeyed only from the launcher (`LAUNCHER`) and from the env host, which ends the run when its
+budget is spent (in a secure run the access rules let only the launcher publish control). A role that has made progress once and then makes
 none for `stall_warn_s` says so: a WARNING in its log and `stalled: ...` in its heartbeat's detail.
 
 A role that drives the loop itself instead of reacting to input (the env host) does not call
@@ -36,7 +37,8 @@ from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat, HeartbeatStatus
 from protocol.session import HammerSession, Subscription
 
-STOP_COMMANDS = ("stop",)  # obeyed only from LAUNCHER, the sender the launcher's session stamps
+STOP_COMMANDS = ("stop",)
+STOP_SENDERS = (LAUNCHER, "env")  # the senders (stamped by their sessions) whose stop ends a role
 DEFAULT_STALL_WARN_S = 30.0
 
 
@@ -148,12 +150,12 @@ class Role:
         return f"stalled: no progress for {idle:.0f} s (waiting for {self.stall_what})"
 
     def stop_requested(self) -> bool:
-        """True once a stop command for everyone or for this role has arrived from the launcher
-        (a command from any other sender is counted, logged with its sender and ignored)."""
+        """True once a stop command for everyone or for this role has arrived from the launcher or the
+        env host (a command from any other sender is counted, logged with its sender and ignored)."""
         for cmd in self._control.drain():
             if cmd.command not in STOP_COMMANDS or cmd.target not in ("*", self.name):
                 continue
-            if cmd.sender != LAUNCHER:
+            if cmd.sender not in STOP_SENDERS:
                 self.reject("control_sender", f"{cmd.command} command from {cmd.sender or 'an unnamed sender'}")
             elif self.stop_reason is None:
                 self.stop_reason = f"{cmd.command} command from {cmd.sender}"
