@@ -53,11 +53,16 @@ G_CN3_OWNOBS_REP := --out runs/paper/cn3-ownobs-rep --archive $(A)/cn3-ownobs-re
 # The dose-response study (docs/results/plan-dose-response.md, declared before its runs): local agents
 # see only what lies within obs_radius; 300 runs, so its own target, not part of `paper`.
 DOSE_VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
-G_CN3_DOSE := --out runs/paper/cn3-dose --archive $(A)/cn3-dose --presets cn3 --variants $(DOSE_VARIANTS) --seeds 0-9 --grid env_kwargs.obs_radius=1.5,1.0,0.6,0.3,0.0
-G_CN3_DOSE_FULL := --out runs/paper/cn3-dose-full --archive $(A)/cn3-dose-full --presets cn3 --variants $(DOSE_VARIANTS) --seeds 0-9
+# $(call G_CN3_DOSE,VARIANTS): the grid for some variants (all of them without an argument). Every run with
+# compile=true (the plan's amendment of 2026-12-03, before any run: 2.4x faster here).
+G_CN3_DOSE = --out runs/paper/cn3-dose --archive $(A)/cn3-dose --presets cn3 --variants $(or $(1),$(DOSE_VARIANTS)) --seeds 0-9 --grid compile=true --grid env_kwargs.obs_radius=1.5,1.0,0.6,0.3,0.0
+G_CN3_DOSE_FULL = --out runs/paper/cn3-dose-full --archive $(A)/cn3-dose-full --presets cn3 --variants $(or $(1),$(DOSE_VARIANTS)) --seeds 0-9 --grid compile=true
+# The primary contrast (hammer-rl vs IL) first at every level, so a grid cut short still answers H1/H2.
 paper-dose: $(STAMP)
-	$(H) sweep $(G_CN3_DOSE_FULL)
-	$(H) sweep $(G_CN3_DOSE)
+	$(H) sweep $(call G_CN3_DOSE_FULL,hammer-rl$(,)il) --snapshot-every 20
+	$(H) sweep $(call G_CN3_DOSE,hammer-rl$(,)il) --snapshot-every 20
+	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot-every 20
+	$(H) sweep $(call G_CN3_DOSE) --snapshot-every 20
 	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
@@ -85,8 +90,8 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_CN3_OWNOBS) --snapshot
 	$(H) sweep $(G_CN3_OWNOBS_REP) --snapshot
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
-	$(H) sweep $(G_CN3_DOSE_FULL) --snapshot
-	$(H) sweep $(G_CN3_DOSE) --snapshot
+	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot
+	$(H) sweep $(call G_CN3_DOSE) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
@@ -99,8 +104,8 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN3_OWNOBS) --status
 	@$(H) sweep $(G_CN3_OWNOBS_REP) --status
 	@$(H) sweep $(G_CN3_MSGLEN) --status
-	@$(H) sweep $(G_CN3_DOSE_FULL) --status
-	@$(H) sweep $(G_CN3_DOSE) --status
+	@$(H) sweep $(call G_CN3_DOSE_FULL) --status
+	@$(H) sweep $(call G_CN3_DOSE) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
