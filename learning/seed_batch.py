@@ -17,7 +17,7 @@ checkpoints), and its networks' parameters are views into stacked (S, ...) tenso
 Advantage normalisation and every loss mean are per seed because the losses run per slice under
 vmap. Before a checkpoint the stacked Adam state is copied into each seed's own optimiser, so a
 checkpoint is exactly a solo run's and `hammer train --resume` continues any seed alone.
-compile=true does not apply here (the batched update is eager).
+With compile=true the batched gradient and the acting forwards run as torch.compile graphs.
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ def train_seeds_command(seeds: str, preset: str | None, variant: str | None, cen
             extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
         cfgs = [merge_config(preset, config, overrides, {**extra, "seed": s}) for s in parse_seeds(seeds)]
         paths = [Path(c.out) / (f"{name}-s{c.seed}" if name else c.run_name()) for c in cfgs]
+        _check_env(cfgs[0])  # the seeds share everything but the seed: one env tells for all, before any write
         dirs = [RunDir.create(p, c) for p, c in zip(paths, cfgs, strict=True)]
     except ConfigError as e:
         typer.secho(f"error: {e}", fg="red", err=True)
@@ -45,8 +46,31 @@ def train_seeds_command(seeds: str, preset: str | None, variant: str | None, cen
 
     summaries = train_seeds(cfgs, dirs, on_progress=None if quiet else report)
     for path, sm in zip(paths, summaries, strict=True):
-        console.print(f"done: {sm['episodes']} episodes, last-500 paper metric "
-                      f"{sm['final_paper_metric_last500']:.3f} -> {path}")
+        console.print(f"done: {_final(sm)} -> {path}")
+
+
+def _final(summary: dict) -> str:
+    n = summary["episodes"]
+    return f"{n} episodes, last-{min(500, n)} paper metric {summary['final_paper_metric_last500']:.3f}"
+
+
+def _check_env(cfg) -> None:
+    """Build the env once and check it fits the config, so a bad env name or kwarg fails in one line
+    before any run directory exists (as a solo `hammer train` does)."""
+    from envs.registry import EnvConfigError
+    from learning.config import ConfigError
+    from learning.run_env import check_env_fits, make_env
+
+    try:
+        env = make_env(cfg)
+    except EnvConfigError as e:
+        raise ConfigError(str(e)) from None
+    try:
+        check_env_fits(cfg, env.spec)
+    except EnvConfigError as e:
+        raise ConfigError(str(e)) from None
+    finally:
+        env.close()
 
 
 def main(argv: list[str]) -> int:
@@ -66,7 +90,7 @@ def main(argv: list[str]) -> int:
         print(f"error: {e}")
         return 2
     for path, sm in zip(argv, summaries, strict=True):
-        print(f"done: {sm['episodes']} episodes, last-500 paper metric {sm['final_paper_metric_last500']:.3f} -> {path}")
+        print(f"done: {_final(sm)} -> {path}")
     return 0
 
 

@@ -65,3 +65,11 @@ def test_a_mistyped_env_kwarg_lists_the_valid_ones(tmp_path):
     assert "n_walkerz" in text and re.search(r"valid fields: .*n_walkers", text), text
     res = runner.invoke(app, ["train", "--set", "env_kwargs.local_ratoi=0.5", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "valid fields" in _err(res) and "local_ratio" in _err(res)
+
+
+def test_train_seeds_with_a_bad_env_is_one_line_and_writes_nothing(tmp_path):
+    res = runner.invoke(app, ["train", "--seeds", "0-1", "--set", "env=nosuchmod:parallel_env", "--out", str(tmp_path)])
+    assert res.exit_code == 2, res.output
+    text = _err(res)
+    assert "error:" in text and "cannot import module 'nosuchmod'" in text and "Traceback" not in res.output
+    assert not any(tmp_path.iterdir()), "a refused seed batch must not leave run directories"

@@ -36,7 +36,7 @@ def _edge_venv(path) -> str:
 def test_an_edge_only_install_serves_in_a_real_run(tmp_path):
     py = _edge_venv(tmp_path / "venv")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # the venv's install, not this checkout
-    probe = "import importlib.util as u; print([m for m in ('torch', 'pettingzoo', 'matplotlib', 'mpe2', 'scipy') if u.find_spec(m)])"
+    probe = "import importlib.util as u; print([m for m in ('torch', 'pettingzoo', 'matplotlib', 'mpe2', 'scipy', 'supersuit', 'gymnasium') if u.find_spec(m)])"
     missing = subprocess.run([py, "-c", probe],
                              capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
     assert missing.stdout.strip() == "[]"
