@@ -96,8 +96,7 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
 
     env = board.heartbeats.get("env")
     c = env.counters if env else {}
-    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.variant}"
-                    f"{'/' + cfg.central_mode if cfg.variant == 'hammer' else ''} seed {cfg.seed}",
+    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
               show_header=True, expand=False)
     t.add_column("what")
     t.add_column("value", justify="right")

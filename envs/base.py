@@ -127,7 +127,7 @@ class EpisodeTracker:
 
     def __init__(self, num_envs: int) -> None:
         self.paper = np.zeros(num_envs, dtype=np.float64)
-        self.team = np.zeros(num_envs, dtype=np.float64)
+        self.team_return = np.zeros(num_envs, dtype=np.float64)
         self.length = np.zeros(num_envs, dtype=np.int64)
 
     def record(self, reward: np.ndarray, active: np.ndarray, done: np.ndarray) -> list[EpisodeStats]:
@@ -135,12 +135,12 @@ class EpisodeTracker:
         n_active = active.sum(axis=1)
         step_sum = np.where(active, reward, 0.0).sum(axis=1, dtype=np.float64)
         self.paper += np.divide(step_sum, n_active, out=np.zeros_like(step_sum), where=n_active > 0)
-        self.team += step_sum
+        self.team_return += step_sum
         self.length += 1
         out: list[EpisodeStats] = []
         for k in np.flatnonzero(done):
-            out.append(EpisodeStats(int(k), float(self.paper[k]), float(self.team[k]), int(self.length[k])))
+            out.append(EpisodeStats(int(k), float(self.paper[k]), float(self.team_return[k]), int(self.length[k])))
             self.paper[k] = 0.0
-            self.team[k] = 0.0
+            self.team_return[k] = 0.0
             self.length[k] = 0
         return out

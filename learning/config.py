@@ -17,7 +17,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from learning.presets import PRESETS
-from learning.variant import MESSAGE_VARIANTS, Wiring
+from learning.variant import Wiring
 
 Variant = Literal["hammer", "il", "random", "centralized"]
 CentralMode = Literal["rl", "backprop"]
@@ -83,8 +83,8 @@ class RunConfig(BaseModel):
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads (small nets: 1 is fastest)")
     compile: bool = Field(
         False, description="torch.compile each PPO minibatch step (losses, gradients, clip, Adam) into one "
-                           "graph: updates ~2.7x faster than eager after ~5 s of compiling from the cache "
-                           "(~1-2 min the first time); float rounding differs from eager")
+                           "graph: faster updates once compiled (first compile takes a while; `hammer bench` measures "
+                           "both); float rounding differs from eager")
     out: str = Field("runs", description="root directory for run directories")
     checkpoint_every: int = Field(50, ge=1, description="updates between checkpoints")
 
@@ -94,11 +94,11 @@ class RunConfig(BaseModel):
             sizes = getattr(self, name)
             if not sizes or any(s < 1 for s in sizes):
                 raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
-        if self.variant in MESSAGE_VARIANTS and self.msg_dim < 1:
+        if self.wiring.uses_central and self.msg_dim < 1:
             raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
         if self.obs_conv and (len(self.obs_conv) != 3 or min(self.obs_conv) < 1):
             raise ValueError("obs_conv: needs [H, W, C], three positive sizes, e.g. [32, 32, 1]")
-        if self.obs_conv and self.variant == "centralized":
+        if self.obs_conv and self.wiring.joint_obs:
             raise ValueError("obs_conv: not with variant centralized (its local input is every agent's observation)")
         if self.minibatches > self.rollout_steps * self.num_envs:
             raise ValueError("minibatches: must be <= rollout_steps * num_envs")

@@ -96,7 +96,7 @@ class SeedBatch:
         check_batchable(cfgs)
         self.trainers = [Trainer(cfg, rd, tensorboard=tensorboard, on_progress=on_progress if i == 0 else None)
                          for i, (cfg, rd) in enumerate(zip(cfgs, run_dirs, strict=True))]
-        self.s = len(self.trainers)
+        self.n_seeds = len(self.trainers)
         self.cfg = cfgs[0]
         lead = self.trainers[0]
         self.call = _Call(lead)
@@ -225,9 +225,9 @@ class SeedBatch:
 
     def _stack_all(self, live: list[int], arrays: list[np.ndarray]) -> torch.Tensor:
         """(S, ...) tensor of the live seeds' arrays; finished seeds' slices are zeros."""
-        if len(live) == self.s:
+        if len(live) == self.n_seeds:
             return torch.from_numpy(np.stack(arrays))
-        full = np.zeros((self.s, *arrays[0].shape), dtype=arrays[0].dtype)
+        full = np.zeros((self.n_seeds, *arrays[0].shape), dtype=arrays[0].dtype)
         full[live] = np.stack(arrays)
         return torch.from_numpy(full)
 
@@ -241,13 +241,13 @@ class SeedBatch:
         rows = lead.buf.t * lead.buf.k
         big = {k: torch.cat([b[k] for b in bs]) for k in bs[0]}  # (S*R, ...)
         rngs = [stream(tr.cfg.seed, MINIBATCH_STREAM, update) for tr in self.trainers]
-        offsets = np.arange(self.s)[:, None] * rows
+        offsets = np.arange(self.n_seeds)[:, None] * rows
         total: torch.Tensor | None = None
         for epoch in range(cfg.epochs):
             last = epoch == cfg.epochs - 1
             parts = [minibatch_indices(rows, cfg.minibatches, rng) for rng in rngs]
             perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
-            shuffled = {k: v.index_select(0, perm).reshape(self.s, rows, *v.shape[1:]) for k, v in big.items()}
+            shuffled = {k: v.index_select(0, perm).reshape(self.n_seeds, rows, *v.shape[1:]) for k, v in big.items()}
             start = 0
             for part in parts[0]:
                 end = start + len(part)
@@ -296,16 +296,16 @@ class SeedBatch:
         starts = [tr.start() for tr in self.trainers]
         resumed = starts[0]
         self._done = [tr.episodes >= tr.cfg.episodes for tr in self.trainers]
-        summaries: list[dict[str, Any] | None] = [None] * self.s
-        obs: list[Any] = [None] * self.s
-        prev: list[Any] = [None] * self.s
+        summaries: list[dict[str, Any] | None] = [None] * self.n_seeds
+        obs: list[Any] = [None] * self.n_seeds
+        prev: list[Any] = [None] * self.n_seeds
         finished: set[int] = set()
         while True:
-            for s in range(self.s):
+            for s in range(self.n_seeds):
                 if self._done[s] and s not in finished:
                     summaries[s] = self.trainers[s].finish()
                     finished.add(s)
-            live = [s for s in range(self.s) if not self._done[s]]
+            live = [s for s in range(self.n_seeds) if not self._done[s]]
             if not live:
                 break
             update = self.trainers[live[0]].update
