@@ -149,24 +149,31 @@ def test_sweep_batches_points_that_differ_only_in_seed(tmp_path: Path) -> None:
     assert res2.done == [solo.name] and res2.skipped == [pts[1].name]
 
 
-def test_batched_mw_seed_matches_solo_run(tmp_path: Path) -> None:
+@pytest.mark.parametrize("mode,workers", [("rl", 0), ("backprop", 2)])
+def test_batched_mw_seed_matches_solo_run(tmp_path: Path, monkeypatch, mode: str, workers: int) -> None:
     """Multiwalker (walkers fall and drop out: masked losses, seeds finishing at different
-    updates) batched vs alone: the same first rollout, the same weights after the first update."""
+    updates) batched vs alone, in both central modes and through the env worker pool: the same
+    first rollout, the same weights and Adam state after updates 1 and 2.
+
+    Measured (2026-12-03): worst difference 3e-8 after update 1 in both modes; it then grows by
+    roughly 10x per update in backprop mode (5.7e-7, 4e-6, 3e-4, 2.7e-3 after updates 2-5) and
+    far slower in rl mode (1.7e-6 after update 5): rounding amplified by training, which is why
+    the check is at the first updates, as for cn (bit-identity is not expected)."""
+    orig = RunDir.save_checkpoint
+    monkeypatch.setattr(RunDir, "save_checkpoint", lambda self, *a, **k: orig(self, *a, **{**k, "keep": 100}))
     seeds = [0, 1]
-    cfgs = [merge_config("mw3", None, ["num_envs=2", "rollout_steps=60", "checkpoint_every=1", "epochs=2"],
-                         {"variant": "hammer", "central_mode": "rl", "seed": s, "episodes": 4}) for s in seeds]
+    cfgs = [merge_config("mw3", None, ["num_envs=2", "rollout_steps=60", "checkpoint_every=1", "epochs=2",
+                                       f"env_workers={workers}"],
+                         {"variant": "hammer", "central_mode": mode, "seed": s, "episodes": 4}) for s in seeds]
     train_seeds(cfgs, [RunDir.create(tmp_path / f"b{s}", c) for s, c in zip(seeds, cfgs)], tensorboard=False)
     train(cfgs[1], RunDir.create(tmp_path / "s1", cfgs[1]), tensorboard=False)
     b, o = _metrics(tmp_path / "b1"), _metrics(tmp_path / "s1")
     assert len(b) == len(o) == 4
     first = [r for r in o if int(r[1]) <= 2 * 60]  # episodes that ended in the first rollout
     assert b[: len(first)] == first
-    kept = sorted({p.name for p in (tmp_path / "b1" / "checkpoints").glob("*.json")}
-                  & {p.name for p in (tmp_path / "s1" / "checkpoints").glob("*.json")})
-    update = int(kept[0][5:12])  # the earliest both kept (a checkpoint per update, the last three kept)
-    assert update >= 1
-    cb, co = _ckpt(tmp_path / "b1", update), _ckpt(tmp_path / "s1", update)
-    assert max(float((cb[k].double() - co[k].double()).abs().max()) for k in cb) < TOL
+    for update in (1, 2):
+        cb, co = _ckpt(tmp_path / "b1", update), _ckpt(tmp_path / "s1", update)
+        assert max(float((cb[k].double() - co[k].double()).abs().max()) for k in cb) < TOL, update
 
 
 def test_bench_seeds_measures_solo_and_batched() -> None:
