@@ -35,6 +35,9 @@ def test_up_config_errors_are_one_line_and_exit_2(tmp_path):
     cases = [
         (["--set", "env=nosuchmod:parallel_env", "--episodes", "1"], "cannot import module 'nosuchmod'"),
         (["--set", "env=pettingzoo.butterfly.pistonball_v6:parallel_env", "--episodes", "1"], "flat Box"),
+        (["--set", "env=mpe2.simple_speaker_listener_v4:parallel_env", "--set", "n_agents=2", "--episodes", "1"],
+         "env_adapters=[pad,agent_id]"),  # heterogeneous spaces: the adapter that fixes it
+        (["--set", "env=pettingzoo.sisl.multiwalker_v9:env", "--episodes", "1"], "not a PettingZoo parallel env"),
         (["--runtime", "max_policy_lagg=1"], "did you mean 'max_policy_lag'?"),
         (["--episodes", "0"], "--episodes 2000"),
         (["--config", str(tmp_path / "missing.yaml")], "--config"),
