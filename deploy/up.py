@@ -365,7 +365,7 @@ def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transp
     from protocol.access import LAUNCHER, role_names
     from protocol.identity import create_identities, has_identities, identity_dir
 
-    roles = role_names(cfg.n_agents)
+    roles = role_names(cfg.n_agents, router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
     return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)

@@ -188,20 +188,33 @@ def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
     assert intake.preload_oldest() and loads == [4] and intake.version == 4
 
 
-def test_a_stop_from_anyone_but_the_launcher_is_counted_and_ignored(hub_and_role_session):
+def _stop_from(session: HammerSession, sender: str) -> None:
+    """A stop command whose header names `sender` (plain profile: the header is whatever the peer writes)."""
+    from protocol.codec import encode
+
+    data = encode(Control(command="stop"), stamp={"run": session.run_id, "ts": time.time_ns(), "seq": 0,
+                                                  "sender": sender})
+    session.put_bytes(session.keys.ctl("all"), data)
+
+
+@pytest.mark.parametrize("obeyed", ["launcher", "env"])
+def test_a_stop_from_the_launcher_or_the_env_host_is_obeyed_from_anyone_else_counted_and_ignored(
+        hub_and_role_session, obeyed):
     hub, s = hub_and_role_session
     role = Ticker(s)
     thread = _start(role)
     _settle()
-    s.publish(s.keys.ctl("all"), Control(command="stop"))  # sender "ticker": a peer, not the launcher
+    others = ("ticker", "local-0", "central", "learner", "hub", "Launcher")
+    for sender in others:
+        _stop_from(s, sender)
     deadline = time.monotonic() + 5.0
-    while not role.rejected and time.monotonic() < deadline:
+    while role.rejected["control_sender"] < len(others) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert thread.is_alive() and role.stop_reason is None
-    assert role.rejection_counters() == {"rejected.control_sender": 1}
-    hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+    assert role.rejection_counters() == {"rejected.control_sender": len(others)}
+    _stop_from(hub, obeyed)
     thread.join(timeout=5.0)
-    assert not thread.is_alive() and role.stop_reason == "stop command from launcher"
+    assert not thread.is_alive() and role.stop_reason == f"stop command from {obeyed}"
 
 
 def test_a_role_that_stops_progressing_says_so_in_its_heartbeat(hub_and_role_session):
