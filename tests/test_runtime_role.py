@@ -265,3 +265,28 @@ def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on(
     time.sleep(0.3)
     assert w.ahead(5000, 7)  # a real stream beyond the window (a role paused for long) ...
     assert not w.ahead(5001, 7)  # ... is followed once it continues after resync_s of nothing else
+
+
+def test_step_window_refuses_a_forged_first_step_beyond_the_runs_known_step():
+    from runtime.bounds import StepWindow
+
+    w = StepWindow(width=100, resync_s=0.2, start=40)
+    assert w.ahead(2**64 - 1, -1)  # before the role's first real step: refused, not adopted
+    assert w.ahead(141, -1) and not w.ahead(41, -1)  # the bound is the known step + the width
+    assert not StepWindow(width=100, start=None).ahead(2**64 - 1, -1)  # no known step: the first one anchors
+
+
+def test_step_window_follows_a_steady_stream_below_an_anchor_it_never_followed():
+    from runtime.bounds import MIN_STREAM, StepWindow
+
+    assert MIN_STREAM == 3
+    w = StepWindow(width=100, resync_s=0.2, start=0)
+    assert not w.ahead(99, -1)  # a forged step inside the bound became the anchor (last = 99)
+    assert w.stale(1, 99) and w.stale(2, 99) and w.stale(3, 99)  # a stream, but resync_s has not passed
+    time.sleep(0.3)
+    assert w.stale(1, 99)  # out of order (a duplicate): the stream starts again from one
+    assert w.stale(2, 99)  # two in order: not yet a stream
+    assert not w.stale(3, 99)  # three, after resync_s with nothing accepted: followed, the caller acts on it
+    assert not w.ahead(3, 99)  # accepted in the window of the old anchor; the caller's last moves down to 3
+    assert w.stale(3, 3) and w.stale(2, 3)  # duplicates right after it are stale again (just accepted)
+    assert w.stale(3, 3)
