@@ -74,9 +74,7 @@ class StepWindow:
             return False
         follows = self._rejected >= 0 and self._rejected < step <= self._rejected + self.width
         self._rejected = step
-        if follows and self._resync_due(now):
-            return False
-        return True
+        return not (follows and self._resync_due(now))  # a stream that moves on steadily: followed
 
     def stale(self, step: int, last: int) -> bool:
         """`step` <= `last`: True, drop it as stale (the caller counts it); False, the stream below
