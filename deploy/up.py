@@ -365,13 +365,18 @@ class Launcher:
 
 def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
     """A secure run: a new CA and role identities in RUN/identity/ (kept on resume, so remote roles
-    keep the files they were given); returns the launcher's own secured transport."""
-    from protocol.access import LAUNCHER, role_names
+    keep the files they were given), and RUN/access_control.json, the rules every process applies
+    (a client in another language inserts it into its Zenoh config; docs/wire-format.md). Returns
+    the launcher's own secured transport."""
+    from protocol.access import LAUNCHER, access_control, role_names
     from protocol.identity import create_identities, has_identities, identity_dir
+    from protocol.keys import Keys
 
     roles = role_names(cfg.n_agents, router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
+    rules = access_control(Keys(settings.run_id), cfg.n_agents, router=settings.secure_hub)
+    (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
     return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
 
 

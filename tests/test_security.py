@@ -350,6 +350,11 @@ def test_hammer_up_secure_flag_makes_a_secure_run(tmp_path):
     names = {p.name for p in (run / "identity").iterdir()}
     assert {"ca.pem", "launcher.pem", "env.key", "local-0.pem", "learner.key"} <= names
     assert not any(n.startswith("hub.") for n in names)
+    # the rules every process applies, for a client in another language (docs/wire-format.md)
+    from protocol.access import access_control
+
+    rt = json.loads((run / "runtime.json").read_text())
+    assert json.loads((run / "access_control.json").read_text()) == access_control(Keys(rt["run_id"]), 3)
     again = hammer("up", "--resume", str(run), "--secure")
     assert again.returncode == 2 and "only --episodes may be changed" in again.stderr and "--secure" in again.stderr
 
