@@ -13,6 +13,7 @@ import csv
 import os
 import statistics
 import tempfile
+import time
 from pathlib import Path
 
 PROFILES = ("plain", "secure")
@@ -32,21 +33,25 @@ def bench_security(preset: str = "cn3", episodes: int = 100, repeats: int = 2) -
     from learning.config import merge_config
 
     cfg = merge_config(preset, overrides=[f"episodes={episodes}", "variant=hammer"])
-    runs, same = [], True
+    runs, same, load0 = [], True, os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="hammer-bench-security-") as tmp:
         for r in range(repeats):
             dirs = {}
             for profile in PROFILES:
-                settings = RuntimeSettings(run_id=f"bsec-{profile}-{r}-{os.getpid()}", secure=profile == "secure")
+                # a loaded host can take more than the default minute to start every role: no figure depends on it
+                settings = RuntimeSettings(run_id=f"bsec-{profile}-{r}-{os.getpid()}", secure=profile == "secure",
+                                           startup_timeout_s=300)
                 dirs[profile] = Path(tmp) / f"{profile}-{r}"
                 res = launch(cfg, settings, dirs[profile])
                 links = res.summary.get("links", {})
                 runs.append({"profile": profile, "repeat": r, **{f: res.summary[f] for f in FIGURES},
                              "default_actions": links.get("default_actions"),
-                             "msg_fallback_copies": links.get("msg_fallback_copies"), "wall_s": res.wall_time})
+                             "msg_fallback_copies": links.get("msg_fallback_copies"), "wall_s": res.wall_time,
+                             "loadavg_1m_end": os.getloadavg()[0]})
             same = same and _metrics(dirs["plain"]) == _metrics(dirs["secure"])
     median = {p: {f: statistics.median(x[f] for x in runs if x["profile"] == p) for f in FIGURES} for p in PROFILES}
     ratio = {f: median["secure"][f] / median["plain"][f] for f in FIGURES}
     return {"preset": preset, "episodes": episodes, "repeats": repeats, "runs": runs, "median": median,
-            "secure_over_plain": ratio, "same_metrics": same,
-            "loadavg_1m": os.getloadavg()[0], "cpu_count": os.cpu_count()}
+            "secure_over_plain": ratio, "same_metrics": same, "loadavg_1m_start": load0,
+            "loadavg_1m": os.getloadavg()[0], "cpu_count": os.cpu_count(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}

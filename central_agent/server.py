@@ -68,7 +68,7 @@ class CentralServer(Role):
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float, *,
                  idle_exit_s: float | None = None, load_when_idle: bool = False,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0) -> None:
+                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
         super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
@@ -80,7 +80,7 @@ class CentralServer(Role):
         self.counts = CentralCounters()
         self.net: NumpyCentralAgent | None = None
         self.last_step = -1
-        self.window = StepWindow(step_window)
+        self.window = StepWindow(step_window, start=start_step)  # runtime.bounds.known_step: no forged first step
         self.stall_what = "global states"
         dims = Dims(num_envs=cfg.num_envs, n_agents=cfg.n_agents, obs_dim=spec.obs_dim,
                     action_dim=spec.action_dim, discrete=spec.discrete)
@@ -104,10 +104,13 @@ class CentralServer(Role):
     # ----- a step, in the order it flows ---------------------------------------------------------
     def on_state(self, state: GlobalState) -> None:
         """Serve one vector step: load the version it names, then send the messages of the newest state queued."""
-        if state.step <= self.last_step:
+        if state.step <= self.last_step and self.window.stale(state.step, self.last_step):
             self.counts.states_stale += 1
             self.log_late(state.step)
             return
+        if state.step <= self.last_step:  # the real stream is below an anchor it never followed
+            self.reject("step_resync", f"global states up to step {state.step} came steadily below "
+                                       f"{self.last_step}: following them")
         if self.window.ahead(state.step, self.last_step):
             self.reject("step_ahead", f"global state for step {state.step} while at {self.last_step}")
             return

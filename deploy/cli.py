@@ -153,6 +153,9 @@ def up_command(
     external: Annotated[list[str] | None, typer.Option(
         "--external", help="Role started by hand instead (repeatable, e.g. local-2): the launcher prints its "
                            "command, waits for its liveliness and never restarts it; docs/wire-format.md.")] = None,
+    secure: Annotated[bool, typer.Option(
+        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md); "
+             "the same as --runtime secure=true.")] = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -185,7 +188,7 @@ def up_command(
         given = {"--config": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
                  "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
-                 "--external": external}
+                 "--external": external, "--secure": secure or None}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -224,6 +227,8 @@ def up_command(
         rt["chaos"] = chaos_items
     if external:
         rt["external"] = external
+    if secure:
+        rt["secure"] = True
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
@@ -328,11 +333,15 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     s = res.summary
     if s.get("resumed_from") is not None:
         console.print(f"resumed at update {s['resumed_from']}; this session ran {res.wall_time:.0f}s")
-    console.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-{min(500, s['episodes'])} paper metric "
+    # The verdict goes to stdout (progress and the dashboard stay on stderr): a script reads it there.
+    from rich.console import Console
+
+    verdict = Console(soft_wrap=True)
+    verdict.print(f"done: {s['episodes']} episodes in {res.wall_time:.0f}s, last-{min(500, s['episodes'])} paper metric "
                   f"{s['final_paper_metric_last500']:.3f}, {s['env_steps_per_s']:,.0f} env-steps/s, "
-                  f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}")
+                  f"step latency p50 {s['step_latency_ms_p50']:.2f} ms p99 {s['step_latency_ms_p99']:.2f} ms -> {path}", markup=False)
     if s.get("degraded"):
-        console.print(f"[bold red]degraded:[/] {'; '.join(s['degraded_reasons'])} (summary.json)")
+        verdict.print(f"[bold red]degraded:[/] {'; '.join(s['degraded_reasons'])} (summary.json)")
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))

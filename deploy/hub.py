@@ -68,6 +68,9 @@ def _secure_hub(transport, run_dir: Path):
         fail(str(e))
     if not settings.secure:
         fail("runtime.json has no secure=true: a plain run needs no --run-dir")
+    if not settings.secure_hub:
+        fail("runtime.json has no secure_hub=true: this secure run was made for peers, so it has no router identity "
+             "and its roles accept nothing relayed; fix: make the run with `hammer up --secure --runtime secure_hub=true`")
     secured = settings.secured(transport, HUB, run_dir, n_agents)
     missing = secured.security.identity.missing()
     if missing:

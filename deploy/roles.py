@@ -20,6 +20,8 @@ from typing import Annotated
 
 import typer
 
+from runtime.bounds import known_step
+
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
 ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
@@ -166,7 +168,8 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
             client = LocalAgentClient(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
                                       settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
                                       step_log_dir=_step_log_dir(run_dir) if run_dir else None,
-                                      step_window=settings.step_window, max_policy_lag=settings.max_policy_lag)
+                                      step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
+                                      start_step=None if bundle is not None else known_step(settings.resume_step))
             client.stall_warn_s = settings.stall_warn_s
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
@@ -217,7 +220,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
                                    step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
-                                   max_policy_lag=settings.max_policy_lag)
+                                   max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step))
             server.stall_warn_s = settings.stall_warn_s
             server.run()
             logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())
@@ -304,7 +307,8 @@ def learner_command(run_dir: RunDirOpt,
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
             worker = LearnerWorker(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag,
-                                   resume_from=settings.resume_from, step_window=settings.step_window)
+                                   resume_from=settings.resume_from, step_window=settings.step_window,
+                                   start_step=known_step(settings.resume_step))
             worker.stall_warn_s = settings.stall_warn_s
             worker.run()
             _write_counters(run_dir, "learner", worker.final_counters())

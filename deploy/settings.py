@@ -61,6 +61,9 @@ class RuntimeSettings(BaseModel):
     secure: bool = Field(
         False, description="mutual TLS with per-run identities (RUN/identity/) and per-role access rules "
                            "(protocol.access); see docs/security.md")
+    secure_hub: bool = Field(
+        False, description="secure run whose roles meet through a `hammer hub --run-dir RUN` router (several "
+                           "machines): a `hub` identity is created and every role accepts what the router relays")
     external: list[str] = Field(
         default_factory=list, description="roles `hammer up` does not start (started by hand, e.g. local-2): it waits "
                                           "for their liveliness like any other, never restarts them")
@@ -84,6 +87,12 @@ class RuntimeSettings(BaseModel):
     def _eval_needs_policy(self) -> RuntimeSettings:
         if self.mode == "eval" and not self.policy_dir:
             raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
+        return self
+
+    @model_validator(mode="after")
+    def _hub_is_secure(self) -> RuntimeSettings:
+        if self.secure_hub and not self.secure:
+            raise ValueError("secure_hub=true needs secure=true (it adds the router's identity to a secure run)")
         return self
 
     @model_validator(mode="after")
@@ -118,12 +127,12 @@ class RuntimeSettings(BaseModel):
         return transport.model_copy(update={
             "listen": [tls_endpoint(e) for e in transport.listen],
             "connect": [tls_endpoint(e) for e in transport.connect],
-            "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents)})
+            "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents, router=self.secure_hub)})
 
     def save(self, run_dir: Path) -> None:
-        # `secure`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
+        # `secure`, `secure_hub`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
         fields = type(self).model_fields
-        exclude = {f for f in ("secure", "external", *_BOUNDS)
+        exclude = {f for f in ("secure", "secure_hub", "external", *_BOUNDS)
                    if getattr(self, f) == fields[f].get_default(call_default_factory=True)}
         (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 

@@ -56,6 +56,13 @@ class Supervisor:
         self._env.setdefault("OMP_NUM_THREADS", "1")
         self._env.setdefault("MKL_NUM_THREADS", "1")
 
+    def set_env(self, key: str, value: str | None) -> None:
+        """An environment variable of every role started from now on (None: not set)."""
+        if value is None:
+            self._env.pop(key, None)
+        else:
+            self._env[key] = value
+
     def start(self, spec: RoleSpec) -> RoleProcess:
         rp = self.roles.get(spec.name) or RoleProcess(spec, self.log_dir / f"{spec.name}.log")
         self.roles[spec.name] = rp

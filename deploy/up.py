@@ -30,6 +30,7 @@ from deploy.supervisor import RoleSpec, Supervisor
 from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat
 from protocol.session import HammerSession, free_loopback_port
+from runtime.bounds import RUN_STEP_ENV
 
 log = logging.getLogger("hammer.up")
 
@@ -254,6 +255,7 @@ class Launcher:
         self.external = external or {}  # role -> the command that starts it by hand; never started here
         self.names = {s.name for s in specs}
         self.sup = Supervisor(run_dir / "logs")
+        self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
         self.board = Board(restarts={n: 0 for n in self.names})
         self.t_start = time.monotonic()
         self.done = False
@@ -318,6 +320,8 @@ class Launcher:
         board.heartbeats[h.role] = h
         board.last_by_pid[(h.role, h.pid)] = dict(h.counters)
         if h.role == "env":
+            # a role (re)started from now on refuses a first step beyond this + step_window (runtime.bounds)
+            self.sup.set_env(RUN_STEP_ENV, str(max(0, int(h.counters.get("step", 0)))))
             board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
             board.steps_hist = board.steps_hist[-20:]
 
@@ -361,13 +365,18 @@ class Launcher:
 
 def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
     """A secure run: a new CA and role identities in RUN/identity/ (kept on resume, so remote roles
-    keep the files they were given); returns the launcher's own secured transport."""
-    from protocol.access import LAUNCHER, role_names
+    keep the files they were given), and RUN/access_control.json, the rules every process applies
+    (a client in another language inserts it into its Zenoh config; docs/wire-format.md). Returns
+    the launcher's own secured transport."""
+    from protocol.access import LAUNCHER, access_control, role_names
     from protocol.identity import create_identities, has_identities, identity_dir
+    from protocol.keys import Keys
 
-    roles = role_names(cfg.n_agents)
+    roles = role_names(cfg.n_agents, router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
+    rules = access_control(Keys(settings.run_id), cfg.n_agents, router=settings.secure_hub)
+    (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
     return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
 
 

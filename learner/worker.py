@@ -61,14 +61,14 @@ class LearnerWorker(Role):
 
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir, *,
                  central_wait_s: float = 5.0, max_policy_lag: int = 0, resume_from: int | None = None,
-                 step_window: int = DEFAULT_STEP_WINDOW) -> None:
+                 step_window: int = DEFAULT_STEP_WINDOW, start_step: int | None = None) -> None:
         super().__init__(session, "learner", report_faults=False)
         self.stall_what = "experience chunks"
         self.last_step = -1  # the env host's step at the last chunk learned from
         # a chunk comes every rollout_steps steps (records are up to L+1 rollouts ahead of the last chunk)
         width = max(step_window, (max_policy_lag + 2) * cfg.rollout_steps)
-        self.window = StepWindow(width)
-        self.record_window = StepWindow(width, resync_s=None)
+        self.window = StepWindow(width, start=start_step)  # runtime.bounds.known_step: no forged first chunk
+        self.record_window = StepWindow(width, resync_s=None, start=start_step)
         self.cfg, self.rd = cfg, rd
         self.central_wait_s, self.max_policy_lag, self.resume_from = central_wait_s, max_policy_lag, resume_from
         self.learner = TeamLearner(cfg, spec)

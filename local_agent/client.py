@@ -157,7 +157,7 @@ class LocalAgentClient(Role):
     def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
                  msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0) -> None:
+                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, [*OBS_EVENTS.values(), *MSG_EVENTS.values(),
                                                 *(column("local->env", e) for e in ("sent", "dropped", "duplicated"))])
@@ -169,8 +169,9 @@ class LocalAgentClient(Role):
         self.pending: dict[int, CentralMsg] = {}  # messages for steps not acted on yet
         self.seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
         self.last_step = -1
-        self.window = StepWindow(step_window)
-        self.msg_window = StepWindow(step_window, resync_s=None)  # messages follow the observations' window
+        # start_step: where the run is known to be (runtime.bounds.known_step), so a forged first step is refused
+        self.window = StepWindow(step_window, start=start_step)
+        self.msg_window = StepWindow(step_window, resync_s=None, start=start_step)  # messages follow the observations
         self.stall_what = "observations"
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
                     msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
@@ -188,11 +189,14 @@ class LocalAgentClient(Role):
     # ----- a step, in the order it flows ---------------------------------------------------------
     def on_obs(self, obs: LocalObs) -> None:
         """Act on one vector step's observation with the version it names and its message (or a fallback)."""
-        if obs.step <= self.last_step:
+        if obs.step <= self.last_step and self.window.stale(obs.step, self.last_step):
             self.counts.obs_stale += 1
             self.step_log.add(obs.step, OBS_EVENTS["delivered"])
             self.step_log.add(obs.step, OBS_EVENTS["late"])
             return
+        if obs.step <= self.last_step:  # the real stream is below an anchor it never followed
+            self.reject("step_resync", f"observations of steps up to {obs.step} came steadily below {self.last_step}: "
+                                       "following them")
         if self.window.ahead(obs.step, self.last_step):
             self.reject("step_ahead", f"observation for step {obs.step} while at {self.last_step}")
             return

@@ -12,8 +12,12 @@ process applies the same rules to everyone it talks to:
 - R may declare subscribers only on its own subscriptions and a liveliness token only as itself.
 
 Every process enforces the table on its own links, so the rules hold in both topologies:
-peers meeting directly (`hammer up`) and clients behind a router (`hammer hub --secure`, where
-the router checks each hop and the clients accept what the router relays).
+peers meeting directly (`hammer up --secure`) and clients behind a router (`hammer hub --run-dir`,
+where the router checks each hop and the clients accept what the router relays).
+
+The router's identity (`hub`) exists only in a run made for a router (`router=True`, RuntimeSettings
+`secure_hub`): whoever holds it may relay, and so originate, anything. A run whose roles meet as
+peers has no `hub` identity and no relay rule, so no key of that run can speak for another role.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from protocol.identity import Identity
 from protocol.keys import Keys
 
 LAUNCHER = "launcher"
-HUB = "hub"  # the `hammer hub` router: relays the run's traffic; it publishes nothing of its own
+HUB = "hub"  # the `hammer hub` router of a secure multi-machine run: relays the run's traffic
 
 
 @dataclass(frozen=True)
@@ -40,14 +44,15 @@ class Grant:
     relay: bool = False  # a router: forwards everyone's traffic (and checks each hop itself)
 
 
-def role_names(n_agents: int, uses_central: bool = True) -> list[str]:
-    """Every identity a `hammer up` run creates."""
+def role_names(n_agents: int, uses_central: bool = True, router: bool = False) -> list[str]:
+    """Every identity a secure run creates (`hub` only for a run whose roles meet through a router)."""
     return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
-            "learner", HUB]
+            "learner", *([HUB] if router else [])]
 
 
-def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
-    """The role table: what each role's job needs, nothing more (docs/security.md)."""
+def grants(keys: Keys, n_agents: int, router: bool = False) -> dict[str, Grant]:
+    """The role table: what each role's job needs, nothing more (docs/security.md). `router`: the
+    roles meet through a `hammer hub` router, which relays for everyone (and so is trusted with all)."""
     g = {
         LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
         "env": Grant(
@@ -62,8 +67,9 @@ def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
             publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
             liveliness=(keys.alive("learner"),)),
-        HUB: Grant(relay=True),
     }
+    if router:
+        g[HUB] = Grant(relay=True)
     for i in range(n_agents):
         g[f"local-{i}"] = Grant(
             publish=(keys.act(i), keys.heartbeat(f"local-{i}")),
@@ -76,8 +82,9 @@ def _rule(rid: str, flow: str, messages: list[str], key_exprs: tuple[str, ...] |
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": list(key_exprs)}
 
 
-def access_control(keys: Keys, n_agents: int) -> dict:
-    """The `access_control` section every process of the run uses (default deny)."""
+def access_control(keys: Keys, n_agents: int, router: bool = False) -> dict:
+    """The `access_control` section every process of the run uses (default deny; relay rules for
+    the `hub` identity only when the run uses a router)."""
     everything = [keys.all]
     rules: list[dict] = [
         # A process's own declarations may leave it; the receiving side decides what to accept.
@@ -86,7 +93,7 @@ def access_control(keys: Keys, n_agents: int) -> dict:
     ]
     subjects: list[dict] = []
     policies: list[dict] = [{"id": "own-declarations", "rules": ["own-declarations"], "subjects": []}]
-    for role, g in grants(keys, n_agents).items():
+    for role, g in grants(keys, n_agents, router).items():
         subjects.append({"id": role, "cert_common_names": [role]})
         policies[0]["subjects"].append(role)
         mine = []
@@ -140,10 +147,10 @@ class SecureLink:
         cfg.insert_json5("access_control", json.dumps(self.access))
 
 
-def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int) -> SecureLink:
+def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int, router: bool = False) -> SecureLink:
     from protocol.identity import identity_of
 
-    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents))
+    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents, router))
 
 
 def tls_endpoint(endpoint: str) -> str:

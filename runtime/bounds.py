@@ -9,22 +9,35 @@ only publisher; versions advance by one per update, actors may lag by max_policy
     step s      accepted when last < s <= last + W        (W: RuntimeSettings.step_window)
     version v   accepted when v <= newest known + 1 + L   (L: max_policy_lag)
 
-Before a role has acted on any step (or held any version) there is nothing to measure against:
-the first one anchors the window (a restarted role joins a run already under way).
+Before a role has acted on any step, `last` is the step the run is known to be at (`known_step`):
+the run's start (0, or the resume step) from runtime.json, or, for a role the launcher starts or
+restarts, the env host's last reported step. So a forged step of 2^64-1 that arrives before a
+role's first real one is rejected like any other, instead of anchoring the window. Only a role
+with no known step at all (start=None: an edge agent joining from a bundle) adopts its first step.
 
-A window that the real stream itself leaves (a role paused for longer than W steps) would stall
-the role for good, so a role that has accepted nothing inside its window for `resync_s` while
-out-of-window steps keep coming, each following the one before it (inside a window of the previous
-rejected step), adopts the newest: one forged message cannot do that, a role that is already getting
-nothing else but a steady stream can.
+Two streams can leave the window for real, and each is followed again only when it has been the
+role's only input for `resync_s` and continues itself step after step (each step inside a window
+of the one before it): one forged message can do neither.
+- ahead: the real stream left the window upwards (a role paused for longer than W steps, or a
+  role started with a known step far behind the run): the role adopts the stream's newest step;
+- behind (`stale`): the role's anchor is above the real stream (a forged step inside the bound
+  adopted before the first real one, or a hint from a forged heartbeat): at least
+  `MIN_STREAM` in-order steps below the anchor and nothing accepted for resync_s, and the role
+  drops its anchor and acts on the stream again.
+The first version a role holds is not bounded (weights have no known start a restarted role
+could trust): in the plain profile a forged first `Weights` is adopted; the secure profile's
+access rules let only the learner publish weights.
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 DEFAULT_STEP_WINDOW = 10_000
 DEFAULT_RESYNC_S = 5.0
+MIN_STREAM = 3  # in-order steps below the anchor before a role follows them (behind resync)
+RUN_STEP_ENV = "HAMMER_RUN_STEP"  # set by the launcher: the env host's last reported step
 
 
 def version_ahead(version: int, known: int, max_policy_lag: int) -> bool:
@@ -32,23 +45,51 @@ def version_ahead(version: int, known: int, max_policy_lag: int) -> bool:
     return known >= 0 and version > known + 1 + max_policy_lag
 
 
-class StepWindow:
-    """The step window of one input of a role (see the module docstring)."""
+def known_step(resume_step: int | None) -> int:
+    """The step before the first one a starting role can see: the run's start (0, or the resume
+    step of runtime.json), or the env host's last reported step when the launcher passed it
+    (a role started or restarted mid-run; the real stream can only be ahead of it)."""
+    hint = os.environ.get(RUN_STEP_ENV, "")
+    return max(resume_step or 0, int(hint) if hint.isdigit() else 0)
 
-    def __init__(self, width: int = DEFAULT_STEP_WINDOW, resync_s: float | None = DEFAULT_RESYNC_S) -> None:
-        self.width, self.resync_s = width, resync_s
+
+class StepWindow:
+    """The step window of one input of a role (see the module docstring). `start`: the step the
+    run is known to be at before the role has acted on any (None: unknown, the first step anchors)."""
+
+    def __init__(self, width: int = DEFAULT_STEP_WINDOW, resync_s: float | None = DEFAULT_RESYNC_S,
+                 start: int | None = None) -> None:
+        self.width, self.resync_s, self.start = width, resync_s, start
         self._in_window_t = time.monotonic()
         self._rejected = -1  # the last step rejected as ahead: a stream re-anchors only if it continues it
+        self._behind, self._behind_run = -1, 0  # the last stale step and how many followed each other
 
     def ahead(self, step: int, last: int) -> bool:
         """True: `step` lies beyond the window after `last` and must be rejected (counted by the caller)."""
         now = time.monotonic()
-        if last < 0 or step <= last + self.width:
+        ref = last if last >= 0 else self.start
+        if ref is None or step <= ref + self.width:
             self._in_window_t = now
+            self._behind, self._behind_run = -1, 0
             return False
         follows = self._rejected >= 0 and self._rejected < step <= self._rejected + self.width
         self._rejected = step
-        if follows and self.resync_s is not None and now - self._in_window_t > self.resync_s:
-            self._in_window_t = now  # nothing else came for resync_s, and the stream moves on steadily
+        return not (follows and self._resync_due(now))  # a stream that moves on steadily: followed
+
+    def stale(self, step: int, last: int) -> bool:
+        """`step` <= `last`: True, drop it as stale (the caller counts it); False, the stream below
+        the anchor is the real one (MIN_STREAM in-order steps, nothing accepted for resync_s): the
+        caller acts on it, which moves its anchor down."""
+        follows = self._behind >= 0 and self._behind < step <= self._behind + self.width
+        self._behind_run = self._behind_run + 1 if follows else 1
+        self._behind = step
+        if self._behind_run >= MIN_STREAM and self._resync_due(time.monotonic()):
+            self._behind, self._behind_run = -1, 0
             return False
+        return True
+
+    def _resync_due(self, now: float) -> bool:
+        if self.resync_s is None or now - self._in_window_t <= self.resync_s:
+            return False
+        self._in_window_t = now  # nothing else came for resync_s, and the stream moves on steadily
         return True

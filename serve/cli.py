@@ -97,6 +97,9 @@ def serve_command(
     out: Annotated[Path, typer.Option(help="Root directory for run directories.")] = Path("runs"),
     run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/serve-<bundle>-<time>).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
+    secure: Annotated[bool, typer.Option(
+        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules, as `hammer up --secure` "
+             "(docs/security.md).")] = False,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`."""
@@ -113,7 +116,8 @@ def serve_command(
         _check_env(b, cfg)
         skip = _agents(external, cfg.n_agents)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, runtime)
+        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
+                                                                                   *(["secure=true"] if secure else [])])
         if skip and settings.hub_port == 0 and not settings.zenoh_config_file:  # the agents need the port now
             from protocol.session import free_loopback_port
 
@@ -123,7 +127,11 @@ def serve_command(
     console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}) -> {path}")
     for lf in plan.links:
         console.print(f"fault: {lf.describe()} (seed {plan.seed})")
-    if skip:
+    if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's files and its own key
+        console.print(f"waiting for external agents {', '.join(map(str, skip))}: copy {path}/{{config.json,runtime.json,"
+                      f"env_spec.json}} and identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md), then "
+                      f"hammer local --run-dir RUN --agent I --connect tls/<this host>:{settings.hub_port}")
+    elif skip:
         console.print(f"waiting for external agents {', '.join(map(str, skip))}: hammer local --bundle {bundle} "
                       f"--agent I --run-id {settings.run_id} --connect tcp/<this host>:{settings.hub_port or '<port>'}")
     _run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))

@@ -9,7 +9,8 @@ test suite runs Python. Usage:
 It reads RUN_DIR/config.json, env_spec.json and runtime.json, connects to the hub of
 `hammer up` on 127.0.0.1 (runtime.json hub_port), declares itself alive as `local-AGENT`, acts on
 every observation with the policy version it names and the randomness contract (so its actions
-equal those of `hammer local`), and exits 0 on a stop command.
+equal those of `hammer local`), and exits 0 on a stop command from `launcher` or `env` (a stop from
+any other sender is counted as rejected and ignored).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ SCHEMA_VERSION = 2
 DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?"}
 ST_DTYPES = {"F32": "<f4", "F64": "<f8", "I64": "<i8", "I32": "<i4", "U8": "u1", "BOOL": "?"}
 LOCAL_STREAM = 1  # the randomness contract: local agent i draws from default_rng([seed, 1, i])
+STOP_SENDERS = ("launcher", "env")  # the only senders whose stop a role obeys
 
 
 class Rejected(Exception):
@@ -186,8 +188,12 @@ class ForeignLocalAgent:
     # ----- inputs -------------------------------------------------------------------------------
     def on_control(self) -> None:
         while (c := self.take("ctl", "control")) is not None:
-            if c.get("command") == "stop" and c.get("target") in ("*", self.name):
+            if c.get("command") != "stop" or c.get("target") not in ("*", self.name):
+                continue
+            if c.get("sender") in STOP_SENDERS:  # docs/wire-format.md, "Stop semantics"
                 self.stop = True
+            else:
+                self.counters["rejected"] += 1
 
     def on_weights(self, w: dict) -> None:
         blob, version = w.get("blob"), w.get("version")

@@ -1,10 +1,12 @@
 """A hostile peer for the security tests: joins a live run and forges what the issue's attacks did.
 
 It answers agent 0's observations before the real agent (if it can read them), floods actions
-for agent 0 at guessed steps, publishes well-formed weights of a far-future version for both
-networks, and sends forged `stop` control commands. In the secure profile it joins with a
-stolen role identity (e.g. local-1's), so it is linked into the run and only the access rules
-stand between it and the other roles.
+for agent 0 at guessed steps, publishes well-formed weights one version ahead of the learner's
+newest (zeroed copies of the real ones, inside every role's version bound) for both networks, and
+sends `stop` commands whose header names the launcher and the env host. Each forgery passes every
+check a role makes itself (validation, step window, version bound, control sender), so in the
+secure profile, where it joins with a stolen role identity (e.g. local-1's) and is linked into
+the run, only Zenoh's access control stands between it and the other roles.
 """
 
 from __future__ import annotations
@@ -14,8 +16,18 @@ import time
 
 import numpy as np
 
+from protocol.codec import encode
 from protocol.schemas import Action, Control, LocalObs, Weights
 from protocol.session import HammerSession, TransportConfig
+
+FORGED_STOP_SENDERS = ("launcher", "env")  # the senders every role obeys (runtime.role.STOP_SENDERS)
+
+
+def zeroed(blob: bytes) -> bytes:
+    """The same safetensors file with every tensor zeroed: well formed, the right names and shapes."""
+    from safetensors.numpy import load, save
+
+    return save({k: np.zeros_like(v) for k, v in load(blob).items()})
 
 
 class HostilePeer(threading.Thread):
@@ -25,6 +37,7 @@ class HostilePeer(threading.Thread):
         self.stop_event = threading.Event()
         self.sent = {"answers": 0, "blind_actions": 0, "weights": 0, "control": 0}
         self.obs_seen = 0
+        self.weights_seen = -1  # the newest real version it read (local-1 may read the local weights)
         self.max_peers = 0
         self.error: BaseException | None = None
 
@@ -35,15 +48,14 @@ class HostilePeer(threading.Thread):
             self.error = e
 
     def _attack(self) -> None:
-        with HammerSession(self.run_id, self.transport, sender=f"local-{self.agent}") as s:
+        with HammerSession(self.run_id, self.transport, sender="launcher") as s:
             k = s.keys
             obs = s.subscribe(k.obs(self.agent), LocalObs)
+            real_weights = s.subscribe(k.weights("local"), Weights)
             act = s.publisher(k.act(self.agent), express=True)
-            junk = np.random.default_rng(0).bytes(4096)
-            weights = {net: s.publisher(k.weights(net)) for net in ("local", "central")}
-            ctl = s.publisher(k.ctl("all"))
-            env_idx = np.arange(self.k, dtype=np.int64)
-            guess, last_blind = 0, 0.0
+            forged: bytes | None = None
+            last_blind = 0.0
+            guess = 0
             while not self.stop_event.is_set():
                 self.max_peers = max(self.max_peers, len(list(s.zenoh.info.peers_zid())))
                 for o in obs.drain():
@@ -51,16 +63,34 @@ class HostilePeer(threading.Thread):
                     act.publish(Action(agent=self.agent, step=o.step, env_idx=o.env_idx,
                                        action=np.zeros(len(o.env_idx), np.int64), policy_version=o.policy_version))
                     self.sent["answers"] += 1
+                for w in real_weights.drain():
+                    if w.version > self.weights_seen:
+                        self.weights_seen, forged = w.version, zeroed(w.blob)
                 if time.monotonic() - last_blind > 0.02:
                     last_blind = time.monotonic()
-                    for step in range(guess, guess + 50):
-                        act.publish(Action(agent=self.agent, step=step, env_idx=env_idx,
-                                           action=np.zeros(self.k, np.int64)))
-                    guess = (guess + 50) % 20_000
-                    self.sent["blind_actions"] += 50
-                    for net, pub in weights.items():
-                        pub.publish(Weights.from_blob(net, 2**40, junk))
-                        self.sent["weights"] += 1
-                    ctl.publish(Control(command="stop"))
-                    self.sent["control"] += 1
+                    guess = self._blind_actions(act, guess)
+                    if forged is not None:
+                        self._weights(s, forged)
+                    self._stops(s)
                 time.sleep(0.002)
+
+    def _blind_actions(self, act, guess: int) -> int:
+        """Actions for agent 0 at 50 guessed steps (the real agent's are the ones that count)."""
+        env_idx = np.arange(self.k, dtype=np.int64)
+        for step in range(guess, guess + 50):
+            act.publish(Action(agent=self.agent, step=step, env_idx=env_idx, action=np.zeros(self.k, np.int64)))
+        self.sent["blind_actions"] += 50
+        return (guess + 50) % 20_000
+
+    def _weights(self, s: HammerSession, blob: bytes) -> None:
+        """Version newest + 1: what the learner publishes next, inside every bound (runtime/bounds.py)."""
+        for net in ("local", "central"):
+            s.publish(s.keys.weights(net), Weights.from_blob(net, self.weights_seen + 1, blob))
+            self.sent["weights"] += 1
+
+    def _stops(self, s: HammerSession) -> None:
+        for sender in FORGED_STOP_SENDERS:
+            data = encode(Control(command="stop"), stamp={"run": s.run_id, "ts": time.time_ns(),
+                                                          "seq": self.sent["control"], "sender": sender})
+            s.put_bytes(s.keys.ctl("all"), data)
+            self.sent["control"] += 1

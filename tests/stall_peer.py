@@ -68,3 +68,75 @@ class StallPeer(threading.Thread):
             s.put_bytes(k.obs(2), b"\0" * (50 * 2**20))  # 50 MB where a LocalObs (cap 4 MiB) is expected
             self.sent["oversize"] = 1
             self.stop_event.wait(3.0)  # stay joined while the big payload is delivered
+
+
+class EarlyStallPeer(threading.Thread):
+    """The same stall messages before the run's first step, when no role has a step to measure them
+    against: from the moment the launcher's hub listens until the env host's first observation, it
+    sends every 50 ms a `LocalObs` of step 2^64-1 to every local agent, a `GlobalState` of step
+    2^63 to the central agent and a rollout chunk of step 2^63 to the learner (well formed, with
+    the run's dimensions, version 0). The roles subscribe seconds before step 1 (the env host waits
+    for the learner, which loads torch), so each receives some of them before its first real step."""
+
+    def __init__(self, run_dir, timeout_s: float = 120.0) -> None:
+        super().__init__(daemon=True, name="early-stall-peer")
+        self.run_dir, self.timeout_s = run_dir, timeout_s
+        self.stop_event = threading.Event()
+        self.sent: dict[str, int] = {}
+        self.first_real_step: int | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self._attack()
+        except BaseException as e:  # noqa: BLE001 - the test reports it
+            self.error = e
+
+    def _wait_for_run_files(self) -> tuple:
+        import json
+        import time
+
+        from deploy.roles import read_env_spec
+        from deploy.settings import RuntimeSettings
+        from learning.config import build_config
+
+        deadline = time.monotonic() + self.timeout_s
+        while not (self.run_dir / "env_spec.json").is_file():  # written after runtime.json and config.json
+            if time.monotonic() > deadline or self.stop_event.wait(0.05):
+                raise TimeoutError("no run files appeared")
+        return (RuntimeSettings.load(self.run_dir), build_config(json.loads((self.run_dir / "config.json").read_text())),
+                read_env_spec(self.run_dir))
+
+    def _forgeries(self, keys, cfg, spec) -> list[tuple[str, str, object]]:
+        from local_agent.client import AgentSpec
+        from protocol.rollout_layout import CHUNK, RolloutLayout
+        from protocol.schemas import ExperienceChunk
+
+        k, n = cfg.num_envs, cfg.n_agents
+        idx = np.arange(k, dtype=np.int64)
+        out = [(f"obs_local-{i}", keys.obs(i), LocalObs(
+            step=HUGE_OBS_STEP, env_idx=idx, agent=i, active=np.ones(k, bool),
+            obs=np.zeros((k, AgentSpec.from_config(cfg, spec, i).obs_dim), np.float32))) for i in range(n)]
+        out.append(("state", keys.state(), GlobalState(
+            step=HUGE_STATE_STEP, env_idx=idx, obs=np.zeros((k, n, spec.obs_dim), np.float32),
+            prev_actions=np.zeros((k, n, spec.action_dim), np.float32), active=np.ones((k, n), bool))))
+        out.append(("chunk", keys.exp("team"), ExperienceChunk(
+            step=HUGE_STATE_STEP, env_idx=idx, role="team", policy_version=0,
+            arrays=RolloutLayout.from_config(cfg, spec).allocate(CHUNK))))
+        return out
+
+    def _attack(self) -> None:
+        settings, cfg, spec = self._wait_for_run_files()
+        transport = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{settings.hub_port}"])
+        with HammerSession(settings.run_id, transport, sender="env") as s:
+            real = s.subscribe(s.keys.obs(0), LocalObs)
+            forged = self._forgeries(s.keys, cfg, spec)
+            while not self.stop_event.is_set() and self.first_real_step is None:
+                for what, key, msg in forged:
+                    self._send(what, lambda m, key=key: s.publish(key, m), msg)
+                o = real.get(timeout=0.05)
+                if o is not None and o.step != HUGE_OBS_STEP:
+                    self.first_real_step = o.step
+            self.stop_event.wait(1.0)  # stay joined while the last ones are delivered
+
+    _send = StallPeer._send

@@ -135,6 +135,9 @@ def test_killed_central_agents_fall_back_and_restart_resumes_messages(tmp_path, 
     assert res.links["central->local"]["fallbacks"] >= (restart_step - first) * cfg.num_envs * cfg.n_agents
     assert res.links["local->env"]["defaults"] == 0  # no agent stopped acting
     assert res.restarts["central"] == 0  # chaos restarted it, not the launcher's crash handling
+    # Link counters stay consistent across the restart: nothing is delivered that was not sent.
+    for link, row in res.links.items():
+        assert row["delivered"] <= row["sent"] + row["duplicated"], (link, row)
     assert not [p for p in psutil.process_iter(["cmdline"]) if str(tmp_path) in " ".join(p.info["cmdline"] or [])]
 
 

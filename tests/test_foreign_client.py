@@ -68,7 +68,7 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
         [sys.executable, "-m", "hammer.cli", "up", "--episodes", "40", "--central-mode", "rl", "--run-dir", str(run),
          "--no-dashboard", "--external", "local-1", "--runtime", "msg_deadline_ms=5000",
          "--runtime", "act_deadline_ms=10000"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
     lines: list[str] = []
     announced = threading.Event()
     command = f"hammer local --run-dir {run} --agent 1 2>> {run / 'logs' / 'local-1.log'}"
@@ -97,7 +97,7 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
     out = "".join(lines)
     assert agent.returncode == 0, (run / "logs" / "local-1.log").read_text()[-2000:]
     assert up.returncode == 0, out[-2000:]
-    assert "done: 40 episodes" in out
+    assert "done: 40 episodes" in up.stdout.read()  # the verdict is on stdout
 
     summary = json.loads((run / "summary.json").read_text())
     links = summary["links"]

@@ -247,7 +247,7 @@ def test_live_fuzz_on_every_key_is_rejected_counted_and_the_run_completes(tmp_pa
     up = subprocess.Popen(
         [sys.executable, "-m", "hammer.cli", "up", "--episodes", str(EPISODES), "--central-mode", "rl",
          "--run-dir", str(run), "--no-dashboard", "--runtime", f"hub_port={port}"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
     try:
         _wait_listening(port, up)  # the launcher's hub session, before ours connects to it
         with HammerSession(RUN, TransportConfig.connector(port), sender="fuzz") as s:
@@ -262,13 +262,13 @@ def test_live_fuzz_on_every_key_is_rejected_counted_and_the_run_completes(tmp_pa
             for t, _, payload in payloads:
                 s.put_bytes(t.key, payload)
             time.sleep(0.5)  # reliable puts are on their way before the session closes
-        _, err = up.communicate(timeout=300)
+        out, err = up.communicate(timeout=300)
     finally:
         if up.poll() is None:
             up.kill()
             up.communicate()
     assert up.returncode == 0, err[-3000:]
-    assert f"done: {EPISODES} episodes" in err
+    assert f"done: {EPISODES} episodes" in out
     summary = json.loads((run / "summary.json").read_text())
     assert summary["completed"] and summary["episodes"] == EPISODES
 

@@ -188,20 +188,33 @@ def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
     assert intake.preload_oldest() and loads == [4] and intake.version == 4
 
 
-def test_a_stop_from_anyone_but_the_launcher_is_counted_and_ignored(hub_and_role_session):
+def _stop_from(session: HammerSession, sender: str) -> None:
+    """A stop command whose header names `sender` (plain profile: the header is whatever the peer writes)."""
+    from protocol.codec import encode
+
+    data = encode(Control(command="stop"), stamp={"run": session.run_id, "ts": time.time_ns(), "seq": 0,
+                                                  "sender": sender})
+    session.put_bytes(session.keys.ctl("all"), data)
+
+
+@pytest.mark.parametrize("obeyed", ["launcher", "env"])
+def test_a_stop_from_the_launcher_or_the_env_host_is_obeyed_from_anyone_else_counted_and_ignored(
+        hub_and_role_session, obeyed):
     hub, s = hub_and_role_session
     role = Ticker(s)
     thread = _start(role)
     _settle()
-    s.publish(s.keys.ctl("all"), Control(command="stop"))  # sender "ticker": a peer, not the launcher
+    others = ("ticker", "local-0", "central", "learner", "hub", "Launcher")
+    for sender in others:
+        _stop_from(s, sender)
     deadline = time.monotonic() + 5.0
-    while not role.rejected and time.monotonic() < deadline:
+    while role.rejected["control_sender"] < len(others) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert thread.is_alive() and role.stop_reason is None
-    assert role.rejection_counters() == {"rejected.control_sender": 1}
-    hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+    assert role.rejection_counters() == {"rejected.control_sender": len(others)}
+    _stop_from(hub, obeyed)
     thread.join(timeout=5.0)
-    assert not thread.is_alive() and role.stop_reason == "stop command from launcher"
+    assert not thread.is_alive() and role.stop_reason == f"stop command from {obeyed}"
 
 
 def test_a_role_that_stops_progressing_says_so_in_its_heartbeat(hub_and_role_session):
@@ -252,3 +265,28 @@ def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on(
     time.sleep(0.3)
     assert w.ahead(5000, 7)  # a real stream beyond the window (a role paused for long) ...
     assert not w.ahead(5001, 7)  # ... is followed once it continues after resync_s of nothing else
+
+
+def test_step_window_refuses_a_forged_first_step_beyond_the_runs_known_step():
+    from runtime.bounds import StepWindow
+
+    w = StepWindow(width=100, resync_s=0.2, start=40)
+    assert w.ahead(2**64 - 1, -1)  # before the role's first real step: refused, not adopted
+    assert w.ahead(141, -1) and not w.ahead(41, -1)  # the bound is the known step + the width
+    assert not StepWindow(width=100, start=None).ahead(2**64 - 1, -1)  # no known step: the first one anchors
+
+
+def test_step_window_follows_a_steady_stream_below_an_anchor_it_never_followed():
+    from runtime.bounds import MIN_STREAM, StepWindow
+
+    assert MIN_STREAM == 3
+    w = StepWindow(width=100, resync_s=0.2, start=0)
+    assert not w.ahead(99, -1)  # a forged step inside the bound became the anchor (last = 99)
+    assert w.stale(1, 99) and w.stale(2, 99) and w.stale(3, 99)  # a stream, but resync_s has not passed
+    time.sleep(0.3)
+    assert w.stale(1, 99)  # out of order (a duplicate): the stream starts again from one
+    assert w.stale(2, 99)  # two in order: not yet a stream
+    assert not w.stale(3, 99)  # three, after resync_s with nothing accepted: followed, the caller acts on it
+    assert not w.ahead(3, 99)  # accepted in the window of the old anchor; the caller's last moves down to 3
+    assert w.stale(3, 3) and w.stale(2, 3)  # duplicates right after it are stale again (just accepted)
+    assert w.stale(3, 3)

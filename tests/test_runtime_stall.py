@@ -13,12 +13,14 @@ import csv
 import json
 from pathlib import Path
 
+import pytest
+
 from deploy.settings import RuntimeSettings
 from deploy.up import launch
 from learning.config import merge_config
 from protocol.session import TransportConfig
 from tests.runtime_helpers import hammer
-from tests.stall_peer import StallPeer
+from tests.stall_peer import EarlyStallPeer, StallPeer
 
 
 def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
@@ -26,7 +28,7 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
-def _run(run_dir: Path, run_id: str, peers: list | None = None):
+def _run(run_dir: Path, run_id: str, peers: list | None = None, early: EarlyStallPeer | None = None):
     # 20 updates: the peer starts at the first heartbeat of a live run and must get its attempts in
     # while the run is live, also on an idle machine where a rollout takes a fraction of a second
     # (weights that arrive while the env host steps are checked at its next wait or at the end).
@@ -44,25 +46,33 @@ def _run(run_dir: Path, run_id: str, peers: list | None = None):
             peer.start()
             peers.append(peer)
 
+    if early is not None:
+        early.start()  # it waits for the run files and the launcher's hub
     try:
         return launch(cfg, settings, run_dir, chaos=chaos)
     finally:
-        for peer in peers or []:
+        for peer in [*(peers or []), *([early] if early else [])]:
             peer.stop_event.set()
             peer.join(10)
 
 
-def test_stall_messages_are_rejected_counted_and_change_nothing(tmp_path):
-    calm = _run(tmp_path / "calm", "stall-calm")
+@pytest.fixture(scope="module")
+def calm(tmp_path_factory):
+    """An undisturbed run, the reference of every attacked one (same config and seed)."""
+    run_dir = tmp_path_factory.mktemp("stall") / "calm"
+    res = _run(run_dir, "stall-calm")
+    assert res.summary["completed"] and res.summary["degraded"] is False and res.summary["rejected"] == {}
+    return _metrics_without_wall_time(run_dir)
+
+
+def test_stall_messages_are_rejected_counted_and_change_nothing(tmp_path, calm):
     peers: list = []
     attacked = _run(tmp_path / "attacked", "stall-attacked", peers)
     peer = peers[0]
     assert peer.error is None, peer.error
     assert peer.sent.get("oversize") == 1, f"the peer did not get through its attempts: {peer.sent}"
-    assert calm.summary["completed"] and attacked.summary["completed"]
-    a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
-    assert len(a) == 640 and a == b
-    assert calm.summary["degraded"] is False and calm.summary["rejected"] == {}
+    assert attacked.summary["completed"]
+    assert len(calm) == 640 and calm == _metrics_without_wall_time(tmp_path / "attacked")
     # every attempt is in the counters the roles persisted (links.json <- counters/*.json)
     roles = json.loads((tmp_path / "attacked" / "links.json").read_text())["roles"]
     got = {(role, k[9:]) for role, c in roles.items() for k, v in c.items() if k.startswith("rejected.") and v}
@@ -77,13 +87,29 @@ def test_stall_messages_are_rejected_counted_and_change_nothing(tmp_path):
     assert summary["rejected"]["local-2"]["size"] == 1  # the 50 MB payload, counted once, never queued
 
 
+def test_stall_messages_before_the_first_step_are_rejected_too(tmp_path, calm):
+    """Before a role's first real step there is no step to measure against; the run's known step
+    (runtime.json, or the env host's last reported one for a restarted role) stands in for it, so
+    the forged first step is refused instead of anchoring the window (runtime/bounds.py)."""
+    early = EarlyStallPeer(tmp_path / "early")
+    res = _run(tmp_path / "early", "stall-early", early=early)
+    assert early.error is None, early.error
+    assert early.first_real_step == 1, "the peer never saw the run start: it proves nothing"
+    assert res.summary["completed"]
+    assert calm == _metrics_without_wall_time(tmp_path / "early")
+    rejected = res.summary["rejected"]
+    for role in ("local-0", "local-1", "local-2", "central", "learner"):
+        assert rejected.get(role, {}).get("step_ahead", 0) >= 1, (role, rejected, early.sent)
+    assert res.summary["degraded"] is True  # and the run says it was attacked
+
+
 def test_a_run_whose_messages_never_arrive_is_reported_degraded(tmp_path):
     run = tmp_path / "dropped"
     res = hammer("up", "--episodes", "40", "--run-dir", str(run), "--no-dashboard",
                  "--runtime", "msg_deadline_ms=20", "--fault", "central->local:drop=1.0")
     assert res.returncode == 0, res.stderr[-2000:]
-    out = res.stdout + res.stderr
-    assert "degraded: fallback messages" in out
+    assert "degraded: fallback messages" in res.stdout  # the verdict is on stdout, next to the done line
+    assert "done: 40 episodes" in res.stdout
     summary = json.loads((run / "summary.json").read_text())
     assert summary["completed"] and summary["degraded"] is True
     assert summary["degraded_reasons"][0].startswith("fallback messages")

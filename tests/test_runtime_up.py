@@ -31,7 +31,7 @@ def test_short_up_run_completes_writes_metrics_and_leaves_no_process(tmp_path):
     run = tmp_path / "up"
     res = hammer("up", "--episodes", "80", "--run-dir", str(run), "--no-dashboard")
     assert res.returncode == 0, res.stderr[-2000:]
-    assert "done: 80 episodes" in res.stderr
+    assert "done: 80 episodes" in res.stdout  # the verdict is on stdout
     assert len(_metric_column(run)) == 80
     summary = json.loads((run / "summary.json").read_text())
     assert summary["episodes"] == 80 and summary["completed"]

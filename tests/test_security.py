@@ -29,8 +29,10 @@ def _tls(role: str, ident_dir: Path, listen: int | None = None, connect: int | N
 
 @pytest.fixture(scope="module")
 def idents(tmp_path_factory) -> Path:
+    """A router run's identities (hub included); the peer team below uses the peer rules, which
+    have no place for the hub's certificate."""
     d = tmp_path_factory.mktemp("identity")
-    create_identities(d, role_names(N))
+    create_identities(d, role_names(N, router=True))
     return d
 
 
@@ -77,7 +79,7 @@ def _late_extra(sub, wait: float = 0.5) -> list[bytes]:
 
 def test_identity_files_are_private_and_named_by_role(idents):
     assert stat.S_IMODE(idents.stat().st_mode) == 0o700
-    for role in role_names(N):
+    for role in role_names(N, router=True):
         ident = identity_of(idents, role)
         for p in (ident.ca, ident.cert, ident.key):
             assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
@@ -98,6 +100,10 @@ def test_role_table_follows_the_issue():
                           KEYS.weights("central"): {"learner"}, KEYS.ctl("all"): {"launcher"}}
     acl = access_control(KEYS, N)
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
+    # no router, no relay: a run whose roles meet as peers has no hub identity and no rule for one
+    assert "hub" not in role_names(N) and "hub" not in g
+    assert not any("hub" in r["id"] for r in acl["rules"]) and "hub" not in {s["id"] for s in acl["subjects"]}
+    assert "hub" in grants(KEYS, N, router=True) and grants(KEYS, N, router=True)["hub"].relay
 
 
 def test_legitimate_traffic_flows(team):
@@ -167,15 +173,27 @@ def test_only_the_learner_publishes_weights(team):
 
 
 def test_only_the_launcher_publishes_control(team):
+    """The env host too: in a plain run its end-of-budget stop is obeyed, here the rules drop it."""
     s, _ = team
-    subs = [s[r].subscribe_raw(KEYS.ctl("all")) for r in ("env", "local-0")]
+    subs = {r: s[r].subscribe_raw(KEYS.ctl("all")) for r in ("env", "local-0", "central")}
     _settle()
-    for forger in ("local-1", "central", "learner"):
-        s[forger].put_bytes(KEYS.ctl("all"), b"forged-stop")
+    forgers = ("local-1", "central", "learner", "env")
+    for forger in forgers:
+        s[forger].put_bytes(KEYS.ctl("all"), f"forged-stop-{forger}".encode())
     s["launcher"].put_bytes(KEYS.ctl("all"), b"real")
-    for sub in subs:
-        assert _wait_for(sub, 1) == [b"real"]
-        assert _late_extra(sub, 0.2) == []
+    for role, sub in subs.items():
+        got = _wait_for(sub, 2 if role in forgers else 1) + _late_extra(sub, 0.2)
+        # a session's own subscribers see its own publications (Zenoh delivers them locally)
+        own = [f"forged-stop-{role}".encode()] if role in forgers else []
+        assert sorted(got) == sorted([b"real", *own]), role
+
+
+def test_a_hub_certificate_is_worth_nothing_in_a_run_without_a_router(team, idents):
+    """The same CA signed a `hub` certificate (a router run's identity), but the peer team's rules
+    have no subject for it: it joins over mutual TLS and can neither act, publish weights, stop
+    the run nor read anything."""
+    _, port = team
+    _probe_stranger(team, _tls("hub", idents, connect=port), also_forge=True)
 
 
 def test_a_role_cannot_read_another_roles_inputs(team):
@@ -193,19 +211,28 @@ def test_a_role_cannot_read_another_roles_inputs(team):
         assert _late_extra(spy, 0.2) == []
 
 
-def _probe_stranger(team, transport: TransportConfig) -> None:
-    """A stranger on the env host's port can neither inject an action nor read an observation."""
+def _probe_stranger(team, transport: TransportConfig, also_forge: bool = False) -> None:
+    """A stranger on the env host's port can neither inject an action nor read an observation
+    (also_forge: nor publish weights or control)."""
     s, _ = team
     acts = s["env"].subscribe_raw(KEYS.act(0))
+    weights = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    ctl = s["local-0"].subscribe_raw(KEYS.ctl("all"))
     with HammerSession(RUN, transport, sender="stranger") as x:
         spy = x.subscribe_raw(KEYS.obs(0))
         _settle()
         for _ in range(20):
             x.put_bytes(KEYS.act(0), b"stranger")
+            if also_forge:
+                x.put_bytes(KEYS.weights("local"), b"stranger")
+                x.put_bytes(KEYS.ctl("all"), b"stranger")
         s["env"].put_bytes(KEYS.obs(0), b"o0")
         s["local-0"].put_bytes(KEYS.act(0), b"real")
+        s["learner"].put_bytes(KEYS.weights("local"), b"real")
+        s["launcher"].put_bytes(KEYS.ctl("all"), b"real")
         assert _wait_for(acts, 1) == [b"real"]
-        assert _late_extra(acts) == []
+        assert _wait_for(weights, 1) == [b"real"] and _wait_for(ctl, 1) == [b"real"]
+        assert _late_extra(acts) == [] and _late_extra(weights, 0.1) == [] and _late_extra(ctl, 0.1) == []
         assert _late_extra(spy, 0.1) == []
 
 
@@ -248,7 +275,7 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
-def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None):
+def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True):
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
     from learning.config import merge_config
@@ -257,7 +284,7 @@ def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None):
     cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
     # slow message into a fallback.
-    settings = RuntimeSettings(run_id=run_id, secure=True, msg_deadline_ms=5000, act_deadline_ms=10000)
+    settings = RuntimeSettings(run_id=run_id, secure=secure, msg_deadline_ms=5000, act_deadline_ms=10000)
 
     def chaos(sup, board) -> None:
         if hostile is not None and not hostile:
@@ -283,23 +310,65 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     peer = hostile[0]
     assert peer.error is None, peer.error
     assert peer.max_peers >= 2, "the hostile peer never joined the run: the test would prove nothing"
-    assert peer.sent["blind_actions"] > 0 and peer.sent["weights"] > 0 and peer.sent["control"] > 0
+    assert peer.sent["blind_actions"] > 0 and peer.sent["control"] > 0
+    # it read the real local weights (local-1 may) and forged the next version, inside every bound
+    assert peer.weights_seen >= 0 and peer.sent["weights"] > 0
     assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
     assert calm.summary["completed"] and attacked.summary["completed"]
     a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
     assert len(a) == 100 and a == b
     links = attacked.summary["links"]
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
+    # nothing reached a role for its own checks to refuse: only the access rules stood in the way
+    assert attacked.summary["rejected"] == {} and attacked.summary["degraded"] is False
+
+
+def test_the_same_peer_ends_a_plain_run_early(tmp_path):
+    """The plain profile trusts the sender header: the forged `stop` of `launcher` is obeyed."""
+    from deploy.up import UpError
+
+    hostile: list = []
+    with pytest.raises(UpError, match="env host stopped before the budget"):
+        _secure_run(tmp_path / "plain", "plain-attacked", hostile, secure=False)
+    assert hostile and hostile[0].error is None and hostile[0].sent["control"] > 0
+    env_log = (tmp_path / "plain" / "logs" / "env.log").read_text()
+    assert "stop command from launcher" in env_log or "stop command from env" in env_log
+
+
+def test_hammer_up_secure_flag_makes_a_secure_run(tmp_path):
+    """`hammer up --secure` is `--runtime secure=true`: runtime.json says so, RUN/identity/ holds the
+    peer run's identities (no hub), and the run completes; `--resume` cannot change it."""
+    import json
+
+    from tests.runtime_helpers import hammer
+
+    run = tmp_path / "up"
+    res = hammer("up", "--secure", "--episodes", "1", "--variant", "il", "--run-dir", str(run), "--no-dashboard")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.startswith("done: 1 episodes in ")  # the verdict, on stdout
+    assert json.loads((run / "runtime.json").read_text())["secure"] is True
+    names = {p.name for p in (run / "identity").iterdir()}
+    assert {"ca.pem", "launcher.pem", "env.key", "local-0.pem", "learner.key"} <= names
+    assert not any(n.startswith("hub.") for n in names)
+    # the rules every process applies, for a client in another language (docs/wire-format.md)
+    from protocol.access import access_control
+
+    rt = json.loads((run / "runtime.json").read_text())
+    assert json.loads((run / "access_control.json").read_text()) == access_control(Keys(rt["run_id"]), 3)
+    again = hammer("up", "--resume", str(run), "--secure")
+    assert again.returncode == 2 and "only --episodes may be changed" in again.stderr and "--secure" in again.stderr
 
 
 def test_router_hub_enforces_the_rules_for_its_clients(idents):
-    """`hammer hub --secure` topology: clients reach each other only through the router, which
+    """`hammer hub --run-dir` topology: clients reach each other only through the router, which
     checks every hop; a client with local-1's identity cannot act for agent 0 there either."""
     port = free_loopback_port()
-    hub_t = TransportConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, "hub", KEYS, N))
+    hub_t = TransportConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"],
+                            security=secure_link(idents, "hub", KEYS, N, router=True))
 
     def client(role: str) -> TransportConfig:
-        return TransportConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"], security=secure_link(idents, role, KEYS, N))
+        return TransportConfig(mode="client", connect=[f"tls/127.0.0.1:{port}"],
+                               security=secure_link(idents, role, KEYS, N, router=True))
 
     with HammerSession(RUN, hub_t, sender="hub"), HammerSession(RUN, client("env"), sender="env") as env, \
             HammerSession(RUN, client("local-0"), sender="local-0") as l0, \

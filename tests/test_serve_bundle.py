@@ -149,3 +149,20 @@ def test_play_renders_the_team_with_its_messages(trained, tmp_path, monkeypatch)
     assert not np.array_equal(frames[0][:, half:], frames[3][:, half:])  # the messages panel changes
     r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(tmp_path / "team.mp4")])
     assert r.exit_code == 2 and "error:" in r.output and "GIF" in r.output
+
+
+def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
+    """`hammer serve --secure` is the secure profile of `hammer up --secure`: identities in RUN/identity/,
+    runtime.json says secure, and the served run completes."""
+    import json
+
+    from tests.runtime_helpers import hammer
+
+    bundle = export_bundle(trained, tmp_path / "b")
+    run = tmp_path / "secure"
+    res = hammer("serve", str(bundle.path), "--episodes", "8", "--run-dir", str(run), "--no-dashboard", "--secure")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.startswith("done: 8 episodes")
+    assert json.loads((run / "runtime.json").read_text())["secure"] is True
+    assert (run / "identity" / "learner.key").is_file() and not (run / "identity" / "hub.key").exists()
+    assert len(_metrics(run)) == 8
