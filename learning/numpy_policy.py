@@ -150,13 +150,20 @@ def _attention(params: dict[str, np.ndarray], prefix: str) -> dict:
 def attention_forward(net: dict, tokens: np.ndarray) -> np.ndarray:
     """Same maths as networks.AgentAttention: (..., N, T) → (..., N, out).
     e = enc(x); c_i = Σ_j softmax_j(q_i · k_j / √H) v_j; y = [e ⊕ c] Wo^T + bo."""
-    e = mlp_forward(net["encoder"], tokens, final_tanh=True)
-    q, k, v = e @ net["query"].T, e @ net["key"].T, e @ net["value"].T
-    scores = (q @ np.swapaxes(k, -1, -2)) / np.float32(np.sqrt(e.shape[-1]))
+    lead, n = tokens.shape[:-2], tokens.shape[-2]
+    # The per-agent layers on a 2-D (copies·agents, width) array: numpy's matmul of a stack of
+    # matrices by one matrix does not go to BLAS as one product, and this is the server's hot path.
+    e = mlp_forward(net["encoder"], tokens.reshape(-1, tokens.shape[-1]), final_tanh=True)
+    h = e.shape[-1]
+    qkv = e @ np.concatenate([net["query"], net["key"], net["value"]]).T  # (B·N, 3H) in one product
+    q, k, v = (qkv[:, i * h:(i + 1) * h].reshape(-1, n, h) for i in range(3))
+    scores = np.matmul(q, k.transpose(0, 2, 1)) / np.float32(np.sqrt(h))  # (B, N, N)
     w = np.exp(scores - scores.max(axis=-1, keepdims=True))
     w /= w.sum(axis=-1, keepdims=True)
+    context = np.matmul(w, v).reshape(-1, h)
     weight, bias = net["out"]
-    return np.concatenate([e, w @ v], axis=-1) @ weight.T + bias
+    out = e @ weight[:, :h].T + context @ weight[:, h:].T + bias
+    return out.reshape(*lead, n, -1)
 
 
 class NumpySetCentralAgent:
