@@ -234,3 +234,19 @@ def test_the_server_without_weights_sends_nothing_then_serves_once_they_come():
         res = srv.stop()
     c = res["counters"]
     assert (c["states_no_policy"], c["weights_wait_timeouts"], c["steps"], c["weights_loaded"]) == (1, 1, 1, 1)
+
+
+def test_the_server_fails_on_weights_of_the_other_central_network():
+    """A set-net run's server given concat weights (another run's learner) stops with a one-line reason
+    naming central_net, instead of sending messages from a network the run did not train."""
+    n = 3
+    cfg = _cfg(n, "hammer", "rl", 0.0, "set")
+    concat_team = _team(_cfg(n, "hammer", "rl", 0.0, "concat"))
+    (obs, prev), = _states(concat_team, n, 1)
+    with _Server(cfg, concat_team.spec) as srv:
+        srv.weights(concat_team, 0)
+        srv.state(0, obs, prev, 0)
+        _, err = srv.proc.communicate(timeout=60)
+        assert srv.proc.returncode != 0
+        assert all(sub.get(0.0) is None for sub in srv.msg_subs)
+    assert "(central_net, state_dim, n_agents, msg_dim, critic) = ('concat'" in err and "('set'" in err, err[-1500:]
