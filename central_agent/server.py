@@ -4,8 +4,9 @@ It runs the same sampling as the in-process trainer (`learning.central_acting.Ce
 same random stream) after a numpy forward of the central network (`learning.numpy_policy`), so
 with the same weights and no faults it sends the trainer's messages to float32 tolerance, and the
 process never loads torch: it sits on the critical path of every vector step. Weights come from
-the learner (`learn/central/weights`, safetensors of `CentralAgent.export_numpy()`); for variant
-`random` there are no weights, only the central random stream.
+the learner (`learn/central/weights`, safetensors of `CentralAgent.export_numpy()`, or of
+`SetCentralAgent`'s with `central_net=set`); for variant `random` there are no weights, only the
+central random stream.
 
 When the learner needs what only the central agent knows (rl mode: the Gaussian sample, its
 log-density and the central critic's value; any mode with message dropout: which messages were
@@ -33,7 +34,7 @@ from envs.base import EnvSpec
 from faults.steplog import LoggedPublisher, StepLog, column
 from learning.central_acting import CentralActing, CentralOut
 from learning.config import RunConfig
-from learning.numpy_policy import NumpyCentralAgent
+from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
 from learning.sampling import ActingStreams
 from protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
 from protocol.session import HammerSession
@@ -78,7 +79,7 @@ class CentralServer(Role):
         self.state_dim = cfg.n_agents * (spec.obs_dim + (spec.action_dim if cfg.use_prev_actions else 0))
         self.load_when_idle = load_when_idle
         self.counts = CentralCounters()
-        self.net: NumpyCentralAgent | None = None
+        self.net: NumpyCentralAgent | NumpySetCentralAgent | None = None
         self.last_step = -1
         self.window = StepWindow(step_window, start=start_step)  # runtime.bounds.known_step: no forged first step
         self.stall_what = "global states"
@@ -142,12 +143,12 @@ class CentralServer(Role):
 
     def load_weights(self, blob: bytes, version: int) -> None:
         """WeightsIntake's loader: fail on weights of another run's config here, not on the first forward."""
-        net = NumpyCentralAgent(load_safetensors(blob))
-        got = (net.state_dim, net.n_agents, net.msg_dim, net.critic is not None)
-        want = (self.state_dim, self.n_agents, self.acting.msg_dim, self.acting.rl)
+        net = numpy_central(load_safetensors(blob))
+        got = (net.kind, net.state_dim, net.n_agents, net.msg_dim, net.critic is not None)
+        want = (self.cfg.central_net, self.state_dim, self.n_agents, self.acting.msg_dim, self.acting.rl)
         if got != want:
-            raise ValueError(f"central weights v{version} have (state_dim, n_agents, msg_dim, critic) = {got}, "
-                             f"this run needs {want}: start the learner from the same config.json")
+            raise ValueError(f"central weights v{version} have (central_net, state_dim, n_agents, msg_dim, critic) = "
+                             f"{got}, this run needs {want}: start the learner from the same config.json")
         self.net = net
 
     def newest_queued(self, state: GlobalState) -> GlobalState:

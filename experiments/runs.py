@@ -18,8 +18,8 @@ from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
 from experiments.metrics_csv import read_metrics_csv
 
 # Fields that never make two runs different comparisons: the seed, the fields `Run.label` shows
-# (variant, central mode, message length) and those that change speed or bookkeeping, not learning.
-_NOT_SETTING = frozenset({"env", "n_agents", "seed", "variant", "central_mode", "msg_dim", "out",
+# (variant, central mode, central network, message length) and those that change speed or bookkeeping, not learning.
+_NOT_SETTING = frozenset({"env", "n_agents", "seed", "variant", "central_mode", "central_net", "msg_dim", "out",
                           "env_workers", "env_parent_slice", "torch_threads", "compile", "checkpoint_every"})
 
 
@@ -71,10 +71,12 @@ class Run:
 
     @property
     def label(self) -> str:
-        """The comparison a run belongs to: variant, central mode for HAMMER, message length."""
+        """The comparison a run belongs to: variant, central mode for HAMMER (+ `-set` with the set
+        central network), message length."""
         variant = self.config.get("variant", "?")
         if variant == "hammer":
-            return f"hammer-{self.config.get('central_mode', '?')}-m{self.config.get('msg_dim', '?')}"
+            net = "-set" if self.config.get("central_net", "concat") == "set" else ""
+            return f"hammer-{self.config.get('central_mode', '?')}{net}-m{self.config.get('msg_dim', '?')}"
         if variant == "random":
             return f"random-m{self.config.get('msg_dim', '?')}"
         return str(variant)

@@ -11,8 +11,8 @@ from typing import Annotated
 import typer
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
-BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "msg_dim",
-                "use_prev_actions", "obs_conv", "actor_hidden", "critic_hidden", "central_hidden")
+BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
+                "msg_dim", "use_prev_actions", "obs_conv", "actor_hidden", "critic_hidden", "central_hidden")
 
 
 def _fail(msg: str) -> None:

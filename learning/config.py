@@ -21,6 +21,7 @@ from learning.variant import Wiring
 
 Variant = Literal["hammer", "il", "random", "centralized"]
 CentralMode = Literal["rl", "backprop"]
+CentralNet = Literal["concat", "set"]
 
 
 class ConfigError(ValueError):
@@ -48,6 +49,10 @@ class RunConfig(BaseModel):
     # --- method ------------------------------------------------------------------------------
     variant: Variant = Field("hammer", description="hammer | il | random | centralized")
     central_mode: CentralMode = Field("rl", description="how the central agent learns: rl | backprop")
+    central_net: CentralNet = Field(
+        "concat", description="the central network: concat (the paper's: an MLP over o_1 ⊕ … ⊕ o_N ⊕ previous "
+                              "actions, one head per agent; grows with N²) | set (a per-agent encoder shared by "
+                              "all agents + attention across them: permutation-invariant, grows with N)")
     msg_dim: int = Field(4, ge=0, description="message length M (used by hammer and random)")
     use_prev_actions: bool = Field(True, description="global state includes every agent's previous action")
     msg_std: float = Field(0.5, gt=0, description="std of the Gaussian message policy (rl mode)")
@@ -96,6 +101,9 @@ class RunConfig(BaseModel):
                 raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
         if self.wiring.uses_central and self.msg_dim < 1:
             raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
+        if self.central_net != "concat" and self.variant != "hammer":
+            raise ValueError(f"central_net: variant {self.variant} has no central network, so central_net="
+                             f"{self.central_net} would change nothing")
         if self.obs_conv and (len(self.obs_conv) != 3 or min(self.obs_conv) < 1):
             raise ValueError("obs_conv: needs [H, W, C], three positive sizes, e.g. [32, 32, 1]")
         if self.obs_conv and self.wiring.joint_obs:
@@ -121,6 +129,8 @@ class RunConfig(BaseModel):
 _FIXES = {
     "variant": "use one of hammer, il, random, centralized",
     "central_mode": "use rl or backprop",
+    "central_net": ("use concat (the paper's network) or set (per-agent encoder + attention) with variant hammer, "
+                    "e.g. --set central_net=set; drop it for variants without a central network"),
     "gamma": "use a discount in (0, 1], e.g. gamma=0.95",
     "gae_lambda": "use a value in [0, 1], e.g. gae_lambda=0.95",
     "clip": "use a clip epsilon in (0, 1), e.g. clip=0.2",

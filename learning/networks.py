@@ -2,8 +2,11 @@
 
 `LocalPolicy`: one actor-critic shared by all local agents (parameter sharing). Input is
 own obs ⊕ message (il: own obs; centralized: joint obs ⊕ one-hot agent index).
-`CentralAgent`: shared encoder over the global state + one linear decoder head per local agent,
-tanh → message mean in [-1, 1]; in rl mode also a critic with one value per agent.
+`CentralAgent` (`central_net=concat`, the paper's): shared encoder over the global state + one linear
+decoder head per local agent, tanh → message mean in [-1, 1]; in rl mode also a critic with one
+value per agent. `SetCentralAgent` (`central_net=set`): the same interface (global state in, N
+message means and N values out) from a per-agent encoder shared by all agents and attention across
+them, so its size does not grow with N² (`make_central` picks one from the run's wiring).
 
 Layer names are part of the contract with `learning.numpy_policy`, which reruns the forward pass
 in numpy from `export_numpy()`; keep the two in step.
@@ -217,3 +220,90 @@ class CentralAgent(_Exportable):
         if self.critic is None:
             raise RuntimeError("this CentralAgent was built without a critic (backprop mode)")
         return self.critic(state)
+
+
+class AgentAttention(nn.Module):
+    """A shared per-agent encoder, then one round of scaled dot-product attention across agents,
+    then a linear output per agent: (..., N, T) tokens → (..., N, out).
+
+        e_i = enc(x_i)                                   (tanh MLP, `hidden`, tanh after the last layer)
+        c_i = Σ_j softmax_j(q_i · k_j / √H) v_j          q = e Wq^T, k = e Wk^T, v = e Wv^T
+        y_i = [e_i ⊕ c_i] Wo^T + bo
+
+    Every weight is shared by all agents and the sum over j does not depend on their order, so
+    permuting the agents permutes the outputs the same way (tested) and the parameter count depends
+    on the token width, not on N. Attention (not a plain mean) lets agent i's output depend on
+    which other agent is where relative to it, which is what assigning agents to landmarks needs.
+    """
+
+    def __init__(self, token_dim: int, hidden: list[int], out_dim: int, out_std: float) -> None:
+        super().__init__()
+        self.encoder = TanhMLP([token_dim, *hidden], out_std=math.sqrt(2), final_tanh=True)
+        h = hidden[-1]
+        self.query, self.key, self.value = (_init_no_bias(nn.Linear(h, h, bias=False)) for _ in range(3))
+        self.out = _init(nn.Linear(2 * h, out_dim), out_std)
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        e = self.encoder(tokens)
+        q, k, v = (F.linear(e, lin.weight) for lin in (self.query, self.key, self.value))
+        scores = torch.matmul(q, k.transpose(-1, -2)) / math.sqrt(e.shape[-1])  # (..., N, N)
+        context = torch.matmul(torch.softmax(scores, dim=-1), v)
+        return F.linear(torch.cat([e, context], dim=-1), self.out.weight, self.out.bias)
+
+
+def _init_no_bias(layer: nn.Linear) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight, 1.0)
+    return layer
+
+
+class SetCentralAgent(_Exportable):
+    """`central_net=set`: the central agent as a function of the set of agents.
+
+    The global state s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) is read as N tokens
+    x_i = o_i ⊕ a_i(t-1) (o_i alone without `use_prev_actions`); the message means are
+    tanh(AgentAttention(x)) and, in rl mode, the values a second AgentAttention with its own weights
+    (as the concat net's critic shares nothing with its encoder). Same interface as `CentralAgent`.
+
+    The concat net's first layer has N·(D + A) inputs and its heads are one per agent, so on cn
+    (D = 6N) it grows with N²; here only the token width D + A grows. The `layout` buffer
+    [N, D, A] travels with the weights so the numpy twin (`numpy_policy.NumpySetCentralAgent`)
+    can cut the state into tokens.
+    """
+
+    def __init__(self, n_agents: int, obs_dim: int, act_dim: int, msg_dim: int, hidden: list[int],
+                 critic_hidden: list[int] | None) -> None:
+        super().__init__()
+        self.n_agents, self.obs_dim, self.act_dim, self.msg_dim = n_agents, obs_dim, act_dim, msg_dim
+        self.state_dim = n_agents * (obs_dim + act_dim)
+        self.register_buffer("layout", torch.tensor([n_agents, obs_dim, act_dim], dtype=torch.float32))
+        self.msg = AgentAttention(obs_dim + act_dim, hidden, msg_dim, out_std=1.0)
+        self.critic = AgentAttention(obs_dim + act_dim, critic_hidden, 1, out_std=1.0) if critic_hidden else None
+
+    def tokens(self, state: torch.Tensor) -> torch.Tensor:
+        """(..., S) global state → (..., N, D + A) per-agent tokens o_i ⊕ a_i(t-1)."""
+        lead, n, d = state.shape[:-1], self.n_agents, self.obs_dim
+        obs = state[..., : n * d].reshape(*lead, n, d)
+        if self.act_dim == 0:
+            return obs
+        return torch.cat([obs, state[..., n * d:].reshape(*lead, n, self.act_dim)], dim=-1)
+
+    def message_mean(self, state: torch.Tensor) -> torch.Tensor:
+        """(..., S) → (..., N, M) message means in [-1, 1]."""
+        return tanh(self.msg(self.tokens(state)))
+
+    def values(self, state: torch.Tensor) -> torch.Tensor:
+        """(..., S) → (..., N): value of the message stream to each agent (rl mode only)."""
+        if self.critic is None:
+            raise RuntimeError("this SetCentralAgent was built without a critic (backprop mode)")
+        return self.critic(self.tokens(state)).squeeze(-1)
+
+
+def make_central(wiring, obs_dim: int, act_dim: int, hidden: list[int],
+                 critic_hidden: list[int]) -> CentralAgent | SetCentralAgent:
+    """The central network a run's wiring (`learning.variant.Wiring`) asks for. act_dim is the width
+    of one agent's previous action in the state (0 without `use_prev_actions`); the critic exists in
+    rl mode only."""
+    critic = critic_hidden if wiring.central_rl else None
+    if wiring.set_central:
+        return SetCentralAgent(wiring.n_agents, obs_dim, act_dim, wiring.msg_dim, hidden, critic)
+    return CentralAgent(wiring.n_agents * (obs_dim + act_dim), wiring.n_agents, wiring.msg_dim, hidden, critic)

@@ -1,8 +1,9 @@
 """Forward passes of the exported networks in plain numpy (no torch: edge devices run this).
 
-Loads the flat dicts from `LocalPolicy.export_numpy()` / `CentralAgent.export_numpy()` (or a
-safetensors file read with safetensors.numpy) and reproduces logits / Gaussian mean / values /
-message means to float32 tolerance. Layer naming follows learning/networks.py.
+Loads the flat dicts from `LocalPolicy.export_numpy()` / `CentralAgent.export_numpy()` /
+`SetCentralAgent.export_numpy()` (or a safetensors file read with safetensors.numpy) and reproduces
+logits / Gaussian mean / values / message means to float32 tolerance. Layer naming follows
+learning/networks.py; `numpy_central` picks the central network a weight dict holds.
 """
 
 from __future__ import annotations
@@ -111,7 +112,9 @@ class NumpyLocalPolicy:
 
 
 class NumpyCentralAgent:
-    """Encoder + per-agent heads → message means; optional critic (rl mode)."""
+    """`central_net=concat`: encoder + per-agent heads → message means; optional critic (rl mode)."""
+
+    kind = "concat"
 
     def __init__(self, params: dict[str, np.ndarray]) -> None:
         self.encoder = _layers(params, "encoder")
@@ -133,3 +136,71 @@ class NumpyCentralAgent:
         if self.critic is None:
             raise AttributeError("this central agent has no critic (backprop mode)")
         return mlp_forward(self.critic, state, final_tanh=False)
+
+
+def _attention(params: dict[str, np.ndarray], prefix: str) -> dict:
+    """The weights of one `networks.AgentAttention` named `prefix`."""
+    def f32(name: str) -> np.ndarray:
+        return np.asarray(params[f"{prefix}.{name}"], dtype=np.float32)
+
+    return {"encoder": _layers(params, f"{prefix}.encoder"), "query": f32("query.weight"), "key": f32("key.weight"),
+            "value": f32("value.weight"), "out": (f32("out.weight"), f32("out.bias"))}
+
+
+def attention_forward(net: dict, tokens: np.ndarray) -> np.ndarray:
+    """Same maths as networks.AgentAttention: (..., N, T) → (..., N, out).
+    e = enc(x); c_i = Σ_j softmax_j(q_i · k_j / √H) v_j; y = [e ⊕ c] Wo^T + bo."""
+    lead, n = tokens.shape[:-2], tokens.shape[-2]
+    # The per-agent layers on a 2-D (copies·agents, width) array: numpy's matmul of a stack of
+    # matrices by one matrix does not go to BLAS as one product, and this is the server's hot path.
+    e = mlp_forward(net["encoder"], tokens.reshape(-1, tokens.shape[-1]), final_tanh=True)
+    h = e.shape[-1]
+    qkv = e @ np.concatenate([net["query"], net["key"], net["value"]]).T  # (B·N, 3H) in one product
+    q, k, v = (qkv[:, i * h:(i + 1) * h].reshape(-1, n, h) for i in range(3))
+    scores = np.matmul(q, k.transpose(0, 2, 1)) / np.float32(np.sqrt(h))  # (B, N, N)
+    w = np.exp(scores - scores.max(axis=-1, keepdims=True))
+    w /= w.sum(axis=-1, keepdims=True)
+    context = np.matmul(w, v).reshape(-1, h)
+    weight, bias = net["out"]
+    out = e @ weight[:, :h].T + context @ weight[:, h:].T + bias
+    return out.reshape(*lead, n, -1)
+
+
+class NumpySetCentralAgent:
+    """`central_net=set` (`networks.SetCentralAgent`): the state cut into N tokens o_i ⊕ a_i(t-1),
+    a shared per-agent encoder and attention across agents → message means; optional critic."""
+
+    kind = "set"
+
+    def __init__(self, params: dict[str, np.ndarray]) -> None:
+        self.n_agents, self.obs_dim, self.act_dim = (int(v) for v in params["layout"])
+        self.msg = _attention(params, "msg")
+        self.critic = _attention(params, "critic") if "critic.encoder.layers.0.weight" in params else None
+        self.msg_dim = self.msg["out"][0].shape[0]
+        self.state_dim = self.n_agents * (self.obs_dim + self.act_dim)
+
+    def tokens(self, state: np.ndarray) -> np.ndarray:
+        state = np.asarray(state, dtype=np.float32)
+        lead, n, d = state.shape[:-1], self.n_agents, self.obs_dim
+        obs = state[..., : n * d].reshape(*lead, n, d)
+        if self.act_dim == 0:
+            return obs
+        return np.concatenate([obs, state[..., n * d:].reshape(*lead, n, self.act_dim)], axis=-1)
+
+    def message_mean(self, state: np.ndarray) -> np.ndarray:
+        return np.tanh(attention_forward(self.msg, self.tokens(state)))
+
+    def values(self, state: np.ndarray) -> np.ndarray:
+        if self.critic is None:
+            raise AttributeError("this central agent has no critic (backprop mode)")
+        return attention_forward(self.critic, self.tokens(state))[..., 0]
+
+
+def numpy_central(params: dict[str, np.ndarray]) -> NumpyCentralAgent | NumpySetCentralAgent:
+    """The numpy central agent a weight dict holds: `layout` marks the set network, `head_weight`
+    the concat one (docs/wire-format.md)."""
+    if "layout" in params:
+        return NumpySetCentralAgent(params)
+    if "head_weight" in params:
+        return NumpyCentralAgent(params)
+    raise KeyError("central weights hold neither 'head_weight' (central_net=concat) nor 'layout' (central_net=set)")

@@ -18,7 +18,7 @@ from envs.base import EnvSpec
 from envs.local_view import local_view_from_config
 from learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from learning.config import RunConfig
-from learning.networks import CentralAgent, LocalPolicy
+from learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
 from learning.numpy_policy import gaussian_logp_of_draw, softmax
 from learning.run_env import check_env_fits
 from learning.sampling import ActingStreams, categorical_inverse_cdf
@@ -41,10 +41,10 @@ class Team:
         check_env_fits(cfg, spec)
         self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
                                  cfg.critic_hidden, cfg.log_std_init, image=image)
-        self.central: CentralAgent | None = None
+        self.central: CentralAgent | SetCentralAgent | None = None
         if self.wiring.has_central_network:
-            self.central = CentralAgent(self.state_dim, self.n, self.msg_dim, cfg.central_hidden,
-                                        cfg.critic_hidden if self.wiring.central_rl else None)
+            self.central = make_central(self.wiring, self.obs_dim, self.act_dim if cfg.use_prev_actions else 0,
+                                        cfg.central_hidden, cfg.critic_hidden)
         self._eye = torch.eye(self.n)
         self.acting = CentralActing.from_config(cfg)
         # What a local agent may see of the full observation (identity unless env_kwargs asks):

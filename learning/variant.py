@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 
 VARIANTS = ("hammer", "il", "random", "centralized")
 CENTRAL_MODES = ("rl", "backprop")
+CENTRAL_NETS = ("concat", "set")  # concat: the paper's network over o_1 ⊕ … ⊕ o_N; set: per-agent + attention
 MESSAGE_VARIANTS = ("hammer", "random")  # the local agents receive a message vector
 
 
@@ -27,11 +28,12 @@ class Wiring:
     n_agents: int
     msg_dim: int  # what the local agents receive: 0 for il and centralized
     msg_dropout: float = 0.0
+    central_net: str = "concat"
 
     @classmethod
     def from_config(cls, cfg: RunConfig) -> Wiring:
         msg_dim = cfg.msg_dim if cfg.variant in MESSAGE_VARIANTS else 0
-        return cls(cfg.variant, cfg.central_mode, cfg.n_agents, msg_dim, cfg.msg_dropout)
+        return cls(cfg.variant, cfg.central_mode, cfg.n_agents, msg_dim, cfg.msg_dropout, cfg.central_net)
 
     @property
     def uses_central(self) -> bool:
@@ -42,6 +44,13 @@ class Wiring:
     def has_central_network(self) -> bool:
         """The messages come from a trained central network (HAMMER)."""
         return self.variant == "hammer"
+
+    @property
+    def set_central(self) -> bool:
+        """The central network is the permutation-invariant one (`networks.SetCentralAgent`: a
+        per-agent encoder shared by all agents, attention across them) instead of the paper's
+        network over the concatenated state."""
+        return self.has_central_network and self.central_net == "set"
 
     @property
     def central_rl(self) -> bool:
@@ -80,5 +89,8 @@ class Wiring:
 
     @property
     def label(self) -> str:
-        """`hammer-rl`, `hammer-backprop`, `il`, `random`, `centralized`."""
-        return f"{self.variant}-{self.central_mode}" if self.has_central_network else self.variant
+        """`hammer-rl`, `hammer-backprop`, `il`, `random`, `centralized`; `hammer-rl-set` with the
+        set central network (the paper's network keeps the plain label)."""
+        if not self.has_central_network:
+            return self.variant
+        return f"{self.variant}-{self.central_mode}" + ("-set" if self.set_central else "")

@@ -1,7 +1,7 @@
 """A trained team as a self-contained, versioned bundle: what serving and an edge agent need, no run directory.
 
     BUNDLE/manifest.json        bundle format, wire SCHEMA_VERSION, env id/kwargs/spec, variant, central
-                                mode, message length, fallback, the run it came from (+ final metric),
+                                mode and network (concat | set), message length, fallback, the run it came from (+ final metric),
                                 the full RunConfig, sha256 of every other file
     BUNDLE/local.safetensors    the shared local policy (numpy dict, never pickle)
     BUNDLE/central.safetensors  the central agent (variants with a central network)
@@ -64,6 +64,21 @@ def check_local_weights(shapes: dict[str, tuple[int, ...]], input_dim: int, env:
     if out != env["action_dim"]:
         raise BundleError(f"{what}: the local policy has {out} action outputs, env {env['name']} has "
                           f"action_dim {env['action_dim']}; fix: serve it on the env it was trained on")
+
+
+def check_central_weights(shapes: dict[str, tuple[int, ...]], central_net: str, n_agents: int, what: str) -> None:
+    """The central file holds the network the config names (`central_net`: `head_weight` for concat,
+    `layout` for set; docs/wire-format.md) built for the env's N."""
+    kind = "set" if "layout" in shapes else "concat" if "head_weight" in shapes else None
+    if kind is None:
+        raise BundleError(f"{what}: neither 'head_weight' nor 'layout': not a central agent's weights; fix: export "
+                          "the bundle from a run's final/ policy")
+    if kind != central_net:
+        raise BundleError(f"{what}: holds the {kind} central network but the config says central_net={central_net}; "
+                          "fix: export the bundle again from the run that trained these weights")
+    if kind == "concat" and shapes["head_weight"][0] != n_agents:
+        raise BundleError(f"{what}: {shapes['head_weight'][0]} message heads for n_agents {n_agents}; fix: serve it "
+                          "on the env it was trained on")
 
 
 @dataclass(frozen=True)
@@ -144,6 +159,7 @@ def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
         "env_spec": env_spec,
         "variant": cfg.variant,
         "central_mode": cfg.central_mode if w.has_central_network else None,
+        "central_net": cfg.central_net if w.has_central_network else None,
         "msg_dim": w.msg_dim,
         "local_input_dim": w.local_input_dim(env_spec["obs_dim"]),
         "fallback": {"mode": runtime.get("fallback", "zeros"), "k": runtime.get("fallback_k", 3)},
@@ -213,16 +229,23 @@ def load_bundle(path: Path) -> Bundle:
         if sha256(f) != digest:
             raise BundleError(f"{f}: sha256 differs from the manifest (corrupted or changed); "
                               "fix: copy the bundle again or export it again")
+    shapes = _checked_shapes(path / LOCAL)
     try:
-        shapes = _weight_shapes(path / LOCAL)
-    except Exception as e:  # noqa: BLE001 - a malformed header: say so in one line
-        raise BundleError(f"{path / LOCAL}: not a safetensors file ({e})") from None
-    try:
-        wiring = Bundle(path, m).config().wiring
+        cfg = Bundle(path, m).config()
     except ValueError as e:
         raise BundleError(f"{mf}: config: {' '.join(str(e).split())[:300]}; fix: export the bundle again") from None
+    wiring = cfg.wiring
     check_local_weights(shapes, wiring.local_input_dim(int(m["env_spec"]["obs_dim"])), m["env_spec"], str(path / LOCAL))
+    if wiring.has_central_network:
+        check_central_weights(_checked_shapes(path / CENTRAL), cfg.central_net, wiring.n_agents, str(path / CENTRAL))
     return Bundle(path, m)
+
+
+def _checked_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    try:
+        return _weight_shapes(path)
+    except Exception as e:  # noqa: BLE001 - a malformed header: say so in one line
+        raise BundleError(f"{path}: not a safetensors file ({e})") from None
 
 
 def is_bundle(path: Path) -> bool:

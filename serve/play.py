@@ -84,7 +84,7 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
     from safetensors.numpy import load as load_safetensors
 
     from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
-    from learning.numpy_policy import NumpyCentralAgent
+    from learning.numpy_policy import numpy_central
     from learning.sampling import ActingStreams
     from local_agent.client import AgentSpec, LocalAgent
 
@@ -98,7 +98,7 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
     for a in agents:
         a.load_weights(local_blob, 0)
     acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
-    net = (NumpyCentralAgent(load_safetensors((bundle.path / "central.safetensors").read_bytes()))
+    net = (numpy_central(load_safetensors((bundle.path / "central.safetensors").read_bytes()))
            if w.has_central_network else None)
     frames, returns = [], []
     try:

@@ -20,7 +20,7 @@ from safetensors.numpy import load as load_safetensors
 from envs.registry import make_vec_env
 from learner.worker import weights_blob
 from learning.config import merge_config
-from learning.numpy_policy import NumpyCentralAgent
+from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
 from learning.sampling import ActingStreams
 from learning.team import Team
 from protocol.schemas import CentralMsg, Control, ExperienceChunk, GlobalState, Weights
@@ -31,8 +31,8 @@ STEPS = 6
 K = 8
 
 
-def _cfg(n: int, variant: str, mode: str, dropout: float):
-    return merge_config(f"cn{n}", overrides=[f"num_envs={K}", f"msg_dropout={dropout}"],
+def _cfg(n: int, variant: str, mode: str, dropout: float, net: str = "concat"):
+    return merge_config(f"cn{n}", overrides=[f"num_envs={K}", f"msg_dropout={dropout}", f"central_net={net}"],
                         extra={"variant": variant, "central_mode": mode, "seed": 7})
 
 
@@ -64,10 +64,12 @@ def _team(cfg) -> Team:
     return team
 
 
-def _numpy_net(team: Team) -> NumpyCentralAgent | None:
+def _numpy_net(team: Team) -> NumpyCentralAgent | NumpySetCentralAgent | None:
     if team.central is None:
         return None
-    return NumpyCentralAgent(load_safetensors(weights_blob(team.central.export_numpy())))
+    net = numpy_central(load_safetensors(weights_blob(team.central.export_numpy())))
+    assert net.kind == team.cfg.central_net
+    return net
 
 
 CASES = [("hammer", "rl", 0.0), ("hammer", "backprop", 0.0), ("random", "rl", 0.0), ("hammer", "rl", 0.3),
@@ -77,7 +79,17 @@ CASES = [("hammer", "rl", 0.0), ("hammer", "backprop", 0.0), ("random", "rl", 0.
 @pytest.mark.parametrize("n", [3, 5])
 @pytest.mark.parametrize(("variant", "mode", "dropout"), CASES)
 def test_numpy_acting_equals_the_torch_team(n, variant, mode, dropout):
-    cfg = _cfg(n, variant, mode, dropout)
+    _check_acting(_cfg(n, variant, mode, dropout))
+
+
+@pytest.mark.parametrize("n", [3, 5])
+@pytest.mark.parametrize(("mode", "dropout"), [("rl", 0.0), ("backprop", 0.0), ("rl", 0.3)])
+def test_numpy_acting_equals_the_torch_team_with_the_set_net(n, mode, dropout):
+    _check_acting(_cfg(n, "hammer", mode, dropout, net="set"))
+
+
+def _check_acting(cfg) -> None:
+    n, variant, dropout = cfg.n_agents, cfg.variant, cfg.msg_dropout
     team = _team(cfg)
     net = _numpy_net(team)
     torch_streams, np_streams = ActingStreams(cfg.seed, n), ActingStreams(cfg.seed, n)
@@ -172,12 +184,12 @@ class _Server:
         self.session.__exit__(*exc)
 
 
-@pytest.mark.parametrize("mode", ["rl", "backprop"])
-def test_the_server_process_acts_without_torch_and_matches_the_team(mode):
+@pytest.mark.parametrize(("mode", "net"), [("rl", "concat"), ("backprop", "concat"), ("rl", "set")])
+def test_the_server_process_acts_without_torch_and_matches_the_team(mode, net):
     """The real server loop in a fresh interpreter, over real Zenoh on 127.0.0.1: it never imports
     torch, and the messages and records it publishes are the torch Team's for the same weights."""
     n = 3
-    cfg = _cfg(n, "hammer", mode, 0.25)
+    cfg = _cfg(n, "hammer", mode, 0.25, net)
     team = _team(cfg)
     with _Server(cfg, team.spec) as srv:
         srv.weights(team, 0)
@@ -222,3 +234,19 @@ def test_the_server_without_weights_sends_nothing_then_serves_once_they_come():
         res = srv.stop()
     c = res["counters"]
     assert (c["states_no_policy"], c["weights_wait_timeouts"], c["steps"], c["weights_loaded"]) == (1, 1, 1, 1)
+
+
+def test_the_server_fails_on_weights_of_the_other_central_network():
+    """A set-net run's server given concat weights (another run's learner) stops with a one-line reason
+    naming central_net, instead of sending messages from a network the run did not train."""
+    n = 3
+    cfg = _cfg(n, "hammer", "rl", 0.0, "set")
+    concat_team = _team(_cfg(n, "hammer", "rl", 0.0, "concat"))
+    (obs, prev), = _states(concat_team, n, 1)
+    with _Server(cfg, concat_team.spec) as srv:
+        srv.weights(concat_team, 0)
+        srv.state(0, obs, prev, 0)
+        _, err = srv.proc.communicate(timeout=60)
+        assert srv.proc.returncode != 0
+        assert all(sub.get(0.0) is None for sub in srv.msg_subs)
+    assert "(central_net, state_dim, n_agents, msg_dim, critic) = ('concat'" in err and "('set'" in err, err[-1500:]

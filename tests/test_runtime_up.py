@@ -86,6 +86,25 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
         assert " started: " in text and " stopped: " in text, (log.name, text[-500:])
 
 
+def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path):
+    """central_net=set through every role: the central server runs the numpy twin of the set net on
+    the weights the learner publishes (two updates), and the episodes equal hammer train's."""
+    up, tr = tmp_path / "up", tmp_path / "train"
+    r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", "--set", "central_net=set", "--run-dir", str(up),
+                "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+    assert r1.returncode == 0, r1.stderr[-2000:]
+    r2 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--set", "central_net=set",
+                "--episodes", "70", "--run-dir", str(tr), "--quiet")
+    assert r2.returncode == 0, r2.stderr[-2000:]
+    assert json.loads((up / "config.json").read_text())["central_net"] == "set"
+    links = json.loads((up / "summary.json").read_text())["links"]
+    assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
+    a, b = _metric_column(up), _metric_column(tr)
+    assert len(a) == len(b) == 70 and len(set(a)) > 40
+    assert a == pytest.approx(b, abs=1e-5)
+    assert json.loads((up / "learner_summary.json").read_text())["updates"] >= 2
+
+
 def _tensorboard(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

@@ -45,8 +45,17 @@ def _ckpt(path: Path, update: int) -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize(("variant", "mode"), VARIANTS)
 def test_batched_seed_matches_solo_run(tmp_path: Path, variant: str, mode: str) -> None:
+    _check_batched_matches_solo(tmp_path, variant, mode)
+
+
+@pytest.mark.parametrize("mode", ["rl", "backprop"])
+def test_batched_seed_matches_solo_run_with_the_set_central_net(tmp_path: Path, mode: str) -> None:
+    _check_batched_matches_solo(tmp_path, "hammer", mode, ["central_net=set"])
+
+
+def _check_batched_matches_solo(tmp_path: Path, variant: str, mode: str, extra: list[str] | None = None) -> None:
     seeds = [0, 1, 2]
-    cfgs = [_cfg(variant, mode, s, 24) for s in seeds]  # 8 episodes per update: updates 0, 1, 2
+    cfgs = [_cfg(variant, mode, s, 24, extra) for s in seeds]  # 8 episodes per update: updates 0, 1, 2
     train_seeds(cfgs, [RunDir.create(tmp_path / f"b{s}", c) for s, c in zip(seeds, cfgs)], tensorboard=False)
     for s, cfg in zip(seeds, cfgs):
         train(cfg, RunDir.create(tmp_path / f"s{s}", cfg), tensorboard=False)

@@ -58,6 +58,34 @@ def test_export_writes_a_checked_bundle(trained, tmp_path):
         export_bundle(trained, tmp_path / "b")
 
 
+def test_a_set_central_net_travels_in_the_bundle(tmp_path):
+    """central_net=set: the manifest says so, the bundle's central file loads into the numpy set net that
+    equals the trained torch net, and a manifest that names the other network fails on load."""
+    import torch
+    from safetensors.numpy import load as load_safetensors
+
+    from learning.numpy_policy import numpy_central
+    from learning.team import Team
+
+    run = tmp_path / "set"
+    cfg = merge_config("cn3", overrides=["num_envs=8", "epochs=1", "minibatches=2", "episodes=16", "central_net=set"])
+    train(cfg, RunDir.create(run, cfg), tensorboard=False)
+    b = export_bundle(run, tmp_path / "b")
+    assert b.manifest["central_net"] == "set" and b.config().wiring.set_central
+    params = load_safetensors((b.path / "central.safetensors").read_bytes())
+    net = numpy_central(params)
+    team = Team(b.config(), b.env_spec())
+    team.central.load_state_dict({k: torch.from_numpy(v) for k, v in params.items()})
+    s = np.random.default_rng(0).normal(size=(4, team.state_dim)).astype(np.float32)
+    with torch.no_grad():
+        np.testing.assert_allclose(net.message_mean(s), team.central.message_mean(torch.from_numpy(s)).numpy(), atol=2e-6)
+    m = json.loads((b.path / "manifest.json").read_text())
+    m["config"]["central_net"] = "concat"
+    (b.path / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match="holds the set central network but the config says central_net=concat"):
+        load_bundle(b.path)
+
+
 def test_a_corrupted_file_fails_on_its_hash(trained, tmp_path):
     b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
     data = bytearray((b / "central.safetensors").read_bytes())
