@@ -57,7 +57,7 @@ def import_ray(loopback: bool):
         import ray
         from ray._private import ray_constants
     except ImportError:
-        raise RayUnavailable(f"--backend ray needs Ray, which is not installed; fix: pip install -e '.[{EXTRA}]'"
+        raise RayUnavailable(f"--backend ray needs Ray, which is not installed; fix: pip install 'hammer[{EXTRA}]'"
                              ) from None
     if loopback:
         ray_constants.ENABLE_RAY_CLUSTER = False  # read at import: set it too if Ray was imported before
