@@ -53,6 +53,7 @@ def _can_unshare() -> bool:
 @dataclass
 class Head:
     address: str
+    pid: int  # `ray start --block`; every process of the node descends from it
     hidden: Path | None  # a directory the Ray node does not see (an empty tmpfs in its namespace)
 
 
@@ -87,7 +88,7 @@ def ray_head():
         while "Ray runtime started" not in (root / "head.log").read_text():
             assert head.poll() is None and time.monotonic() < deadline, (root / "head.log").read_text()[-2000:]
             time.sleep(0.2)
-        yield Head(f"127.0.0.1:{port}", hidden)
+        yield Head(f"127.0.0.1:{port}", head.pid, hidden)
     finally:
         for k, v in saved.items():
             os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
@@ -110,6 +111,42 @@ def _stop_group(proc: subprocess.Popen) -> None:
     except ProcessLookupError:
         pass
     proc.wait()
+
+
+def _off_loopback(pids: list[int]) -> list[str]:
+    """Every TCP/UDP socket of these processes with an address (local or remote) off loopback."""
+    import ipaddress
+
+    import psutil
+
+    bad = []
+    for pid in pids:
+        try:
+            conns = psutil.Process(pid).net_connections(kind="inet")
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        for c in conns:
+            for a in (c.laddr, c.raddr):
+                ip = ipaddress.ip_address(a.ip) if a else None
+                ip = getattr(ip, "ipv4_mapped", None) or ip  # ::ffff:127.0.0.1 is loopback too
+                if ip is not None and not ip.is_loopback:
+                    bad.append(f"pid {pid} {_name(pid)} {a.ip}:{a.port} {c.status}")
+    return bad
+
+
+def _name(pid: int) -> str:
+    import psutil
+
+    try:
+        return psutil.Process(pid).name()
+    except psutil.NoSuchProcess:
+        return "?"
+
+
+def _family(pid: int) -> list[int]:
+    import psutil
+
+    return [pid, *(p.pid for p in psutil.Process(pid).children(recursive=True))]
 
 
 def _trainers(out: Path) -> list:
@@ -168,6 +205,9 @@ def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head
     try:
         res = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher, on_event=lambda k, n: events.append((k, n)))
         again = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher)
+        sockets = _family(ray_head.pid) + [os.getpid()]
+        assert len(sockets) > 5, "the Ray node's processes were not found"
+        assert _off_loopback(sockets) == []  # the node and this driver: loopback only
     finally:
         launcher.close()
     assert not res.failed, res.failed
@@ -219,3 +259,29 @@ def test_backend_flags_fail_in_one_line_naming_the_fix(tmp_path, monkeypatch):
     assert res.exit_code == 2, res.output
     assert res.output.strip().count("\n") == 0 and "pip install 'hammer[cluster]'" in res.output
     assert not (tmp_path / "o").exists()  # nothing started
+
+
+@needs_ray
+def test_default_ray_is_a_private_instance_on_loopback(tmp_path):
+    """No --ray-address: Ray starts on this machine for the sweep alone, every socket on 127.0.0.1,
+    and stops with it."""
+    import psutil
+
+    from experiments.ray_backend import RayLauncher
+
+    pts = expand(["cn3"], ["il"], [0], GRID, episodes=8)
+    before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. this module's Ray head
+    launcher = RayLauncher()
+    try:
+        assert "1 node" in launcher.describe()
+        res = run_sweep(pts, tmp_path, jobs=1, launcher=launcher)
+        ray_procs = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+        assert len(ray_procs) > 3, "the local Ray instance's processes were not found"
+        assert _off_loopback([os.getpid(), *(p.pid for p in ray_procs)]) == []
+    finally:
+        launcher.close()
+    assert res.done == [pts[0].name] and len(_metrics(tmp_path / pts[0].name)) == 8
+    _gone, alive = psutil.wait_procs(ray_procs, timeout=20)
+    for p in alive:
+        p.kill()
+    assert not alive, f"Ray processes left after the sweep: {[p.pid for p in alive]}"
