@@ -59,6 +59,14 @@ def sweep(
         help="With --archive: also snapshot the runs in progress every this many minutes while the sweep "
              "runs, so a session cut off without warning still leaves them in ARCHIVE/_partial/. 0: never.",
         min=0.0)] = 30.0,
+    backend: Annotated[str, typer.Option(
+        help="Where the runs run: local (child processes here) or ray (Ray tasks; a private local "
+             "instance, or the cluster at --ray-address; OUT must be on storage every node mounts).")] = "local",
+    ray_address: Annotated[str | None, typer.Option(
+        help="With --backend ray: the cluster to join, e.g. 10.0.0.5:6379 or auto (default: start Ray "
+             "on this machine, on 127.0.0.1 only).")] = None,
+    ray_cpus: Annotated[float, typer.Option(
+        help="With --backend ray: CPUs Ray reserves for each run (a seed batch is one run).", min=0.01)] = 1.0,
 ) -> None:
     """Run a grid of independent training runs, resumably.
 
@@ -91,14 +99,35 @@ def sweep(
         taken = snapshot_sweep(points, out, archive, on_event=event)
         console.print(f"snapshot: {len(taken)} runs in progress -> {archive / '_partial'}")
         return
-    console.print(f"sweep: {len(points)} runs into {out}")
-
-    res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive,
-                    snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None)
+    launcher = _launcher(backend, ray_address, ray_cpus)
+    console.print(f"sweep: {len(points)} runs into {out}" + (f" ({launcher.describe()})" if backend == "ray" else ""))
+    try:
+        res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive, launcher=launcher,
+                        snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None)
+    finally:
+        launcher.close()
     console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "
                   f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
+
+
+def _launcher(backend: str, ray_address: str | None, ray_cpus: float):
+    """The sweep's backend (`experiments.launch`), or a one-line error."""
+    if backend == "local":
+        if ray_address is not None:
+            _fail("--ray-address joins a Ray cluster; fix: add --backend ray")
+        from experiments.launch import LocalLauncher
+
+        return LocalLauncher()
+    if backend != "ray":
+        _fail(f"--backend {backend!r}: expected local or ray")
+    from experiments.ray_backend import RayLauncher, RayUnavailable
+
+    try:
+        return RayLauncher(ray_address, ray_cpus)
+    except RayUnavailable as e:
+        _fail(str(e))
 
 
 def _print_status(console, points, out: Path, archive: Path | None) -> None:

@@ -17,8 +17,6 @@ import itertools
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -34,6 +32,7 @@ from experiments.archive import (
     restore_partial,
     snapshot_run,
 )
+from experiments.launch import Job, Launcher, LocalLauncher
 
 # Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
 VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
@@ -159,7 +158,7 @@ def _batch_key(p: SweepPoint, budget: int | None) -> tuple | None:
 
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
               on_event=None, archive: Path | None = None, snapshot_every_s: float | None = None,
-              seed_batch: int | None = None) -> SweepResult:
+              seed_batch: int | None = None, launcher: Launcher | None = None) -> SweepResult:
     """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress.
 
     With `archive`, a point already archived there counts as finished, and every run that finishes
@@ -174,29 +173,17 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
 
     `seed_batch`: most seeds per process (default `seed_cap()`, 1 = every point alone). Fresh cn
     points that differ only in seed start as one seed-batched process (`learning.seed_batch`),
-    one ordinary run directory each; points to resume or restore, and mw points, run alone."""
+    one ordinary run directory each; points to resume or restore, and mw points, run alone.
+
+    `launcher`: where each command runs (`experiments.launch`): child processes here by default,
+    or tasks on a Ray cluster (`experiments.ray_backend`); everything above is the same for both."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = jobs or max(1, os.cpu_count() or 1)
+    launcher = launcher or LocalLauncher()
     cap = seed_cap() if seed_batch is None else max(1, seed_batch)
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", HAMMER_TORCH_THREADS="1")
-    result = SweepResult()
-    queue: list[tuple[SweepPoint, Path, str]] = []
-    for p in points:
-        run_dir = out / p.name
-        st = state_of(run_dir)
-        if st == "done" and archive is not None and not is_archived(archive, p.name):
-            archive_run(run_dir, archive)
-        if archive is not None and is_archived(archive, p.name):
-            st = "done"
-            drop_partial(archive, p.name)  # an archived finished run wins over a snapshot of it
-        if st == "done":
-            result.skipped.append(p.name)
-            if on_event:
-                on_event("skip", p.name)
-        else:
-            queue.append((p, run_dir, st))
-    running: dict[str, tuple[subprocess.Popen, object]] = {}
+    s = _Scheduler(out, archive, episodes, cap, launcher, on_event)
+    s.queue_points(points)
+    jobs = jobs or launcher.slots()
     last_snap = time.monotonic()
     # SIGTERM (a session ending, `kill`) must stop the runs too, not orphan them: turn it into an
     # exit through the `finally` below, as Ctrl-C already does.
@@ -204,97 +191,148 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        while queue or running:
-            while queue and len(running) < jobs:
-                p, run_dir, _ = queue.pop(0)
-                run_dir.mkdir(parents=True, exist_ok=True)
-                if not _lock(run_dir):  # another sweep process is running this point right now
-                    result.skipped.append(p.name)
-                    if on_event:
-                        on_event("busy", p.name)
-                    continue
-                st = state_of(run_dir)  # again: another sweep may have finished it meanwhile
-                if st == "done" or (archive is not None and is_archived(archive, p.name)):
-                    _unlock(run_dir)
-                    result.skipped.append(p.name)
-                    if on_event:
-                        on_event("skip", p.name)
-                    continue
-                budget = episodes if episodes is not None else p.episodes
-                restored = False
-                if st == "new" and archive is not None and partial_dir(archive, p.name).is_dir():
-                    try:
-                        restore_partial(partial_dir(archive, p.name), run_dir, p.expected_config(budget))
-                        st, restored = "resume", True
-                        result.restored.append(p.name)
-                    except ValueError as e:
-                        result.broken.append((p.name, str(e)))
-                        if on_event:
-                            on_event("broken", f"{p.name}: snapshot unusable ({e}); starting fresh")
-                key = _batch_key(p, budget) if st == "new" and cap > 1 else None
-                group = [(p, run_dir)]
-                if key is not None:
-                    group += _take_batch(queue, key, cap - 1, out, archive, budget, result, on_event)
-                if len(group) > 1:
-                    from learning.config import build_config
-                    from learning.rundir import RunDir
-
-                    for q, d in group:
-                        RunDir.create(d, build_config(q.expected_config(budget)))
-                    args = ["-m", "learning.seeds_cli", *(str(d) for _, d in group)]
-                    for _, d in group[1:]:
-                        with open(d / "train.log", "a") as f:
-                            f.write(f"seed batch: log in {run_dir / 'train.log'}\n")
-                else:
-                    args = ["-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
-                                                 else p.train_args(run_dir, budget))]
-                logf = open(run_dir / "train.log", "ab")  # noqa: SIM115
-                proc = subprocess.Popen([sys.executable, *args], stdout=logf,
-                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-                names = [q.name for q, _ in group]
-                for _, d in group:
-                    _lock(d, child=proc.pid)
-                running[p.name] = (proc, logf, names)
-                if on_event:
-                    for name in names:
-                        on_event("restore" if restored else "resume" if st == "resume" else "start", name)
+        while s.queue or s.running:
+            while s.queue and len(s.running) < jobs:
+                s.start_next()
             time.sleep(0.2)
             if archive is not None and snapshot_every_s and time.monotonic() - last_snap >= snapshot_every_s:
                 last_snap = time.monotonic()
-                _snapshot_running([n for _, _, names in running.values() for n in names], out, archive, on_event)
-            for key, (proc, logf, names) in list(running.items()):
-                if proc.poll() is None:
-                    continue
-                logf.close()
-                del running[key]
-                for name in names:
-                    _unlock(out / name)
-                    # a seed batch can fail after some seeds finished: each seed is judged by its summary
-                    ok = proc.returncode == 0 or (len(names) > 1 and state_of(out / name) == "done")
-                    if ok:
-                        if archive is not None:
-                            archive_run(out / name, archive)
-                            drop_partial(archive, name)
-                        result.done.append(name)
-                        if on_event:
-                            on_event("done", name)
-                    else:
-                        result.failed.append((name, proc.returncode))
-                        if on_event:
-                            on_event("fail", name)
+                _snapshot_running([n for _, names in s.running.values() for n in names], out, archive, on_event)
+            s.reap()
     finally:
-        for proc, logf, names in running.values():
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-            logf.close()
-            for name in names:
-                _unlock(out / name)
+        s.stop_all()
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
-    return result
+    return s.result
+
+
+class _Scheduler:
+    """The part of a sweep that every backend shares: which points to run, skip, restore, batch and
+    archive, and the locks that keep two sweeps off one point. Only `launcher.launch` runs anything."""
+
+    def __init__(self, out: Path, archive: Path | None, episodes: int | None, cap: int,
+                 launcher: Launcher, on_event) -> None:
+        self.out, self.archive, self.episodes, self.cap = out, archive, episodes, cap
+        self.launcher, self.on_event = launcher, on_event
+        self.result = SweepResult()
+        self.queue: list[tuple[SweepPoint, Path, str]] = []
+        self.running: dict[str, tuple[Job, list[str]]] = {}
+
+    def event(self, kind: str, name: str) -> None:
+        if self.on_event:
+            self.on_event(kind, name)
+
+    def archived(self, name: str) -> bool:
+        return self.archive is not None and is_archived(self.archive, name)
+
+    def queue_points(self, points: list[SweepPoint]) -> None:
+        """Queue every point not finished here or in the archive (archiving finished ones on the way)."""
+        for p in points:
+            run_dir = self.out / p.name
+            st = state_of(run_dir)
+            if st == "done" and self.archive is not None and not self.archived(p.name):
+                archive_run(run_dir, self.archive)
+            if self.archived(p.name):
+                st = "done"
+                drop_partial(self.archive, p.name)  # an archived finished run wins over a snapshot of it
+            if st == "done":
+                self.result.skipped.append(p.name)
+                self.event("skip", p.name)
+            else:
+                self.queue.append((p, run_dir, st))
+
+    def start_next(self) -> None:
+        """Lock the next queued point (with the fresh points it batches with) and launch its command."""
+        p, run_dir, _ = self.queue.pop(0)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if not _lock(run_dir):  # another sweep process is running this point right now
+            self.result.skipped.append(p.name)
+            self.event("busy", p.name)
+            return
+        st = state_of(run_dir)  # again: another sweep may have finished it meanwhile
+        if st == "done" or self.archived(p.name):
+            _unlock(run_dir)
+            self.result.skipped.append(p.name)
+            self.event("skip", p.name)
+            return
+        budget = self.episodes if self.episodes is not None else p.episodes
+        restored = False
+        if st == "new" and self.archive is not None and partial_dir(self.archive, p.name).is_dir():
+            try:
+                restore_partial(partial_dir(self.archive, p.name), run_dir, p.expected_config(budget))
+                st, restored = "resume", True
+                self.result.restored.append(p.name)
+            except ValueError as e:
+                self.result.broken.append((p.name, str(e)))
+                self.event("broken", f"{p.name}: snapshot unusable ({e}); starting fresh")
+        key = _batch_key(p, budget) if st == "new" and self.cap > 1 else None
+        group = [(p, run_dir)]
+        if key is not None:
+            group += _take_batch(self.queue, key, self.cap - 1, self.out, self.archive, budget,
+                                 self.result, self.on_event)
+        args = _command(group, st, budget)
+        job = self.launcher.launch(args, run_dir / "train.log", [d for _, d in group])
+        if job.pid is not None:
+            for _, d in group:
+                _lock(d, child=job.pid)
+        names = [q.name for q, _ in group]
+        self.running[p.name] = (job, names)
+        for name in names:
+            self.event("restore" if restored else "resume" if st == "resume" else "start", name)
+
+    def reap(self) -> None:
+        """Unlock, judge and archive every run whose command has ended."""
+        for key, (job, names) in list(self.running.items()):
+            code = job.poll()
+            if code is None:
+                continue
+            del self.running[key]
+            for name in names:
+                _unlock(self.out / name)
+                # a seed batch can fail after some seeds finished: each seed is judged by its summary
+                if code == 0 or (len(names) > 1 and state_of(self.out / name) == "done"):
+                    if self.archive is not None:
+                        archive_run(self.out / name, self.archive)
+                        drop_partial(self.archive, name)
+                    self.result.done.append(name)
+                    self.event("done", name)
+                else:
+                    self.result.failed.append((name, code))
+                    if job.reason:
+                        _note(self.out / name / "train.log", f"hammer sweep: {job.reason}")
+                    self.event("fail", f"{name}: {job.reason}" if job.reason else name)
+
+    def stop_all(self) -> None:
+        for job, names in self.running.values():
+            job.stop()
+            for name in names:
+                _unlock(self.out / name)
+        self.running.clear()
+
+
+def _command(group: list[tuple[SweepPoint, Path]], st: str, budget: int | None) -> list[str]:
+    """The Python arguments that train a group: one point alone (`hammer train`, fresh or --resume),
+    or fresh points of one setting as a seed batch (their run directories created here first)."""
+    p, run_dir = group[0]
+    if len(group) == 1:
+        return ["-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
+                                     else p.train_args(run_dir, budget))]
+    from learning.config import build_config
+    from learning.rundir import RunDir
+
+    for q, d in group:
+        RunDir.create(d, build_config(q.expected_config(budget)))
+    for _, d in group[1:]:
+        _note(d / "train.log", f"seed batch: log in {run_dir / 'train.log'}")
+    return ["-m", "learning.seeds_cli", *(str(d) for _, d in group)]
+
+
+def _note(log: Path, line: str) -> None:
+    try:
+        with open(log, "a") as f:
+            f.write(line + "\n")
+    except OSError:
+        pass  # a note is never worth failing the sweep over
 
 
 def _take_batch(queue: list[tuple[SweepPoint, Path, str]], key: tuple, n: int, out: Path, archive: Path | None,
