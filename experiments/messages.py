@@ -31,6 +31,7 @@ import numpy as np
 from experiments.probes import FOLDS, cv_r2
 
 TARGETS = ("H_agents", "H_landmark", "V")
+TESTED = ("H_agents", "H_landmark")  # the plan's tested targets; V is the control
 FEATURES = ("u", "o", "ou")  # [u_i], [o_i], [o_i, u_i]
 ANALYSIS_VERSION = 1  # bump when a per-team figure would change: cached results are then recomputed
 
@@ -192,6 +193,12 @@ def _observed_d2(full_obs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return d2[..., :n], d2[..., n:]
 
 
+def recording_targets(rec: Recording, radius: float | None) -> dict[str, Target]:
+    """`hidden_targets` of every row (episode, step) of a recording."""
+    e, t = rec.msgs.shape[:2]
+    return hidden_targets(*(a.reshape(e * t, *a.shape[2:]) for a in (rec.pos, rec.landmarks, rec.full_obs)), radius)
+
+
 # ----- probes -------------------------------------------------------------------------------------
 def concat(recs: list[Recording]) -> Recording:
     """The evaluation seeds of one team as one recording (episodes stay whole, ids stay distinct)."""
@@ -213,8 +220,7 @@ def probe_recording(rec: Recording, radius: float | None, message: str = "msgs")
     the rows where the slot is defined; NaN where fewer than FOLDS episodes define it."""
     e, t, n = rec.msgs.shape[:3]
     episode = np.repeat(np.arange(e), t)
-    flat = lambda a: a.reshape(e * t, *a.shape[2:])
-    targets = hidden_targets(flat(rec.pos), flat(rec.landmarks), flat(rec.full_obs), radius)
+    targets = recording_targets(rec, radius)
     out = {}
     for name, tgt in targets.items():
         scores = np.full((n, tgt.mask.shape[2], len(FEATURES)), np.nan)
@@ -280,7 +286,50 @@ def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool 
         res["probes_mean"] = probe_recording(rec, radius, message="mean")  # exploratory: noise-free message
     res["cut"] = cut_drops(actor, seeds, episodes, rec.paper_metric)
     if keep_episode:
-        from experiments.messages_report import episode_trace
-
         res["episode"] = episode_trace(recs[0], radius)
     return res
+
+
+# ----- one episode, for the figure -----------------------------------------------------------------
+def hidden_scalars(rec: Recording, radius: float | None) -> list[tuple[list[str], np.ndarray]]:
+    """Every hidden scalar: (its name for each receiving agent, values (R, N) with NaN where the plan
+    leaves it undefined), the x and y of H_agents' and H_landmark's slots."""
+    tg = recording_targets(rec, radius)
+    n = rec.msgs.shape[2]
+    others = [[j for j in range(n) if j != i] for i in range(n)]
+    out = []
+    for name in TESTED:
+        for s in range(tg[name].mask.shape[2]):
+            for c, axis in enumerate("xy"):
+                names = [f"agent {others[i][s]} {axis} (H_agents)" if name == "H_agents"
+                         else f"landmark to take {axis} (H_landmark)" for i in range(n)]
+                out.append((names, np.where(tg[name].mask[:, :, s], tg[name].values[:, :, s, c], np.nan)))
+    return out
+
+
+def best_hidden(h_all: list[tuple[list[str], np.ndarray]], u: np.ndarray, i: int, rows: slice) -> dict:
+    """The hidden scalar most correlated with one message component u (R,) of agent i over all rows,
+    and its values in `rows` rescaled to u's mean and spread (sign of r): what the figure overlays."""
+    best = {"name": None, "r": float("nan"), "overlay": [None] * (rows.stop - rows.start)}
+    for names, h in h_all:
+        ok = np.isfinite(h[:, i])
+        if ok.sum() <= 10 or np.std(h[ok, i]) == 0 or np.std(u[ok]) == 0:
+            continue
+        r = float(np.corrcoef(h[ok, i], u[ok])[0, 1])
+        if best["name"] is None or abs(r) > abs(best["r"]):
+            z = (h[rows, i] - h[ok, i].mean()) / h[ok, i].std()
+            over = u[ok].mean() + np.sign(r) * u[ok].std() * z
+            best = {"name": names[i], "r": r, "overlay": [float(v) if np.isfinite(v) else None for v in over]}
+    return best
+
+
+def episode_trace(rec: Recording, radius: float | None, episode: int = 0) -> dict:
+    """One episode's messages and, per agent and component, the hidden scalar that best predicts it
+    over the whole recording (largest |correlation|), for messages-episode.png."""
+    e, t, n, m = rec.msgs.shape
+    h_all = hidden_scalars(rec, radius)
+    u = rec.msgs.reshape(e * t, n, m)
+    rows = slice(episode * t, (episode + 1) * t)
+    best = [[best_hidden(h_all, u[:, i, c], i, rows) for c in range(m)] for i in range(n)]
+    return {"msgs": rec.msgs[episode].tolist(), "mean": rec.mean[episode].tolist(), "best": best,
+            "paper_metric": float(rec.paper_metric[episode])}
