@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +50,7 @@ class Recording:
     full_obs: np.ndarray  # (E, T, N, D) float32: the env's observation (the central state's part)
     pos: np.ndarray  # (E, T, N, 2) float64: agent positions when the observation was made
     landmarks: np.ndarray  # (E, T, N, 2) float64
+    prev: np.ndarray  # (E, T, N, A) float32: the previous actions in the central agent's state
     paper_metric: np.ndarray  # (E,)
 
 
@@ -105,7 +106,7 @@ class TeamActor:
             msgs[:, list(cut)] = 0.0
             seen = view(obs)
             if record:
-                steps.append((msgs, out.mean, seen, obs, env.pos.copy(), env.landmarks.copy()))
+                steps.append((msgs, out.mean, seen, obs, env.pos.copy(), env.landmarks.copy(), prev))
             actions = np.stack([a.act(seen[:, i], msgs[:, i]) for i, a in enumerate(agents)], axis=1)
             step = env.step(spec.env_action(actions))
             prev = next_prev_actions(spec, actions, step).prev
@@ -141,7 +142,7 @@ def _episode_major(steps: list[tuple], t: int, episodes: int, metric: np.ndarray
         a = np.moveaxis(a, 2, 1)  # (R, K, T, ...)
         return a.reshape(-1, *a.shape[2:])[:episodes]
 
-    return Recording(*(stack(j) for j in range(6)), paper_metric=metric)
+    return Recording(*(stack(j) for j in range(7)), paper_metric=metric)
 
 
 # ----- hidden targets -----------------------------------------------------------------------------
@@ -261,6 +262,30 @@ def cut_drops(actor: TeamActor, seeds: list[int], episodes: int, uncut: np.ndarr
     return out
 
 
+def initial_messages(actor: TeamActor, rec: Recording, seed: int = 0) -> np.ndarray:
+    """What the team's central agent as initialised before training (`learning.team.Team` seeds torch
+    with the run's seed, so these are its exact initial weights) would have sent in the recorded states,
+    sampled as it samples (rl: mean + msg_std × N(0, 1) clipped to [-1, 1]). A reference for the probe:
+    any function of the global state carries some of what the receiver cannot see, learned or not."""
+    from envs.registry import make_vec_env
+    from learning.central_acting import CentralActing
+    from learning.config import build_config
+    from learning.numpy_policy import NumpyCentralAgent
+    from learning.team import Team
+
+    cfg = build_config(actor.data)
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    net = NumpyCentralAgent(Team(cfg, env.spec).central.export_numpy())
+    env.close()
+    e, t, n, m = rec.msgs.shape
+    state = CentralActing.from_config(cfg).global_state(rec.full_obs.reshape(e * t, n, -1),
+                                                        rec.prev.reshape(e * t, n, -1))
+    u = net.message_mean(state)
+    if cfg.wiring.central_rl:
+        u = np.clip(u + cfg.msg_std * np.random.default_rng(seed).standard_normal(u.shape), -1.0, 1.0)
+    return u.reshape(e, t, n, m).astype(np.float32)
+
+
 # ----- one team -----------------------------------------------------------------------------------
 def team_key(actor: TeamActor, seeds: list[int], episodes: int) -> str:
     """What a cached result depends on: the weights, the evaluation, the analysis version."""
@@ -282,8 +307,10 @@ def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool 
            "paper_metric": float(rec.paper_metric.mean()),
            "paper_metric_per_seed": [float(r.paper_metric.mean()) for r in recs],
            "probes": probe_recording(rec, radius)}
-    if actor.data.get("variant") == "hammer" and actor.data.get("central_mode") == "rl":
-        res["probes_mean"] = probe_recording(rec, radius, message="mean")  # exploratory: noise-free message
+    if actor.data.get("variant") == "hammer":  # exploratory references, not the plan's tests
+        if actor.data.get("central_mode") == "rl":
+            res["probes_mean"] = probe_recording(rec, radius, message="mean")  # the noise-free message
+        res["probes_initial"] = probe_recording(replace(rec, msgs=initial_messages(actor, rec)), radius)
     res["cut"] = cut_drops(actor, seeds, episodes, rec.paper_metric)
     if keep_episode:
         res["episode"] = episode_trace(recs[0], radius)
@@ -301,7 +328,7 @@ def hidden_scalars(rec: Recording, radius: float | None) -> list[tuple[list[str]
     for name in TESTED:
         for s in range(tg[name].mask.shape[2]):
             for c, axis in enumerate("xy"):
-                names = [f"agent {others[i][s]} {axis} (H_agents)" if name == "H_agents"
+                names = [f"agent {others[i][s]} {axis} − own {axis} (H_agents)" if name == "H_agents"
                          else f"landmark to take {axis} (H_landmark)" for i in range(n)]
                 out.append((names, np.where(tg[name].mask[:, :, s], tg[name].values[:, :, s, c], np.nan)))
     return out

@@ -20,6 +20,9 @@ from experiments.messages import FEATURES, TARGETS, TESTED
 from experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, stratified_bootstrap_ci, welch_p
 
 ALPHA = 0.05
+# Probes beside the plan's, reported and never tested with it: the rl central policy's noise-free mean,
+# and the central agent as initialised (before training) in the same recorded states.
+EXPLORATORY = (("probes_mean", "mean message"), ("probes_initial", "untrained central agent"))
 
 
 def groups(results: list[dict]) -> dict[str, dict[str, list[dict]]]:
@@ -103,8 +106,8 @@ def probe_table(results: list[dict]) -> list[str]:
              "|---|---|---|---|---|---|---|---|---|"]
     for setting, by_label in groups(results).items():
         for label, teams in by_label.items():
-            kinds = [("probes", label)] + ([("probes_mean", f"{label} (mean message, exploratory)")]
-                                           if all("probes_mean" in t for t in teams) else [])
+            kinds = [("probes", label)] + [(key, f"{label} ({what}, exploratory)") for key, what in EXPLORATORY
+                                           if all(key in t for t in teams)]
             for key, name in kinds:
                 for target in TARGETS:
                     r2s = [np.mean([t[key][target][f] for t in teams]) for f in FEATURES]
@@ -135,6 +138,25 @@ def control_table(results: list[dict]) -> list[str]:
             rnd = by_label.get("random-" + label.split("-")[-1])
             p = welch_p(g, gains(rnd, "V")) if rnd and not label.startswith("random") else None
             lines.append(f"| {setting} | {label} | {len(g)} | {_f(g.mean())} | {_ci(iqm_ci(g))} | {_p(p)} |")
+    return lines
+
+
+def initial_table(results: list[dict]) -> list[str]:
+    """Exploratory: the trained central agent's gain minus its untrained self's in the same states,
+    paired per team (mean, bootstrap CI over teams, paired t-test p, uncorrected)."""
+    from scipy import stats
+
+    lines = [("| setting | teams | n | target | gain trained | gain untrained | trained − untrained [95 % CI] "
+             "| paired t p (uncorrected) |"), "|---|---|---|---|---|---|---|---|"]
+    for setting, by_label in groups(results).items():
+        for label, teams in by_label.items():
+            if not all("probes_initial" in t for t in teams):
+                continue
+            for target in TARGETS:
+                a, b = gains(teams, target), gains(teams, target, "probes_initial")
+                p = float(stats.ttest_rel(a, b).pvalue) if len(a) > 1 else None
+                lines.append(f"| {setting} | {label} | {len(a)} | {target} | {_f(a.mean())} | {_f(b.mean())} | "
+                             f"{_ci(mean_ci(a - b))} | {_p(p)} |")
     return lines
 
 
@@ -173,6 +195,8 @@ def to_markdown(results: list[dict], header: str = "") -> str:
              "\n## The plan's comparisons: hammer-rl gain vs random gain (Holm across the pairs below)\n",
              *comparison_table(comps),
              "\n## Control target V (the receiver's nearest landmark, which it sees)\n", *control_table(results),
+             "\n## Exploratory: trained vs untrained central agent, same recorded states (not in the plan)\n",
+             *initial_table(results),
              "\n## Message cut per agent (paired per episode; drop = uncut − cut, > 0: the cut costs)\n",
              *cut_table(results), "\n## Per team\n", *team_table(results)]
     return "\n".join(parts) + "\n"
