@@ -285,6 +285,9 @@ def messages(
     episodes: Annotated[int, typer.Option(help="Evaluation episodes per evaluation seed.", min=10)] = 500,
     eval_seeds: Annotated[str, typer.Option(help="Evaluation seeds: a range 0-1 or a list 0,1.")] = "0-1",
     fresh: Annotated[bool, typer.Option(help="Recompute every team, ignoring <out>.json.")] = False,
+    teams: Annotated[str | None, typer.Option(
+        help="Only teams whose label starts with one of these, comma-separated, e.g. hammer-rl,random "
+             "(the dose-response grid's plan analyses those two).")] = None,
 ) -> None:
     """What the messages say (docs/results/plan-messages.md): each trained team acts with its frozen weights
     (the runtime's numpy acting code, in this process), ridge probes from each message to what its receiver
@@ -298,7 +301,7 @@ def messages(
 
     try:
         seeds = parse_seeds(eval_seeds)
-        found = select_teams(runs)
+        found = select_teams(runs, teams.split(",") if teams else None)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
     for what, skipped in (("no messages (il, centralized)", found.no_messages),

@@ -252,16 +252,20 @@ class Teams:
     no_weights: list[Path]
 
 
-def select_teams(paths: list[Path]) -> Teams:
+def select_teams(paths: list[Path], labels: list[str] | None = None) -> Teams:
     """Every run under `paths` whose variant sends messages (hammer, random) and whose final/ weights
-    were archived with it; IL and centralised teams have no message to probe."""
+    were archived with it (IL and centralised teams have no message to probe); with `labels`, only
+    runs whose label (`experiments.runs.Run.label`, e.g. hammer-rl-m4) starts with one of them."""
     import json
 
-    from experiments.runs import find_runs
+    from experiments.runs import Run, find_runs
 
     found = Teams([], [], [])
     for run in find_runs(paths):
         cfg = json.loads((run / "config.json").read_text())
+        label = Run(run, cfg, *([np.zeros(0)] * 3), finished=True).label
+        if labels is not None and not any(label.startswith(p) for p in labels):
+            continue
         if cfg.get("variant") not in ("hammer", "random"):
             found.no_messages.append(run)
         elif not (run / "final" / "local.safetensors").is_file():

@@ -22,8 +22,8 @@ from typer.testing import CliRunner
 
 from envs.local_view import SpreadRadiusView
 from envs.spread import VecSimpleSpread
-from experiments.messages import TeamActor, hidden_targets, probe_recording
-from experiments.probes import cv_r2, episode_folds
+from experiments.messages import TeamActor, analyse_team, hidden_targets, probe_recording
+from experiments.probes import Moments, cv_r2, episode_folds, r2_of, ridge
 from hammer.cli import app
 from learning.config import merge_config
 from learning.rundir import RunDir
@@ -34,9 +34,9 @@ OWNOBS = ROOT / "docs/results/runs/cn3-ownobs"
 pytestmark = pytest.mark.timeout(120)
 
 
-def _train(d: Path, variant: list[str]) -> Path:
+def _train(d: Path, variant: list[str], env: str = "env_kwargs.observe_others=false") -> Path:
     cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         "episodes=16", "seed=0", "env_kwargs.observe_others=false", *variant])
+                                         "episodes=16", "seed=0", env, *variant])
     train(cfg, RunDir.create(d, cfg), tensorboard=False)
     return d
 
@@ -93,10 +93,28 @@ def test_cv_splits_by_episode_and_a_row_split_would_leak():
     assert sorted(np.concatenate(folds).tolist()) == list(range(250))
     for test in folds:
         assert not set(episode[test]) & set(np.delete(episode, test))
-    rows = np.array_split(rng.permutation(250), 5)
-    assert cv_r2(x, y, episode, alphas=(1e-6,), folds=rows) > 0.9
+    rows = rng.permutation(250) % 5  # a fold id per row, ignoring episodes
+    assert cv_r2(x, y, episode, alphas=(1e-6,), outer=rows) > 0.9
     assert cv_r2(x, y, episode, alphas=(1e-6,)) < 0.1
     assert cv_r2(x, y, episode) < 0.1  # and with alpha chosen by the nested CV
+
+
+def test_ridge_from_moments_equals_a_direct_fit_on_the_rows():
+    """The CV's fits come from summed moments; the same fit made directly on the rows (standardise,
+    solve the penalised normal equations, score the held-out rows) must agree."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(300, 6)) * [1, 2, 3, 0.5, 1, 4] + 3
+    y = x @ rng.normal(size=(6, 2)) + rng.normal(size=(300, 2))
+    train, test = np.arange(200), np.arange(200, 300)
+    z = np.concatenate([x, y], axis=1)
+    (w, b), = ridge(Moments.of(z[train]), 6, [0.3])
+    mu, sd = x[train].mean(0), x[train].std(0)
+    xs = (x[train] - mu) / sd
+    ws = np.linalg.solve(xs.T @ xs / 200 + 0.3 * np.eye(6), xs.T @ (y[train] - y[train].mean(0)) / 200)
+    pred = (x[test] - mu) / sd @ ws + y[train].mean(0)
+    np.testing.assert_allclose(x[test] @ w + b, pred, rtol=1e-9, atol=1e-9)
+    direct = np.mean(1 - np.square(y[test] - pred).sum(0) / np.square(y[test] - y[test].mean(0)).sum(0))
+    assert r2_of(Moments.of(z[test]), 6, w, b) == pytest.approx(direct, abs=1e-9)
 
 
 def test_targets_from_the_world_state_match_the_observation():
@@ -155,3 +173,16 @@ def test_cli_writes_tables_json_figure_and_reuses_results(runs, tmp_path):
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and again.output.count("cached") == 2, again.output
     assert out.with_suffix(".md").read_text() == md
+    only = CliRunner().invoke(app, [*args[:-2], "--teams", "random"])
+    assert only.exit_code == 0 and only.output.count("cached") == 1, only.output
+    assert "hammer-backprop" not in out.with_suffix(".md").read_text()
+
+
+def test_a_dose_grid_team_is_probed_only_where_the_radius_hides(tmp_path):
+    """A team of the dose-response grid (obs_radius): H_agents rows are those the local view masks."""
+    run = _train(tmp_path / "dose", ["variant=hammer", "central_mode=rl"], env="env_kwargs.obs_radius=0.6")
+    res = analyse_team(run, [0], 10, keep_episode=True)
+    rows = res["probes"]["H_agents"]["rows"]
+    assert 0 < rows < 10 * 25 * 3 * 2 and np.isfinite(res["probes"]["H_agents"]["gain"])
+    assert "env_kwargs.obs_radius=0.6" in res["setting"] and set(res["cut"]) == {
+        "agent 0", "agent 1", "agent 2", "all"}
