@@ -17,6 +17,8 @@ when the observation is made), which the agents never receive. Per receiving age
   H_landmark  the landmark nearest to i among those that are no other agent's nearest, minus p_i
               (obs_radius: only rows where it is hidden)
   V           i's nearest landmark minus p_i, a control i sees (obs_radius: only where visible)
+  X_actions   exploratory, not in the plan: each other agent's previous action as its force direction
+              (x, y in {-1, 0, 1}), which the central agent's state holds and no local agent sees
 """
 
 from __future__ import annotations
@@ -30,10 +32,11 @@ import numpy as np
 
 from experiments.probes import FOLDS, cv_r2
 
-TARGETS = ("H_agents", "H_landmark", "V")
-TESTED = ("H_agents", "H_landmark")  # the plan's tested targets; V is the control
+PLAN_TARGETS = ("H_agents", "H_landmark", "V")
+TARGETS = (*PLAN_TARGETS, "X_actions")
+TESTED = ("H_agents", "H_landmark")  # the plan's tested targets; V is its control; X_actions is exploratory
 FEATURES = ("u", "o", "ou")  # [u_i], [o_i], [o_i, u_i]
-ANALYSIS_VERSION = 1  # bump when a per-team figure would change: cached results are then recomputed
+ANALYSIS_VERSION = 2  # bump when a per-team figure would change: cached results are then recomputed
 
 
 class MessagesError(ValueError):
@@ -195,9 +198,17 @@ def _observed_d2(full_obs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def recording_targets(rec: Recording, radius: float | None) -> dict[str, Target]:
-    """`hidden_targets` of every row (episode, step) of a recording."""
-    e, t = rec.msgs.shape[:2]
-    return hidden_targets(*(a.reshape(e * t, *a.shape[2:]) for a in (rec.pos, rec.landmarks, rec.full_obs)), radius)
+    """`hidden_targets` of every row (episode, step) of a recording, and the exploratory X_actions."""
+    from envs.spread import _ACTION_FORCE, SENSITIVITY
+
+    e, t, n = rec.msgs.shape[:3]
+    flat = [a.reshape(e * t, *a.shape[2:]) for a in (rec.pos, rec.landmarks, rec.full_obs, rec.prev)]
+    out = hidden_targets(*flat[:3], radius)
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])
+    direction = flat[3] @ (_ACTION_FORCE / SENSITIVITY)  # (R, N, 2); no previous action: (0, 0)
+    out["X_actions"] = Target(direction[:, others], np.ones((e * t, n, n - 1), bool),
+                              [f"other agent {m + 1}'s previous action" for m in range(n - 1)])
+    return out
 
 
 # ----- probes -------------------------------------------------------------------------------------

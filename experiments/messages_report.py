@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.messages import FEATURES, TARGETS, TESTED
+from experiments.messages import FEATURES, PLAN_TARGETS, TARGETS, TESTED
 from experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, stratified_bootstrap_ci, welch_p
 
 ALPHA = 0.05
@@ -109,7 +109,7 @@ def probe_table(results: list[dict]) -> list[str]:
             kinds = [("probes", label)] + [(key, f"{label} ({what}, exploratory)") for key, what in EXPLORATORY
                                            if all(key in t for t in teams)]
             for key, name in kinds:
-                for target in TARGETS:
+                for target in PLAN_TARGETS:
                     r2s = [np.mean([t[key][target][f] for t in teams]) for f in FEATURES]
                     g = gains(teams, target, key)
                     se = g.std(ddof=1) / np.sqrt(len(g)) if len(g) > 1 else float("nan")
@@ -138,6 +138,19 @@ def control_table(results: list[dict]) -> list[str]:
             rnd = by_label.get("random-" + label.split("-")[-1])
             p = welch_p(g, gains(rnd, "V")) if rnd and not label.startswith("random") else None
             lines.append(f"| {setting} | {label} | {len(g)} | {_f(g.mean())} | {_ci(iqm_ci(g))} | {_p(p)} |")
+    return lines
+
+
+def exploratory_target_table(results: list[dict]) -> list[str]:
+    """X_actions, a target the plan did not declare: reported, never tested."""
+    lines = ["| setting | teams | n | R²[u] | R²[o] | gain mean | gain IQM [95 % CI] |", "|---|---|---|---|---|---|---|"]
+    for setting, by_label in groups(results).items():
+        for label, teams in by_label.items():
+            if all("X_actions" in t["probes"] for t in teams):
+                g = gains(teams, "X_actions")
+                r2u, r2o = (np.mean([t["probes"]["X_actions"][f] for t in teams]) for f in ("u", "o"))
+                lines.append(f"| {setting} | {label} | {len(g)} | {_f(r2u)} | {_f(r2o)} | {_f(g.mean())} | "
+                             f"{_ci(iqm_ci(g))} |")
     return lines
 
 
@@ -184,7 +197,7 @@ def team_table(results: list[dict]) -> list[str]:
             for t in teams:
                 drops = ", ".join(_f(v["drop"], 2) for v in t["cut"].values())
                 lines.append(f"| {setting} | {label} | {t['seed']} | {t['paper_metric']:.2f} | "
-                             + " | ".join(_f(t["probes"][k]["gain"]) for k in TARGETS) + f" | {drops} |")
+                             + " | ".join(_f(t["probes"][k]["gain"]) for k in PLAN_TARGETS) + f" | {drops} |")
     return lines
 
 
@@ -195,6 +208,8 @@ def to_markdown(results: list[dict], header: str = "") -> str:
              "\n## The plan's comparisons: hammer-rl gain vs random gain (Holm across the pairs below)\n",
              *comparison_table(comps),
              "\n## Control target V (the receiver's nearest landmark, which it sees)\n", *control_table(results),
+             "\n## Exploratory target: the other agents' previous actions (X_actions, not in the plan)\n",
+             *exploratory_target_table(results),
              "\n## Exploratory: trained vs untrained central agent, same recorded states (not in the plan)\n",
              *initial_table(results),
              "\n## Message cut per agent (paired per episode; drop = uncut − cut, > 0: the cut costs)\n",

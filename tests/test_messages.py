@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from envs.local_view import SpreadRadiusView
 from envs.spread import VecSimpleSpread
-from experiments.messages import TeamActor, analyse_team, hidden_targets, probe_recording
+from experiments.messages import TeamActor, analyse_team, hidden_targets, probe_recording, recording_targets
 from experiments.probes import Moments, cv_r2, episode_folds, r2_of, ridge
 from hammer.cli import app
 from learning.config import merge_config
@@ -74,6 +74,8 @@ def _plant(run: Path, dst: Path) -> Path:
 
 def test_probe_finds_a_planted_message_and_nothing_in_random_messages(runs, tmp_path):
     planted = TeamActor(_plant(runs["backprop"], tmp_path / "planted")).rollout(0, 40, record=True)
+    acts = recording_targets(planted, None)["X_actions"].values.reshape(40, 25, 3, 2, 2)
+    assert not acts[:, 0].any() and set(np.abs(acts[:, 1:]).sum(-1).ravel()) == {0.0, 1.0}  # no-op or one axis
     got = probe_recording(planted, None)["H_agents"]
     assert got["u"] > 0.9 and got["gain"] > 0.3, got  # the receiver's own observation lacks it
     rnd = probe_recording(TeamActor(runs["random"]).rollout(0, 40, record=True), None)
