@@ -144,8 +144,8 @@ paper-report: $(STAMP)
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
 # archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said
 # so). Each team's result is kept in the JSON beside its table, so a re-run recomputes only teams whose
-# weights changed: seconds when cached; from scratch ~12 s a team on the 2 cores (cn3-ownobs: 20 teams,
-# 4 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~25 min once). The dose-grid table is
+# weights changed: ~15 s when all are cached; from scratch ~18 s a team on the 2 cores under load
+# (cn3-ownobs: 20 teams, 6 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~40 min once). The dose-grid table is
 # the plan's whole family (Holm across every setting x target), cn3-ownobs included.
 MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
 messages: $(STAMP)

@@ -7,8 +7,9 @@ loop (env reset seed `env_reset_seed(seed, 0)`, `local_view` on the local copy o
 actions by `learning.rollout.next_prev_actions`), the central server's numpy forward and sampling
 (`NumpyCentralAgent`, `CentralActing.messages`, the randomness contract's streams) and each local
 agent's `local_agent.client.LocalAgent` (numpy policy, own stream). Same seed, same episodes: an
-uncut evaluation here reproduces `hammer faults sweep` at drop 0 to the last digit, and a cut
-agent is exactly a dropped message acted on the zeros fallback (tests/test_messages.py).
+uncut evaluation here reproduces `hammer faults sweep` at drop 0 (to 1e-9: only the order of the
+final mean's sum differs), and cutting every agent reproduces drop 1.0, a dropped message acted on
+the zeros fallback (tests/test_messages.py).
 
 The hidden quantities come from the env's world state (`VecSimpleSpread.pos` / `.landmarks`, read
 when the observation is made), which the agents never receive. Per receiving agent i:

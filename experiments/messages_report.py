@@ -196,7 +196,7 @@ def team_table(results: list[dict]) -> list[str]:
         for label, teams in by_label.items():
             for t in teams:
                 drops = ", ".join(_f(v["drop"], 2) for v in t["cut"].values())
-                lines.append(f"| {setting} | {label} | {t['seed']} | {t['paper_metric']:.2f} | "
+                lines.append(f"| {setting} | {label} | {t['seed']} | {_f(t['paper_metric'], 2)} | "
                              + " | ".join(_f(t["probes"][k]["gain"]) for k in PLAN_TARGETS) + f" | {drops} |")
     return lines
 
@@ -325,5 +325,5 @@ def figure_paths(results: list[dict], figure: Path, seed: int = 0) -> dict[Path,
                 break
     if len(picks) == 1:
         return {figure: next(iter(picks.values()))}
-    slug = lambda s: "".join(ch if ch.isalnum() or ch in "=." else "-" for ch in s).strip("-")
+    slug = lambda s: "".join(ch if ch.isalnum() or ch in "=._" else "-" for ch in s).strip("-")
     return {figure.with_name(f"{figure.stem}-{slug(s)}{figure.suffix}"): t for s, t in picks.items()}
