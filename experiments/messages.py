@@ -274,21 +274,31 @@ def cut_drops(actor: TeamActor, seeds: list[int], episodes: int, uncut: np.ndarr
     return out
 
 
+def initial_central_weights(cfg) -> dict[str, np.ndarray]:
+    """The central agent's weights before training: `learning.team.Team` builds the networks right after
+    `torch.manual_seed(cfg.seed)`, so building it again gives the run's exact initialisation (its
+    checkpoint 0; tests/test_messages.py compares)."""
+    from envs.registry import make_vec_env
+    from learning.team import Team
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    try:
+        return Team(cfg, env.spec).central.export_numpy()
+    finally:
+        env.close()
+
+
 def initial_messages(actor: TeamActor, rec: Recording, seed: int = 0) -> np.ndarray:
     """What the team's central agent as initialised before training (`learning.team.Team` seeds torch
     with the run's seed, so these are its exact initial weights) would have sent in the recorded states,
     sampled as it samples (rl: mean + msg_std × N(0, 1) clipped to [-1, 1]). A reference for the probe:
     any function of the global state carries some of what the receiver cannot see, learned or not."""
-    from envs.registry import make_vec_env
     from learning.central_acting import CentralActing
     from learning.config import build_config
     from learning.numpy_policy import NumpyCentralAgent
-    from learning.team import Team
 
     cfg = build_config(actor.data)
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
-    net = NumpyCentralAgent(Team(cfg, env.spec).central.export_numpy())
-    env.close()
+    net = NumpyCentralAgent(initial_central_weights(cfg))
     e, t, n, m = rec.msgs.shape
     state = CentralActing.from_config(cfg).global_state(rec.full_obs.reshape(e * t, n, -1),
                                                         rec.prev.reshape(e * t, n, -1))

@@ -17,12 +17,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from safetensors.numpy import save_file
+from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 
 from envs.local_view import SpreadRadiusView
 from envs.spread import VecSimpleSpread
-from experiments.messages import TeamActor, analyse_team, hidden_targets, probe_recording, recording_targets
+from experiments.messages import (
+    TeamActor,
+    analyse_team,
+    hidden_targets,
+    initial_central_weights,
+    probe_recording,
+    recording_targets,
+)
 from experiments.probes import Moments, cv_r2, episode_folds, r2_of, ridge
 from hammer.cli import app
 from learning.config import merge_config
@@ -81,6 +88,16 @@ def test_probe_finds_a_planted_message_and_nothing_in_random_messages(runs, tmp_
     rnd = probe_recording(TeamActor(runs["random"]).rollout(0, 40, record=True), None)
     for target in ("H_agents", "H_landmark", "V"):
         assert abs(rnd[target]["gain"]) < 0.02 and rnd[target]["u"] < 0.02, (target, rnd[target])
+
+
+def test_the_untrained_reference_is_the_runs_own_initialisation(runs):
+    """The exploratory untrained central agent is the run's checkpoint 0 (written before any update)."""
+    cfg = merge_config(base=json.loads((runs["backprop"] / "config.json").read_text()))
+    ckpt = load_file(str(runs["backprop"] / "checkpoints/ckpt_0000000.safetensors"))
+    init = initial_central_weights(cfg)
+    assert init and all(np.array_equal(v, ckpt[f"central/{k}"]) for k, v in init.items())
+    final = load_file(str(runs["backprop"] / "final/central.safetensors"))
+    assert not all(np.array_equal(v, final[k]) for k, v in init.items())  # training moved it
 
 
 def test_cv_splits_by_episode_and_a_row_split_would_leak():
@@ -188,3 +205,18 @@ def test_a_dose_grid_team_is_probed_only_where_the_radius_hides(tmp_path):
     assert 0 < rows < 10 * 25 * 3 * 2 and np.isfinite(res["probes"]["H_agents"]["gain"])
     assert "env_kwargs.obs_radius=0.6" in res["setting"] and set(res["cut"]) == {
         "agent 0", "agent 1", "agent 2", "all"}
+
+
+def test_the_plans_comparisons_and_holm_family_over_settings_and_targets():
+    """hammer-rl vs random per setting and tested target (never backprop, never the control V), Holm
+    across all of them: a second setting doubles the family, so the smallest p is multiplied by 4."""
+    from experiments.messages_report import comparisons
+
+    results = json.loads((ROOT / "docs/results/messages-cn3-ownobs.json").read_text())["results"]
+    one = comparisons(results)
+    assert [(c.target, c.a, c.b, c.n_a, c.n_b) for c in one] == [
+        ("H_agents", "hammer-rl-m4", "random-m4", 10, 5), ("H_landmark", "hammer-rl-m4", "random-m4", 10, 5)]
+    two = comparisons(results + [{**r, "setting": r["setting"] + " (copy)"} for r in results])
+    assert len(two) == 4
+    smallest = min(two, key=lambda c: c.p)
+    assert smallest.p_holm == pytest.approx(4 * smallest.p)
