@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose snapshot status faults-ownobs
+.PHONY: setup up test bench lint clean paper paper-report paper-dose snapshot status faults-ownobs messages
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -139,6 +139,18 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) report $(A)/cn3-dose $(A)/cn3-dose-full --auc 10000 --comparisons hammer-rl:il$(,)hammer-backprop:il --out docs/results/cn3-dose-auc-table.md)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) dose $(A)/cn3-dose $(A)/cn3-dose-full --out docs/results/cn3-dose-delta)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
+	-$(MAKE) --no-print-directory messages
+
+# What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
+# archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said
+# so). Each team's result is kept in the JSON beside its table, so a re-run recomputes only teams whose
+# weights changed: ~15 s when all are cached; from scratch ~18 s a team on the 2 cores under load
+# (cn3-ownobs: 20 teams, 6 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~40 min once). The dose-grid table is
+# the plan's whole family (Holm across every setting x target), cn3-ownobs included.
+MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
+messages: $(STAMP)
+	$(H) messages $(MESSAGE_RUNS) --out docs/results/messages-cn3-ownobs --figure docs/results/messages-episode.png
+	$(if $(wildcard $(A)/cn3-dose),$(H) messages $(MESSAGE_RUNS) $(A)/cn3-dose $(A)/cn3-dose-full --teams hammer-rl$(,)random --out docs/results/messages --figure docs/results/messages-episode-dose.png)
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds

@@ -1,0 +1,384 @@
+"""What the messages say (issue 23 item 5, docs/results/plan-messages.md): a trained team acts with its
+frozen weights, every step's messages, local observations and the world state are recorded, and
+linear probes ask whether a message tells its receiver what the receiver cannot see.
+
+The team acts in this process with the runtime's own acting code, not a copy of it: the env host's
+loop (env reset seed `env_reset_seed(seed, 0)`, `local_view` on the local copy only, previous
+actions by `learning.rollout.next_prev_actions`), the central server's numpy forward and sampling
+(`NumpyCentralAgent`, `CentralActing.messages`, the randomness contract's streams) and each local
+agent's `local_agent.client.LocalAgent` (numpy policy, own stream). Same seed, same episodes: an
+uncut evaluation here reproduces `hammer faults sweep` at drop 0 (to 1e-9: only the order of the
+final mean's sum differs), and cutting every agent reproduces drop 1.0, a dropped message acted on
+the zeros fallback (tests/test_messages.py).
+
+The hidden quantities come from the env's world state (`VecSimpleSpread.pos` / `.landmarks`, read
+when the observation is made), which the agents never receive. Per receiving agent i:
+  H_agents    p_j − p_i for each other agent j that i cannot see (ownobs: both; obs_radius r: only
+              rows where |p_j − p_i| ≥ r; full view: both, visible — the plan's negative reference)
+  H_landmark  the landmark nearest to i among those that are no other agent's nearest, minus p_i
+              (obs_radius: only rows where it is hidden)
+  V           i's nearest landmark minus p_i, a control i sees (obs_radius: only where visible)
+  X_actions   exploratory, not in the plan: each other agent's previous action as its force direction
+              (x, y in {-1, 0, 1}), which the central agent's state holds and no local agent sees
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from experiments.probes import FOLDS, cv_r2
+
+PLAN_TARGETS = ("H_agents", "H_landmark", "V")
+TARGETS = (*PLAN_TARGETS, "X_actions")
+TESTED = ("H_agents", "H_landmark")  # the plan's tested targets; V is its control; X_actions is exploratory
+FEATURES = ("u", "o", "ou")  # [u_i], [o_i], [o_i, u_i]
+ANALYSIS_VERSION = 2  # bump when a per-team figure would change: cached results are then recomputed
+
+
+class MessagesError(ValueError):
+    """The team cannot be analysed; the message says why and what to do."""
+
+
+@dataclass
+class Recording:
+    """One evaluation seed of a team, episode-major: E episodes of T steps, N agents."""
+
+    msgs: np.ndarray  # (E, T, N, M) float32: the message each agent acted on (zeros where cut)
+    mean: np.ndarray  # (E, T, N, M) float32: the central policy's mean (rl: before the Gaussian noise)
+    local_obs: np.ndarray  # (E, T, N, D) float32: what each local agent saw
+    full_obs: np.ndarray  # (E, T, N, D) float32: the env's observation (the central state's part)
+    pos: np.ndarray  # (E, T, N, 2) float64: agent positions when the observation was made
+    landmarks: np.ndarray  # (E, T, N, 2) float64
+    prev: np.ndarray  # (E, T, N, A) float32: the previous actions in the central agent's state
+    paper_metric: np.ndarray  # (E,)
+
+
+class TeamActor:
+    """A trained team (a run directory with final/, or a bundle) acting in this process."""
+
+    def __init__(self, run: Path) -> None:
+        from faults.sweep import team_source
+
+        self.run = Path(run)
+        self.data, self.policy_dir = team_source(self.run)
+        cfg = self.config(0, 1)
+        if cfg.env != "cn":
+            raise MessagesError(f"{run}: env {cfg.env!r}; the hidden targets are defined for cn (envs.spread) only")
+        if not cfg.wiring.uses_central:
+            raise MessagesError(f"{run}: variant {cfg.variant} sends no messages; fix: pass hammer or random teams")
+        self.local_blob = (self.policy_dir / "local.safetensors").read_bytes()
+        self.central_blob = ((self.policy_dir / "central.safetensors").read_bytes()
+                             if cfg.wiring.has_central_network else None)
+
+    def config(self, seed: int, episodes: int):
+        from faults.sweep import eval_config
+
+        return eval_config(self.run, episodes, seed)
+
+    def weights_digest(self) -> str:
+        h = hashlib.sha256(self.local_blob)
+        h.update(self.central_blob or b"")
+        return h.hexdigest()
+
+    def rollout(self, seed: int, episodes: int, cut: tuple[int, ...] = (), record: bool = False
+                ) -> Recording | np.ndarray:
+        """The first `episodes` episodes of evaluation seed `seed` (the runtime's episode order), with the
+        messages of the agents in `cut` replaced by zeros; the per-episode paper metric, or everything."""
+        from envs.local_view import local_view_from_config
+        from envs.registry import make_vec_env
+        from learning.central_acting import CentralActing, zero_prev_actions
+        from learning.rollout import next_prev_actions
+        from learning.sampling import ActingStreams, env_reset_seed
+
+        cfg = self.config(seed, episodes)
+        env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs or None)
+        spec, view, agents, net = env.spec, local_view_from_config(cfg), *self._networks(cfg, env.spec)
+        acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
+        obs, _ = env.reset(env_reset_seed(cfg.seed, 0))
+        prev = zero_prev_actions(spec, cfg.num_envs)
+        metrics, steps = [], []
+        while len(metrics) < episodes:
+            out = acting.messages(acting.global_state(obs, prev), streams, 0.0,
+                                  net.message_mean if net is not None else None,
+                                  net.values if net is not None and acting.rl else None)
+            msgs = out.sent.copy()
+            msgs[:, list(cut)] = 0.0
+            seen = view(obs)
+            if record:
+                steps.append((msgs, out.mean, seen, obs, env.pos.copy(), env.landmarks.copy(), prev))
+            actions = np.stack([a.act(seen[:, i], msgs[:, i]) for i, a in enumerate(agents)], axis=1)
+            step = env.step(spec.env_action(actions))
+            prev = next_prev_actions(spec, actions, step).prev
+            obs = step.obs
+            metrics += [e.paper_metric for e in step.episodes]
+        env.close()
+        metric = np.asarray(metrics[:episodes])
+        return _episode_major(steps, spec.max_steps, episodes, metric) if record else metric
+
+    def _networks(self, cfg, spec):
+        from safetensors.numpy import load as load_safetensors
+
+        from learning.numpy_policy import NumpyCentralAgent
+        from local_agent.client import AgentSpec, LocalAgent
+
+        agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
+        for a in agents:
+            a.load_weights(self.local_blob, 0)
+        net = NumpyCentralAgent(load_safetensors(self.central_blob)) if self.central_blob is not None else None
+        return agents, net
+
+
+def _episode_major(steps: list[tuple], t: int, episodes: int, metric: np.ndarray) -> Recording:
+    """Per-step (K, N, ...) arrays -> (E, T, N, ...): every cn copy's episodes last exactly T steps and
+    all copies reset together, so step s belongs to round s // T; episodes are round-major, copy
+    within round (the order the env reports them)."""
+    if len(steps) % t:
+        raise MessagesError(f"{len(steps)} steps is not a whole number of {t}-step episodes")
+
+    def stack(j: int) -> np.ndarray:
+        a = np.stack([s[j] for s in steps])  # (S, K, N, ...)
+        a = a.reshape(len(steps) // t, t, *a.shape[1:])  # (R, T, K, ...)
+        a = np.moveaxis(a, 2, 1)  # (R, K, T, ...)
+        return a.reshape(-1, *a.shape[2:])[:episodes]
+
+    return Recording(*(stack(j) for j in range(7)), paper_metric=metric)
+
+
+# ----- hidden targets -----------------------------------------------------------------------------
+@dataclass
+class Target:
+    """A target of receiving agents: S 2-D slots per agent and row, each defined only where `mask`."""
+
+    values: np.ndarray  # (R, N, S, 2)
+    mask: np.ndarray  # (R, N, S) bool
+    names: list[str]  # one per slot
+
+
+def hidden_targets(pos: np.ndarray, landmarks: np.ndarray, full_obs: np.ndarray, radius: float | None
+                   ) -> dict[str, Target]:
+    """The plan's targets per row (a step of an episode) and receiving agent, from the world state.
+    pos, landmarks (R, N, 2); full_obs (R, N, D) only for which slots a radius hides (the local view's
+    own test: squared distance of the float32 relative position, in float64, ≥ r²)."""
+    r, n = pos.shape[:2]
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])  # (N, N-1)
+    rel_agents = pos[:, others] - pos[:, :, None]  # (R, N, N-1, 2)
+    rel_lm = landmarks[:, None] - pos[:, :, None]  # (R, N, L, 2)
+    dist_lm = np.linalg.norm(rel_lm, axis=-1)  # (R, N, L)
+    nearest = dist_lm.argmin(axis=-1)  # (R, N): each agent's nearest landmark
+    claimed = np.zeros(dist_lm.shape, bool)  # (R, N, L): some other agent's nearest
+    for i in range(n):
+        for j in others[i]:
+            claimed[np.arange(r), i, nearest[:, j]] = True
+    take = np.where(claimed, np.inf, dist_lm).argmin(axis=-1)  # (R, N): always one left (N-1 claims)
+    pick = lambda idx: np.take_along_axis(rel_lm, idx[:, :, None, None], axis=2)
+    if radius is None:
+        hid_agents = np.ones(rel_agents.shape[:3], bool)
+        hid_take = vis_near = np.ones((r, n, 1), bool)
+    else:
+        d2_lm, d2_ag = _observed_d2(full_obs, n)
+        hid_agents = d2_ag >= radius * radius
+        hid_take = np.take_along_axis(d2_lm, take[:, :, None], axis=2) >= radius * radius
+        vis_near = np.take_along_axis(d2_lm, nearest[:, :, None], axis=2) < radius * radius
+    return {"H_agents": Target(rel_agents, hid_agents, [f"other agent {m + 1}" for m in range(n - 1)]),
+            "H_landmark": Target(pick(take), hid_take, ["landmark to take"]),
+            "V": Target(pick(nearest), vis_near, ["nearest landmark"])}
+
+
+def _observed_d2(full_obs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Squared distances (R, N, L) to landmarks and (R, N, N-1) to other agents, as `SpreadRadiusView`
+    computes them from the observation's relative-position slots."""
+    pairs = n + (n - 1)
+    rel = full_obs[..., 4:4 + 2 * pairs].reshape(*full_obs.shape[:-1], pairs, 2)
+    d2 = np.square(rel[..., 0], dtype=np.float64) + np.square(rel[..., 1], dtype=np.float64)
+    return d2[..., :n], d2[..., n:]
+
+
+def recording_targets(rec: Recording, radius: float | None) -> dict[str, Target]:
+    """`hidden_targets` of every row (episode, step) of a recording, and the exploratory X_actions."""
+    from envs.spread import _ACTION_FORCE, SENSITIVITY
+
+    e, t, n = rec.msgs.shape[:3]
+    flat = [a.reshape(e * t, *a.shape[2:]) for a in (rec.pos, rec.landmarks, rec.full_obs, rec.prev)]
+    out = hidden_targets(*flat[:3], radius)
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])
+    direction = flat[3] @ (_ACTION_FORCE / SENSITIVITY)  # (R, N, 2); no previous action: (0, 0)
+    out["X_actions"] = Target(direction[:, others], np.ones((e * t, n, n - 1), bool),
+                              [f"other agent {m + 1}'s previous action" for m in range(n - 1)])
+    return out
+
+
+# ----- probes -------------------------------------------------------------------------------------
+def concat(recs: list[Recording]) -> Recording:
+    """The evaluation seeds of one team as one recording (episodes stay whole, ids stay distinct)."""
+    return Recording(*(np.concatenate([getattr(r, f) for r in recs]) for f in Recording.__dataclass_fields__))
+
+
+def features(rec: Recording, agent: int, message: str = "msgs") -> dict[str, np.ndarray]:
+    """The probe inputs of one receiving agent, rows = (episode, step): [u_i], [o_i], [o_i, u_i].
+    message="mean" probes the central policy's noise-free mean instead of what was sent (exploratory)."""
+    e, t = rec.msgs.shape[:2]
+    u = getattr(rec, message)[:, :, agent].reshape(e * t, -1)
+    o = rec.local_obs[:, :, agent].reshape(e * t, -1)
+    return {"u": u, "o": o, "ou": np.concatenate([o, u], axis=1)}
+
+
+def probe_recording(rec: Recording, radius: float | None, message: str = "msgs") -> dict:
+    """Held-out R² of every feature set and the gain R²([o,u]) − R²([o]), per target: averaged over
+    receiving agents and slots (`per_agent` keeps each agent's), each (agent, slot) probe fitted on
+    the rows where the slot is defined; NaN where fewer than FOLDS episodes define it."""
+    e, t, n = rec.msgs.shape[:3]
+    episode = np.repeat(np.arange(e), t)
+    targets = recording_targets(rec, radius)
+    out = {}
+    for name, tgt in targets.items():
+        scores = np.full((n, tgt.mask.shape[2], len(FEATURES)), np.nan)
+        for i in range(n):
+            x = features(rec, i, message)
+            for s in range(tgt.mask.shape[2]):
+                rows = np.flatnonzero(tgt.mask[:, i, s])
+                if len(np.unique(episode[rows])) < FOLDS:
+                    continue
+                y = tgt.values[rows, i, s]
+                scores[i, s] = [cv_r2(x[f][rows], y, episode[rows]) for f in FEATURES]
+        per_agent = _nanmean(scores, axis=1)  # (N, F)
+        team = _nanmean(per_agent, axis=0)
+        out[name] = {**{f: team[k] for k, f in enumerate(FEATURES)}, "gain": team[2] - team[1],
+                     "per_agent_gain": [float(v) for v in per_agent[:, 2] - per_agent[:, 1]],
+                     "rows": int(tgt.mask.sum())}
+    return out
+
+
+def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
+    """Mean ignoring NaN; NaN (not a warning) where a whole slice is undefined."""
+    ok = ~np.isnan(a)
+    n = ok.sum(axis=axis)
+    return np.where(n > 0, np.where(ok, a, 0.0).sum(axis=axis) / np.maximum(n, 1), np.nan)
+
+
+# ----- message cut --------------------------------------------------------------------------------
+def cut_drops(actor: TeamActor, seeds: list[int], episodes: int, uncut: np.ndarray) -> dict:
+    """Per agent i (and, as a check against `hammer faults`, every agent at once): the paper metric of
+    the same episodes with i's message zeroed, paired per episode with `uncut` (seeds concatenated):
+    drop = mean(uncut − cut) (> 0: the cut costs), its paired standard error over episodes."""
+    n = actor.config(0, 1).n_agents
+    out = {}
+    for name, cut in [*((f"agent {i}", (i,)) for i in range(n)), ("all", tuple(range(n)))]:
+        cut_metric = np.concatenate([actor.rollout(s, episodes, cut=cut) for s in seeds])
+        d = uncut - cut_metric
+        out[name] = {"drop": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(len(d)))}
+    return out
+
+
+def initial_central_weights(cfg) -> dict[str, np.ndarray]:
+    """The central agent's weights before training: `learning.team.Team` builds the networks right after
+    `torch.manual_seed(cfg.seed)`, so building it again gives the run's exact initialisation (its
+    checkpoint 0; tests/test_messages.py compares)."""
+    from envs.registry import make_vec_env
+    from learning.team import Team
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    try:
+        return Team(cfg, env.spec).central.export_numpy()
+    finally:
+        env.close()
+
+
+def initial_messages(actor: TeamActor, rec: Recording, seed: int = 0) -> np.ndarray:
+    """What the team's central agent as initialised before training (`learning.team.Team` seeds torch
+    with the run's seed, so these are its exact initial weights) would have sent in the recorded states,
+    sampled as it samples (rl: mean + msg_std × N(0, 1) clipped to [-1, 1]). A reference for the probe:
+    any function of the global state carries some of what the receiver cannot see, learned or not."""
+    from learning.central_acting import CentralActing
+    from learning.config import build_config
+    from learning.numpy_policy import NumpyCentralAgent
+
+    cfg = build_config(actor.data)
+    net = NumpyCentralAgent(initial_central_weights(cfg))
+    e, t, n, m = rec.msgs.shape
+    state = CentralActing.from_config(cfg).global_state(rec.full_obs.reshape(e * t, n, -1),
+                                                        rec.prev.reshape(e * t, n, -1))
+    u = net.message_mean(state)
+    if cfg.wiring.central_rl:
+        u = np.clip(u + cfg.msg_std * np.random.default_rng(seed).standard_normal(u.shape), -1.0, 1.0)
+    return u.reshape(e, t, n, m).astype(np.float32)
+
+
+# ----- one team -----------------------------------------------------------------------------------
+def team_key(actor: TeamActor, seeds: list[int], episodes: int) -> str:
+    """What a cached result depends on: the weights, the evaluation, the analysis version."""
+    blob = json.dumps([actor.weights_digest(), seeds, episodes, ANALYSIS_VERSION])
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool = False) -> dict:
+    """Record, probe and cut one team; a JSON-ready dict (with one episode for the figure if asked)."""
+    from experiments.runs import load_run
+
+    actor = TeamActor(run)
+    info = load_run(run)
+    recs = [actor.rollout(s, episodes, record=True) for s in seeds]
+    rec = concat(recs)
+    radius = (actor.data.get("env_kwargs") or {}).get("obs_radius")
+    res = {"run": str(run), "setting": info.setting, "label": info.label, "seed": info.seed,
+           "key": team_key(actor, seeds, episodes), "episodes": len(rec.paper_metric), "eval_seeds": seeds,
+           "paper_metric": float(rec.paper_metric.mean()),
+           "paper_metric_per_seed": [float(r.paper_metric.mean()) for r in recs],
+           "probes": probe_recording(rec, radius)}
+    if actor.data.get("variant") == "hammer":  # exploratory references, not the plan's tests
+        if actor.data.get("central_mode") == "rl":
+            res["probes_mean"] = probe_recording(rec, radius, message="mean")  # the noise-free message
+        res["probes_initial"] = probe_recording(replace(rec, msgs=initial_messages(actor, rec)), radius)
+    res["cut"] = cut_drops(actor, seeds, episodes, rec.paper_metric)
+    if keep_episode:
+        res["episode"] = episode_trace(recs[0], radius)
+    return res
+
+
+# ----- one episode, for the figure -----------------------------------------------------------------
+def hidden_scalars(rec: Recording, radius: float | None) -> list[tuple[list[str], np.ndarray]]:
+    """Every hidden scalar: (its name for each receiving agent, values (R, N) with NaN where the plan
+    leaves it undefined), the x and y of H_agents' and H_landmark's slots."""
+    tg = recording_targets(rec, radius)
+    n = rec.msgs.shape[2]
+    others = [[j for j in range(n) if j != i] for i in range(n)]
+    out = []
+    for name in TESTED:
+        for s in range(tg[name].mask.shape[2]):
+            for c, axis in enumerate("xy"):
+                names = [f"agent {others[i][s]} {axis} − own {axis} (H_agents)" if name == "H_agents"
+                         else f"landmark to take {axis} (H_landmark)" for i in range(n)]
+                out.append((names, np.where(tg[name].mask[:, :, s], tg[name].values[:, :, s, c], np.nan)))
+    return out
+
+
+def best_hidden(h_all: list[tuple[list[str], np.ndarray]], u: np.ndarray, i: int, rows: slice) -> dict:
+    """The hidden scalar most correlated with one message component u (R,) of agent i over all rows,
+    and its values in `rows` rescaled to u's mean and spread (sign of r): what the figure overlays."""
+    best = {"name": None, "r": float("nan"), "overlay": [None] * (rows.stop - rows.start)}
+    for names, h in h_all:
+        ok = np.isfinite(h[:, i])
+        if ok.sum() <= 10 or np.std(h[ok, i]) == 0 or np.std(u[ok]) == 0:
+            continue
+        r = float(np.corrcoef(h[ok, i], u[ok])[0, 1])
+        if best["name"] is None or abs(r) > abs(best["r"]):
+            z = (h[rows, i] - h[ok, i].mean()) / h[ok, i].std()
+            over = u[ok].mean() + np.sign(r) * u[ok].std() * z
+            best = {"name": names[i], "r": r, "overlay": [float(v) if np.isfinite(v) else None for v in over]}
+    return best
+
+
+def episode_trace(rec: Recording, radius: float | None, episode: int = 0) -> dict:
+    """One episode's messages and, per agent and component, the hidden scalar that best predicts it
+    over the whole recording (largest |correlation|), for messages-episode.png."""
+    e, t, n, m = rec.msgs.shape
+    h_all = hidden_scalars(rec, radius)
+    u = rec.msgs.reshape(e * t, n, m)
+    rows = slice(episode * t, (episode + 1) * t)
+    best = [[best_hidden(h_all, u[:, i, c], i, rows) for c in range(m)] for i in range(n)]
+    return {"msgs": rec.msgs[episode].tolist(), "mean": rec.mean[episode].tolist(), "best": best,
+            "paper_metric": float(rec.paper_metric[episode])}
