@@ -37,6 +37,10 @@ class EnvSpec:
     action_high: float | None = None
     # The action an absent/late agent is given (no-op for discrete, zero torque for continuous).
     default_action: int = 0
+    # Central state hook: columns [local_obs_dim, obs_dim) of every observation row are for the central
+    # agent only (what the env knows beyond the agents' own views, e.g. the whole warehouse); every
+    # local-policy input has them zeroed (`envs.local_view`). None: the whole row is the agent's own.
+    local_obs_dim: int | None = None
 
     @property
     def action_shape(self) -> tuple[int, ...]:
