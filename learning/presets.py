@@ -63,13 +63,14 @@ _MW = {
 # defaults (sensor range 1, 500-step episodes, request queue = N, individual rewards). Sparse reward
 # and long episodes, hence gamma 0.99 (as in rware's own baselines, EPyMARL). 16 copies x 125 steps =
 # 2,000 env steps per update; checkpoints every 20 updates = 5 whole episodes per copy, so the reseed
-# at a checkpoint falls on episode boundaries. 2,000 episodes = 1M env steps.
+# at a checkpoint falls on episode boundaries. 10,000 episodes = 5M env steps: the pilot budget B that
+# step 1 of the plan fixed (docs/results/warehouse.md).
 _RWARE = {
     "env": "rware",
     "env_kwargs": {"size": "tiny"},
     "gamma": 0.99,
     "clip": 0.2,
-    "episodes": 2_000,
+    "episodes": 10_000,
     "num_envs": 16,
     "rollout_steps": 125,
     "epochs": 4,
