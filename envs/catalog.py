@@ -65,7 +65,7 @@ _CN_ABOUT = "cooperative navigation, vectorised numpy (envs.spread.VecSimpleSpre
 
 def env_names() -> list[str]:
     """The registered names; any `module:factory` PettingZoo parallel env is accepted as well."""
-    return ["cn", *_PETTINGZOO, "rware", "rware-<size>-<N>ag"]
+    return ["cn", *_PETTINGZOO, "rware"]
 
 
 def env_descriptions() -> dict[str, str]:
@@ -77,7 +77,8 @@ def env_descriptions() -> dict[str, str]:
 
 def valid_names() -> str:
     """The names as error messages list them."""
-    return ", ".join(env_names()) + ", or 'module:factory' for any PettingZoo parallel env"
+    return (", ".join(env_names()) + ", rware-<tiny|small|medium|large>-<N>ag[-easy|-hard], or 'module:factory' "
+            "for any PettingZoo parallel env")
 
 
 # -- helpers ---------------------------------------------------------------------------------------
