@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose snapshot status faults-ownobs messages
+.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -57,12 +57,19 @@ DOSE_VARIANTS := hammer-rl,hammer-backprop,il,random,centralized
 # compile=true (the plan's amendment of 2026-12-03, before any run: 2.4x faster here).
 G_CN3_DOSE = --out runs/paper/cn3-dose --archive $(A)/cn3-dose --presets cn3 --variants $(or $(1),$(DOSE_VARIANTS)) --seeds 0-9 --grid compile=true --grid env_kwargs.obs_radius=1.5,1.0,0.6,0.3,0.0
 G_CN3_DOSE_FULL = --out runs/paper/cn3-dose-full --archive $(A)/cn3-dose-full --presets cn3 --variants $(or $(1),$(DOSE_VARIANTS)) --seeds 0-9 --grid compile=true
+# The warehouse pilot (docs/results/plan-warehouse.md, step 2): hammer-rl vs IL, 3 seeds, tiny with 2 and 4
+# robots. Budget deviation, stated in docs/results/warehouse.md: 1M env steps (2,000 episodes) per run,
+# not the plan's B = 5M (10,000), which this shared machine could not give in the session that started it.
+G_RWARE_PILOT := --out runs/paper/rware-pilot --archive $(A)/rware-pilot --presets rware-tiny-2ag,rware-tiny-4ag --variants hammer-rl,il --seeds 0-2 --episodes 2000
 # The primary contrast (hammer-rl vs IL) first at every level, so a grid cut short still answers H1/H2.
 paper-dose: $(STAMP)
 	$(H) sweep $(call G_CN3_DOSE_FULL,hammer-rl$(,)il) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE,hammer-rl$(,)il) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE) --snapshot-every 20
+	$(MAKE) paper-report
+paper-warehouse: $(STAMP)
+	$(H) sweep $(G_RWARE_PILOT) --snapshot-every 20
 	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
@@ -92,6 +99,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(G_CN3_MSGLEN) --snapshot
 	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot
 	$(H) sweep $(call G_CN3_DOSE) --snapshot
+	$(H) sweep $(G_RWARE_PILOT) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
@@ -106,6 +114,7 @@ status: $(STAMP)
 	@$(H) sweep $(G_CN3_MSGLEN) --status
 	@$(H) sweep $(call G_CN3_DOSE_FULL) --status
 	@$(H) sweep $(call G_CN3_DOSE) --status
+	@$(H) sweep $(G_RWARE_PILOT) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.

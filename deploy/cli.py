@@ -129,7 +129,7 @@ def up_command(
         metavar="[CONFIG]", help="YAML file of RunConfig fields (the same as --config).")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="YAML file of RunConfig fields (as `hammer train --config`).")] = None,
-    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings; default cn3).")] = None,
+    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings; default cn3), rware-tiny-2ag | rware-tiny-4ag.")] = None,
     variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized (default hammer).")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code).")] = None,
     seed: Annotated[int | None, typer.Option(help="Run seed.")] = None,

@@ -56,7 +56,7 @@ class EnvHost(Role):
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
         self.wiring = cfg.wiring
         self.n, self.k = cfg.n_agents, cfg.num_envs
-        self.local_view = local_view_from_config(cfg)  # LocalObs only; GlobalState stays full
+        self.local_view = local_view_from_config(cfg, self.spec)  # LocalObs only; GlobalState stays full
         self.weights_timeout_s, self.max_policy_lag = weights_timeout_s, max_policy_lag
         self.resume_from, self.resume_step = resume_from, resume_step
         # Link events per step (faults.steplog), joined with the episodes' spans by `hammer up`.

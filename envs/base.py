@@ -10,6 +10,11 @@ Array conventions (K = num_envs copies, N = n_agents, D = obs_dim, A = action di
   discrete     actions int64   (K, N)     in [0, n_actions)
   continuous   actions float32 (K, N, A)  clipped by the env to [action_low, action_high]
 Actions of absent agents are ignored.
+
+Central state hook: an env may append central-only columns to every observation row and declare
+where they start (`EnvSpec.local_obs_dim`). The central agent's global state concatenates the full
+rows; every local-policy input has those columns zeroed (`envs.local_view`). See
+docs/architecture.md, "Central state".
 """
 
 from __future__ import annotations
@@ -37,6 +42,10 @@ class EnvSpec:
     action_high: float | None = None
     # The action an absent/late agent is given (no-op for discrete, zero torque for continuous).
     default_action: int = 0
+    # Central state hook: columns [local_obs_dim, obs_dim) of every observation row are for the central
+    # agent only (what the env knows beyond the agents' own views, e.g. the whole warehouse); every
+    # local-policy input has them zeroed (`envs.local_view`). None: the whole row is the agent's own.
+    local_obs_dim: int | None = None
 
     @property
     def action_shape(self) -> tuple[int, ...]:

@@ -65,17 +65,20 @@ _CN_ABOUT = "cooperative navigation, vectorised numpy (envs.spread.VecSimpleSpre
 
 def env_names() -> list[str]:
     """The registered names; any `module:factory` PettingZoo parallel env is accepted as well."""
-    return ["cn", *_PETTINGZOO]
+    return ["cn", *_PETTINGZOO, "rware"]
 
 
 def env_descriptions() -> dict[str, str]:
-    """One line per registered name, for `hammer envs list` and error messages."""
-    return {"cn": _CN_ABOUT, **{n: e.about for n, e in _PETTINGZOO.items()}}
+    """One line per registered name (each builds at any N), for `hammer envs list` and error messages."""
+    from envs.rware_vec import ABOUT
+
+    return {"cn": _CN_ABOUT, **{n: e.about for n, e in _PETTINGZOO.items()}, "rware": ABOUT}
 
 
 def valid_names() -> str:
     """The names as error messages list them."""
-    return ", ".join(env_names()) + ", or 'module:factory' for any PettingZoo parallel env"
+    return (", ".join(env_names()) + ", rware-<tiny|small|medium|large>-<N>ag[-easy|-hard], or 'module:factory' "
+            "for any PettingZoo parallel env")
 
 
 # -- helpers ---------------------------------------------------------------------------------------
@@ -191,6 +194,10 @@ def _adapted(factory: Callable[[], Any], desc: EnvDescription) -> Callable[[], A
 
 def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:
     """The in-process VecEnv for `desc`; also what each worker of `SubprocVecEnv` runs on its slice."""
+    from envs.rware_vec import build_rware, is_rware
+
+    if is_rware(desc.name):
+        return build_rware(desc, num_envs, index_offset)
     factory, spec_name, max_steps = parallel_env_factory(desc)
     venv = PettingZooVecEnv(factory, num_envs, name=spec_name, max_steps=max_steps, index_offset=index_offset)
     if venv.spec.n_agents != desc.n_agents:

@@ -13,6 +13,10 @@ masks the part a local agent may not see, and it is applied at exactly two place
 
 Masking is a pure function of the full observation, so both places give the same bits.
 
+Envs with central-only columns (`EnvSpec.local_obs_dim`, the central state hook, e.g. rware): the
+columns from `local_obs_dim` on carry what only the central agent may know (the whole warehouse);
+`CentralColumnsView` zeroes them. The width stays the same, for the reason below.
+
 cn (`envs.spread`) with `env_kwargs.obs_radius=r`: a landmark or another agent is visible to agent
 i only if its distance from i is below r; the slots of a hidden one (its relative position, 2
 values) are set to 0. Own velocity and position are always visible, so r=0 leaves nothing but
@@ -72,19 +76,45 @@ class SpreadRadiusView(LocalView):
         return f"landmarks and agents within {self.radius:g}"
 
 
-def local_view_for(env: str, n_agents: int, env_kwargs: dict[str, Any], joint_obs: bool = False) -> LocalView:
-    """The local view a run's config asks for (`env_kwargs.obs_radius` on cn), else the identity."""
+class CentralColumnsView(LocalView):
+    """An env with central-only columns (`EnvSpec.local_obs_dim`, e.g. rware's whole warehouse):
+    zero columns [local_obs_dim, D) so a local agent sees only its own part of the row."""
+
+    active = True
+
+    def __init__(self, local_obs_dim: int) -> None:
+        self.local_obs_dim = int(local_obs_dim)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        out = np.array(obs, dtype=np.float32, copy=True)
+        out[..., self.local_obs_dim:] = 0.0
+        return out
+
+    def describe(self) -> str:
+        return f"own view (first {self.local_obs_dim} values; the rest is for the central agent)"
+
+
+def local_view_for(env: str, n_agents: int, env_kwargs: dict[str, Any], joint_obs: bool = False,
+                   local_obs_dim: int | None = None) -> LocalView:
+    """The local view a run asks for: the env's central-only columns (`local_obs_dim`, from its spec)
+    cut away, or `env_kwargs.obs_radius` on cn, else the identity."""
+    if joint_obs:
+        return LocalView()
+    if local_obs_dim is not None:
+        return CentralColumnsView(local_obs_dim)
     radius = env_kwargs.get("obs_radius")
-    if radius is None or joint_obs:
+    if radius is None:
         return LocalView()
     if env != "cn":  # the cn builder validates the value; other envs reject the unknown kwarg themselves
         return LocalView()
     return SpreadRadiusView(n_agents, radius)
 
 
-def local_view_from_config(cfg) -> LocalView:
-    """`local_view_for` from a RunConfig (the fully centralised wiring always sees everything)."""
-    return local_view_for(cfg.env, cfg.n_agents, dict(cfg.env_kwargs), joint_obs=cfg.wiring.joint_obs)
+def local_view_from_config(cfg, spec) -> LocalView:
+    """`local_view_for` from a RunConfig and the env's spec (the fully centralised wiring always sees
+    everything). The spec is required so that no caller can forget an env's central-only columns."""
+    return local_view_for(cfg.env, cfg.n_agents, dict(cfg.env_kwargs), joint_obs=cfg.wiring.joint_obs,
+                          local_obs_dim=spec.local_obs_dim)
 
 
 def spread_hidden_fraction(radius: float, n_agents: int = 3, copies: int = 512, steps: int = 75,

@@ -12,6 +12,11 @@ Names:
             is exact (`envs.multiwalker_direct`: terminate_on_fall=True, the paper's setting).
   mw-pettingzoo
             the same env through PettingZoo's parallel wrapper all the way (the reference).
+  rware     the multi-robot warehouse (rware 2.0, Gymnasium with tuple spaces, `envs.rware_vec`): each
+            robot's partial view is its local observation, the whole warehouse goes to the central
+            agent only (`EnvSpec.local_obs_dim`); env_kwargs size (tiny|small|medium|large),
+            difficulty (easy|normal|hard), sensor_range, max_steps (500), column_height,
+            request_queue_size, reward_type. `rware-tiny-2ag` etc. name rware's own presets.
   module:factory
             any PettingZoo parallel env, e.g. `pettingzoo.sisl.multiwalker_v9:parallel_env`
             or `mpe2.simple_reference_v3:parallel_env`; env_kwargs
@@ -36,6 +41,7 @@ from envs.adapters import parse_adapters
 from envs.base import VecEnv
 from envs.catalog import build_cn, build_local, parallel_env_factory, valid_names
 from envs.description import EnvConfigError, EnvDescription
+from envs.rware_vec import is_rware, settings_from
 from envs.workers import SubprocVecEnv
 
 
@@ -65,7 +71,10 @@ def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str
                                  "remove env_adapters")
         return build_cn(n_agents, num_envs, kwargs, workers)
     desc = EnvDescription(env, n_agents, kwargs, adapters)
-    parallel_env_factory(desc)  # validate the name and kwargs here, before any process starts
+    if is_rware(env):
+        settings_from(desc)  # validate the name and kwargs here, before any process starts
+    else:
+        parallel_env_factory(desc)  # validate the name and kwargs here, before any process starts
     if workers == 0 or (workers == 1 and parent_slice):
         return build_local(desc, num_envs)
     return SubprocVecEnv(desc, num_envs, workers, parent_slice=parent_slice)

@@ -21,7 +21,7 @@ def _fail(msg: str) -> None:
 
 
 def train_command(
-    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings)")] = None,
+    preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings), rware-tiny-2ag | rware-tiny-4ag")] = None,
     variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code)")] = None,
     seed: Annotated[int | None, typer.Option(help="run seed")] = None,

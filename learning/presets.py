@@ -1,4 +1,4 @@
-"""The paper's four settings as named presets (see docs/learning.md for why each value).
+"""The paper's four settings (and the warehouse of issue 23) as named presets (see docs/learning.md for why each value).
 
 From the paper: gamma 0.95, PPO clip 0.2, message lengths 4/8 (CN N=3/5) and 8/10 (MW N=3/5),
 budgets 30,000 episodes (CN) and 10,000 (MW), central lr 3e-4. Everything else (rollout size,
@@ -59,10 +59,36 @@ _MW = {
     "checkpoint_every": 20,
 }
 
+# The multi-robot warehouse (docs/results/plan-warehouse.md): tiny layout (11x10, 32 shelves), rware's
+# defaults (sensor range 1, 500-step episodes, request queue = N, individual rewards). Sparse reward
+# and long episodes, hence gamma 0.99 (as in rware's own baselines, EPyMARL). 16 copies x 125 steps =
+# 2,000 env steps per update; checkpoints every 20 updates = 5 whole episodes per copy, so the reseed
+# at a checkpoint falls on episode boundaries. 10,000 episodes = 5M env steps: the pilot budget B that
+# step 1 of the plan fixed (docs/results/warehouse.md).
+_RWARE = {
+    "env": "rware",
+    "env_kwargs": {"size": "tiny"},
+    "gamma": 0.99,
+    "clip": 0.2,
+    "episodes": 10_000,
+    "num_envs": 16,
+    "rollout_steps": 125,
+    "epochs": 4,
+    "minibatches": 4,
+    "lr_central": 3e-4,
+    "lr_local": 3e-4,
+    "ent_coef": 0.01,
+    "gae_lambda": 0.95,
+    "checkpoint_every": 20,
+    "msg_dim": 4,
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     "cn3": {**_CN, "n_agents": 3, "msg_dim": 4},
     "cn5": {**_CN, "n_agents": 5, "msg_dim": 8},
     "mw3": {**_MW, "n_agents": 3, "msg_dim": 8},
     "mw5": {**_MW, "n_agents": 5, "msg_dim": 10},
+    "rware-tiny-2ag": {**_RWARE, "n_agents": 2},
+    "rware-tiny-4ag": {**_RWARE, "n_agents": 4},
 }
 

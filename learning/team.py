@@ -49,7 +49,7 @@ class Team:
         self.acting = CentralActing.from_config(cfg)
         # What a local agent may see of the full observation (identity unless env_kwargs asks):
         # applied to every local-policy input here, never to the global state.
-        self.local_view = local_view_from_config(cfg)
+        self.local_view = local_view_from_config(cfg, spec)
 
     @property
     def central_rl(self) -> bool:

@@ -16,7 +16,7 @@ from envs.registry import make_vec_env
 
 
 def test_names_and_descriptions():
-    assert env_names() == ["cn", "cn-mpe2", "mw", "mw-pettingzoo"]
+    assert env_names() == ["cn", "cn-mpe2", "mw", "mw-pettingzoo", "rware"]
     assert set(env_descriptions()) == set(env_names())
 
 
