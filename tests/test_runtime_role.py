@@ -290,3 +290,21 @@ def test_step_window_follows_a_steady_stream_below_an_anchor_it_never_followed()
     assert not w.ahead(3, 99)  # accepted in the window of the old anchor; the caller's last moves down to 3
     assert w.stale(3, 3) and w.stale(2, 3)  # duplicates right after it are stale again (just accepted)
     assert w.stale(3, 3)
+
+
+def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, monkeypatch):
+    """The launcher hands every role it (re)starts the env host's last reported step; the role's
+    first-step bound starts there (not at 0, where a restart after step_window would refuse the
+    real stream) and never below the run's own start."""
+    from deploy.up import Launcher
+    from runtime.bounds import RUN_STEP_ENV, known_step
+
+    launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
+    launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 12_345}))
+    hint = launcher.sup._env[RUN_STEP_ENV]  # what the next started role gets in its environment
+    monkeypatch.setenv(RUN_STEP_ENV, hint)
+    assert known_step(None) == 12_345 and known_step(20_000) == 20_000
+    monkeypatch.setenv(RUN_STEP_ENV, "junk")
+    assert known_step(None) == 0 and known_step(7) == 7
+    monkeypatch.delenv(RUN_STEP_ENV)
+    assert known_step(None) == 0

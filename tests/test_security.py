@@ -385,3 +385,21 @@ def test_router_hub_enforces_the_rules_for_its_clients(idents):
         assert sorted(_wait_for(acts, 2)) == [b"a0", b"a1"]
         assert _wait_for(obs0, 1) == [b"o0"]
         assert _late_extra(acts) == [] and _late_extra(spy, 0.1) == []
+
+
+def test_hammer_hub_relays_only_a_run_made_for_a_router(tmp_path):
+    """A peer run has no `hub` identity and its roles accept nothing relayed: `hammer hub --run-dir`
+    refuses it in one line instead of starting a router nobody may use."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from deploy.settings import RuntimeSettings
+    from hammer.cli import app
+
+    RuntimeSettings(run_id="peers", secure=True).save(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps({"n_agents": N}))
+    res = CliRunner().invoke(app, ["hub", "--listen", "tcp/127.0.0.1:0", "--run-dir", str(tmp_path)])
+    assert res.exit_code == 2 and "no secure_hub=true" in res.output, res.output
+    with pytest.raises(ValueError, match="secure_hub=true needs secure=true"):
+        RuntimeSettings(run_id="plain", secure_hub=True)
