@@ -34,7 +34,20 @@ def groups(results: list[dict]) -> dict[str, dict[str, list[dict]]]:
 
 
 def gains(teams: list[dict], target: str, key: str = "probes") -> np.ndarray:
+    """The teams' gains on a target; a team where the target is never defined (e.g. a radius that
+    never hides the landmark to take: NaN) is left out, so n in the tables counts teams with one."""
+    g = raw_gains(teams, target, key)
+    return g[np.isfinite(g)]
+
+
+def raw_gains(teams: list[dict], target: str, key: str = "probes") -> np.ndarray:
+    """Every team's gain on a target, NaN where it is undefined (kept: paired comparisons need them)."""
     return np.array([t[key][target]["gain"] for t in teams], dtype=np.float64)
+
+
+def iqm_ci_or_nan(g: np.ndarray) -> tuple[float, float, float]:
+    """`iqm_ci`, or NaNs (printed as dashes) when no team defines the target."""
+    return iqm_ci(g) if len(g) else (float("nan"),) * 3
 
 
 @dataclass
@@ -70,6 +83,8 @@ def comparisons(results: list[dict]) -> list[Comparison]:
         for a, b in pairs(list(by_label)):
             for target in TESTED:
                 x, y = gains(by_label[a], target), gains(by_label[b], target)
+                if not len(x) or not len(y):  # the target is never hidden at this setting: no comparison made
+                    continue
                 comps.append(Comparison(setting, target, a, b, len(x), len(y), float(x.mean()), float(y.mean()),
                                         iqm_difference_ci(x, y), poi_ci(x, y), welch_p(x, y)))
     ok = [c for c in comps if c.p is not None]
@@ -110,11 +125,12 @@ def probe_table(results: list[dict]) -> list[str]:
                                            if all(key in t for t in teams)]
             for key, name in kinds:
                 for target in PLAN_TARGETS:
-                    r2s = [np.mean([t[key][target][f] for t in teams]) for f in FEATURES]
                     g = gains(teams, target, key)
+                    r2s = [np.nanmean([t[key][target][f] for t in teams]) if len(g) else np.nan for f in FEATURES]
                     se = g.std(ddof=1) / np.sqrt(len(g)) if len(g) > 1 else float("nan")
                     lines.append(f"| {setting} | {name} | {len(g)} | {target} | " + " | ".join(_f(v) for v in r2s)
-                                 + f" | {_f(g.mean())} ± {_f(se).lstrip('+')} | {_ci(iqm_ci(g))} |")
+                                 + f" | {_f(g.mean() if len(g) else np.nan)} ± {_f(se).lstrip('+')} | "
+                                   f"{_ci(iqm_ci_or_nan(g))} |")
     return lines
 
 
@@ -137,7 +153,8 @@ def control_table(results: list[dict]) -> list[str]:
             g = gains(teams, "V")
             rnd = by_label.get("random-" + label.split("-")[-1])
             p = welch_p(g, gains(rnd, "V")) if rnd and not label.startswith("random") else None
-            lines.append(f"| {setting} | {label} | {len(g)} | {_f(g.mean())} | {_ci(iqm_ci(g))} | {_p(p)} |")
+            lines.append(f"| {setting} | {label} | {len(g)} | {_f(g.mean() if len(g) else np.nan)} | "
+                         f"{_ci(iqm_ci_or_nan(g))} | {_p(p)} |")
     return lines
 
 
@@ -149,8 +166,8 @@ def exploratory_target_table(results: list[dict]) -> list[str]:
             if all("X_actions" in t["probes"] for t in teams):
                 g = gains(teams, "X_actions")
                 r2u, r2o = (np.mean([t["probes"]["X_actions"][f] for t in teams]) for f in ("u", "o"))
-                lines.append(f"| {setting} | {label} | {len(g)} | {_f(r2u)} | {_f(r2o)} | {_f(g.mean())} | "
-                             f"{_ci(iqm_ci(g))} |")
+                lines.append(f"| {setting} | {label} | {len(g)} | {_f(r2u)} | {_f(r2o)} | "
+                             f"{_f(g.mean() if len(g) else np.nan)} | {_ci(iqm_ci_or_nan(g))} |")
     return lines
 
 
@@ -166,7 +183,11 @@ def initial_table(results: list[dict]) -> list[str]:
             if not all("probes_initial" in t for t in teams):
                 continue
             for target in TARGETS:
-                a, b = gains(teams, target), gains(teams, target, "probes_initial")
+                a, b = raw_gains(teams, target), raw_gains(teams, target, "probes_initial")
+                ok = np.isfinite(a) & np.isfinite(b)
+                a, b = a[ok], b[ok]
+                if not len(a):
+                    continue
                 p = float(stats.ttest_rel(a, b).pvalue) if len(a) > 1 else None
                 lines.append(f"| {setting} | {label} | {len(a)} | {target} | {_f(a.mean())} | {_f(b.mean())} | "
                              f"{_ci(mean_ci(a - b))} | {_p(p)} |")
@@ -199,6 +220,17 @@ def team_table(results: list[dict]) -> list[str]:
                 lines.append(f"| {setting} | {label} | {t['seed']} | {_f(t['paper_metric'], 2)} | "
                              + " | ".join(_f(t["probes"][k]["gain"]) for k in PLAN_TARGETS) + f" | {drops} |")
     return lines
+
+
+def method_header(n_teams: int, seeds: list[int], episodes: int) -> str:
+    """The generated table's first lines: what ran and how the probes score, so the file stands alone."""
+    return (f"# What the messages say\n\nGenerated by `hammer messages` (experiments/messages.py) following "
+            f"docs/results/plan-messages.md: {n_teams} teams, evaluation seeds {seeds} x {episodes} episodes "
+            "each (the runtime's numpy acting, in-process), messages on. u = the message as received (rl mode: "
+            "after the Gaussian noise and clipping). Ridge probes per receiving agent and 2-D target slot, "
+            "5-fold CV split by episode (alpha by 5-fold episode-split CV inside each training fold), score = "
+            "held-out R² averaged over components, then slots, then receiving agents. Rows and tables marked "
+            "exploratory are not in the plan and not tested with it.\n")
 
 
 def to_markdown(results: list[dict], header: str = "") -> str:

@@ -56,13 +56,13 @@ def runs(tmp_path_factory) -> dict[str, Path]:
             "random": _train(root / "random", ["variant=random"])}
 
 
-def _plant(run: Path, dst: Path) -> Path:
+def _plant(run: Path, dst: Path, obs_dim: int = 10) -> Path:
     """The backprop team with its central agent replaced: agent i's message is tanh of 0.2 × (p_j − p_i)
     for its two others j (x, y each), read off the global state (each agent's observation holds its own
     position at columns 2:4), so the message carries H_agents by construction, nearly linearly."""
     shutil.copytree(run, dst)
     cfg = json.loads((run / "config.json").read_text())
-    n, d, m = 3, 10, 4
+    n, d, m = 3, obs_dim, 4
     state_dim = n * d + n * 5  # observations + one-hot previous actions
     enc = np.zeros((2 * n, state_dim), np.float32)
     for k in range(n):
@@ -195,6 +195,15 @@ def test_cli_writes_tables_json_figure_and_reuses_results(runs, tmp_path):
     only = CliRunner().invoke(app, [*args[:-2], "--teams", "random"])
     assert only.exit_code == 0 and only.output.count("cached") == 1, only.output
     assert "hammer-backprop" not in out.with_suffix(".md").read_text()
+
+
+def test_everything_visible_the_same_planted_message_adds_nothing(tmp_path):
+    """The plan's negative reference (cn3, full view): the receiver sees the other agents itself, so the
+    planted message that carries their positions adds nothing over its observation."""
+    run = _train(tmp_path / "full", ["variant=hammer", "central_mode=backprop"], env="env_kwargs.observe_others=true")
+    planted = _plant(run, tmp_path / "planted", obs_dim=18)
+    got = probe_recording(TeamActor(planted).rollout(0, 40, record=True), None)["H_agents"]
+    assert got["u"] > 0.9 and got["o"] > 0.99 and abs(got["gain"]) < 0.01, got
 
 
 def test_a_dose_grid_team_is_probed_only_where_the_radius_hides(tmp_path):
