@@ -23,7 +23,8 @@ Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
 
 
-_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections")
+_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "weights_republish_s",
+           "weights_republish_max_s")
 
 
 class RuntimeSettings(BaseModel):
@@ -79,6 +80,13 @@ class RuntimeSettings(BaseModel):
                                       "exceed this fraction of agent x env-copy steps")
     degraded_rejections: int = Field(
         0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
+
+    weights_republish_s: float = Field(
+        1.0, gt=0, description="eval: the policy server republishes the weights this long after a publish, then "
+                               "twice as long each time (late joiners; every role joining starts it over)")
+    weights_republish_max_s: float = Field(
+        16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
+                                "weights_republish_s for a fixed period")
 
     @model_validator(mode="after")
     def _eval_needs_policy(self) -> RuntimeSettings:

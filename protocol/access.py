@@ -61,7 +61,8 @@ def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
-            liveliness=(keys.alive("learner"),)),
+            # the policy server (the learner of a served run) republishes the weights when a role joins
+            liveliness=(keys.alive("learner"),), watch_liveliness=True),
         HUB: Grant(relay=True),
     }
     for i in range(n_agents):
