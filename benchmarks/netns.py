@@ -101,9 +101,12 @@ def link_bytes(ns: str, dev: str) -> int:
 
 
 def client_config(path: Path, endpoint: str) -> Path:
-    """A Zenoh client config connecting to the router at `endpoint` only (no scouting)."""
+    """A Zenoh client config connecting to the router at `endpoint` only (no scouting), without shared
+    memory: namespaces share /dev/shm, and Zenoh would pass every message over 3 kB (global states,
+    weights) through it instead of the link, which no two machines can do."""
     path.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [endpoint]},
-                                "scouting": {"multicast": {"enabled": False}}}))
+                                "scouting": {"multicast": {"enabled": False}},
+                                "transport": {"shared_memory": {"enabled": False}}}))
     return path
 
 
@@ -155,7 +158,7 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
     run = work / f"served-{rate_kbit}"
     shutil.rmtree(run, ignore_errors=True)  # a stale runtime.json would start the central agent too early
     py = [sys.executable, "-m", "hammer.cli"]
-    edge_py = [str(edge_python), "-m", "hammer.cli"] if edge_python else py
+    edge_py = [str(edge_python) if edge_python else sys.executable, "-m", "hammer"]  # the edge entry (hammer/entry.py)
     procs = Procs(work)
     with topology(n, tag, rate_kbit, central) as top:
         try:

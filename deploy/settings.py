@@ -114,19 +114,22 @@ class RuntimeSettings(BaseModel):
             return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
         return TransportConfig(listen=[loopback_endpoint(self.hub_port)])
 
-    def secured(self, transport: TransportConfig, role: str, run_dir: Path, n_agents: int) -> TransportConfig:
+    def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
+                identity_directory: Path | None = None) -> TransportConfig:
         """`transport` as role `role` of a secure run: TLS endpoints, the role's identity from
-        RUN/identity/ and the run's access rules; unchanged when the run is not secure."""
+        RUN/identity/ (or `identity_directory`: an edge agent's copy of its three files) and the run's
+        access rules; unchanged when the run is not secure."""
         if not self.secure:
             return transport
         from protocol.access import secure_link, tls_endpoint
         from protocol.identity import identity_dir
         from protocol.keys import Keys
 
+        where = identity_directory if identity_directory is not None else identity_dir(run_dir)
         return transport.model_copy(update={
             "listen": [tls_endpoint(e) for e in transport.listen],
             "connect": [tls_endpoint(e) for e in transport.connect],
-            "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents)})
+            "security": secure_link(where, role, Keys(self.run_id), n_agents)})
 
     def save(self, run_dir: Path) -> None:
         # `secure`, `external` and the bounds are written only when set: a default runtime.json is what it always was.

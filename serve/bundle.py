@@ -86,6 +86,17 @@ class Bundle:
     def env_spec_data(self) -> dict[str, Any]:
         return dict(self.manifest["env_spec"])
 
+    def wiring(self):
+        """What the variant means for the runners (learning.variant.Wiring), from the manifest alone: no
+        RunConfig is built (the edge agent never imports the training config)."""
+        from types import SimpleNamespace
+
+        from learning.variant import Wiring
+
+        c = self.config_data
+        return Wiring.from_config(SimpleNamespace(**{k: c[k] for k in ("variant", "central_mode", "n_agents", "msg_dim")},
+                                                  msg_dropout=c.get("msg_dropout", 0.0)))
+
     def config(self, **update: Any):
         """The team's RunConfig (pydantic, no torch), with fields replaced (e.g. episodes, seed)."""
         from learning.config import build_config
@@ -179,8 +190,9 @@ def _env_spec(run_dir: Path, cfg) -> dict:
     return d
 
 
-def load_bundle(path: Path) -> Bundle:
-    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims."""
+def load_bundle(path: Path, check_config: bool = True) -> Bundle:
+    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims.
+    check_config=False: the full RunConfig is not validated (the edge agent reads only the wiring)."""
     path = Path(path)
     mf = path / MANIFEST
     if not mf.is_file():
@@ -218,8 +230,8 @@ def load_bundle(path: Path) -> Bundle:
     except Exception as e:  # noqa: BLE001 - a malformed header: say so in one line
         raise BundleError(f"{path / LOCAL}: not a safetensors file ({e})") from None
     try:
-        wiring = Bundle(path, m).config().wiring
-    except ValueError as e:
+        wiring = Bundle(path, m).config().wiring if check_config else Bundle(path, m).wiring()
+    except (ValueError, KeyError, TypeError) as e:
         raise BundleError(f"{mf}: config: {' '.join(str(e).split())[:300]}; fix: export the bundle again") from None
     check_local_weights(shapes, wiring.local_input_dim(int(m["env_spec"]["obs_dim"])), m["env_spec"], str(path / LOCAL))
     return Bundle(path, m)
