@@ -30,8 +30,8 @@ class EdgeFigures:
     step_ms_p50: float  # harness: obs published -> action received
 
 
-def make_team(work: Path):
-    """An untrained cn3 HAMMER team as a bundle and as a `hammer up` run directory (same weights)."""
+def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
+    """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
     from deploy.settings import RuntimeSettings
     from deploy.up import prepare_run_dir
     from envs.registry import make_vec_env
@@ -40,8 +40,8 @@ def make_team(work: Path):
     from learning.team import Team
     from serve.bundle import export_bundle
 
-    cfg = merge_config("cn3", overrides=["variant=hammer", "central_mode=rl", "seed=0"])
-    env = make_vec_env(cfg.env, cfg.n_agents, 1)
+    cfg = merge_config(preset, overrides=["variant=hammer", "central_mode=rl", "seed=0", *overrides])
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     spec = env.spec
     env.close()
     team = Team(cfg, spec)

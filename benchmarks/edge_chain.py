@@ -119,6 +119,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("runs/edge-chain"))
     ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv (default: build WORK/edge-venv)")
     a = ap.parse_args()
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped chain still deletes its namespaces
     team, update = a.team, a.update
     try:
         if a.train_episodes:

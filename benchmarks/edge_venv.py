@@ -38,11 +38,11 @@ def clean_env() -> dict[str, str]:
 
 def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180) -> Path:
     """Make `path` a venv with only the base install of `project`; returns its python.
-    Reuses a venv already built there (its marker file names the project)."""
+    Reuses a venv already built there from the same sources (its marker file)."""
     path = Path(path)
     py = path / "bin" / "python"
-    marker = path / ".hammer-edge"
-    if py.is_file() and marker.is_file() and marker.read_text() == str(project.resolve()):
+    marker, stamp = path / ".hammer-edge", source_stamp(project)
+    if py.is_file() and marker.is_file() and marker.read_text() == stamp:
         return py
     subprocess.run([sys.executable, "-m", "venv", "--clear", str(path)], check=True, timeout=60)
     base = tomllib.loads((project / "pyproject.toml").read_text())["project"]["dependencies"]
@@ -54,8 +54,20 @@ def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180) ->
             err = (r.stderr.strip().splitlines() or ["(no output)"])[-1]
             raise EdgeVenvError(f"pip install {' '.join(args)[:80]} failed: {err}",
                                 offline=any(s in r.stderr for s in OFFLINE_SIGNS))
-    marker.write_text(str(project.resolve()))
+    marker.write_text(stamp)
     return py
+
+
+def source_stamp(project: Path) -> str:
+    """The project and a digest of its sources' names, sizes and times: a venv built from other code is rebuilt."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted([project / "pyproject.toml", *project.glob("*/**/*.py")]):
+        if ".venv" not in f.parts and "build" not in f.parts:
+            st = f.stat()
+            h.update(f"{f.relative_to(project)} {st.st_size} {st.st_mtime_ns}\n".encode())
+    return f"{project.resolve()} {h.hexdigest()}"
 
 
 def main() -> None:

@@ -273,6 +273,9 @@ def main() -> None:
     ap.add_argument("--runtime", action="append", default=[], help="RuntimeSettings FIELD=VALUE for the served run")
     ap.add_argument("--timeout", type=float, default=600)
     a = ap.parse_args()
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped bench still deletes its namespaces
     baseline = None
     for rate in [int(x) for x in a.rates.split(",")]:
         try:

@@ -284,9 +284,15 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
     central = cfg.wiring.uses_central
-    console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
-                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
-                  f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
+    served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
+    here = [r for r in ("learner", *(["central"] if central else []), *(f"local-{i}" for i in range(cfg.n_agents)),
+                        "env") if r not in settings.external and r not in {f"local-{i}" for i in external_agents}]
+    names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
+    shown = [names.get(r, r) for r in here]
+    console.print(f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host ({', '.join(shown)})"
+                  f"{' + external roles' if len(here) < cfg.n_agents + 2 + central else ''}; logs in {path}/logs; "
+                  "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"),
+                  soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None
@@ -340,6 +346,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
         from faults.links import COUNTERS_NOTE
 
         console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
+    if served:  # a frozen team: nothing to resume or to train further
+        return
     from learning.cli import print_next_steps
 
     print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")
