@@ -1,7 +1,7 @@
 """Issue 19's "done when", end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
 
     python -m benchmarks.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
-                                    [--episodes 400] [--work runs/edge-chain] [--edge-venv PY]    (root)
+                                    [--episodes 2400] [--work runs/edge-chain] [--edge-venv PY]   (root)
     make edge-chain                                                                  (the same, defaults)
 
 Every step is the real CLI (a fresh process each):
@@ -115,7 +115,8 @@ def main() -> None:
     ap.add_argument("--update", type=Path, default=ARCHIVE / ARCHIVED_TEAM.format(seed=1))
     ap.add_argument("--train-episodes", type=int, help="train both teams with `hammer train` instead (seeds 0, 1)")
     ap.add_argument("--rates", default="1024", help="kbit/s limits of agent 0's link, e.g. 0,1024,256 (0 = none)")
-    ap.add_argument("--episodes", type=int, default=400)
+    ap.add_argument("--episodes", type=int, default=2400,
+                    help="per run; the push and the rollback each take a CLI start and a heartbeat (~2 s)")
     ap.add_argument("--work", type=Path, default=Path("runs/edge-chain"))
     ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv (default: build WORK/edge-venv)")
     a = ap.parse_args()

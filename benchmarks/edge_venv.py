@@ -36,9 +36,10 @@ def clean_env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
 
 
-def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180) -> Path:
+def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180, compile_pyc: bool = True) -> Path:
     """Make `path` a venv with only the base install of `project`; returns its python.
-    Reuses a venv already built there from the same sources (its marker file)."""
+    Reuses a venv already built there from the same sources (its marker file). compile_pyc=False:
+    pip skips byte-compiling (quicker to build; the first imports compile what they load)."""
     path = Path(path)
     py = path / "bin" / "python"
     marker, stamp = path / ".hammer-edge", source_stamp(project)
@@ -46,7 +47,7 @@ def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180) ->
         return py
     subprocess.run([sys.executable, "-m", "venv", "--clear", str(path)], check=True, timeout=60)
     base = tomllib.loads((project / "pyproject.toml").read_text())["project"]["dependencies"]
-    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", *([] if compile_pyc else ["--no-compile"])]
     for args in (["--no-deps", str(project)], base):
         r = subprocess.run([*pip, *args], check=False, timeout=timeout_s, capture_output=True, text=True,
                            env=clean_env())

@@ -274,6 +274,19 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
     return cfg, settings
 
 
+def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> str:
+    """The line saying which processes this host starts (a served run has a policy server, no learner)."""
+    served = settings.mode == "eval"
+    roles = ["learner", *(["central"] if cfg.wiring.uses_central else []), *(f"local-{i}" for i in range(cfg.n_agents)),
+             "env"]
+    away = {*settings.external, *(f"local-{i}" for i in external_agents)}
+    here = [r for r in roles if r not in away]
+    names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
+    return (f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host "
+            f"({', '.join(names.get(r, r) for r in here)}){' + external roles' if away else ''}; logs in {path}/logs; "
+            "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"))
+
+
 def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
             external_agents: tuple[int, ...] = ()) -> None:
     from rich.live import Live
@@ -283,16 +296,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    central = cfg.wiring.uses_central
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
-    here = [r for r in ("learner", *(["central"] if central else []), *(f"local-{i}" for i in range(cfg.n_agents)),
-                        "env") if r not in settings.external and r not in {f"local-{i}" for i in external_agents}]
-    names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
-    shown = [names.get(r, r) for r in here]
-    console.print(f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host ({', '.join(shown)})"
-                  f"{' + external roles' if len(here) < cfg.n_agents + 2 + central else ''}; logs in {path}/logs; "
-                  "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"),
-                  soft_wrap=True)
+    console.print(_will_run(cfg, settings, path, external_agents), soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None

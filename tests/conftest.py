@@ -12,7 +12,7 @@ def edge_venv(tmp_path_factory):
     from benchmarks.edge_venv import EdgeVenvError, build_edge_venv
 
     try:
-        return build_edge_venv(tmp_path_factory.mktemp("edge") / "venv")
+        return build_edge_venv(tmp_path_factory.mktemp("edge") / "venv", compile_pyc=False)  # quicker to build
     except EdgeVenvError as e:
         if e.offline:
             pytest.skip(f"the package index is unreachable, so no edge venv can be built: {e}")
