@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages
+.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages edge-chain
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -174,6 +174,13 @@ faults-ownobs: $(STAMP)
 	$(H) faults sweep $(call TEAMS,backprop,hammer-backprop,cn3-ownobs,0 1 2 3 4) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer-backprop
 	for d in hammer hammer-backprop il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
 	$(PY) docs/results/faults_ownobs.py
+
+# Issue 19's chain on this machine (root: network namespaces): the archived trained cn3 team exported,
+# served with its central agent and each edge agent (a torch-free venv) in namespaces of their own,
+# a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
+# ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.
+edge-chain: $(STAMP)
+	$(PY) -m benchmarks.edge_chain $(ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -318,6 +318,9 @@ def bench_edge_command(
     act_s: Annotated[float, typer.Option(help="Seconds each agent acts (lock-step) while its RSS is sampled.")] = 3.0,
     repeats: Annotated[int, typer.Option(min=1, help="Measurements per entry, alternated (medians are shown).")] = 3,
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+    python: Annotated[Path | None, typer.Option(
+        help="The agents' interpreter, e.g. a torch-free edge venv (python -m benchmarks.edge_venv PATH); "
+             "default this one.")] = None,
 ) -> None:
     """An edge agent's footprint: RSS while acting and cold start (process start to first action), for
     `hammer local --bundle` (no run directory) and today's `hammer local --run-dir`, in one run."""
@@ -330,10 +333,11 @@ def bench_edge_command(
 
     logging.basicConfig(level=logging.WARNING)
     with tempfile.TemporaryDirectory(prefix="hammer-bench-edge-") as work:
-        r = bench_edge(Path(work), act_s, repeats)
+        load = os.getloadavg()[0]
+        r = bench_edge(Path(work), act_s, repeats, python)
     tg = r["targets"]
-    t = Table(title=f"hammer bench edge (cn3 local agent, median of {repeats}, load {os.getloadavg()[0]:.1f} "
-                    f"on {os.cpu_count()} cores)")
+    t = Table(title=f"hammer bench edge (cn3 local agent, median of {repeats}, load {load:.1f}-"
+                    f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores{', ' + str(python) if python else ''})")
     for col in ("entry", "RSS MB", "cold start s", "step p50 ms"):
         t.add_column(col, justify="left" if col == "entry" else "right")
     for entry, m in r["median"].items():

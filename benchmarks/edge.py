@@ -30,8 +30,8 @@ class EdgeFigures:
     step_ms_p50: float  # harness: obs published -> action received
 
 
-def make_team(work: Path):
-    """An untrained cn3 HAMMER team as a bundle and as a `hammer up` run directory (same weights)."""
+def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
+    """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
     from deploy.settings import RuntimeSettings
     from deploy.up import prepare_run_dir
     from envs.registry import make_vec_env
@@ -40,8 +40,8 @@ def make_team(work: Path):
     from learning.team import Team
     from serve.bundle import export_bundle
 
-    cfg = merge_config("cn3", overrides=["variant=hammer", "central_mode=rl", "seed=0"])
-    env = make_vec_env(cfg.env, cfg.n_agents, 1)
+    cfg = merge_config(preset, overrides=["variant=hammer", "central_mode=rl", "seed=0", *overrides])
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     spec = env.spec
     env.close()
     team = Team(cfg, spec)
@@ -52,7 +52,8 @@ def make_team(work: Path):
     return export_bundle(run, work / "bundle", force=True), run, cfg, spec
 
 
-def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_s: float) -> EdgeFigures:
+def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_s: float,
+            env: dict | None = None) -> EdgeFigures:
     """Start `cmd` (a `hammer local` joining run `run_id` at the hub on `port`) and play the run to it."""
     import psutil
 
@@ -77,7 +78,7 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
                                        msg=rng.uniform(-1, 1, (k, cfg.msg_dim)).astype(np.float32)))
 
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
         try:
             s, cold = 0, None
             while cold is None:  # until the first action: offer the policy and a fresh step every 5 ms
@@ -112,14 +113,16 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
                        step_ms_p50=float(np.median(lat) * 1e3))
 
 
-def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2) -> dict:
-    """Both entries, alternated `repeats` times; the median of each figure per entry."""
+def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | None = None) -> dict:
+    """Both entries, alternated `repeats` times; the median of each figure per entry. python: the agents'
+    interpreter (e.g. a torch-free edge venv: its own install, so PYTHONPATH is dropped)."""
+    from benchmarks.edge_venv import clean_env
     from deploy.settings import RuntimeSettings
     from protocol.session import free_loopback_port
 
     bundle, run, cfg, spec = make_team(work)
     blob = (bundle.path / "local.safetensors").read_bytes()
-    hammer = [sys.executable, "-m", "hammer.cli", "local", "--agent", "0"]
+    hammer = [str(python or sys.executable), "-m", "hammer", "local", "--agent", "0"]  # the edge entry with --bundle
     runs: dict[str, list[EdgeFigures]] = {"run dir (hammer local --run-dir)": [], "edge (hammer local --bundle)": []}
     for r in range(repeats):
         for entry, done in runs.items():
@@ -131,7 +134,7 @@ def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2) -> dict:
             else:  # today's entry reads runtime.json: point it at this harness
                 RuntimeSettings(run_id=run_id, hub_port=port).save(run)
                 cmd = [*hammer, "--run-dir", str(run)]
-            f = measure(cmd, run_id, port, cfg, spec, blob, act_s)
+            f = measure(cmd, run_id, port, cfg, spec, blob, act_s, env=None if python is None else clean_env())
             f.entry = entry
             done.append(f)
     med = {e: {k: float(np.median([getattr(f, k) for f in fs])) for k in ("cold_start_s", "rss_mb", "step_ms_p50")}

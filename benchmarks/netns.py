@@ -1,28 +1,37 @@
 """A served team across Linux network namespaces: real links instead of loopback.
 
-    python -m benchmarks.netns BUNDLE [--rates 0,1024,256] [--episodes 16]     (root; see docs/deploy.md)
+    python -m benchmarks.netns BUNDLE [--rates 0,1024,256] [--episodes 16] [--edge-venv PY] [--push BUNDLE_B]
+                                                                                (root; see docs/deploy.md)
 
-The hub namespace holds the Zenoh router (`hammer hub`), the launcher, env host, central agent and
-policy server (`hammer serve --external ...`, every role a Zenoh client of the router); each local
-agent runs from the bundle (`hammer local --bundle`) in its own namespace, joined to the hub
-namespace by a veth pair with addresses private to the two namespaces (10.213.<i>.1/.2 /30, no
-route anywhere else). A rate limits agent 0's link both ways with `tc tbf` (a constrained radio
-link); delay and drop stay in hammer's own fault layer. Reported per run: bytes per vector step on
-each agent link (veth counters, both directions), env-steps/s, step latency, actions that missed
-their deadline. Everything created is deleted at the end (namespaces take their veths with them).
+The hub namespace holds the Zenoh router (`hammer hub`), the launcher, env host and policy server
+(`hammer serve --external ...`, every role a Zenoh client of the router); the central agent
+(`hammer central`) and each local agent (`hammer local --bundle`, from a torch-free venv with
+--edge-venv) run in namespaces of their own, each joined to the hub namespace by a veth pair with
+addresses private to the two namespaces (10.213.<i>.1/.2 /30 for agent i, 10.213.200.x for the
+central agent; no route anywhere else). A rate limits agent 0's link both ways with `tc tbf` (a
+constrained radio link); delay and drop stay in hammer's own fault layer (this kernel has no
+netem). --push BUNDLE_B sends a hot update and then a rollback through the real CLI mid-run
+(benchmarks.push_driver) and checks in the env host's trace that every step was acted on with one
+version. Reported per run: bytes per vector step on every link (veth counters, both directions,
+start-up and weights included), env-steps/s, step latency, default actions, message fallbacks,
+and `keeps_up`. Everything created is deleted at the end (namespaces take their veths with them).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 PORT = 7447
+CENTRAL_NET = 200  # the central agent's link is 10.213.200.0/30
+KEEPS_UP_FRACTION = 0.5  # a limited link keeps up at >= half the unlimited env-steps/s with no fallbacks
 
 
 class NetnsUnavailable(RuntimeError):
@@ -37,34 +46,49 @@ def _ip(*args: str, ns: str | None = None) -> str:
     return r.stdout
 
 
+@dataclass
+class Topology:
+    """The namespaces of one run and its links: link name (local-<i>, central) -> (hub-side veth, hub address)."""
+
+    hub: str
+    agents: list[str]
+    central: str | None
+    links: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+
+def _veth(tag: str, net: int, hub: str, ns: str, rate_kbit: int) -> tuple[str, str]:
+    """A veth pair hub <-> ns with 10.213.<net>.1 (hub side) / .2 and an optional tbf both ways."""
+    h, a = f"h{tag}{net}"[:15], f"a{tag}{net}"[:15]
+    _ip("link", "add", h, "netns", hub, "type", "veth", "peer", "name", a, "netns", ns)
+    _ip("addr", "add", f"10.213.{net}.1/30", "dev", h, ns=hub)
+    _ip("addr", "add", f"10.213.{net}.2/30", "dev", a, ns=ns)
+    _ip("link", "set", h, "up", ns=hub)
+    _ip("link", "set", a, "up", ns=ns)
+    for dev, n in ((h, hub), (a, ns)) if rate_kbit else ():
+        r = subprocess.run(["ip", "netns", "exec", n, "tc", "qdisc", "add", "dev", dev, "root", "tbf", "rate",
+                            f"{rate_kbit}kbit", "burst", "16kb", "latency", "400ms"],
+                           check=False, capture_output=True, text=True, timeout=10)
+        if r.returncode != 0:
+            raise NetnsUnavailable(f"tc tbf on {dev}: {r.stderr.strip()}")
+    return h, f"10.213.{net}.1"
+
+
 @contextmanager
-def topology(n_agents: int, tag: str, rate_kbit: int = 0):
-    """Namespaces hub + one per agent, veth pairs hub<->agent i, optional tbf on agent 0's link.
-    Yields (hub ns, [agent ns], [hub-side veth]); deletes everything on the way out."""
-    hub = f"hmr{tag}h"
-    agents = [f"hmr{tag}a{i}" for i in range(n_agents)]
+def topology(n_agents: int, tag: str, rate_kbit: int = 0, central: bool = False):
+    """Namespaces hub, one per agent (and one for the central agent), a veth pair from the hub to
+    each, tbf on agent 0's link. Yields a Topology; deletes every namespace it made on the way out."""
+    top = Topology(f"hmr{tag}h", [f"hmr{tag}a{i}" for i in range(n_agents)], f"hmr{tag}c" if central else None)
     made: list[str] = []
     try:
-        for ns in [hub, *agents]:
+        for ns in [top.hub, *top.agents, *([top.central] if central else [])]:
             _ip("netns", "add", ns)
             made.append(ns)
             _ip("link", "set", "lo", "up", ns=ns)
-        veths = []
-        for i, ns in enumerate(agents):
-            h, a = f"h{tag}{i}"[:15], f"a{tag}{i}"[:15]
-            _ip("link", "add", h, "netns", hub, "type", "veth", "peer", "name", a, "netns", ns)
-            _ip("addr", "add", f"10.213.{i}.1/30", "dev", h, ns=hub)
-            _ip("addr", "add", f"10.213.{i}.2/30", "dev", a, ns=ns)
-            _ip("link", "set", h, "up", ns=hub)
-            _ip("link", "set", a, "up", ns=ns)
-            veths.append(h)
-            if i == 0 and rate_kbit:
-                for dev, n in ((h, hub), (a, ns)):
-                    r = subprocess.run(["ip", "netns", "exec", n, "tc", "qdisc", "add", "dev", dev, "root", "tbf",
-                                        "rate", f"{rate_kbit}kbit", "burst", "16kb", "latency", "400ms"], check=False, capture_output=True, text=True, timeout=10)
-                    if r.returncode != 0:
-                        raise NetnsUnavailable(f"tc tbf on {dev}: {r.stderr.strip()}")
-        yield hub, agents, veths
+        for i, ns in enumerate(top.agents):
+            top.links[f"local-{i}"] = _veth(tag, i, top.hub, ns, rate_kbit if i == 0 else 0)
+        if central:
+            top.links["central"] = _veth(tag, CENTRAL_NET, top.hub, top.central, 0)
+        yield top
     finally:
         for ns in reversed(made):
             subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True, timeout=10)
@@ -76,65 +100,163 @@ def link_bytes(ns: str, dev: str) -> int:
     return int(st["rx"]["bytes"]) + int(st["tx"]["bytes"])
 
 
-def _client_config(path: Path, endpoint: str) -> Path:
+def client_config(path: Path, endpoint: str) -> Path:
+    """A Zenoh client config connecting to the router at `endpoint` only (no scouting), without shared
+    memory: namespaces share /dev/shm, and Zenoh would pass every message over 3 kB (global states,
+    weights) through it instead of the link, which no two machines can do."""
     path.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [endpoint]},
-                                "scouting": {"multicast": {"enabled": False}}}))
+                                "scouting": {"multicast": {"enabled": False}},
+                                "transport": {"shared_memory": {"enabled": False}}}))
     return path
 
 
+class Procs:
+    """The processes of one run, each in a namespace with its log in `work`; all ended on close."""
+
+    def __init__(self, work: Path) -> None:
+        self.work, self.procs = work, []
+
+    def start(self, ns: str, cmd: list[str], log: str, env: dict | None = None) -> subprocess.Popen:
+        with open(self.work / log, "wb") as f:
+            p = subprocess.Popen(["ip", "netns", "exec", ns, *cmd], stdout=f, stderr=subprocess.STDOUT, env=env)
+        self.procs.append(p)
+        return p
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+def _wait_for(what: str, ok, timeout_s: float, procs: list[subprocess.Popen]) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ok():
+        if time.monotonic() > deadline or any(p.poll() not in (None, 0) for p in procs):
+            raise RuntimeError(f"{what} did not happen within {timeout_s:.0f} s (or a process exited early)")
+        time.sleep(0.1)
+
+
 def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0, tag: str | None = None,
-               timeout_s: float = 240) -> dict:
-    """One served run across namespaces; returns its figures (raises NetnsUnavailable where it cannot)."""
+               timeout_s: float = 240, *, edge_python: Path | None = None, push: Path | None = None,
+               central_ns: bool = True, baseline_steps_per_s: float | None = None,
+               runtime: tuple[str, ...] = ()) -> dict:
+    """One served run across namespaces; returns its figures (raises NetnsUnavailable where it cannot).
+    edge_python: the local agents' interpreter (a torch-free venv); push: a bundle to push mid-run and
+    roll back; baseline_steps_per_s: the unlimited run's rate, for `keeps_up`."""
     from serve.bundle import load_bundle
 
     b = load_bundle(bundle)
-    n = b.config().n_agents
+    cfg, ep_len = b.config(), int(b.env_spec_data.get("max_steps") or 25)
+    n, central = cfg.n_agents, central_ns and cfg.wiring.uses_central
     tag = tag or str(os.getpid() % 100000)
+    work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     run = work / f"served-{rate_kbit}"
+    shutil.rmtree(run, ignore_errors=True)  # a stale runtime.json would start the central agent too early
     py = [sys.executable, "-m", "hammer.cli"]
-    procs: list[subprocess.Popen] = []
-
-    def start(ns: str, args: list[str], log: str) -> subprocess.Popen:
-        with open(work / log, "wb") as f:
-            p = subprocess.Popen(["ip", "netns", "exec", ns, *py, *args], stdout=f, stderr=subprocess.STDOUT)
-        procs.append(p)
-        return p
-
-    with topology(n, tag, rate_kbit) as (hub, agents, veths):
+    edge_py = [str(edge_python) if edge_python else sys.executable, "-m", "hammer"]  # the edge entry (hammer/entry.py)
+    procs = Procs(work)
+    with topology(n, tag, rate_kbit, central) as top:
         try:
-            start(hub, ["hub", "--listen", f"tcp/0.0.0.0:{PORT}"], f"hub-{rate_kbit}.log")
-            time.sleep(1.0)
-            inside = _client_config(work / "hub-client.json5", f"tcp/127.0.0.1:{PORT}")
-            before = [link_bytes(hub, v) for v in veths]
-            serve = start(hub, ["serve", str(bundle), "--episodes", str(episodes), "--external",
-                                ",".join(map(str, range(n))), "--runtime", f"zenoh_config_file={inside}",
-                                "--run-dir", str(run), "--no-dashboard"], f"serve-{rate_kbit}.log")
-            edges = [start(ns, ["local", "--bundle", str(bundle), "--agent", str(i), "--run-id", run.name,
-                                "--zenoh-config", str(_client_config(work / f"edge{i}.json5",
-                                                                     f"tcp/10.213.{i}.1:{PORT}"))],
-                           f"local-{i}-{rate_kbit}.log") for i, ns in enumerate(agents)]
+            hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}"], f"hub-{rate_kbit}.log")
+            _wait_for("the hub listening", lambda: b"listening" in (work / f"hub-{rate_kbit}.log").read_bytes(),
+                      30, [hub])
+            inside = client_config(work / "hub-client.json5", f"tcp/127.0.0.1:{PORT}")
+            before = {k: link_bytes(top.hub, dev) for k, (dev, _) in top.links.items()}
+            external = ",".join([*map(str, range(n)), *(["central"] if central else [])])
+            rt = [f"zenoh_config_file={inside}", *(["trace=true"] if push else []), *runtime]
+            serve = procs.start(top.hub, [*py, "serve", str(bundle), "--episodes", str(episodes), "--external",
+                                          external, *(x for r in rt for x in ("--runtime", r)), "--run-dir", str(run),
+                                          "--no-dashboard"], f"serve-{rate_kbit}.log")
+            edges = [procs.start(ns, [*edge_py, "local", "--bundle", str(bundle), "--agent", str(i), "--run-id",
+                                      run.name, "--zenoh-config",
+                                      str(client_config(work / f"edge{i}.json5", f"tcp/{top.links[f'local-{i}'][1]}:{PORT}"))],
+                                 f"local-{i}-{rate_kbit}.log", env=_edge_env(edge_python))
+                     for i, ns in enumerate(top.agents)]
+            quarter = str(max(-(-episodes // cfg.num_envs) * ep_len // 4, 1))
+            others = _start_central_and_driver(procs, top, run, py, push and [str(push), "--push-at", quarter,
+                                                                             "--rollback-after", quarter],
+                                               rate_kbit, inside, serve)
             code = serve.wait(timeout=timeout_s)
-            after = [link_bytes(hub, v) for v in veths]
-            for e in edges:
-                e.wait(timeout=30)
+            after = {k: link_bytes(top.hub, dev) for k, (dev, _) in top.links.items()}
+            for p in [*edges, *others]:
+                p.wait(timeout=30)
         finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.terminate()
-                    try:
-                        p.wait(timeout=10)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
+            procs.close()
+    return _figures(run, work, rate_kbit, code, edges, before, after, baseline_steps_per_s, push is not None)
+
+
+def _edge_env(edge_python: Path | None) -> dict | None:
+    if edge_python is None:
+        return None
+    from benchmarks.edge_venv import clean_env
+
+    return clean_env()
+
+
+def _start_central_and_driver(procs: Procs, top: Topology, run: Path, py: list[str], push: list[str] | None,
+                              rate_kbit: int, inside: Path, serve: subprocess.Popen) -> list[subprocess.Popen]:
+    """The central agent in its namespace once the run directory is written (it reads config.json,
+    runtime.json, env_spec.json from it, as from a copy on its own machine), and the update driver
+    (`push`: its bundle and step arguments: push after a quarter of the run, roll back a quarter later)."""
+    out = []
+    if top.central is not None:
+        _wait_for("the served run directory", lambda: (run / "env_spec.json").is_file(), 60, [serve])
+        _, addr = top.links["central"]
+        cfg = client_config(procs.work / "central.json5", f"tcp/{addr}:{PORT}")
+        out.append(procs.start(top.central, [*py, "central", "--run-dir", str(run), "--zenoh-config", str(cfg)],
+                               f"central-{rate_kbit}.log"))
+    if push is not None:
+        out.append(procs.start(top.hub, [sys.executable, "-m", "benchmarks.push_driver", str(run), *push,
+                                         "--zenoh-config", str(inside)], f"push-{rate_kbit}.log"))
+    return out
+
+
+def _figures(run: Path, work: Path, rate_kbit: int, code: int, edges, before: dict, after: dict,
+             baseline: float | None, pushed: bool) -> dict:
+    """What one run measured, and whether the loop kept up on this link."""
     summary = json.loads((run / "env_summary.json").read_text()) if (run / "env_summary.json").is_file() else {}
     steps = max(int(summary.get("step", 0)), 1)
-    return {"rate_kbit": rate_kbit, "completed": code == 0 and bool(summary.get("completed")),
-            "edge_exit_codes": [e.returncode for e in edges], "steps": summary.get("step", 0),
-            "bytes_per_step": [(a - b_) / steps for a, b_ in zip(after, before)],
-            "env_steps_per_s": summary.get("env_steps_per_s"), "step_p50_ms": summary.get("step_latency_ms_p50"),
-            "step_p99_ms": summary.get("step_latency_ms_p99"),
-            "default_actions": summary.get("links", {}).get("default_actions"),
-            "msg_fallback_copies": summary.get("links", {}).get("msg_fallback_copies"), "run_dir": str(run)}
+    links = summary.get("links", {})
+    rate = summary.get("env_steps_per_s") or 0.0
+    completed = code == 0 and bool(summary.get("completed"))
+    fallbacks, defaults = links.get("msg_fallback_copies"), links.get("default_actions")
+    keeps_up = (completed and fallbacks == 0 and defaults == 0
+                and (baseline is None or rate >= KEEPS_UP_FRACTION * baseline))
+    out = {"rate_kbit": rate_kbit, "completed": completed, "edge_exit_codes": [e.returncode for e in edges],
+           "steps": summary.get("step", 0), "episodes": summary.get("episodes"),
+           "bytes_per_step": {k: round((after[k] - before[k]) / steps, 1) for k in after},
+           "env_steps_per_s": rate, "step_p50_ms": summary.get("step_latency_ms_p50"),
+           "step_p99_ms": summary.get("step_latency_ms_p99"), "default_actions": defaults,
+           "msg_fallback_copies": fallbacks, "off_policy_actions": links.get("off_policy_actions"),
+           "baseline_env_steps_per_s": baseline, "keeps_up": keeps_up, "run_dir": str(run)}
+    if pushed:
+        out["updates"] = update_check(run, work / f"push-{rate_kbit}.log")
+    return out
+
+
+def update_check(run: Path, driver_log: Path) -> dict:
+    """What the hot update and the rollback did, from the driver's report and the env host's trace:
+    steps acted per version, whether versions only rose and no step was missed."""
+    import numpy as np
+
+    lines = driver_log.read_text().strip().splitlines() if driver_log.is_file() else []
+    try:
+        driver = json.loads(lines[-1])
+    except (IndexError, json.JSONDecodeError):
+        driver = {"error": f"no report in {driver_log}: {' | '.join(lines[-2:])}"}
+    trace_file = run / "trace.npz"
+    if not trace_file.is_file():
+        return {"driver": driver, "error": "no trace.npz"}
+    with np.load(trace_file) as t:
+        steps, versions = t["steps"], t["versions"]
+    return {"driver": driver, "steps_per_version": {int(v): int((versions == v).sum()) for v in np.unique(versions)},
+            "versions_monotone": bool(np.all(np.diff(versions) >= 0)),
+            "no_step_missed": bool(np.array_equal(steps, np.arange(steps[0], steps[0] + len(steps))))}
 
 
 def main() -> None:
@@ -142,16 +264,28 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("bundle", type=Path)
-    ap.add_argument("--rates", default="0,1024,256", help="kbit/s limits of agent 0's link (0 = none)")
+    ap.add_argument("--rates", default="0,1024,256", help="kbit/s limits of agent 0's link (0 = none; first = baseline)")
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--work", type=Path, default=Path("runs/netns"))
+    ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv for the local agents "
+                                                   "(python -m benchmarks.edge_venv PATH builds one)")
+    ap.add_argument("--push", type=Path, help="a bundle to push mid-run, then roll back (through the CLI)")
+    ap.add_argument("--runtime", action="append", default=[], help="RuntimeSettings FIELD=VALUE for the served run")
+    ap.add_argument("--timeout", type=float, default=600)
     a = ap.parse_args()
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped bench still deletes its namespaces
+    baseline = None
     for rate in [int(x) for x in a.rates.split(",")]:
         try:
-            r = served_run(a.bundle, a.work, a.episodes, rate)
+            r = served_run(a.bundle, a.work, a.episodes, rate, edge_python=a.edge_venv, push=a.push,
+                           baseline_steps_per_s=baseline, runtime=tuple(a.runtime), timeout_s=a.timeout)
         except NetnsUnavailable as e:
             sys.exit(f"error: network namespaces unavailable here: {e}")
-        print(json.dumps(r))
+        if rate == 0 and r["completed"]:
+            baseline = r["env_steps_per_s"]
+        print(json.dumps(r), flush=True)
 
 
 if __name__ == "__main__":

@@ -278,6 +278,19 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
     return cfg, settings
 
 
+def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> str:
+    """The line saying which processes this host starts (a served run has a policy server, no learner)."""
+    served = settings.mode == "eval"
+    roles = ["learner", *(["central"] if cfg.wiring.uses_central else []), *(f"local-{i}" for i in range(cfg.n_agents)),
+             "env"]
+    away = {*settings.external, *(f"local-{i}" for i in external_agents)}
+    here = [r for r in roles if r not in away]
+    names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
+    return (f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host "
+            f"({', '.join(names.get(r, r) for r in here)}){' + external roles' if away else ''}; logs in {path}/logs; "
+            "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"))
+
+
 def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
             external_agents: tuple[int, ...] = ()) -> None:
     from rich.live import Live
@@ -287,10 +300,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    central = cfg.wiring.uses_central
-    console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
-                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
-                  f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
+    served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
+    console.print(_will_run(cfg, settings, path, external_agents), soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None
@@ -348,6 +359,8 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
         from faults.links import COUNTERS_NOTE
 
         console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
+    if served:  # a frozen team: nothing to resume or to train further
+        return
     from learning.cli import print_next_steps
 
     print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

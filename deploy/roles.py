@@ -143,66 +143,44 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
                   run_id: Annotated[str | None, typer.Option(help="With --bundle: the run id of the run to join.")] = None,
                   seed: Annotated[int | None, typer.Option(
                       help="With --bundle: the run's seed (the agent's sampling stream); default the bundle's.")] = None,
+                  settings_file: Annotated[Path | None, typer.Option(
+                      "--settings", help="With --bundle: a copy of the served run's runtime.json (deadlines, "
+                                         "fallback, bounds, run id).")] = None,
+                  runtime: Annotated[list[str] | None, typer.Option(
+                      "--runtime", help="With --bundle: RuntimeSettings FIELD=VALUE, repeatable.")] = None,
+                  identity: Annotated[Path | None, typer.Option(
+                      help="With --bundle, a secure run: the directory with ca.pem, local-<i>.pem, local-<i>.key.")] = None,
                   ) -> None:
-    """A local-agent client: acts on its observation + central message. Runs without torch."""
+    """A local-agent client: acts on its observation + central message. Runs without torch.
+
+    With --bundle the console script starts it without this CLI framework (local_agent/edge.py)."""
+    from local_agent.edge import edge_inputs, run_agent
+
+    if bundle is not None:
+        try:
+            if run_dir is not None:
+                raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
+            inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity)
+        except (FileNotFoundError, ValueError) as e:
+            _fail(str(e))
+        _setup(f"local-{agent}")
+        run_agent(*inputs)
+        return
     _setup(f"local-{agent}", run_dir)
     # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
-    from local_agent.client import AgentSpec, LocalAgentClient
-    from protocol.session import HammerSession
+    from local_agent.client import AgentSpec
 
+    if run_dir is None:
+        _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
     try:
-        if bundle is not None:
-            settings, transport, cfg, spec = _bundle_inputs(bundle, run_dir, run_id, connect, zenoh_config, seed)
-        elif run_dir is None:
-            _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
-        else:
-            settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
-            cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
+        settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
+        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     if not 0 <= agent < cfg.n_agents:
         _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
-    aspec = AgentSpec.from_config(cfg, spec, agent)
-    try:
-        with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
-            client = LocalAgentClient(s, aspec, cfg.num_envs, settings.fallback, settings.fallback_k,
-                                      settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                      step_log_dir=_step_log_dir(run_dir) if run_dir else None,
-                                      step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
-                                      start_step=None if bundle is not None else known_step(settings.resume_step))
-            client.stall_warn_s = settings.stall_warn_s
-            client.run()
-            logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
-            if run_dir is not None:
-                _write_counters(run_dir, f"local-{agent}", client.final_counters())
-    except KeyboardInterrupt:
-        pass
-
-
-def _bundle_inputs(bundle: Path, run_dir: Path | None, run_id: str | None, connect: str | None,
-                   zenoh_config: Path | None, seed: int | None):
-    """An edge agent's settings, transport, config and env spec from a bundle (serve.bundle), no run directory."""
-    from deploy.settings import RuntimeSettings
-    from protocol.session import TransportConfig
-    from serve.bundle import load_bundle
-
-    if run_dir is not None:
-        raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
-    if not run_id:
-        raise ValueError("--bundle needs --run-id: the id of the run to join (`hammer serve` prints it)")
-    if connect is None and zenoh_config is None:
-        raise ValueError("--bundle needs --connect tcp/<hub>:<port> (or --zenoh-config): where the run's hub listens")
-    b = load_bundle(bundle)
-    fb = b.manifest.get("fallback", {})
-    settings = RuntimeSettings(run_id=run_id, fallback=fb.get("mode", "zeros"), fallback_k=fb.get("k", 3))
-    if zenoh_config is not None:
-        transport = TransportConfig(zenoh_config_file=zenoh_config)
-    else:
-        host = connect.split("/", 1)[-1].rsplit(":", 1)[0]  # a hub on this host: stay on loopback
-        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if host in ("127.0.0.1", "localhost", "[::1]")
-                                            else "tcp/0.0.0.0:0"], connect=[connect])
-    cfg = b.config(**({} if seed is None else {"seed": seed}))
-    return settings, transport, cfg, b.env_spec()
+    run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
+              step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step))
 
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
@@ -294,7 +272,8 @@ def learner_command(run_dir: RunDirOpt,
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network, run_dir=run_dir).run()
+                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network,
+                             settings.weights_republish_s, run_dir, settings.weights_republish_max_s).run()
         except PolicyDirError as e:
             _fail(str(e))
         except KeyboardInterrupt:

@@ -23,7 +23,8 @@ Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
 
 
-_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections")
+_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "weights_republish_s",
+           "weights_republish_max_s")
 
 
 class RuntimeSettings(BaseModel):
@@ -83,6 +84,13 @@ class RuntimeSettings(BaseModel):
     degraded_rejections: int = Field(
         0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
 
+    weights_republish_s: float = Field(
+        1.0, gt=0, description="eval: the policy server republishes the weights this long after a publish, then "
+                               "twice as long each time (late joiners; every role joining starts it over)")
+    weights_republish_max_s: float = Field(
+        16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
+                                "weights_republish_s for a fixed period")
+
     @model_validator(mode="after")
     def _eval_needs_policy(self) -> RuntimeSettings:
         if self.mode == "eval" and not self.policy_dir:
@@ -115,19 +123,22 @@ class RuntimeSettings(BaseModel):
             return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
         return TransportConfig(listen=[loopback_endpoint(self.hub_port)])
 
-    def secured(self, transport: TransportConfig, role: str, run_dir: Path, n_agents: int) -> TransportConfig:
+    def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
+                identity_directory: Path | None = None) -> TransportConfig:
         """`transport` as role `role` of a secure run: TLS endpoints, the role's identity from
-        RUN/identity/ and the run's access rules; unchanged when the run is not secure."""
+        RUN/identity/ (or `identity_directory`: an edge agent's copy of its three files) and the run's
+        access rules; unchanged when the run is not secure."""
         if not self.secure:
             return transport
         from protocol.access import secure_link, tls_endpoint
         from protocol.identity import identity_dir
         from protocol.keys import Keys
 
+        where = identity_directory if identity_directory is not None else identity_dir(run_dir)
         return transport.model_copy(update={
             "listen": [tls_endpoint(e) for e in transport.listen],
             "connect": [tls_endpoint(e) for e in transport.connect],
-            "security": secure_link(identity_dir(run_dir), role, Keys(self.run_id), n_agents, router=self.secure_hub)})
+            "security": secure_link(where, role, Keys(self.run_id), n_agents, router=self.secure_hub)})
 
     def save(self, run_dir: Path) -> None:
         # `secure`, `secure_hub`, `external` and the bounds are written only when set: a default runtime.json is what it always was.

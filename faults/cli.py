@@ -95,14 +95,11 @@ def eval_command(
     import json
     import time
 
-    import yaml
-
-    from deploy.settings import RuntimeSettings
     from deploy.up import UpError, launch
     from faults.chaos import ChaosSpecError, parse_chaos
     from faults.spec import FaultSpecError, build_plan
     from faults.sweep import eval_config, team_source
-    from serve.bundle import BundleError
+    from serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -114,19 +111,15 @@ def eval_command(
     except (FaultSpecError, ChaosSpecError, FileNotFoundError, BundleError) as e:
         _fail(str(e))
     path = run_dir or run.parent / f"{run.name}-eval-{time.strftime('%Y%m%d-%H%M%S')}"
-    rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
-          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            _fail(f"--runtime {item!r}: expected FIELD=VALUE")
-        rt[key.strip()] = yaml.safe_load(val)
-    try:
-        settings = RuntimeSettings.model_validate(rt)
-    except ValueError as e:
-        from deploy.cli import settings_error
+    if is_bundle(run):  # served as `hammer serve` serves it: the bundle's fallback applies
+        from serve.cli import serve_settings
 
-        _fail(settings_error(e))
+        try:
+            settings, _ = serve_settings(load_bundle(run), path.name, fault, fault_seed, chaos, runtime)
+        except ValueError as e:
+            _fail(str(e))
+    else:
+        settings = _run_dir_settings(path, policy_dir, plan, chaos, runtime)
     for lf in plan.links:
         typer.echo(f"fault: {lf.describe()} (seed {plan.seed})")
     try:
@@ -138,3 +131,24 @@ def eval_command(
     for ev in res.chaos_log:
         typer.echo(f"chaos: {ev}")
     typer.echo(json.dumps(res.links, indent=1))
+
+
+def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | None, runtime: list[str] | None):
+    """RuntimeSettings of the evaluation of a run directory's final/ policy (default fallback)."""
+    import yaml
+
+    from deploy.settings import RuntimeSettings
+
+    rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
+          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
+    for item in runtime or []:
+        key, eq, val = item.partition("=")
+        if not eq:
+            _fail(f"--runtime {item!r}: expected FIELD=VALUE")
+        rt[key.strip()] = yaml.safe_load(val)
+    try:
+        return RuntimeSettings.model_validate(rt)
+    except ValueError as e:
+        from deploy.cli import settings_error
+
+        _fail(settings_error(e))

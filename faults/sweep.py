@@ -84,19 +84,35 @@ def eval_config(run: Path, episodes: int, seed: int):
     return build_config(data)
 
 
-def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000) -> PointResult:
+def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
+    """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
+    served as `hammer serve` serves it (serve.cli.serve_settings: its fallback applies); a run directory
+    with the default fallback."""
     from deploy.settings import RuntimeSettings
-    from deploy.up import launch
     from faults.spec import FaultPlan, LinkFault
+    from serve.bundle import is_bundle, load_bundle
 
     run = Path(p.run)
-    trained, policy = team_source(run)
-    cfg = eval_config(run, episodes, p.seed)
     links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
     plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
-    settings = RuntimeSettings(run_id=p.name.replace(".", "_")[:64], mode="eval", policy_dir=str(policy),
-                               msg_deadline_ms=msg_deadline_ms, faults=plan.to_spec(),
-                               fault_links=[lf.model_dump() for lf in links])
+    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
+    run_id = p.name.replace(".", "_")[:64]
+    if is_bundle(run):
+        from serve.cli import serve_settings
+
+        base, _ = serve_settings(load_bundle(run), run_id, runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
+        return base.model_copy(update=faults)
+    return RuntimeSettings(run_id=run_id, mode="eval", policy_dir=str(team_source(run)[1]),
+                           msg_deadline_ms=msg_deadline_ms, **faults)
+
+
+def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000) -> PointResult:
+    from deploy.up import launch
+
+    run = Path(p.run)
+    trained, _ = team_source(run)
+    cfg = eval_config(run, episodes, p.seed)
+    settings = point_settings(p, msg_deadline_ms, fault_seed_base)
     t0 = time.monotonic()
     res = launch(cfg, settings, out / "points" / p.name)
     with open(out / "points" / p.name / "metrics.csv", newline="") as f:
@@ -181,7 +197,7 @@ def write_outputs(results: list[PointResult], out: Path, msg_deadline_ms: float,
     header = (f"Paper metric (mean reward per local agent per episode, higher is better), "
               f"{'mean ± std over ' if len(seeds) > 1 else ''}{len(seeds)} seed{'s' if len(seeds) > 1 else ''} "
               f"× {episodes} episodes; central→local faults; message deadline "
-              f"{msg_deadline_ms:g} ms; fallback: zeros. In brackets: share of agent-steps acting on a fallback message.")
+              f"{msg_deadline_ms:g} ms; fallback: the bundle's (zeros for a run directory). In brackets: share of agent-steps acting on a fallback message.")
     lines = [header, ""]
     if il is not None:
         lines += [f"IL reference (no messages, no faults): **{pm(il)}**", ""]

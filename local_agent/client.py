@@ -22,13 +22,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safetensors.numpy import load as load_safetensors
 
-from envs.base import EnvSpec
 from faults.steplog import LoggedPublisher, StepLog, column
-from learning.config import RunConfig
 from learning.numpy_policy import NumpyLocalPolicy, softmax
 from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from protocol.schemas import Action, CentralMsg, Dims, LocalObs
@@ -36,6 +35,10 @@ from protocol.session import HammerSession
 from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 from runtime.weights import WeightsIntake
+
+if TYPE_CHECKING:  # annotations only: the edge agent builds its AgentSpec without the (pydantic) RunConfig
+    from envs.base import EnvSpec
+    from learning.config import RunConfig
 
 OBS_EVENTS = {e: column("env->local", e) for e in ("delivered", "late")}
 MSG_EVENTS = {e: column("central->local", e) for e in ("delivered", "late", "duplicate", "fallbacks")}

@@ -66,7 +66,8 @@ def grants(keys: Keys, n_agents: int, router: bool = False) -> dict[str, Grant]:
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
-            liveliness=(keys.alive("learner"),)),
+            # the policy server (the learner of a served run) republishes the weights when a role joins
+            liveliness=(keys.alive("learner"),), watch_liveliness=True),
     }
     if router:
         g[HUB] = Grant(relay=True)

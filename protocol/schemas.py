@@ -266,7 +266,10 @@ class Message(BaseModel):
     message only sets `step` and `env_idx` (plus the payload).
     """
 
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=False, validate_default=False)
+    # defer_build: a model's validator is built on its first pydantic validation, so a process builds only
+    # those it validates (the hot types mostly go through the fast path below; the edge agent never
+    # builds GlobalState or ExperienceChunk).
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=False, validate_default=False, defer_build=True)
 
     TYPE: ClassVar[str] = ""
     MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES

@@ -101,6 +101,17 @@ class Bundle:
     def env_spec_data(self) -> dict[str, Any]:
         return dict(self.manifest["env_spec"])
 
+    def wiring(self):
+        """What the variant means for the runners (learning.variant.Wiring), from the manifest alone: no
+        RunConfig is built (the edge agent never imports the training config)."""
+        from types import SimpleNamespace
+
+        from learning.variant import Wiring
+
+        c = self.config_data
+        return Wiring.from_config(SimpleNamespace(**{k: c[k] for k in ("variant", "central_mode", "n_agents", "msg_dim")},
+                                                  msg_dropout=c.get("msg_dropout", 0.0)))
+
     def config(self, **update: Any):
         """The team's RunConfig (pydantic, no torch), with fields replaced (e.g. episodes, seed)."""
         from learning.config import build_config
@@ -195,8 +206,9 @@ def _env_spec(run_dir: Path, cfg) -> dict:
     return d
 
 
-def load_bundle(path: Path) -> Bundle:
-    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims."""
+def load_bundle(path: Path, check_config: bool = True) -> Bundle:
+    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims.
+    check_config=False: the full RunConfig is not validated (the edge agent reads only the wiring)."""
     path = Path(path)
     mf = path / MANIFEST
     if not mf.is_file():
@@ -231,12 +243,12 @@ def load_bundle(path: Path) -> Bundle:
                               "fix: copy the bundle again or export it again")
     shapes = _checked_shapes(path / LOCAL)
     try:
-        cfg = Bundle(path, m).config()
-    except ValueError as e:
+        cfg = Bundle(path, m).config() if check_config else None  # an edge agent never builds the RunConfig
+        wiring = cfg.wiring if cfg is not None else Bundle(path, m).wiring()
+    except (ValueError, KeyError, TypeError) as e:
         raise BundleError(f"{mf}: config: {' '.join(str(e).split())[:300]}; fix: export the bundle again") from None
-    wiring = cfg.wiring
     check_local_weights(shapes, wiring.local_input_dim(int(m["env_spec"]["obs_dim"])), m["env_spec"], str(path / LOCAL))
-    if wiring.has_central_network:
+    if wiring.has_central_network and cfg is not None:  # the central weights: checked where they are served
         check_central_weights(_checked_shapes(path / CENTRAL), cfg.central_net, wiring.n_agents, str(path / CENTRAL))
     return Bundle(path, m)
 

@@ -93,7 +93,8 @@ def serve_command(
     runtime: Annotated[list[str] | None, typer.Option(
         "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447.")] = None,
     external: Annotated[str | None, typer.Option(
-        help="Agents started elsewhere (`hammer local --bundle`), e.g. 0,2: not launched here; the run waits for them.")] = None,
+        help="Roles started elsewhere, not launched here (the run waits for them): agent indices (`hammer local "
+             "--bundle`) and/or central (`hammer central --run-dir`), e.g. 0,2 or 0,1,2,central.")] = None,
     out: Annotated[Path, typer.Option(help="Root directory for run directories.")] = Path("runs"),
     run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/serve-<bundle>-<time>).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
@@ -114,11 +115,13 @@ def serve_command(
         b = load_bundle(bundle)
         cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
         _check_env(b, cfg)
-        skip = _agents(external, cfg.n_agents)
+        skip, roles = _external(external, cfg)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
         settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
                                                                                    *(["secure=true"] if secure else [])])
-        if skip and settings.hub_port == 0 and not settings.zenoh_config_file:  # the agents need the port now
+        if roles:
+            settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
+        if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
             from protocol.session import free_loopback_port
 
             settings = settings.model_copy(update={"hub_port": free_loopback_port()})
@@ -127,13 +130,19 @@ def serve_command(
     console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}) -> {path}")
     for lf in plan.links:
         console.print(f"fault: {lf.describe()} (seed {plan.seed})")
-    if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's files and its own key
-        console.print(f"waiting for external agents {', '.join(map(str, skip))}: copy {path}/{{config.json,runtime.json,"
-                      f"env_spec.json}} and identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md), then "
-                      f"hammer local --run-dir RUN --agent I --connect tls/<this host>:{settings.hub_port}")
+    where = f"{'tls' if settings.secure else 'tcp'}/<this host>:{settings.hub_port or '<port>'}"
+    if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's settings and its own key
+        console.print(f"waiting for external agents {', '.join(map(str, skip))}: copy {path}/runtime.json and "
+                      f"identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md), then hammer local --bundle "
+                      f"{bundle} --agent I --settings runtime.json --identity DIR --connect {where}"
+                      + (f" --seed {seed}" if seed is not None else ""), soft_wrap=True)
     elif skip:
         console.print(f"waiting for external agents {', '.join(map(str, skip))}: hammer local --bundle {bundle} "
-                      f"--agent I --run-id {settings.run_id} --connect tcp/<this host>:{settings.hub_port or '<port>'}")
+                      f"--agent I --run-id {settings.run_id} --connect {where}"
+                      + (f" --seed {seed}" if seed is not None else ""), soft_wrap=True)
+    if roles:
+        console.print(f"waiting for the external central agent: hammer central --run-dir {path} --connect {where} "
+                      "(the run directory's config.json, runtime.json and env_spec.json are all it needs)", soft_wrap=True)
     _run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
 
 
@@ -149,16 +158,19 @@ def _check_env(bundle, cfg) -> None:
         env.close()
 
 
-def _agents(text: str | None, n: int) -> list[int]:
+def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
+    """--external: (agent indices, other roles) started elsewhere; only the central agent may be one of those."""
     if not text:
-        return []
-    try:
-        out = sorted({int(x) for x in text.split(",") if x.strip()})
-    except ValueError:
-        raise ValueError(f"--external {text!r}: expected agent indices, e.g. 0,2") from None
-    if any(not 0 <= i < n for i in out):
-        raise ValueError(f"--external {text!r}: this team has agents 0..{n - 1}")
-    return out
+        return [], []
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    roles = sorted({x for x in items if not x.lstrip("-").isdigit()})
+    if [r for r in roles if r != "central"] or (roles and not cfg.wiring.uses_central):
+        raise ValueError(f"--external {text!r}: expected agent indices and optionally central "
+                         f"({'this team has no central agent' if roles == ['central'] else 'e.g. 0,2,central'})")
+    out = sorted({int(x) for x in items if x not in roles})
+    if any(not 0 <= i < cfg.n_agents for i in out):
+        raise ValueError(f"--external {text!r}: this team has agents 0..{cfg.n_agents - 1}")
+    return out, roles
 
 
 def push_command(

@@ -26,13 +26,23 @@ class PlayError(ValueError):
 
 
 def render_env(env_id: str, n_agents: int, env_kwargs: dict):
-    """The PettingZoo parallel env of `env_id`, rendering rgb_array frames."""
+    """The PettingZoo parallel env of `env_id`, rendering rgb_array frames, and how many leading
+    observation entries the team sees (None: all). cn's observe_others=false is mpe2's observation
+    without its tail (other agents, communication): [v_i, p_i, landmarks - p_i] comes first in both."""
     from envs.catalog import _PETTINGZOO
 
     if env_id not in RENDERED:
         raise PlayError(f"env {env_id!r}: play renders {', '.join(RENDERED)}; fix: export a team of one of those")
     name, rename = RENDERED[env_id]
     kwargs = dict(env_kwargs)
+    keep = None
+    if rename is not None and kwargs.get("observe_others", True) is False:
+        from envs.spread import spread_obs_dim
+
+        kwargs.pop("observe_others")
+        keep = spread_obs_dim(n_agents, observe_others=False)
+    elif rename is not None:
+        kwargs.pop("observe_others", None)
     if rename is not None:
         unknown = sorted(set(kwargs) - set(rename))
         if unknown:
@@ -41,7 +51,7 @@ def render_env(env_id: str, n_agents: int, env_kwargs: dict):
         kwargs = {rename[k]: v for k, v in kwargs.items()}
     e = _PETTINGZOO[name]
     factory = getattr(importlib.import_module(e.module), e.factory)
-    return factory(**{**e.defaults, e.n_key: n_agents, **kwargs, "render_mode": "rgb_array"})
+    return factory(**{**e.defaults, e.n_key: n_agents, **kwargs, "render_mode": "rgb_array"}), keep
 
 
 def message_panel(msgs: np.ndarray, height: int, step: int, reward: float) -> np.ndarray:
@@ -92,7 +102,7 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
         raise PlayError(f"--out {out}: play writes a GIF; fix: name it *.gif")
     cfg = bundle.config(msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
     spec, w = bundle.env_spec(), cfg.wiring
-    env = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
+    env, keep = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
     local_blob = (bundle.path / "local.safetensors").read_bytes()
     agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
     for a in agents:
@@ -108,8 +118,8 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
             while env.agents and t < max_steps:
                 t += 1
                 present = np.array([[aid in obs_d for aid in spec.agent_ids]])
-                obs = np.stack([np.asarray(obs_d.get(aid, np.zeros(spec.obs_dim)), np.float32)
-                                for aid in spec.agent_ids])[None]
+                obs = np.stack([np.asarray(obs_d[aid], np.float32)[:keep] if aid in obs_d else np.zeros(spec.obs_dim,
+                                np.float32) for aid in spec.agent_ids])[None]
                 msgs = acting.messages(acting.global_state(obs, prev), streams, 0.0,
                                        net.message_mean if net is not None else None,
                                        net.values if net is not None and acting.rl else None).sent

@@ -2,9 +2,13 @@
 
 Deployment and evaluation run the real runtime (every hop, every fault) but must not change the
 policy, so the learner role is taken by this server: it publishes the exported
-`local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0, and republishes
-them every second so a restarted agent gets them too. The files are sent as they are
-(safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
+`local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0. It republishes them
+for late joiners, with a back-off: after `republish_s`, then twice as long each time up to
+`republish_max_s`, and at once (the back-off starting over) whenever a role of the run declares its
+liveliness, i.e. a started or restarted agent is subscribed. Why: the weights (~39 kB local, ~53 kB
+central for cn3) go over every agent's link; republished every second they alone take ~314 kbit/s,
+more than a constrained radio link carries (docs/deploy.md, "Real links"). The files are sent as
+they are (safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
 
 Given the run directory, it also follows the run's update history (serve/push.py: `hammer push`,
 `hammer rollback`): the newest entry's weights, checked against their recorded sha256, become the
@@ -39,36 +43,53 @@ def policy_blobs(policy_dir: Path, needs_central: bool) -> dict[str, bytes]:
 
 
 class PolicyServer(Role):
-    """Publishes the frozen weights as version 0 every `republish_s` until a stop command."""
+    """Publishes the frozen weights (version 0, then each pushed version) until a stop command,
+    republishing them with a back-off that starts over when a role joins."""
 
     def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
-                 republish_s: float = 1.0, run_dir: Path | None = None) -> None:
+                 republish_s: float = 1.0, run_dir: Path | None = None, republish_max_s: float | None = None) -> None:
         blobs = policy_blobs(policy_dir, needs_central)  # a missing file fails before anything is declared
         super().__init__(session, "learner", report_faults=False)
-        self.blobs, self.republish_s, self.needs_central = blobs, republish_s, needs_central
+        self.blobs, self.needs_central = blobs, needs_central
+        self.republish_s = republish_s
+        self.republish_max_s = max(republish_s, republish_max_s if republish_max_s is not None else republish_s)
+        self.period = republish_s  # the wait before the next republish: doubles up to republish_max_s
         self.pubs = {role: session.publisher(self.keys.weights(role)) for role in blobs}
-        self.published = 0
+        self.joins = session.watch_alive(history=False)
+        self.published = self.joined = 0
         self.last_publish = 0.0
         self.version, self.run_dir, self.history_seen = 0, run_dir, 0
         self.updates_rejected = 0
 
     def counters(self) -> dict[str, int]:
         return {"policy_version": self.version, "frozen_publishes": self.published,
-                "updates_rejected": self.updates_rejected}
+                "updates_rejected": self.updates_rejected, "roles_joined": self.joined}
 
     def on_start(self) -> None:
         self.publish()
 
     def poll(self, timeout: float) -> bool:
-        """Nothing to receive: wait out the loop turn (a stop command is read at the next one)."""
-        time.sleep(timeout)
+        """Nothing to receive but joins: a role declaring its liveliness (subscribed by then) gets the
+        weights at once, and the back-off starts over (a second chance if the first copy raced its
+        subscription through a router)."""
+        ev = self.joins.get(timeout=timeout)
+        joined = False
+        while ev is not None:
+            if ev.alive and ev.role != self.name:
+                self.joined += 1
+                joined = True
+            ev = self.joins.get(0)
+        if joined:
+            self.period = self.republish_s
+            self.publish()
         return False
 
     def on_idle(self) -> None:
         if self.run_dir is not None:
             self.follow_history()
-        if time.monotonic() - self.last_publish >= self.republish_s:
+        if time.monotonic() - self.last_publish >= self.period:
             self.publish()
+            self.period = min(self.period * 2, self.republish_max_s)
 
     def follow_history(self) -> None:
         """A new entry in RUN/pushes.json: load its weights (hash-checked) and publish them as its version."""
@@ -96,6 +117,7 @@ class PolicyServer(Role):
             return
         self.blobs, self.version = blobs, e["version"]
         self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
+        self.period = self.republish_s  # a new version: republished soon for anyone who missed the first copy
         self.publish()
         self.heartbeat_soon()
 

@@ -1,16 +1,16 @@
 """The edge install: a fresh venv with only the base distribution (no torch, PettingZoo, matplotlib) runs
 `hammer local --bundle` inside a real served run on 127.0.0.1, and the CLI names the extra a training
-command needs. Builds the venv with pip (the project with --no-deps, then its base dependencies)."""
+command needs. The venv (benchmarks.edge_venv: the project with --no-deps, then its
+base dependencies) is the session's `edge_venv` fixture (tests/conftest.py); tests/test_netns.py runs it
+across network namespaces."""
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
-import tomllib
 
 import pytest
 
+from benchmarks.edge_venv import clean_env
 from deploy.up import launch
 from learning.config import merge_config
 from learning.rundir import RunDir
@@ -18,29 +18,18 @@ from learning.trainer import train
 from protocol.session import free_loopback_port
 from serve.bundle import export_bundle
 from serve.cli import serve_settings
-from tests.runtime_helpers import ROOT
 
 pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
 
 
-def _edge_venv(path) -> str:
-    subprocess.run([sys.executable, "-m", "venv", str(path)], check=True, timeout=60)
-    py = str(path / "bin" / "python")
-    base = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
-    pip = [py, "-m", "pip", "install", "-q", "--disable-pip-version-check"]
-    subprocess.run([*pip, "--no-deps", str(ROOT)], check=True, timeout=120, capture_output=True)
-    subprocess.run([*pip, *base], check=True, timeout=120, capture_output=True)
-    return py
-
-
-def test_an_edge_only_install_serves_in_a_real_run(tmp_path):
-    py = _edge_venv(tmp_path / "venv")
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # the venv's install, not this checkout
+def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
+    py = str(edge_venv)
+    env = clean_env()  # the venv's install, not this checkout
     probe = "import importlib.util as u; print([m for m in ('torch', 'pettingzoo', 'matplotlib', 'mpe2', 'scipy', 'supersuit', 'gymnasium') if u.find_spec(m)])"
     missing = subprocess.run([py, "-c", probe],
                              capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
     assert missing.stdout.strip() == "[]"
-    hammer = str(tmp_path / "venv" / "bin" / "hammer")
+    hammer = str(edge_venv.parent / "hammer")
     assert subprocess.run([hammer, "--help"], check=False, capture_output=True, env=env, cwd=tmp_path).returncode == 0
     r = subprocess.run([hammer, "train", "--episodes", "1"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer[train]'" in r.stderr

@@ -1,6 +1,9 @@
-"""A served team across Linux network namespaces (benchmarks/netns.py): the hub namespace (router,
-env host, central agent, policy server) and one namespace per edge agent, joined by veth pairs with
-addresses private to them, agent 0's link limited with tc tbf. Created and deleted by the test."""
+"""Issue 19's chain across Linux network namespaces (benchmarks/edge_chain.py, benchmarks/netns.py): a team
+trained with `hammer train`, exported with `hammer export`, served with `hammer serve` in the hub namespace
+(router, env host, policy server), its central agent in a namespace of its own and each edge agent
+(`hammer local --bundle`, from a torch-free venv) in its own, joined by veth pairs with addresses private
+to them, agent 0's link limited with tc tbf; a hot update (`hammer push`) and a rollback (`hammer rollback`)
+land mid-run through the CLI; `hammer play` renders the team. Namespaces are created and deleted here."""
 
 from __future__ import annotations
 
@@ -8,15 +11,14 @@ import os
 import shutil
 import subprocess
 
+import numpy as np
 import pytest
+from safetensors.numpy import load_file, save_file
 
-from benchmarks.netns import NetnsUnavailable, served_run
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
-from serve.bundle import export_bundle
+from benchmarks.edge_chain import chain, replay_check, train_team
+from benchmarks.netns import NetnsUnavailable
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = pytest.mark.timeout(300)
 
 
 def _netns_reason() -> str | None:
@@ -30,20 +32,48 @@ def _netns_reason() -> str | None:
     return None
 
 
-def test_a_served_team_runs_across_namespaces_with_a_limited_link(tmp_path):
+def _update_of(run, out):
+    """Team B: team A with a random, sharp action head and other central weights (a briefly trained
+    head is near uniform), so B acts and messages clearly differently on the same inputs."""
+    shutil.copytree(run, out)
+    rng = np.random.default_rng(0)
+    for name in ("local", "central"):
+        f = str(out / "final" / f"{name}.safetensors")
+        w = load_file(f)
+        key = (f"actor.layers.{max(int(k.split('.')[2]) for k in w if k.startswith('actor.layers.'))}.weight"
+               if name == "local" else max(w, key=lambda k: w[k].size))
+        w[key] = rng.normal(0.0, 3.0, w[key].shape).astype(np.float32)
+        save_file(w, f)
+    return out
+
+
+def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv):
     reason = _netns_reason()
     if reason:
         pytest.skip(reason)
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=16", "seed=1"])
-    train(cfg, RunDir.create(tmp_path / "run", cfg), tensorboard=False)
-    bundle = export_bundle(tmp_path / "run", tmp_path / "bundle")
+    a = train_team(tmp_path / "a", seed=1, episodes=16,
+                   sets=("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2"))
+    b = _update_of(a, tmp_path / "b")
     tag = f"t{os.getpid() % 10000}"
     try:
-        r = served_run(bundle.path, tmp_path / "ns", episodes=16, rate_kbit=1024, tag=tag)
+        r = chain(tmp_path / "chain", a, b, edge_venv, rates=(1024,), episodes=240, tag=tag)
     except NetnsUnavailable as e:
         pytest.skip(str(e))
-    assert r["completed"] and r["edge_exit_codes"] == [0, 0, 0], r
-    assert r["steps"] == 50 and r["default_actions"] == 0
-    assert all(b > 500 for b in r["bytes_per_step"]), r  # every step's obs, message and action crossed each link
+    run = r["runs"][0]
+    assert run["completed"] and run["edge_exit_codes"] == [0, 0, 0], run
+    assert run["steps"] == 750 and run["default_actions"] == 0 and run["off_policy_actions"] == 0
+    assert set(run["bytes_per_step"]) == {"local-0", "local-1", "local-2", "central"}
+    assert all(x > 300 for x in run["bytes_per_step"].values()), run  # each step crossed every link
+    up = run["updates"]
+    assert "error" not in up["driver"], up
+    assert set(up["steps_per_version"]) == {0, 1, 2} and min(up["steps_per_version"].values()) > 20, up
+    assert up["versions_monotone"] and up["no_step_missed"], up
+    assert run["replay"]["acted_in_time"] > 0.99
+    assert run["replay"]["match"] == 1.0, run["replay"]  # one version per step; after the rollback A exactly
+    bundle_a = tmp_path / "chain" / "bundle-a"
+    only_a = replay_check(tmp_path / "chain" / "netns" / "served-1024" / "trace.npz", {0: bundle_a, 1: bundle_a,
+                                                                                       2: bundle_a})
+    assert only_a["match_per_version"][1] < 0.7  # B did act differently in its window
+    assert (tmp_path / "chain" / "team.gif").stat().st_size > 10_000 and "25 frames" in r["play"]
     left = subprocess.run(["ip", "netns", "list"], check=False, capture_output=True, text=True).stdout
     assert f"hmr{tag}" not in left  # everything the test created is gone

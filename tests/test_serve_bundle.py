@@ -194,3 +194,58 @@ def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
     assert json.loads((run / "runtime.json").read_text())["secure"] is True
     assert (run / "identity" / "learner.key").is_file() and not (run / "identity" / "hub.key").exists()
     assert len(_metrics(run)) == 8
+
+
+@pytest.mark.parametrize(("preset", "overrides", "steps"), [("mw3", (), 3), ("cn3", ("env_kwargs.observe_others=false",), 4)])
+def test_play_renders_multiwalker_and_own_observation_teams(tmp_path, monkeypatch, preset, overrides, steps):
+    """Smoke test of the other renderers: SISL multiwalker (continuous actions), and cn whose local agents
+    see only their own position and the landmarks (mpe2's observation without its tail)."""
+    from PIL import Image, ImageSequence
+
+    from benchmarks.edge import make_team
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    bundle, *_ = make_team(tmp_path / "team", preset, overrides)
+    r = CliRunner().invoke(app, ["play", str(bundle.path), "--out", str(tmp_path / "team.gif"), "--episodes", "1",
+                                 "--max-steps", str(steps)])
+    assert r.exit_code == 0, r.output
+    frames = list(ImageSequence.Iterator(Image.open(tmp_path / "team.gif")))
+    assert len(frames) == steps and f"{steps} frames" in r.output
+
+
+def test_faults_eval_and_sweep_serve_a_bundle_with_its_fallback(trained, tmp_path):
+    """`hammer faults eval/sweep` given a bundle run it as `hammer serve` does (serve_settings), so the
+    fallback in its manifest applies; a run directory keeps the default."""
+    from faults.sweep import Point, point_settings
+
+    b = tmp_path / "b"
+    export_bundle(trained, b)
+    m = json.loads((b / "manifest.json").read_text())
+    m["fallback"] = {"mode": "last_k", "k": 2}  # the manifest is not among the hashed files
+    (b / "manifest.json").write_text(json.dumps(m))
+    s = point_settings(Point(team="t", run=str(b), drop=0.5, delay_ms=0.0, seed=1), 20.0)
+    assert (s.mode, s.fallback, s.fallback_k, s.msg_deadline_ms) == ("eval", "last_k", 2, 20.0)
+    assert s.faults is not None and s.fault_links[0]["drop"] == 0.5 and s.policy_dir == str(b)
+    s = point_settings(Point(team="t", run=str(trained), drop=0.0, delay_ms=0.0, seed=1), 20.0)
+    assert (s.fallback, s.policy_dir) == ("zeros", str(trained / "final"))
+    r = CliRunner().invoke(app, ["faults", "eval", str(b), "--episodes", "8", "--run-dir", str(tmp_path / "ev"),
+                                 "--fault", "central->local:drop=1.0"])
+    assert r.exit_code == 0, r.output
+    rt = json.loads((tmp_path / "ev" / "runtime.json").read_text())
+    assert (rt["fallback"], rt["fallback_k"], rt["mode"]) == ("last_k", 2, "eval")
+    links = json.loads((tmp_path / "ev" / "links.json").read_text())["links"]
+    assert links["central->local"]["dropped"] > 0  # the fault of the command line applied too
+
+
+def test_serve_says_policy_server_and_gives_external_agents_the_seed(trained, tmp_path):
+    """The start-up lines of a served run: no learner runs (the policy server does), and the command an
+    external agent needs carries --seed when one was given (its sampling stream must be the run's)."""
+    export_bundle(trained, tmp_path / "b")
+    r = CliRunner().invoke(app, ["serve", str(tmp_path / "b"), "--episodes", "8", "--seed", "3", "--external",
+                                 "1,central", "--runtime", "startup_timeout_s=3", "--run-dir", str(tmp_path / "s"),
+                                 "--no-dashboard"])
+    assert r.exit_code == 1 and "local-1 (external: start it by hand)" in r.output, r.output  # nobody joined
+    assert "--agent I --run-id s --connect tcp/<this host>:" in r.output and "--seed 3" in r.output
+    assert "hammer central --run-dir" in r.output
+    line = next(ln for ln in r.output.splitlines() if ln.startswith("will run:"))
+    assert "policy server" in line and "learner" not in line and "--resume" not in line and "external" in line

@@ -13,8 +13,11 @@ from typer.testing import CliRunner
 
 from deploy.up import launch
 from hammer.cli import app
+from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
 from learning.config import merge_config
+from learning.numpy_policy import NumpyCentralAgent
 from learning.rundir import RunDir
+from learning.sampling import ActingStreams
 from learning.trainer import train
 from local_agent.client import AgentSpec, LocalAgent
 from serve.bundle import BundleError, export_bundle
@@ -27,7 +30,8 @@ pytestmark = pytest.mark.timeout(180)
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory):
     """Team A (a short real training run) and team B: A with a random, sharp action head (a briefly
-    trained head is near uniform), so B acts clearly differently on the same inputs."""
+    trained head is near uniform) and another central message head, so B acts and messages clearly
+    differently on the same inputs."""
     root = tmp_path_factory.mktemp("teams")
     cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
                                          "episodes=24", "seed=6"])
@@ -38,6 +42,9 @@ def bundles(tmp_path_factory):
     head = f"actor.layers.{last}.weight"
     w[head] = np.random.default_rng(0).normal(0.0, 3.0, w[head].shape).astype(np.float32)
     save_file(w, str(root / "b" / "final" / "local.safetensors"))
+    c = load_file(str(root / "b" / "final" / "central.safetensors"))
+    c["head_weight"] = np.random.default_rng(1).normal(0.0, 1.0, c["head_weight"].shape).astype(np.float32)
+    save_file(c, str(root / "b" / "final" / "central.safetensors"))
     return export_bundle(root / "a", root / "A"), export_bundle(root / "b", root / "B")
 
 
@@ -52,6 +59,23 @@ def _replay(bundle_of_version: dict, cfg, spec, trace) -> np.ndarray:
             if a.version != v:
                 a.load_weights(blobs[int(v)], int(v))
             out[t, :, i] = a.act(trace["obs"][t, :, i], trace["msgs"][t, :, i])
+    return out
+
+
+def _central_replay(bundle_of_version: dict, cfg, spec, trace) -> np.ndarray:
+    """The central agent's messages on the recorded observations and actions, with the central weights
+    of the version each step names, drawing its stream step by step as the central server does."""
+    acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
+    nets = {v: NumpyCentralAgent(load_file(str(b.path / "central.safetensors"))) for v, b in bundle_of_version.items()}
+    out = np.zeros(trace["msgs"].shape, np.float32)
+    k = trace["actions"].shape[1]
+    for t, (step, v) in enumerate(zip(trace["steps"], trace["versions"])):
+        first = (int(step) - 1) % spec.max_steps == 0  # every cn copy starts an episode together
+        prev = zero_prev_actions(spec, k) if first else encode_actions(spec, trace["actions"][t - 1],
+                                                                        np.ones((k, cfg.n_agents), bool))
+        net = nets[int(v)]
+        out[t] = acting.messages(acting.global_state(trace["obs"][t], prev), streams, 0.0, net.message_mean,
+                                 net.values if acting.rl else None).sent
     return out
 
 
@@ -93,6 +117,13 @@ def test_push_and_rollback_switch_every_agent_at_one_step(bundles, tmp_path):
     only_a = _replay({0: a, 1: a, 2: a}, cfg, spec, trace)
     in_b = ok & (versions == 1)[:, None, None]
     assert (only_a[in_b] != acted[in_b]).mean() > 0.3  # B did act differently in its window
+    # The central agent switched at the same steps: its messages are B's central network's in B's window.
+    sent = ~trace["fallback"] & ~trace["defaulted"]  # what the central agent sent and an agent acted on
+    msgs = _central_replay({0: a, 1: b, 2: a}, cfg, spec, trace)
+    assert np.allclose(msgs[sent], trace["msgs"][sent], atol=1e-6)
+    a_msgs = _central_replay({0: a, 1: a, 2: a}, cfg, spec, trace)
+    b_sent = sent & (versions == 1)[:, None, None]
+    assert np.abs(a_msgs[b_sent] - trace["msgs"][b_sent]).mean() > 0.05  # B's messages, not A's
 
 
 def test_push_checks_and_cli(bundles, tmp_path):
@@ -117,3 +148,43 @@ def test_push_checks_and_cli(bundles, tmp_path):
     assert r.exit_code == 0 and "policy version 1" in r.output
     r = runner.invoke(app, ["rollback", str(run)])
     assert r.exit_code == 0 and "version 2 serves the policy of version 0" in r.output
+
+
+def test_the_policy_server_backs_off_and_republishes_when_a_role_joins(bundles):
+    """Republishes at 0, 0.5, 1.5, 3.5 s (the period doubling to its ceiling), not every 0.5 s; a role
+    declaring its liveliness gets the weights at once, long before the next scheduled copy (7.5 s)."""
+    import threading
+    import time
+
+    from protocol.schemas import Control, Weights
+    from protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+    from serve.policy_server import PolicyServer
+
+    a, _ = bundles
+    port = free_loopback_port()
+    peer = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)])
+    with HammerSession("backoff", TransportConfig(listen=[loopback_endpoint(port)]), sender="launcher") as hub, \
+            HammerSession("backoff", peer, sender="learner") as s, HammerSession("backoff", peer, sender="local-0") as j:
+        got = j.subscribe(j.keys.weights("local"), Weights)
+        time.sleep(0.5)  # the subscription has reached the other sessions
+        server = PolicyServer(s, a.path, needs_central=True, republish_s=0.5, republish_max_s=4.0)
+        runner = threading.Thread(target=server.run, daemon=True)
+        t0 = time.monotonic()
+        runner.start()
+
+        def arrivals(until: float) -> list[float]:
+            out = []
+            while time.monotonic() - t0 < until:
+                if got.get(timeout=0.05) is not None:
+                    out.append(time.monotonic() - t0)
+            return out
+
+        before = arrivals(5.0)
+        j.declare_alive("local-0")
+        joined = time.monotonic() - t0
+        after = arrivals(6.0)
+        hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+        runner.join(timeout=10)
+    assert 3 <= len(before) <= 5, before  # a fixed 0.5 s period would have sent 10
+    assert after and after[0] - joined < 0.8, (joined, after)  # the join, not the schedule (7.5 s)
+    assert server.counters()["roles_joined"] >= 1

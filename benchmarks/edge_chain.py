@@ -1,0 +1,139 @@
+"""Issue 19's "done when", end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
+
+    python -m benchmarks.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
+                                    [--episodes 2400] [--work runs/edge-chain] [--edge-venv PY]   (root)
+    make edge-chain                                                                  (the same, defaults)
+
+Every step is the real CLI (a fresh process each):
+  1. the team: RUN_A (default: the archived cn3-ownobs hammer-rl team of seed 0, 30,000 episodes of
+     `hammer train`), or `hammer train --preset cn3` of N episodes (--train-episodes); the update B:
+     RUN_B (default: the archived team of seed 1) or a second trained seed
+  2. `hammer export` of both teams into bundles
+  3. a fresh venv with only the edge install (no torch, PettingZoo, matplotlib), unless --edge-venv
+  4. per rate: `hammer serve A` in the hub namespace (router, launcher, env host, policy server),
+     `hammer central` in its own namespace, `hammer local --bundle A` from the edge venv in one
+     namespace per agent (benchmarks.netns), `hammer push B --to RUN` and `hammer rollback RUN` mid-run
+     (benchmarks.push_driver); the env host's trace is replayed with each version's weights: every
+     step was acted on with the version it names, and after the rollback exactly as A acts
+  5. `hammer play A --out WORK/team.gif`
+Writes WORK/chain.json (every figure) and prints it.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+ARCHIVE = ROOT / "docs" / "results" / "runs" / "cn3-ownobs"
+ARCHIVED_TEAM = "cn3-hammer-rl-env_kwargs_observe_others=false-s{seed}"
+
+
+def hammer(*args: str, timeout: float = 900) -> str:
+    """`hammer ARGS` as a fresh process; its stdout, or a RuntimeError with its last error line."""
+    r = subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
+                       timeout=timeout)
+    if r.returncode != 0:
+        tail = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["(no output)"]
+        raise RuntimeError(f"hammer {args[0]} exited with {r.returncode}: {tail[0]}")
+    return r.stdout.strip()
+
+
+def train_team(run_dir: Path, seed: int, episodes: int, sets: tuple[str, ...] = ()) -> Path:
+    """`hammer train --preset cn3` (HAMMER, RL central mode) into `run_dir`."""
+    hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--seed", str(seed),
+           "--episodes", str(episodes), "--run-dir", str(run_dir), "--quiet",
+           *(x for s in sets for x in ("--set", s)))
+    return run_dir
+
+
+def replay_check(trace_file: Path, bundles: dict[int, Path]) -> dict:
+    """Replay every local agent on the trace's observations and messages with the weights of the
+    version each step names (one random stream per agent, as the edge agents draw): the fraction of
+    actions (acted in time) that match, overall and per version."""
+    from local_agent.client import AgentSpec, LocalAgent
+    from serve.bundle import load_bundle
+
+    loaded = {v: load_bundle(p) for v, p in bundles.items()}
+    first = loaded[min(loaded)]
+    cfg, spec = first.config(), first.env_spec()
+    blobs = {v: (b.path / "local.safetensors").read_bytes() for v, b in loaded.items()}
+    with np.load(trace_file) as t:
+        tr = {k: t[k] for k in ("obs", "msgs", "actions", "defaulted", "versions")}
+    agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
+    replay = np.zeros(tr["actions"].shape, np.int64)
+    for s, v in enumerate(tr["versions"]):
+        for i, a in enumerate(agents):
+            if a.version != int(v):
+                a.load_weights(blobs[int(v)], int(v))
+            replay[s, :, i] = a.act(tr["obs"][s, :, i], tr["msgs"][s, :, i])
+    ok = ~tr["defaulted"]
+    match = replay == tr["actions"]
+    per_version = {int(v): float(match[ok & (tr["versions"] == v)[:, None, None]].mean()) for v in np.unique(tr["versions"])}
+    return {"match": float(match[ok].mean()), "match_per_version": per_version, "acted_in_time": float(ok.mean())}
+
+
+def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[int, ...], episodes: int,
+          push_at: int = 150, play_episodes: int = 1, tag: str | None = None) -> dict:
+    """Steps 2-5 for two trained run directories; returns every figure (also written to WORK/chain.json)."""
+    from benchmarks.netns import served_run
+
+    work.mkdir(parents=True, exist_ok=True)
+    a, b = work / "bundle-a", work / "bundle-b"
+    report: dict = {"team": str(team), "update": str(update), "edge_python": str(edge_python),
+                    "export": [hammer("export", str(team), "--out", str(a), "--force"),
+                               hammer("export", str(update), "--out", str(b), "--force")], "runs": []}
+    baseline = None
+    for rate in rates:
+        r = served_run(a, work / "netns", episodes, rate, tag=tag, edge_python=edge_python, push=b,
+                       baseline_steps_per_s=baseline,
+                       timeout_s=max(240.0, episodes * 2.0))
+        if r.get("updates", {}).get("driver", {}).get("rollback_named_at") is not None:
+            r["replay"] = replay_check(Path(r["run_dir"]) / "trace.npz", {0: a, 1: b, 2: a})
+        if rate == 0 and r["completed"]:
+            baseline = r["env_steps_per_s"]
+        report["runs"].append(r)
+    gif = work / "team.gif"
+    report["play"] = hammer("play", str(a), "--out", str(gif), "--episodes", str(play_episodes), "--max-steps", "25")
+    report["gif"] = str(gif)
+    (work / "chain.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+def main() -> None:
+    import argparse
+
+    from benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+    from benchmarks.netns import NetnsUnavailable
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--team", type=Path, default=ARCHIVE / ARCHIVED_TEAM.format(seed=0))
+    ap.add_argument("--update", type=Path, default=ARCHIVE / ARCHIVED_TEAM.format(seed=1))
+    ap.add_argument("--train-episodes", type=int, help="train both teams with `hammer train` instead (seeds 0, 1)")
+    ap.add_argument("--rates", default="1024", help="kbit/s limits of agent 0's link, e.g. 0,1024,256 (0 = none)")
+    ap.add_argument("--episodes", type=int, default=2400,
+                    help="per run; the push and the rollback each take a CLI start and a heartbeat (~2 s)")
+    ap.add_argument("--work", type=Path, default=Path("runs/edge-chain"))
+    ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv (default: build WORK/edge-venv)")
+    a = ap.parse_args()
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped chain still deletes its namespaces
+    team, update = a.team, a.update
+    try:
+        if a.train_episodes:
+            team = train_team(a.work / "train-a", 0, a.train_episodes)
+            update = train_team(a.work / "train-b", 1, a.train_episodes)
+        edge = a.edge_venv or build_edge_venv(a.work / "edge-venv")
+        r = chain(a.work, team, update, edge, tuple(int(x) for x in a.rates.split(",")), a.episodes)
+    except (RuntimeError, EdgeVenvError, NetnsUnavailable) as e:
+        sys.exit(f"error: {e}")
+    print(json.dumps(r, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,5 @@
+"""`python -m hammer ...`: the console script (hammer/entry.py)."""
+
+from hammer.entry import main
+
+main()

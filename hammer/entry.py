@@ -1,0 +1,30 @@
+"""The `hammer` console script: the edge agent starts without the CLI framework.
+
+`hammer local --bundle ...` runs on edge devices, where every import costs memory and start-up
+time; it goes straight to `local_agent.edge` (argparse, no typer/rich, none of the other commands'
+modules). Every other command is the typer app of hammer/cli.py.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def is_edge(argv: list[str]) -> bool:
+    """`local` with `--bundle` (and not asking for the full CLI's help)."""
+    return argv[:1] == ["local"] and any(a == "--bundle" or a.startswith("--bundle=") for a in argv)
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    if is_edge(argv):
+        from local_agent.edge import main as edge
+
+        sys.exit(edge(argv[1:]))
+    from hammer.cli import main as cli
+
+    cli()
+
+
+if __name__ == "__main__":
+    main()

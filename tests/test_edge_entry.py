@@ -1,0 +1,101 @@
+"""The edge entry (hammer/entry.py -> local_agent/edge.py): `hammer local --bundle` starts without the CLI
+framework or the training config, takes the served run's runtime settings, and joins a secure run with
+only its three identity files (no run directory). Real processes, real Zenoh on 127.0.0.1."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from benchmarks.edge import make_team
+from deploy.settings import RuntimeSettings
+from deploy.up import launch
+from local_agent.edge import edge_inputs
+from protocol.session import free_loopback_port
+from serve.cli import serve_settings
+from tests.runtime_helpers import ENV, ROOT
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def team(tmp_path_factory):
+    bundle, _, cfg, _ = make_team(tmp_path_factory.mktemp("team"))
+    return bundle, cfg
+
+
+def test_the_edge_entry_loads_neither_the_cli_framework_nor_the_training_config(team):
+    bundle, _ = team
+    r = subprocess.run([sys.executable, "-X", "importtime", "-m", "hammer", "local", "--bundle", str(bundle.path),
+                        "--agent", "7", "--run-id", "x", "--connect", "tcp/127.0.0.1:9"],
+                       check=False, capture_output=True, text=True, cwd=ROOT, env=ENV, timeout=60)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and lines[-1] == "error: --agent 7: this team has agents 0..2", lines[-1]
+    loaded = {ln.split("|")[-1].strip() for ln in lines if ln.startswith("import time:")}
+    assert "local_agent.edge" in loaded and "protocol.session" in loaded
+    assert not loaded & {"typer", "rich", "learning.config", "torch", "hammer.cli", "yaml"}, loaded & {
+        "typer", "rich", "learning.config", "torch", "hammer.cli", "yaml"}
+
+
+def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team, tmp_path):
+    bundle, _ = team
+    RuntimeSettings(run_id="served-x", msg_deadline_ms=12, fallback="last", step_window=77, hub_port=7447,
+                    mode="eval", policy_dir=str(bundle.path)).save(tmp_path)
+    settings, transport, spec, k = edge_inputs(bundle.path, 1, None, "tcp/127.0.0.1:7447", None, None,
+                                               settings_file=tmp_path / "runtime.json", runtime=["fallback_k=5"])
+    assert (settings.run_id, settings.msg_deadline_ms, settings.fallback, settings.fallback_k, settings.step_window) \
+        == ("served-x", 12, "last", 5, 77)
+    assert transport.connect == ["tcp/127.0.0.1:7447"] and (spec.agent, spec.obs_dim, spec.msg_dim, k) == (1, 18, 4, 32)
+    s, _, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/10.0.0.1:7447", None, 5)
+    assert (s.fallback, s.msg_deadline_ms) == ("zeros", 50.0)  # no settings: the bundle's fallback, defaults
+    with pytest.raises(ValueError, match="--run-id"):
+        edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None)
+    with pytest.raises(ValueError, match="msg_deadline_ms"):
+        edge_inputs(bundle.path, 0, "x", "tcp/127.0.0.1:7447", None, None, runtime=["msg_deadline_ms=-1"])
+    RuntimeSettings(run_id="sec", secure=True).save(tmp_path)
+    with pytest.raises(ValueError, match="--identity"):  # a secure run without the agent's identity files
+        edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=tmp_path / "runtime.json")
+
+
+def _join_when_ready(run, bundle, port, ids, out: dict) -> None:
+    """What a person does on the edge machine: copy the agent's three identity files and runtime.json
+    from the launcher's run directory, then start the agent from the bundle."""
+    deadline = time.monotonic() + 60
+    while not (run / "identity" / "local-2.key").is_file() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    ids.mkdir()
+    for name in ("ca.pem", "local-2.pem", "local-2.key"):
+        shutil.copy(run / "identity" / name, ids / name)
+    shutil.copy(run / "runtime.json", ids.parent / "served-runtime.json")
+    env = {k: v for k, v in ENV.items()}
+    out["proc"] = subprocess.Popen([sys.executable, "-m", "hammer", "local", "--bundle", str(bundle.path), "--agent", "2",
+                                    "--settings", str(ids.parent / "served-runtime.json"), "--identity", str(ids),
+                                    "--connect", f"tcp/127.0.0.1:{port}"], cwd=ROOT, env=env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(team, tmp_path):
+    bundle, _ = team
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "secure-edge", runtime=[f"hub_port={port}", "secure=true"])
+    run, out = tmp_path / "served", {}
+    joiner = threading.Thread(target=_join_when_ready, args=(run, bundle, port, tmp_path / "edge" / "id", out))
+    (tmp_path / "edge").mkdir()
+    joiner.start()
+    try:
+        res = launch(bundle.config(episodes=64, msg_dropout=0.0), settings, run, external_agents=(2,))
+        joiner.join(timeout=30)
+        text, _ = out["proc"].communicate(timeout=30)
+    finally:
+        joiner.join(timeout=30)
+        if "proc" in out and out["proc"].poll() is None:
+            out["proc"].kill()
+    assert res.summary["completed"] and res.summary["episodes"] == 64
+    assert out["proc"].returncode == 0, text
+    assert "tls/" in text and "'steps': 50," in text  # over TLS, every step of the run (64 episodes on 32 copies)
+    assert res.links["local->env"]["defaults"] == 0
