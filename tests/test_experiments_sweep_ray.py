@@ -166,14 +166,16 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
     training processes end with it; returns the points it left to resume."""
     import psutil
 
-    sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--backend", "ray",
-                              "--ray-address", address, "--presets", "cn3", "--variants", "il",
-                              "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2"],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL)
+    log = out.with_name(out.name + "-cli.log")
+    with open(log, "wb") as f:
+        sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--backend", "ray",
+                                  "--ray-address", address, "--presets", "cn3", "--variants", "il",
+                                  "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2"],
+                                 stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
         while not any(state_of(d) == "resume" for d in out.glob("cn3-*")):
-            assert sweep.poll() is None and time.monotonic() < deadline, "the Ray sweep never reached a checkpoint"
+            assert sweep.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.1)
         trainers = _trainers(out)
         assert trainers, "no training process of the Ray sweep found on this machine"
@@ -317,3 +319,16 @@ def test_stopping_a_ray_job_ends_its_command_while_connected(ray_head, tmp_path)
         assert launcher.ray.is_initialized()  # still connected: the job's own stop did it
     finally:
         launcher.close()
+
+
+@needs_ray
+def test_an_unreachable_cluster_fails_in_seconds_naming_the_fix(tmp_path):
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    t0 = time.monotonic()
+    res = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "o"), "--seeds", "0", "--backend", "ray",
+                                   "--ray-address", f"127.0.0.1:{_free_port()}"])
+    assert res.exit_code == 2 and "cannot connect to the Ray cluster" in res.output and "fix:" in res.output
+    assert time.monotonic() - t0 < 20 and not (tmp_path / "o").exists()
