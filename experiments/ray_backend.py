@@ -67,8 +67,8 @@ def import_ray(loopback: bool):
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
     """Fail in seconds, not after Ray's minutes of reconnecting, when nothing listens at HOST:PORT."""
     host, sep, port = address.rpartition(":")
-    if not sep or not port.isdigit():
-        return  # "auto" and other forms Ray resolves itself
+    if not sep or not port.isdigit() or "://" in address:
+        return  # "auto", ray://... and other forms Ray resolves itself
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
     except OSError as e:
