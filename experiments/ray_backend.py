@@ -64,6 +64,17 @@ def import_ray(loopback: bool):
     return ray
 
 
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in seconds, not after Ray's minutes of reconnecting, when nothing listens at HOST:PORT."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit() or "://" in address:
+        return  # "auto", ray://... and other forms Ray resolves itself
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise ConnectionError(f"nothing answers at {address}: {e.strerror or e}") from None
+
+
 def _token_available() -> bool:
     return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
                 or (Path.home() / ".ray" / "auth_token").is_file())
@@ -85,10 +96,15 @@ class RayLauncher:
                 # (Ray's default for `ray start --head`) needs it from every driver.
                 if "RAY_AUTH_MODE" not in os.environ and _token_available():
                     os.environ["RAY_AUTH_MODE"] = "token"
+                _check_reachable(address)
                 ray.init(address=address, logging_level="WARNING", **kw)
+        except ray.exceptions.AuthenticationError as e:
+            raise RayUnavailable(f"Ray token authentication: {_first_line(e)}; fix: copy the head node's "
+                                 "~/.ray/auth_token to this machine (or set RAY_AUTH_TOKEN_PATH)") from None
         except ConnectionError as e:
-            raise RayUnavailable(f"cannot reach the Ray cluster at {address} ({str(e).splitlines()[0]}); "
-                                 "fix: start it (ray start --head) or correct --ray-address") from None
+            raise RayUnavailable(f"cannot connect to the Ray cluster at {address} ({_first_line(e)}); fix: check "
+                                 "--ray-address and that the cluster is up (ray status on its head); with token "
+                                 "authentication, copy the head's ~/.ray/auth_token here") from None
         self.num_cpus = num_cpus
         self.task = ray.remote(run_command).options(num_cpus=num_cpus, max_retries=0)
 

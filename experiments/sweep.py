@@ -9,6 +9,8 @@ run directory (pids of the sweep and its child) keeps them from running the same
 With an archive (`experiments.archive`), finished runs and snapshots of runs in progress are
 committed to git, so a sweep continues from a fresh clone: archived runs are skipped, and a
 point with no run directory but a partial snapshot is restored from it and resumed.
+All of that is decided here, for every backend; a launcher (`experiments.launch`) only starts each
+command: as a child process (the default) or as a task on a Ray cluster (`experiments.ray_backend`).
 """
 
 from __future__ import annotations

@@ -166,14 +166,16 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
     training processes end with it; returns the points it left to resume."""
     import psutil
 
-    sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--backend", "ray",
-                              "--ray-address", address, "--presets", "cn3", "--variants", "il,hammer-rl",
-                              "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2"],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL)
+    log = out.with_name(out.name + "-cli.log")
+    with open(log, "wb") as f:
+        sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--backend", "ray",
+                                  "--ray-address", address, "--presets", "cn3", "--variants", "il",
+                                  "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2"],
+                                 stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
         while not any(state_of(d) == "resume" for d in out.glob("cn3-*")):
-            assert sweep.poll() is None and time.monotonic() < deadline, "the Ray sweep never reached a checkpoint"
+            assert sweep.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.1)
         trainers = _trainers(out)
         assert trainers, "no training process of the Ray sweep found on this machine"
@@ -194,7 +196,7 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
 def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head, tmp_path):
     from experiments.ray_backend import RayLauncher
 
-    pts = expand(["cn3"], ["il", "hammer-rl"], [0, 1], GRID, episodes=EPISODES)  # two seed batches of two
+    pts = expand(["cn3"], ["il"], [0, 1], GRID, episodes=EPISODES)  # one seed batch; resumed, each alone
     local = run_sweep(pts, tmp_path / "local", jobs=2)
     assert sorted(local.done) == sorted(p.name for p in pts) and not local.failed
 
@@ -285,3 +287,48 @@ def test_default_ray_is_a_private_instance_on_loopback(tmp_path):
     for p in alive:
         p.kill()
     assert not alive, f"Ray processes left after the sweep: {[p.pid for p in alive]}"
+
+
+@needs_ray
+def test_stopping_a_ray_job_ends_its_command_while_connected(ray_head, tmp_path):
+    """`Job.stop()` (what Ctrl-C / SIGTERM to a sweep calls) ends the task's command itself, not
+    only Ray's clean-up when the sweep disconnects: the command is gone while the sweep is still
+    connected, and the job reports that it ended."""
+    import psutil
+
+    from experiments.ray_backend import RayLauncher
+    from experiments.sweep import LOCK
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / LOCK).write_text(str(os.getpid()))  # as the sweep's lock would be
+    marker = f"hammer-stop-test-{secrets.token_hex(4)}"
+    launcher = RayLauncher(ray_head.address)
+    try:
+        job = launcher.launch(["-c", f"import time; time.sleep(600)  # {marker}"], run_dir / "train.log", [run_dir])
+        deadline = time.monotonic() + 60
+        while not (found := [p for p in psutil.process_iter(["cmdline"]) if marker in " ".join(p.info["cmdline"] or [])]):
+            assert job.poll() is None and time.monotonic() < deadline, f"the command never started: {job.reason}"
+            time.sleep(0.1)
+        job.stop()
+        _gone, alive = psutil.wait_procs(found, timeout=5)
+        for p in alive:  # never leave it running if the test fails
+            p.kill()
+        assert not alive, "the command outlived its stopped task"
+        assert job.poll() is not None
+        assert launcher.ray.is_initialized()  # still connected: the job's own stop did it
+    finally:
+        launcher.close()
+
+
+@needs_ray
+def test_an_unreachable_cluster_fails_in_seconds_naming_the_fix(tmp_path):
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    t0 = time.monotonic()
+    res = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "o"), "--seeds", "0", "--backend", "ray",
+                                   "--ray-address", f"127.0.0.1:{_free_port()}"])
+    assert res.exit_code == 2 and "cannot connect to the Ray cluster" in res.output and "fix:" in res.output
+    assert time.monotonic() - t0 < 20 and not (tmp_path / "o").exists()
