@@ -110,7 +110,8 @@ class Bundle:
 
         c = self.config_data
         return Wiring.from_config(SimpleNamespace(**{k: c[k] for k in ("variant", "central_mode", "n_agents", "msg_dim")},
-                                                  msg_dropout=c.get("msg_dropout", 0.0)))
+                                                  msg_dropout=c.get("msg_dropout", 0.0),
+                                                  central_net=c.get("central_net", "concat")))
 
     def config(self, **update: Any):
         """The team's RunConfig (pydantic, no torch), with fields replaced (e.g. episodes, seed)."""
