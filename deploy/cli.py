@@ -284,9 +284,15 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
     central = cfg.wiring.uses_central
-    console.print(f"will run: {cfg.episodes:,} episodes as {cfg.n_agents + 2 + central} processes on this host (learner, "
-                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents, env host); logs in {path}/logs; "
-                  f"Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint", soft_wrap=True)
+    from deploy.up import resolve_agents_per_process
+
+    groups = (settings if resume else resolve_agents_per_process(cfg, settings)).agent_groups(cfg.n_agents)
+    n_local = len(groups) + cfg.n_agents - sum(map(len, groups))  # external agents: one process each
+    pooled = "" if n_local == cfg.n_agents else f" in {n_local} processes (agents_per_process={max(map(len, groups))})"
+    console.print(f"will run: {cfg.episodes:,} episodes as {n_local + 2 + central} processes on this host (learner, "
+                  f"{'central agent, ' if central else ''}{cfg.n_agents} local agents{pooled}, env host); logs in "
+                  f"{path}/logs; Ctrl-C stops, `hammer up --resume {path}` continues from the last checkpoint",
+                  soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None

@@ -132,7 +132,12 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
-def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (0-based).")],
+def local_command(agent: Annotated[int | None, typer.Option(help="Local agent index i (0-based): one agent, "
+                                                                "one process (what an edge device runs).")] = None,
+                  agents: Annotated[str | None, typer.Option(
+                      help="Serve several local agents from this one process (an agent pool), e.g. 0-19 or "
+                           "0,2,5-7; each keeps its own keys, random stream, fallback, fault layer and "
+                           "heartbeat.")] = None,
                   run_dir: Annotated[Path | None, typer.Option(
                       help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")] = None,
                   connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None,
@@ -142,24 +147,71 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
                   seed: Annotated[int | None, typer.Option(
                       help="With --bundle: the run's seed (the agent's sampling stream); default the bundle's.")] = None,
                   ) -> None:
-    """A local-agent client: acts on its observation + central message. Runs without torch."""
-    _setup(f"local-{agent}", run_dir)
+    """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch."""
+    if (agent is None) == (agents is None):
+        _fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
+    _setup(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
+    try:
+        if bundle is not None:
+            settings, cfg, spec = _bundle_inputs(bundle, run_dir, run_id, connect, zenoh_config, seed)
+        elif run_dir is None:
+            _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
+        else:
+            settings, cfg, spec = _read_settings(run_dir, zenoh_config), _read_config(run_dir), read_env_spec(run_dir)
+        members = [agent] if agents is None else _pool_agents(agents, cfg.n_agents)
+        transport = _local_transport(settings, bundle, run_dir, connect, zenoh_config, members, cfg.n_agents)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    if agents is None:
+        if not 0 <= agent < cfg.n_agents:
+            _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
+        _serve_agent(settings, transport, cfg, spec, agent, run_dir)
+    else:
+        _serve_pool(settings, transport, cfg, spec, members, run_dir)
+
+
+def _pool_agents(text: str, n_agents: int) -> list[int]:
+    from local_agent.pool import parse_agents
+
+    return parse_agents(text, n_agents)
+
+
+def _read_settings(run_dir: Path, zenoh_config: Path | None):
+    from deploy.settings import RuntimeSettings
+
+    s = RuntimeSettings.load(run_dir)
+    return s if zenoh_config is None else s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
+
+
+def _local_transport(settings, bundle: Path | None, run_dir: Path | None, connect: str | None,
+                     zenoh_config: Path | None, members: list[int], n_agents: int):
+    """The transport of a local-agent process: a bundle's (no run directory), or the run's; in a
+    secure run the identity is the agent's own (`local-<i>`) or its pool's, which must then be one of
+    the run's pools (identities are made by `hammer up`; the CA key is gone afterwards)."""
+    if bundle is not None:
+        return _bundle_transport(connect, zenoh_config)
+    transport = settings.transport()
+    if connect is not None and zenoh_config is None:
+        transport = transport.model_copy(update={"connect": [connect]})
+    if not settings.secure:
+        return transport
+    from protocol.access import pool_name
+
+    role = f"local-{members[0]}" if len(members) == 1 else pool_name(members)
+    pools = dict(settings.pools(n_agents))
+    if len(members) > 1 and role not in pools:
+        raise ValueError(f"--agents: a secure run admits only its own pools ({', '.join(pools) or 'none'}), each "
+                         f"with an identity granted exactly its agents' keys; fix: pass one of those ranges, or "
+                         f"--agent i per agent (set runtime agents_per_process when starting the run)")
+    return settings.secured(transport, role, run_dir, n_agents)
+
+
+def _serve_agent(settings, transport, cfg, spec, agent: int, run_dir: Path | None) -> None:
+    """One agent, one process (`LocalAgentClient`)."""
     # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
     from local_agent.client import AgentSpec, LocalAgentClient
     from protocol.session import HammerSession
 
-    try:
-        if bundle is not None:
-            settings, transport, cfg, spec = _bundle_inputs(bundle, run_dir, run_id, connect, zenoh_config, seed)
-        elif run_dir is None:
-            _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
-        else:
-            settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
-            cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
-    except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
-    if not 0 <= agent < cfg.n_agents:
-        _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
     aspec = AgentSpec.from_config(cfg, spec, agent)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender=f"local-{agent}") as s:
@@ -176,11 +228,36 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
         pass
 
 
+def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path | None) -> None:
+    """Several agents, one process and one event loop (`LocalAgentPool`); each agent's counters
+    are written as its own, as N single-agent processes would write them."""
+    from local_agent.client import AgentSpec
+    from local_agent.pool import LocalAgentPool
+    from protocol.access import pool_name
+    from protocol.session import HammerSession
+
+    specs = [AgentSpec.from_config(cfg, spec, i) for i in agents]
+    try:
+        # No fault layer on the shared session: each agent gets its own (its own streams and counters).
+        with HammerSession(settings.run_id, transport, None, sender=pool_name(agents)) as s:
+            pool = LocalAgentPool(s, specs, cfg.num_envs, settings.fallback, settings.fallback_k,
+                                  settings.msg_deadline_ms / 1e3, settings.weights_timeout_s, faults=settings.faults,
+                                  step_log_dir=_step_log_dir(run_dir) if run_dir else None,
+                                  step_window=settings.step_window, max_policy_lag=settings.max_policy_lag)
+            pool.stall_warn_s = settings.stall_warn_s
+            pool.run()
+            pool.log.info("%s counters: %s", pool.name, pool.counters())
+            if run_dir is not None:
+                for m in pool.members:
+                    _write_counters(run_dir, m.name, m.final_counters())
+    except KeyboardInterrupt:
+        pass
+
+
 def _bundle_inputs(bundle: Path, run_dir: Path | None, run_id: str | None, connect: str | None,
                    zenoh_config: Path | None, seed: int | None):
-    """An edge agent's settings, transport, config and env spec from a bundle (serve.bundle), no run directory."""
+    """An edge agent's settings, config and env spec from a bundle (serve.bundle), no run directory."""
     from deploy.settings import RuntimeSettings
-    from protocol.session import TransportConfig
     from serve.bundle import load_bundle
 
     if run_dir is not None:
@@ -192,14 +269,19 @@ def _bundle_inputs(bundle: Path, run_dir: Path | None, run_id: str | None, conne
     b = load_bundle(bundle)
     fb = b.manifest.get("fallback", {})
     settings = RuntimeSettings(run_id=run_id, fallback=fb.get("mode", "zeros"), fallback_k=fb.get("k", 3))
-    if zenoh_config is not None:
-        transport = TransportConfig(zenoh_config_file=zenoh_config)
-    else:
-        host = connect.split("/", 1)[-1].rsplit(":", 1)[0]  # a hub on this host: stay on loopback
-        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if host in ("127.0.0.1", "localhost", "[::1]")
-                                            else "tcp/0.0.0.0:0"], connect=[connect])
     cfg = b.config(**({} if seed is None else {"seed": seed}))
-    return settings, transport, cfg, b.env_spec()
+    return settings, cfg, b.env_spec()
+
+
+def _bundle_transport(connect: str | None, zenoh_config: Path | None):
+    """An edge agent's transport: its Zenoh config file, or a peer connecting to `connect`."""
+    from protocol.session import TransportConfig
+
+    if zenoh_config is not None:
+        return TransportConfig(zenoh_config_file=zenoh_config)
+    host = connect.split("/", 1)[-1].rsplit(":", 1)[0]  # a hub on this host: stay on loopback
+    return TransportConfig(listen=["tcp/127.0.0.1:0" if host in ("127.0.0.1", "localhost", "[::1]")
+                                   else "tcp/0.0.0.0:0"], connect=[connect])
 
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
@@ -254,7 +336,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             summary["faults"] = s.fault_report()
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
-                                             "episodes": host.state.episodes, **host.rejection_counters()})
+                                             "episodes": host.state.episodes, **host.rejection_counters(),
+                                             **s.traffic()})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))

@@ -40,14 +40,37 @@ class Grant:
     relay: bool = False  # a router: forwards everyone's traffic (and checks each hop itself)
 
 
-def role_names(n_agents: int, uses_central: bool = True) -> list[str]:
-    """Every identity a `hammer up` run creates."""
+Pools = tuple[tuple[str, tuple[int, ...]], ...]  # agent pools: (pool name, its agents)
+
+
+def pool_name(agents: list[int]) -> str:
+    """The pool's process name (logs, supervisor, secure identity): `locals-<first>-<last>`, with
+    the full list when the agents are not one contiguous range."""
+    if agents == list(range(agents[0], agents[-1] + 1)):
+        return f"locals-{agents[0]}-{agents[-1]}"
+    return "locals-" + "_".join(map(str, agents))
+
+
+def role_names(n_agents: int, uses_central: bool = True, pools: Pools = ()) -> list[str]:
+    """Every identity a `hammer up` run creates (an agent pool has one identity of its own)."""
     return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
-            "learner", HUB]
+            *(name for name, _ in pools), "learner", HUB]
 
 
-def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
-    """The role table: what each role's job needs, nothing more (docs/security.md)."""
+def pool_grant(keys: Keys, name: str, agents: tuple[int, ...]) -> Grant:
+    """An agent pool (one process serving several local agents, local_agent/pool.py) may do exactly
+    what its agents may do, together: their keys, their heartbeats and liveliness tokens, and no
+    other agent's."""
+    return Grant(
+        publish=(*(keys.act(i) for i in agents), *(keys.heartbeat(f"local-{i}") for i in agents)),
+        subscribe=(*(keys.obs(i) for i in agents), *(keys.msg(i) for i in agents), keys.weights("local"),
+                   keys.ctl("all")),
+        liveliness=tuple(keys.alive(f"local-{i}") for i in agents))
+
+
+def grants(keys: Keys, n_agents: int, pools: Pools = ()) -> dict[str, Grant]:
+    """The role table: what each role's job needs, nothing more (docs/security.md); `pools`: the
+    run's agent pools, each granted exactly its agents' keys (`pool_grant`)."""
     g = {
         LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
         "env": Grant(
@@ -69,6 +92,8 @@ def grants(keys: Keys, n_agents: int) -> dict[str, Grant]:
             publish=(keys.act(i), keys.heartbeat(f"local-{i}")),
             subscribe=(keys.obs(i), keys.msg(i), keys.weights("local"), keys.ctl("all")),
             liveliness=(keys.alive(f"local-{i}"),))
+    for name, agents in pools:
+        g[name] = pool_grant(keys, name, agents)
     return g
 
 
@@ -76,7 +101,7 @@ def _rule(rid: str, flow: str, messages: list[str], key_exprs: tuple[str, ...] |
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": list(key_exprs)}
 
 
-def access_control(keys: Keys, n_agents: int) -> dict:
+def access_control(keys: Keys, n_agents: int, pools: Pools = ()) -> dict:
     """The `access_control` section every process of the run uses (default deny)."""
     everything = [keys.all]
     rules: list[dict] = [
@@ -86,7 +111,7 @@ def access_control(keys: Keys, n_agents: int) -> dict:
     ]
     subjects: list[dict] = []
     policies: list[dict] = [{"id": "own-declarations", "rules": ["own-declarations"], "subjects": []}]
-    for role, g in grants(keys, n_agents).items():
+    for role, g in grants(keys, n_agents, pools).items():
         subjects.append({"id": role, "cert_common_names": [role]})
         policies[0]["subjects"].append(role)
         mine = []
@@ -140,10 +165,10 @@ class SecureLink:
         cfg.insert_json5("access_control", json.dumps(self.access))
 
 
-def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int) -> SecureLink:
+def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int, pools: Pools = ()) -> SecureLink:
     from protocol.identity import identity_of
 
-    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents))
+    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents, pools))
 
 
 def tls_endpoint(endpoint: str) -> str:

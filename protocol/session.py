@@ -153,7 +153,7 @@ class _QueueSub:
 
     cap: int | None = None  # payloads longer than this are rejected on arrival (None: no cap)
 
-    def __init__(self, key_expr: str, maxsize: int) -> None:
+    def __init__(self, key_expr: str, maxsize: int, inbox: Inbox | None = None) -> None:
         self.key_expr = key_expr
         self.stats = SubscriptionStats()
         # SimpleQueue, not Queue: put and get(timeout) run in C without Python-level locks and
@@ -162,10 +162,11 @@ class _QueueSub:
         self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._maxsize = maxsize
         self._zsub: Any = None
+        self._inbox = inbox  # when set, payloads go into that shared queue, tagged with this subscription
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
-        if self._maxsize and self._q.qsize() >= self._maxsize:  # only the consumer shrinks it meanwhile
+        if self._maxsize and self.pending() >= self._maxsize:  # only the consumer shrinks it meanwhile
             self.stats.overflow += 1
             return
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
@@ -173,10 +174,13 @@ class _QueueSub:
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, self.key_expr)
             return
-        self._q.put(sample.payload.to_bytes())
+        if self._inbox is None:
+            self._q.put(sample.payload.to_bytes())
+        else:
+            self._inbox.q.put((self, sample.payload.to_bytes()))
 
     def pending(self) -> int:
-        return self._q.qsize()
+        return self._q.qsize() if self._inbox is None else self._inbox.q.qsize()
 
     def close(self) -> None:
         if self._zsub is not None:
@@ -205,8 +209,8 @@ class Subscription(_QueueSub):
     """
 
     def __init__(self, key_expr: str, expected: Expected, dims: Dims | None, run: str,
-                 maxsize: int, max_bytes: int | None) -> None:
-        super().__init__(key_expr, maxsize)
+                 maxsize: int, max_bytes: int | None, inbox: Inbox | None = None) -> None:
+        super().__init__(key_expr, maxsize, inbox)
         self.expected, self.dims, self.run, self.max_bytes = expected, dims, run, max_bytes
         self.cap = max_bytes if max_bytes is not None else max(t.MAX_BYTES for t in _expected_types(expected))
 
@@ -252,6 +256,33 @@ class Subscription(_QueueSub):
             if msg is not None:
                 out.append(msg)
         return out
+
+
+class Inbox:
+    """One queue fed by many subscriptions: a process serving many agents (an agent pool) waits on
+    all their inputs at once in one thread, instead of one thread or one poll per subscription.
+
+    Each payload is queued with the subscription it came from and is decoded and validated by that
+    subscription (its own dims, size cap and rejection counters), in the consumer's thread."""
+
+    def __init__(self) -> None:
+        self.q: queue.SimpleQueue[tuple[Subscription, bytes]] = queue.SimpleQueue()
+
+    def get(self, timeout: float | None = None) -> tuple[Subscription, Message] | None:
+        """The next valid message and its subscription, waiting up to `timeout` s (0: no wait)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                if deadline is None:
+                    sub, data = self.q.get()
+                else:
+                    remaining = deadline - time.monotonic()
+                    sub, data = self.q.get(timeout=remaining) if remaining > 0 else self.q.get_nowait()
+            except queue.Empty:
+                return None
+            msg = sub._decode(data)
+            if msg is not None:
+                return sub, msg
 
 
 @dataclass(frozen=True)
@@ -305,6 +336,9 @@ class Publisher:
         self._rel = session.keys.relative(key)
         self._seq = itertools.count()
         self._lock = threading.Lock()
+        self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
+        self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
+        self.sent_bytes = 0
 
     def publish(self, msg: Message) -> int:
         """Stamp run/ts/seq/sender, encode and send; returns the seq used."""
@@ -318,7 +352,9 @@ class Publisher:
         return seq
 
     def put_bytes(self, data: bytes) -> None:
-        faults = self._session.faults
+        self.sent_msgs += 1
+        self.sent_bytes += len(data)
+        faults = self.faults
         if faults is None:
             self._zpub.put(data)
         else:
@@ -424,10 +460,11 @@ class HammerSession:
     # ---- subscribe -------------------------------------------------------------------------
 
     def subscribe(self, key_expr: str, expected: Expected = None, dims: Dims | None = None, *,
-                  maxsize: int = 0, max_bytes: int | None = None) -> Subscription:
+                  maxsize: int = 0, max_bytes: int | None = None, inbox: Inbox | None = None) -> Subscription:
         """Validated messages of type(s) `expected` on `key_expr` (wildcards allowed).
-        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow)."""
-        sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes)
+        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow).
+        inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
+        sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -478,3 +515,9 @@ class HammerSession:
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}
+
+    def traffic(self) -> dict[str, int]:
+        """Messages and bytes this session's publishers sent (before faults): `tx_msgs`, `tx_bytes`."""
+        with self._lock:
+            pubs = list(self._publishers.values())
+        return {"tx_msgs": sum(p.sent_msgs for p in pubs), "tx_bytes": sum(p.sent_bytes for p in pubs)}

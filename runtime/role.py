@@ -108,6 +108,10 @@ class Role:
     def on_stop(self) -> None:
         """The loop has ended (stop command or idle exit): final files, summaries."""
 
+    def alive_names(self) -> list[str]:
+        """The liveliness tokens this process declares: its name (an agent pool: each agent's)."""
+        return [self.name]
+
     def counters(self) -> dict[str, int | float]:
         """What the heartbeat reports (fault-layer counters are added when `report_faults`)."""
         return {}
@@ -126,9 +130,19 @@ class Role:
         total.update(self.rejected)
         return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
 
+    def fault_report(self) -> dict[str, dict[str, int]]:
+        """What the fault layer did to this role's publishes (an agent pool: each agent's own)."""
+        return self.session.fault_report()
+
+    def traffic(self) -> dict[str, int]:
+        """Messages and bytes this role published (`hammer bench scale`: messages and bytes per step)."""
+        return self.session.traffic()
+
     def final_counters(self) -> dict[str, int | float]:
-        """What the process writes at exit (faults.links.write_role_counters): counters, rejections, faults."""
-        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.session.fault_report())}
+        """What the process writes at exit (faults.links.write_role_counters): counters, rejections,
+        faults, traffic."""
+        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.fault_report()),
+                **self.traffic()}
 
     def progressed(self) -> None:
         """The role did its work once more (acted on a step, learned from a chunk)."""
@@ -169,7 +183,7 @@ class Role:
         self._last_heartbeat = now
         counters = {**self.counters(), **self.rejection_counters()}
         if self.report_faults:
-            counters = {**counters, **flat_fault_counters(self.session.fault_report())}
+            counters = {**counters, **flat_fault_counters(self.fault_report())}
         self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status,
                                               counters=dict(list(counters.items())[:64]),
                                               detail=self.stall_detail()))
@@ -186,7 +200,8 @@ class Role:
     def run(self) -> None:
         """Declare this role alive (its subscriptions are in place), then handle input until a
         stop command, or `idle_exit_s` without input."""
-        self.session.declare_alive(self.name)
+        for name in self.alive_names():
+            self.session.declare_alive(name)
         self.log.info("%s alive (pid %d)", self.name, os.getpid())  # a log's tail tells how far a dead role got
         self.on_start()
         self._last_input = time.monotonic()
