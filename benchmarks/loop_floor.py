@@ -140,13 +140,15 @@ class FloorRow:
 
 
 def measure(topology: str, typed: bool, k: int = 32, n: int = 3, d: int = 18, m: int = 4, steps: int = 1000,
-            warmup: int = 100, timeout: float = 60.0) -> FloorRow:
+            warmup: int = 100, timeout: float = 60.0, per_process: int | None = None) -> FloorRow:
     """One topology and mode: spawn the echo roles, time `steps` loops from the env host's first
-    publish to its last action decoded, stop the roles."""
-    run_id = f"floor{os.getpid()}{topology}{int(typed)}"
+    publish to its last action decoded, stop the roles. `per_process`: local agents per process
+    (the agent pools of `hammer up`; default: 1 for split, N for grouped)."""
+    run_id = f"floor{os.getpid()}{topology}{int(typed)}{per_process or 0}"
     transport = TransportConfig.listener()
     ctx = mp.get_context("spawn")  # never fork a process that may hold a Zenoh session
-    groups = [[i] for i in range(n)] if topology == "split" else [list(range(n))]
+    size = per_process or (1 if topology == "split" else n)
+    groups = [list(range(j, min(n, j + size))) for j in range(0, n, size)]
     procs = [ctx.Process(target=central_main, args=(run_id, transport.listen, k, n, d, m, typed), daemon=True)]
     procs += [ctx.Process(target=local_main, args=(run_id, transport.listen, g, k, n, d, m, typed), daemon=True)
               for g in groups]
@@ -160,7 +162,7 @@ def measure(topology: str, typed: bool, k: int = 32, n: int = 3, d: int = 18, m:
             p.start()
         try:
             want = {"central", *(f"local-{i}" for i in range(n))}
-            deadline = time.monotonic() + timeout
+            deadline = time.monotonic() + timeout + n  # N=50: 50 interpreters start on a few cores
             while want:
                 ev = watch.get(max(0.0, deadline - time.monotonic()))
                 if ev is None:

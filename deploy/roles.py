@@ -235,6 +235,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
     from local_agent.pool import LocalAgentPool
     from protocol.access import pool_name
     from protocol.session import HammerSession
+    from runtime.role import process_usage
 
     specs = [AgentSpec.from_config(cfg, spec, i) for i in agents]
     try:
@@ -250,6 +251,8 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
             if run_dir is not None:
                 for m in pool.members:
                     _write_counters(run_dir, m.name, m.final_counters())
+                # The process's own figures once, under the pool's name (its agents' counters carry none).
+                _write_counters(run_dir, pool.name, {**pool.counters(), **process_usage()})
     except KeyboardInterrupt:
         pass
 
@@ -315,6 +318,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     from learning.run_env import make_env
     from learning.rundir import RunDir
     from protocol.session import HammerSession
+    from runtime.role import process_usage
 
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config, "env")
@@ -337,7 +341,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
                                              "episodes": host.state.episodes, **host.rejection_counters(),
-                                             **s.traffic()})
+                                             **s.traffic(), **process_usage()})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))

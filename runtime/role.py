@@ -142,7 +142,7 @@ class Role:
         """What the process writes at exit (faults.links.write_role_counters): counters, rejections,
         faults, traffic."""
         return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.fault_report()),
-                **self.traffic()}
+                **self.traffic(), **process_usage()}
 
     def progressed(self) -> None:
         """The role did its work once more (acted on a step, learned from a chunk)."""
@@ -218,6 +218,15 @@ class Role:
             self.step_log.flush()
         self.on_stop()
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
+
+
+def process_usage() -> dict[str, float]:
+    """This process's CPU seconds (every thread, Zenoh's included) and peak RSS so far, for its
+    final counters (`hammer bench scale`: CPU and memory per role)."""
+    import resource
+
+    u = resource.getrusage(resource.RUSAGE_SELF)
+    return {"cpu_s": round(u.ru_utime + u.ru_stime, 3), "rss_peak_mib": round(u.ru_maxrss / 1024, 1)}
 
 
 def _brief(counters: dict[str, int | float]) -> str:

@@ -156,3 +156,39 @@ def test_agent_ranges_pools_and_the_default_per_machine(tmp_path):
     assert json.loads((tmp_path / "runtime.json").read_text())["agents_per_process"] == 2
     RuntimeSettings(run_id="x", agents_per_process=1).save(tmp_path)
     assert "agents_per_process" not in json.loads((tmp_path / "runtime.json").read_text())
+
+
+def test_killing_a_pool_takes_down_its_agents_and_the_supervisor_restarts_it(tmp_path):
+    """Chaos acts on processes: SIGKILL of the pool serving agents 0 and 1 is an outage of both
+    (the env host steps on their declared default actions), the launcher restarts the pool as it
+    restarts a single agent, and the run completes."""
+    import os
+    import signal
+
+    from faults.chaos import ChaosScheduler
+
+    cfg = merge_config("cn3", overrides=["episodes=960", "variant=il"])
+    settings = RuntimeSettings(run_id="poolkill", act_deadline_ms=100, agents_per_process=2)
+    specs = role_specs(cfg, tmp_path, settings)
+    scheduled = ChaosScheduler.from_strings(["kill:local-1@step=100"])
+    scheduled.bind_pools(specs)
+    assert scheduled.events[0].role == "locals-0-1"  # an agent's event names its pool's process
+    killed: list[int] = []
+
+    def chaos(sup, board) -> None:
+        env = board.heartbeats.get("env")
+        if not killed and env is not None and env.counters.get("episodes", 0) >= 20:
+            pid = sup.pid("locals-0-1")
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    res = launch(cfg, settings, tmp_path / "run", chaos=chaos)
+    assert killed, "the run ended before the chaos hook fired"
+    assert res.restarts["locals-0-1"] == 1 and res.restarts["local-2"] == 0
+    assert res.summary["completed"] and res.summary["episodes"] == 960
+    assert res.summary["links"]["default_actions"] > 0
+    roles = json.loads((tmp_path / "run" / "links.json").read_text())["roles"]
+    step = res.summary["step"]
+    assert roles["local-2"]["steps"] == step  # the agent outside the pool never missed a step
+    assert roles["local-0"]["steps"] < step and roles["local-1"]["steps"] < step
+    assert processes_mentioning(str(tmp_path / "run")) == []
