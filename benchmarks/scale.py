@@ -98,7 +98,8 @@ def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
         if not name.startswith("locals-"):  # a pool's agents report its traffic, the pool its CPU
             msgs += int(c.get("tx_msgs", 0))
             nbytes += int(c.get("tx_bytes", 0))
-    return {"env_steps_per_s": s["env_steps_per_s"], "p50_ms": s["step_latency_ms_p50"],
+    return {"env_steps_per_s": s["env_steps_per_s_after_start"], "env_steps_per_s_with_start": s["env_steps_per_s"],
+            "time_s": s["time_s"], "p50_ms": s["step_latency_ms_p50"],
             "p99_ms": s["step_latency_ms_p99"], "wall_s": round(time.monotonic() - t0, 1),
             "processes": sum(1 for c in roles.values() if "cpu_s" in c),  # a pool's agents carry none
             "msgs_per_step": msgs / steps, "bytes_per_step": nbytes / steps,
