@@ -78,6 +78,7 @@ class EnvHost(Role):
         self.obs_out = [LoggedPublisher(session.publisher(keys.obs(i), express=True), session, self.step_log,
                                         "env->local") for i in range(self.n)]
         self.experience_out = session.publisher(keys.exp("team"))
+        self.experience_out.max_bytes = ExperienceChunk.cap_for(RolloutLayout.from_config(cfg, self.spec))
         self.state = HostState()
         self.episodes = EpisodeRows(rd.path, self.k)
         self.weights_version = -1

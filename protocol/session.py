@@ -337,6 +337,7 @@ class Publisher:
         self._seq = itertools.count()
         self._lock = threading.Lock()
         self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
+        self.max_bytes: int | None = None  # a size cap other than the message type's (a large run's rollout chunk)
         self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
         self.sent_bytes = 0
 
@@ -347,7 +348,8 @@ class Publisher:
             raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
         with self._lock:
             seq = next(self._seq)
-        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender})
+        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender},
+                      max_bytes=self.max_bytes)
         self.put_bytes(data)
         return seq
 
