@@ -56,7 +56,7 @@ def run_train(n: int, episodes: int, path: Path) -> dict:
            f"n_agents={n}", "--episodes", str(episodes), "--run-dir", str(path), "--quiet"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
-    ps, rss, cpu = psutil.Process(proc.pid), 0.0, 0.0
+    ps, rss, cpu, cpu0 = psutil.Process(proc.pid), 0.0, 0.0, None
     while proc.poll() is None:
         try:
             rss = max(rss, ps.memory_info().rss / 2**20)
@@ -64,7 +64,10 @@ def run_train(n: int, episodes: int, path: Path) -> dict:
             cpu = t.user + t.system
         except psutil.Error:
             pass
-        time.sleep(0.25)
+        if cpu0 is None and (path / "metrics.csv").is_file():  # set-up done (imports, run dir): as the roles count
+            cpu0 = cpu
+        time.sleep(0.1)
+    cpu -= cpu0 or 0.0
     if proc.returncode != 0:
         raise RuntimeError(f"hammer train N={n} failed: {proc.stderr.read()[-1000:]}")
     s = json.loads((path / "summary.json").read_text())
@@ -86,25 +89,29 @@ def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
     s = res.summary
     roles = json.loads((path / "links.json").read_text())["roles"]
     steps = max(int(s["step"]), 1)
-    cpu = {k: 0.0 for k in ROLE_KINDS}
-    rss = {k: 0.0 for k in ROLE_KINDS}
+    per_role = {k: {"cpu": 0.0, "encode": 0.0, "put": 0.0, "decode": 0.0, "rss": 0.0} for k in ROLE_KINDS}
     msgs = nbytes = 0
     for name, c in roles.items():
         kind = "local" if name.startswith("local") else name
-        if kind not in cpu:
+        if kind not in per_role:
             continue
-        cpu[kind] += float(c.get("cpu_s", 0.0))
-        rss[kind] = max(rss[kind], float(c.get("rss_peak_mib", 0.0)))
-        if not name.startswith("locals-"):  # a pool's agents report its traffic, the pool its CPU
+        r = per_role[kind]
+        r["cpu"] += float(c.get("cpu_run_s", c.get("cpu_s", 0.0)))  # a pool's agents carry none: the pool has it
+        r["rss"] = max(r["rss"], float(c.get("rss_peak_mib", 0.0)))
+        if not name.startswith("locals-"):  # a pool's agents report its traffic and codec time
             msgs += int(c.get("tx_msgs", 0))
             nbytes += int(c.get("tx_bytes", 0))
+            for f in ("encode", "put", "decode"):
+                r[f] += float(c.get(f"{f}_s", 0.0))
+    cpu = {k: round(1e3 * v["cpu"] / steps, 3) for k, v in per_role.items()}
+    io = {k: {f: round(1e3 * v[f] / steps, 3) for f in ("encode", "put", "decode")} for k, v in per_role.items()}
+    rss = {k: round(v["rss"], 1) for k, v in per_role.items()}
     return {"env_steps_per_s": s["env_steps_per_s_after_start"], "env_steps_per_s_with_start": s["env_steps_per_s"],
             "time_s": s["time_s"], "p50_ms": s["step_latency_ms_p50"],
             "p99_ms": s["step_latency_ms_p99"], "wall_s": round(time.monotonic() - t0, 1),
             "processes": sum(1 for c in roles.values() if "cpu_s" in c),  # a pool's agents carry none
             "msgs_per_step": msgs / steps, "bytes_per_step": nbytes / steps,
-            "cpu_ms_per_step": {k: round(1e3 * v / steps, 3) for k, v in cpu.items()},
-            "rss_mib": {k: round(v, 1) for k, v in rss.items()},
+            "cpu_ms_per_step": cpu, "io_ms_per_step": io, "rss_mib": rss,
             "fallbacks": s["links"].get("msg_fallback_copies", 0), "defaults": s["links"].get("default_actions", 0),
             "degraded": s.get("degraded")}
 
@@ -189,17 +196,21 @@ def markdown(result: dict) -> str:
             f"{f['split_typed_p50_ms']:.2f} / {f['pooled_typed_p50_ms']:.2f} | "
             f"{u['p50_ms'] / f['split_typed_p50_ms']:.2f} / {p['p50_ms'] / f['pooled_typed_p50_ms']:.2f} | "
             f"{p['msgs_per_step']:.1f} | {p['bytes_per_step']:,.0f} |")
-    lines += ["", ("CPU ms per vector step and peak RSS MiB per role (up / up with pools; local = all local "
-              "agents' processes together):"), "",
-              ("| N | runner | env | central | learner | local | train (in-process) | RSS env / central / learner / "
-              "local (max of one process) | processes |"), "|" + "---:|" * 2 + "---:|" * 7]
+    lines += ["", ("Per role, per vector step (ms): CPU of the role's processes since they started work (all "
+                   "threads; local = every local-agent process together), and the wall time inside encode "
+                   "(build + stamp + msgpack), the Zenoh put (fault layer + Zenoh) and decode + validation; "
+                   "peak RSS of one process (MiB):"), "",
+              "| N | runner | role | CPU | encode | put | decode + validate | RSS |", "|---:|---|---|---:|---:|---:|---:|---:|"]
     for r in result["rows"]:
         for label, key in (("up", "up"), ("pools", "up_pools")):
-            c, m = r[key]["cpu_ms_per_step"], r[key]["rss_mib"]
-            tr = r["train"]["cpu_ms_per_step"]["train"]
-            lines.append(f"| {r['n_agents']} | {label} | {c['env']:.2f} | {c['central']:.2f} | {c['learner']:.2f} | "
-                         f"{c['local']:.2f} | {tr:.2f} | {m['env']:.0f} / {m['central']:.0f} / {m['learner']:.0f} / "
-                         f"{m['local']:.0f} | {r[key]['processes']} |")
+            u = r[key]
+            for role in ROLE_KINDS:
+                io = u.get("io_ms_per_step", {}).get(role, {})
+                lines.append(f"| {r['n_agents']} | {label} | {role} | {u['cpu_ms_per_step'][role]:.2f} | "
+                             f"{io.get('encode', 0):.2f} | {io.get('put', 0):.2f} | {io.get('decode', 0):.2f} | "
+                             f"{u['rss_mib'][role]:.0f} |")
+        lines.append(f"| {r['n_agents']} | train | (one process) | {r['train']['cpu_ms_per_step']['train']:.2f} | | | | "
+                     f"{r['train']['rss_mib']['train']:.0f} |")
     lines += ["", ("Where the p50 step goes (ms): Zenoh + scheduling = raw floor; serialisation + validation = "
               "typed floor − raw floor; work = real p50 − typed floor:"), "",
               "| N | runner | Zenoh + scheduling | serialisation + validation | roles' work |", "|---:|---|---:|---:|---:|"]

@@ -252,7 +252,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                 for m in pool.members:
                     _write_counters(run_dir, m.name, m.final_counters())
                 # The process's own figures once, under the pool's name (its agents' counters carry none).
-                _write_counters(run_dir, pool.name, {**pool.counters(), **process_usage()})
+                _write_counters(run_dir, pool.name, {**pool.counters(), **process_usage(pool.cpu_at_start)})
     except KeyboardInterrupt:
         pass
 
@@ -341,7 +341,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
                                              "episodes": host.state.episodes, **host.rejection_counters(),
-                                             **s.traffic(), **process_usage()})
+                                             **s.traffic(), **process_usage(host.cpu_at_start)})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))

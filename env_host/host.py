@@ -40,7 +40,7 @@ from learning.sampling import env_reset_seed
 from protocol.rollout_layout import RolloutLayout
 from protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
 from protocol.session import HammerSession
-from runtime.role import Role
+from runtime.role import Role, process_cpu_s
 
 TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
 
@@ -100,6 +100,7 @@ class EnvHost(Role):
     def run(self) -> dict:
         cfg, st = self.cfg, self.state
         t_start = st.wall_start = time.perf_counter()
+        self.cpu_at_start = process_cpu_s()
         obs = prev = active = None
         if self.resume_from is not None:
             self._restore(self.resume_from, self.resume_step)
@@ -223,6 +224,7 @@ class EnvHost(Role):
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
         st = self.state
         t_start = st.wall_start = time.perf_counter()
+        self.cpu_at_start = process_cpu_s()
         self.rd.truncate_metrics(0)
         if not self.wait_weights(0) or not self._wait_actors_ready():
             return self.summary(t_start)

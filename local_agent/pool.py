@@ -42,7 +42,7 @@ from local_agent.client import AgentSpec, AgentSteps, step_log_columns
 from protocol.access import pool_name
 from protocol.fault_injection import FaultInjector, FaultSpec
 from protocol.schemas import CentralMsg, Dims, Heartbeat, LocalObs
-from protocol.session import HammerSession, Inbox
+from protocol.session import HammerSession, Inbox, io_counters
 from runtime.bounds import DEFAULT_STEP_WINDOW
 from runtime.role import Role
 from runtime.weights import WeightsIntake
@@ -128,9 +128,9 @@ class PooledAgent(AgentSteps):
 
     def final_counters(self) -> dict[str, int | float]:
         """What a single-agent process would write at exit for this agent (faults.links.write_role_counters)."""
+        subs = [s for s in (self.observations, self.messages) if s is not None]
         return {**self.counters(), **self.rejection_counters(), **self.fault_counters(),
-                "tx_msgs": sum(p.sent_msgs for p in self.publishers),
-                "tx_bytes": sum(p.sent_bytes for p in self.publishers)}
+                **io_counters(list(self.publishers), subs)}
 
 
 class LocalAgentPool(Role):

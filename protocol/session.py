@@ -141,6 +141,7 @@ class SubscriptionStats:
     received: int = 0
     delivered: int = 0
     overflow: int = 0
+    decode_s: float = 0.0  # wall time in decode + validation (hammer bench scale: where a step's time goes)
     rejected: collections.Counter = field(default_factory=collections.Counter)
 
     @property
@@ -216,14 +217,17 @@ class Subscription(_QueueSub):
 
     def _decode(self, data: bytes) -> Message | None:
         self.stats.received += 1
+        t0 = time.perf_counter()
         try:
             msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes, run=self.run)
         except ProtocolError as e:
+            self.stats.decode_s += time.perf_counter() - t0
             self.stats.rejected[e.reason] += 1
             n = self.stats.rejected[e.reason]
             if n <= 10 or n % 1000 == 0:
                 log.warning("rejected message #%d (%s) on %s: %s", n, e.reason, self.key_expr, e)
             return None
+        self.stats.decode_s += time.perf_counter() - t0
         self.stats.delivered += 1
         return msg
 
@@ -340,17 +344,23 @@ class Publisher:
         self.max_bytes: int | None = None  # a size cap other than the message type's (a large run's rollout chunk)
         self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
         self.sent_bytes = 0
+        self.encode_s = 0.0  # wall time stamping + encoding, and in the put (fault layer + Zenoh)
+        self.put_s = 0.0
 
     def publish(self, msg: Message) -> int:
         """Stamp run/ts/seq/sender, encode and send; returns the seq used."""
         run = self._session.run_id
         if msg.run and msg.run != run:
             raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
+        t0 = time.perf_counter()
         with self._lock:
             seq = next(self._seq)
         data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender},
                       max_bytes=self.max_bytes)
+        t1 = time.perf_counter()
         self.put_bytes(data)
+        self.encode_s += t1 - t0
+        self.put_s += time.perf_counter() - t1
         return seq
 
     def put_bytes(self, data: bytes) -> None:
@@ -364,6 +374,14 @@ class Publisher:
 
     def close(self) -> None:
         _quietly(self._zpub.undeclare)
+
+
+def io_counters(pubs: list[Publisher], subs: list[Subscription]) -> dict[str, int | float]:
+    """tx_msgs, tx_bytes, rx_msgs and the seconds in encode, put and decode (+ validation) of these."""
+    return {"tx_msgs": sum(p.sent_msgs for p in pubs), "tx_bytes": sum(p.sent_bytes for p in pubs),
+            "rx_msgs": sum(s.stats.received for s in subs),
+            "encode_s": round(sum(p.encode_s for p in pubs), 4), "put_s": round(sum(p.put_s for p in pubs), 4),
+            "decode_s": round(sum(s.stats.decode_s for s in subs), 4)}
 
 
 class HammerSession:
@@ -518,8 +536,9 @@ class HammerSession:
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}
 
-    def traffic(self) -> dict[str, int]:
-        """Messages and bytes this session's publishers sent (before faults): `tx_msgs`, `tx_bytes`."""
+    def traffic(self) -> dict[str, int | float]:
+        """What this session's publishers sent (before faults) and its subscriptions took in, and the
+        wall time spent encoding, putting and decoding + validating (`hammer bench scale`)."""
         with self._lock:
             pubs = list(self._publishers.values())
-        return {"tx_msgs": sum(p.sent_msgs for p in pubs), "tx_bytes": sum(p.sent_bytes for p in pubs)}
+        return io_counters(pubs, [s for s in self._subs if isinstance(s, Subscription)])

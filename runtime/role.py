@@ -74,6 +74,7 @@ class Role:
         self.stall_warn_s: float | None = DEFAULT_STALL_WARN_S
         self.stall_what = "input"  # what a stalled role is waiting for (its heartbeat says)
         self._progress_t: float | None = None  # None until the role's first progress
+        self.cpu_at_start: float | None = None  # process CPU seconds when the role started work (run)
         self._stalled = False
 
     def handle(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
@@ -142,7 +143,7 @@ class Role:
         """What the process writes at exit (faults.links.write_role_counters): counters, rejections,
         faults, traffic."""
         return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.fault_report()),
-                **self.traffic(), **process_usage()}
+                **self.traffic(), **process_usage(self.cpu_at_start)}
 
     def progressed(self) -> None:
         """The role did its work once more (acted on a step, learned from a chunk)."""
@@ -200,6 +201,7 @@ class Role:
     def run(self) -> None:
         """Declare this role alive (its subscriptions are in place), then handle input until a
         stop command, or `idle_exit_s` without input."""
+        self.cpu_at_start = process_cpu_s()
         for name in self.alive_names():
             self.session.declare_alive(name)
         self.log.info("%s alive (pid %d)", self.name, os.getpid())  # a log's tail tells how far a dead role got
@@ -220,13 +222,25 @@ class Role:
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
 
 
-def process_usage() -> dict[str, float]:
-    """This process's CPU seconds (every thread, Zenoh's included) and peak RSS so far, for its
-    final counters (`hammer bench scale`: CPU and memory per role)."""
+def process_cpu_s() -> float:
+    """CPU seconds of this process so far, every thread (Zenoh's included)."""
     import resource
 
     u = resource.getrusage(resource.RUSAGE_SELF)
-    return {"cpu_s": round(u.ru_utime + u.ru_stime, 3), "rss_peak_mib": round(u.ru_maxrss / 1024, 1)}
+    return u.ru_utime + u.ru_stime
+
+
+def process_usage(cpu_at_start: float | None = None) -> dict[str, float]:
+    """This process's CPU seconds, those since its role started work (`cpu_at_start`: imports and
+    set-up left out, which dominate a short run), and its peak RSS, for its final counters
+    (`hammer bench scale`: CPU and memory per role)."""
+    import resource
+
+    cpu = process_cpu_s()
+    out = {"cpu_s": round(cpu, 3), "rss_peak_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    if cpu_at_start is not None:
+        out["cpu_run_s"] = round(cpu - cpu_at_start, 3)
+    return out
 
 
 def _brief(counters: dict[str, int | float]) -> str:
