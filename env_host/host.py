@@ -39,7 +39,7 @@ from learning.rundir import RunDir
 from learning.sampling import env_reset_seed
 from protocol.rollout_layout import RolloutLayout
 from protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
-from protocol.session import HammerSession
+from protocol.session import HammerSession, burst_express
 from runtime.role import Role, process_cpu_s
 
 TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
@@ -75,8 +75,8 @@ class EnvHost(Role):
         self.weights_in = session.subscribe(keys.weights("local"), Weights)
         self.state_out = LoggedPublisher(session.publisher(keys.state(), express=True), session, self.step_log,
                                          "env->central")
-        self.obs_out = [LoggedPublisher(session.publisher(keys.obs(i), express=True), session, self.step_log,
-                                        "env->local") for i in range(self.n)]
+        self.obs_out = [LoggedPublisher(session.publisher(keys.obs(i), express=burst_express(i, self.n)), session,
+                                        self.step_log, "env->local") for i in range(self.n)]  # a burst: BATCH_MIN
         self.experience_out = session.publisher(keys.exp("team"))
         self.experience_out.max_bytes = ExperienceChunk.cap_for(RolloutLayout.from_config(cfg, self.spec))
         self.state = HostState()

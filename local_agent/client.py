@@ -210,9 +210,10 @@ class AgentSteps:
         return msg, fallback_mask
 
     def publish_action(self, obs: LocalObs, action: np.ndarray, msg: np.ndarray | None,
-                       fallback_mask: np.ndarray) -> None:
-        """Send this step's action (with the message it used) and count the step."""
-        self.action_pub.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
+                       fallback_mask: np.ndarray, pub: LoggedPublisher | None = None) -> None:
+        """Send this step's action (with the message it used) and count the step; `pub`: another
+        publisher of the same key (a pool's non-express one, inside a burst)."""
+        (pub or self.action_pub).publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
                                        policy_version=max(self.agent.version, 0), fallback=fallback_mask, msg=msg))
         self.last_step = obs.step
         self.counts.steps += 1

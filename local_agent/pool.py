@@ -5,7 +5,8 @@ processes per vector step competing for the cores; every wake-up costs a context
 caches (docs/runtime.md, "Performance"). A pool serves agents `--agents 0-19` from one process and
 one event loop: one thread waits on one queue (`protocol.session.Inbox`) that every agent's
 observation and message subscription feeds, and the agents that are ready act together, with one
-stacked numpy forward for all of them (bit-identical to one forward per agent: see `_forward`).
+stacked numpy forward for all of them (bit-identical to one forward per agent: see `_forward`);
+their actions go out as one burst (`protocol.session.BATCH_MIN`: Zenoh may send them in one batch).
 
 What stays each agent's own (so a pool is indistinguishable from N single-agent processes on the
 wire and in the run directory):
@@ -42,7 +43,7 @@ from local_agent.client import AgentSpec, AgentSteps, step_log_columns
 from protocol.access import pool_name
 from protocol.fault_injection import FaultInjector, FaultSpec
 from protocol.schemas import CentralMsg, Dims, Heartbeat, LocalObs
-from protocol.session import HammerSession, Inbox, io_counters
+from protocol.session import HammerSession, Inbox, burst_express, io_counters
 from runtime.bounds import DEFAULT_STEP_WINDOW
 from runtime.role import Role
 from runtime.weights import WeightsIntake
@@ -83,11 +84,13 @@ class PooledAgent(AgentSteps):
         self.messages = (session.subscribe(keys.msg(spec.agent), CentralMsg, dims, inbox=pool.inbox)
                          if spec.msg_dim else None)
         act = session.publisher(keys.act(spec.agent), express=True)
-        act.faults = self.faults
-        self.action_pub = LoggedPublisher(act, session, self.step_log, "local->env")
+        batched = session.publisher(keys.act(spec.agent), express=False)  # inside a burst (BATCH_MIN)
         self.heartbeat_pub = session.publisher(keys.heartbeat(self.name), reliable=False)
-        self.heartbeat_pub.faults = self.faults
-        self.publishers = (act, self.heartbeat_pub)
+        self.publishers = (act, batched, self.heartbeat_pub)
+        for p in self.publishers:
+            p.faults = self.faults
+        self.action_pub = LoggedPublisher(act, session, self.step_log, "local->env")
+        self.action_pub_batched = LoggedPublisher(batched, session, self.step_log, "local->env")
         self.waiting: LocalObs | None = None  # the observation to act on once its message is here
         self.deadline = 0.0
 
@@ -219,9 +222,11 @@ class LocalAgentPool(Role):
                 obs = m.waiting
                 msg, mask = m.settle_message(obs) if m.messages is not None else (None, np.zeros(obs.k, dtype=bool))
                 inputs.append((m, obs, msg, mask, m.agent.policy_input(obs.obs, msg)))
-            for (m, obs, msg, mask, _), out in zip(inputs, self._forward([x[4] for x in inputs]), strict=True):
+            outs = self._forward([x[4] for x in inputs])
+            for j, ((m, obs, msg, mask, _), out) in enumerate(zip(inputs, outs, strict=True)):
                 m.waiting = None
-                m.publish_action(obs, m.agent.sample(out), msg, mask)
+                pub = None if burst_express(j, len(inputs)) else m.action_pub_batched
+                m.publish_action(obs, m.agent.sample(out), msg, mask, pub)
 
     def _forward(self, xs: list[np.ndarray]) -> list[np.ndarray]:
         """The shared policy's output for each agent's input. Inputs of equal shape go through one
