@@ -2,7 +2,8 @@
 
 Per N (cn, K=32 env copies, the cn5 settings beyond N=5) this measures, in one sitting:
 
-  train      `hammer train` (one process, a subprocess here so its CPU and RSS are its own)
+  train      `hammer train` (one process, a subprocess here so its CPU and RSS are its own), run
+             before and after the two `hammer up` runs: the mean of the two is the baseline
   up         `hammer up`, one process per local agent (agents_per_process=1)
   up-pools   `hammer up` with agent pools (the machine's default, `auto_agents_per_process`,
              or one pool of all N where the default is one agent per process)
@@ -154,13 +155,19 @@ def bench_scale(ns: tuple[int, ...] = (3, 5, 10, 20, 50), episodes: int = 160, f
             k = pooled_size(n)
             load0 = os.getloadavg()[0]
             row: dict = {"n_agents": n, "episodes": episodes, "pool_size": k, "load_1m_before": round(load0, 2)}
-            row["train"] = run_train(n, episodes, root / f"train{n}")
-            progress(f"N={n} train {row['train']['env_steps_per_s']:.0f} env-steps/s")
+            first = run_train(n, episodes, root / f"train{n}a")
+            progress(f"N={n} train {first['env_steps_per_s']:.0f} env-steps/s")
             row["up"] = run_up(n, episodes, root / f"up{n}", 1)
             progress(f"N={n} up {row['up']['env_steps_per_s']:.0f} env-steps/s, p50 {row['up']['p50_ms']:.2f} ms")
             row["up_pools"] = run_up(n, episodes, root / f"pools{n}", k)
             progress(f"N={n} up pools of {k}: {row['up_pools']['env_steps_per_s']:.0f} env-steps/s, "
                      f"p50 {row['up_pools']['p50_ms']:.2f} ms")
+            # train again after the up runs: the load of a shared machine drifts; the mean of the
+            # two brackets the up runs (both figures are kept)
+            second = run_train(n, episodes, root / f"train{n}b")
+            progress(f"N={n} train again {second['env_steps_per_s']:.0f} env-steps/s")
+            row["train"] = {**first, "env_steps_per_s": (first["env_steps_per_s"] + second["env_steps_per_s"]) / 2,
+                            "env_steps_per_s_runs": [first["env_steps_per_s"], second["env_steps_per_s"]]}
             row["floor"] = run_floor(n, k, floor_steps)
             progress(f"N={n} floor typed p50 {row['floor']['split_typed_p50_ms']:.2f} ms (split), "
                      f"{row['floor']['pooled_typed_p50_ms']:.2f} ms (pools)")
