@@ -30,8 +30,9 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
-def _run(run_dir: Path, agents_per_process: int, mode: str = "backprop", **extra):
-    cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer", f"central_mode={mode}"])
+def _run(run_dir: Path, agents_per_process: int, mode: str = "backprop", preset: str = "cn3", episodes: int = 100,
+         **extra):
+    cfg = merge_config(preset, overrides=[f"episodes={episodes}", "variant=hammer", f"central_mode={mode}"])
     # Generous deadlines: equality without faults is the point; a slow message on a loaded machine
     # must not become a fallback (fallbacks under pools: test_faults_runtime-style runs, not here).
     settings = RuntimeSettings(run_id=f"pool{agents_per_process}-{mode}-{time.monotonic_ns() % 10**6}",
@@ -82,6 +83,21 @@ def test_a_secure_pool_holds_exactly_its_agents_grants_and_runs_like_the_others(
     assert res.summary["completed"] and res.summary["rejected"] == {}
     assert _metrics_without_wall_time(run) == _metrics_without_wall_time(one_per_process)
     assert (run / "identity" / "locals-0-2.key").is_file()
+
+
+def test_a_pool_of_five_with_batched_bursts_matches_one_process_per_agent(tmp_path):
+    """cn5, rl mode: five agents in one pool against one process per agent. Bursts of five puts go
+    out batched in both runs (the env host's observations, the central agent's messages;
+    protocol.session.BATCH_MIN) and the pool's five actions too: the episodes are the same."""
+    solo, pooled = tmp_path / "solo", tmp_path / "pooled"
+    a = _run(solo, 1, mode="rl", preset="cn5", episodes=64)
+    b = _run(pooled, 5, mode="rl", preset="cn5", episodes=64)
+    assert a.summary["completed"] and b.summary["completed"]
+    assert b.summary["links"]["msg_fallback_copies"] == 0 and b.summary["links"]["default_actions"] == 0
+    rows = _metrics_without_wall_time(pooled)
+    assert len(rows) == 64 and rows == _metrics_without_wall_time(solo)
+    roles = json.loads((pooled / "links.json").read_text())["roles"]
+    assert roles["locals-0-4"]["stacked_forwards"] > 0  # the five agents did act together
 
 
 def test_pool_identity_cannot_act_or_listen_for_an_agent_outside_the_pool(tmp_path):
