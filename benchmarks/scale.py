@@ -216,7 +216,7 @@ def markdown(result: dict) -> str:
                 lines.append(f"| {r['n_agents']} | {label} | {role} | {u['cpu_ms_per_step'][role]:.2f} | "
                              f"{io.get('encode', 0):.2f} | {io.get('put', 0):.2f} | {io.get('decode', 0):.2f} | "
                              f"{u['rss_mib'][role]:.0f} |")
-        lines.append(f"| {r['n_agents']} | train | (one process) | {r['train']['cpu_ms_per_step']['train']:.2f} | | | | "
+        lines.append(f"| {r['n_agents']} | train | (one process, set-up included) | {r['train']['cpu_ms_per_step']['train']:.2f} | | | | "
                      f"{r['train']['rss_mib']['train']:.0f} |")
     lines += ["", ("Where the p50 step goes (ms): Zenoh + scheduling = raw floor; serialisation + validation = "
               "typed floor − raw floor; work = real p50 − typed floor:"), "",
@@ -239,18 +239,23 @@ def plot(result: dict, path: Path) -> None:
     rows = result["rows"]
     ns = [r["n_agents"] for r in rows]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
-    a.plot(ns, [r["train"]["env_steps_per_s"] for r in rows], "o-", label="hammer train (in-process)")
-    a.plot(ns, [r["up"]["env_steps_per_s"] for r in rows], "s-", label="hammer up, 1 agent/process")
-    a.plot(ns, [r["up_pools"]["env_steps_per_s"] for r in rows], "^-", label="hammer up, agent pools")
+    a.plot(ns, [r["train"]["env_steps_per_s"] for r in rows], "o-", color="C0", label="hammer train (in-process)")
+    a.plot(ns, [r["up"]["env_steps_per_s"] for r in rows], "s-", color="C1", label="hammer up, 1 agent/process")
+    a.plot(ns, [r["up_pools"]["env_steps_per_s"] for r in rows], "^-", color="C2", label="hammer up, agent pools")
     a.set(xscale="log", yscale="log", xlabel="N agents (cn)", ylabel="env-steps/s (PPO included)",
           title="throughput")
-    b.plot(ns, [r["up"]["p50_ms"] for r in rows], "s-", label="up p50, 1 agent/process")
-    b.plot(ns, [r["up_pools"]["p50_ms"] for r in rows], "^-", label="up p50, pools")
-    b.plot(ns, [r["floor"]["split_typed_p50_ms"] for r in rows], "s--", alpha=0.6, label="floor typed, split")
-    b.plot(ns, [r["floor"]["pooled_typed_p50_ms"] for r in rows], "^--", alpha=0.6, label="floor typed, pools")
+    b.plot(ns, [r["up"]["p50_ms"] for r in rows], "s-", color="C1", label="up p50, 1 agent/process")
+    b.plot(ns, [r["up_pools"]["p50_ms"] for r in rows], "^-", color="C2", label="up p50, pools")
+    b.plot(ns, [r["floor"]["split_typed_p50_ms"] for r in rows], "s--", color="C1", alpha=0.5,
+           label="loop floor (typed), 1 agent/process")
+    b.plot(ns, [r["floor"]["pooled_typed_p50_ms"] for r in rows], "^--", color="C2", alpha=0.5,
+           label="loop floor (typed), pools")
     b.set(xscale="log", yscale="log", xlabel="N agents (cn)", ylabel="ms per vector step", title="step latency p50")
+    from matplotlib.ticker import NullFormatter
+
     for ax in (a, b):
         ax.set_xticks(ns, [str(n) for n in ns])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
     fig.suptitle(f"hammer bench scale, {result['meta']['date']}, {result['meta']['cpu_count']} cores")
