@@ -12,6 +12,7 @@ part against a baseline taken in the same run:
   security     `hammer up --secure` vs plain, same run                       (benchmarks.security)
   edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
   seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
+  scale        cn N=3..50: train vs up vs up with agent pools, the floor      (benchmarks.scale)
 
 The measuring code is imported inside each command, so `hammer --help` stays fast.
 """
@@ -349,6 +350,33 @@ def bench_edge_command(
     table_console().print(t)
     if json_out is not None:
         json_out.write_text(json.dumps(r, indent=1))
+
+
+@bench.command("scale")
+def bench_scale_command(
+    ns: Annotated[str, typer.Option("--n", help="agent counts N, comma-separated")] = "3,5,10,20,50",
+    episodes: Annotated[int, typer.Option(min=32, help="episodes per runner and N (32 per PPO update)")] = 160,
+    floor_steps: Annotated[int, typer.Option(min=50, help="timed loop-floor steps per N and topology")] = 300,
+    json_dir: Annotated[str, typer.Option("--json-dir", help="write scale-<date>.json, .md and .png here "
+                                          "(--json-dir docs/results to publish)")] = "runs/bench",
+) -> None:
+    """Scaling on cn: per N, `hammer train`, `hammer up` (one process per agent), `hammer up` with
+    agent pools and the loop floor at the same N: env-steps/s, step p50/p99, messages and bytes per
+    step, CPU and RSS per role, where the step's time goes; a markdown table and a PNG plot."""
+    from benchmarks.scale import bench_scale, markdown
+
+    logging.basicConfig(level=logging.WARNING)
+    try:
+        n_values = tuple(int(x) for x in ns.split(","))
+    except ValueError:
+        typer.secho(f"error: --n {ns!r}: expected comma-separated agent counts, e.g. --n 3,5,10", err=True)
+        raise typer.Exit(2) from None
+    r = bench_scale(n_values, episodes, floor_steps, Path(json_dir) if json_dir else None,
+                    progress=lambda line: typer.echo(line, err=True))
+    typer.echo(f"hammer bench scale, {r['meta']['date']}, {r['meta']['cpu_count']} cores, {episodes} episodes per point")
+    typer.echo(markdown(r))
+    for f in r.get("files", []):
+        typer.echo(f"wrote {f}")
 
 
 def register(app: typer.Typer) -> None:

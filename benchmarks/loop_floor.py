@@ -30,7 +30,7 @@ import numpy as np
 from benchmarks.transport import loop_messages
 from protocol.codec import encode
 from protocol.schemas import Action, CentralMsg, GlobalState, LocalObs
-from protocol.session import HammerSession, TransportConfig
+from protocol.session import HammerSession, TransportConfig, burst_express
 
 _STEP = struct.Struct("<q")
 
@@ -74,13 +74,20 @@ def _dims(k: int, n: int, d: int, m: int):
     return loop_messages(k, n, d, m)[0][3]
 
 
-def central_main(run_id: str, connect: list[str], k: int, n: int, d: int, m: int, typed: bool) -> None:
+def _burst(s, keys: list[str], batched: bool) -> list:
+    """Publishers for a burst of puts, as the roles declare them (batched: `protocol.session.burst_express`,
+    a long burst goes out as one Zenoh batch) or all express (the runtime before agent pools)."""
+    return [s.publisher(key, express=not batched or burst_express(j, len(keys))) for j, key in enumerate(keys)]
+
+
+def central_main(run_id: str, connect: list[str], k: int, n: int, d: int, m: int, typed: bool,
+                 batched: bool = True) -> None:
     """Echo role standing in for the central agent: a state in, N messages out."""
     kw, size = _sizes(k, n, d, m)
     with HammerSession(run_id, _role_transport(connect), sender="central") as s:
         keys = s.keys
         state = s.subscribe(keys.state(), GlobalState, _dims(k, n, d, m)) if typed else s.subscribe_raw(keys.state())
-        pubs = [s.publisher(keys.msg(i), express=True) for i in range(n)]
+        pubs = _burst(s, [keys.msg(i) for i in range(n)], batched)
         quit_sub = s.subscribe_raw(keys.bench("quit"))
         s.declare_alive("central")
         orphaned = _Orphaned()
@@ -97,7 +104,7 @@ def central_main(run_id: str, connect: list[str], k: int, n: int, d: int, m: int
 
 
 def local_main(run_id: str, connect: list[str], agents: list[int], k: int, n: int, d: int, m: int,
-               typed: bool) -> None:
+               typed: bool, batched: bool = True) -> None:
     """Echo role standing in for one local agent (or, grouped, several): obs and message in, action out."""
     kw, size = _sizes(k, n, d, m)
     dims = _dims(k, n, d, m)
@@ -109,7 +116,7 @@ def local_main(run_id: str, connect: list[str], agents: list[int], k: int, n: in
         else:
             obs = [s.subscribe_raw(keys.obs(i)) for i in agents]
             msg = [s.subscribe_raw(keys.msg(i)) for i in agents]
-        pubs = [s.publisher(keys.act(i), express=True) for i in agents]
+        pubs = _burst(s, [keys.act(i) for i in agents], batched)
         quit_sub = s.subscribe_raw(keys.bench("quit"))
         for i in agents:
             s.declare_alive(f"local-{i}")
@@ -140,16 +147,21 @@ class FloorRow:
 
 
 def measure(topology: str, typed: bool, k: int = 32, n: int = 3, d: int = 18, m: int = 4, steps: int = 1000,
-            warmup: int = 100, timeout: float = 60.0) -> FloorRow:
+            warmup: int = 100, timeout: float = 60.0, per_process: int | None = None,
+            batched: bool = True) -> FloorRow:
     """One topology and mode: spawn the echo roles, time `steps` loops from the env host's first
-    publish to its last action decoded, stop the roles."""
-    run_id = f"floor{os.getpid()}{topology}{int(typed)}"
+    publish to its last action decoded, stop the roles. `per_process`: local agents per process
+    (the agent pools of `hammer up`; default: 1 for split, N for grouped). batched=False: every put
+    express, as the runtime sent bursts before agent pools."""
+    run_id = f"floor{os.getpid()}{topology}{int(typed)}{per_process or 0}"
     transport = TransportConfig.listener()
     ctx = mp.get_context("spawn")  # never fork a process that may hold a Zenoh session
-    groups = [[i] for i in range(n)] if topology == "split" else [list(range(n))]
-    procs = [ctx.Process(target=central_main, args=(run_id, transport.listen, k, n, d, m, typed), daemon=True)]
-    procs += [ctx.Process(target=local_main, args=(run_id, transport.listen, g, k, n, d, m, typed), daemon=True)
-              for g in groups]
+    size = per_process or (1 if topology == "split" else n)
+    groups = [list(range(j, min(n, j + size))) for j in range(0, n, size)]
+    procs = [ctx.Process(target=central_main, args=(run_id, transport.listen, k, n, d, m, typed, batched),
+                         daemon=True)]
+    procs += [ctx.Process(target=local_main, args=(run_id, transport.listen, g, k, n, d, m, typed, batched),
+                          daemon=True) for g in groups]
     kw, size = _sizes(k, n, d, m)
     dims = _dims(k, n, d, m)
     times = []
@@ -160,14 +172,14 @@ def measure(topology: str, typed: bool, k: int = 32, n: int = 3, d: int = 18, m:
             p.start()
         try:
             want = {"central", *(f"local-{i}" for i in range(n))}
-            deadline = time.monotonic() + timeout
+            deadline = time.monotonic() + timeout + n  # N=50: 50 interpreters start on a few cores
             while want:
                 ev = watch.get(max(0.0, deadline - time.monotonic()))
                 if ev is None:
                     raise TimeoutError(f"loop-floor roles did not come up: {sorted(want)}")
                 want.discard(ev.role)
             state_pub = s.publisher(keys.state(), express=True)
-            obs_pubs = [s.publisher(keys.obs(i), express=True) for i in range(n)]
+            obs_pubs = _burst(s, [keys.obs(i) for i in range(n)], batched)
             acts = ([s.subscribe(keys.act(i), Action, dims) for i in range(n)] if typed
                     else [s.subscribe_raw(keys.act(i)) for i in range(n)])
             time.sleep(0.5)  # let every subscription's route settle before the first step

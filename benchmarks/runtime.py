@@ -82,7 +82,7 @@ class RssSampler:
                 rss = psutil.Process(pid).memory_info().rss / 2**20
             except psutil.Error:
                 continue
-            kind = "local" if name.startswith("local-") else name
+            kind = "local" if name.startswith("local") else name  # local-i or a pool locals-a-b
             self.peak[kind] = max(self.peak.get(kind, 0.0), rss)
 
 

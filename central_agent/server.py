@@ -37,7 +37,7 @@ from learning.config import RunConfig
 from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
 from learning.sampling import ActingStreams
 from protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
-from protocol.session import HammerSession
+from protocol.session import HammerSession, burst_express
 from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 from runtime.weights import WeightsIntake
@@ -90,8 +90,9 @@ class CentralServer(Role):
         self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s, reject=self.reject,
                                       max_policy_lag=max_policy_lag)
                         if self.acting.has_network else None)
-        self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=True), session, step_log,
-                                         "central->local") for i in range(cfg.n_agents)]
+        n = cfg.n_agents  # N messages a step: a burst (protocol.session.BATCH_MIN)
+        self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=burst_express(i, n)), session,
+                                         step_log, "central->local") for i in range(n)]
         self.record_pub = session.publisher(self.keys.exp("central")) if cfg.wiring.needs_central_record else None
 
     @property

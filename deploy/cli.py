@@ -279,11 +279,13 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
 
 
 def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> str:
-    """The line saying which processes this host starts (a served run has a policy server, no learner)."""
+    """The line saying which processes this host starts (a served run has a policy server, no learner;
+    agent pools are one process each)."""
     served = settings.mode == "eval"
-    roles = ["learner", *(["central"] if cfg.wiring.uses_central else []), *(f"local-{i}" for i in range(cfg.n_agents)),
-             "env"]
     away = {*settings.external, *(f"local-{i}" for i in external_agents)}
+    groups = [[i for i in g if f"local-{i}" not in away] for g in settings.agent_groups(cfg.n_agents)]
+    local = [f"local-{g[0]}" if len(g) == 1 else f"local-{g[0]}..{g[-1]} ({len(g)} agents)" for g in groups if g]
+    roles = ["learner", *(["central"] if cfg.wiring.uses_central else []), *local, "env"]
     here = [r for r in roles if r not in away]
     names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
     return (f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host "
@@ -300,8 +302,11 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
+    from deploy.up import resolve_agents_per_process
+
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
-    console.print(_will_run(cfg, settings, path, external_agents), soft_wrap=True)
+    console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,
+                            external_agents), soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None

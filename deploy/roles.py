@@ -134,7 +134,12 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
-def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (0-based).")],
+def local_command(agent: Annotated[int | None, typer.Option(help="Local agent index i (0-based): one agent, "
+                                                                "one process (what an edge device runs).")] = None,
+                  agents: Annotated[str | None, typer.Option(
+                      help="Serve several local agents from this one process (an agent pool), e.g. 0-19 or "
+                           "0,2,5-7; each keeps its own keys, random stream, fallback, fault layer and "
+                           "heartbeat.")] = None,
                   run_dir: Annotated[Path | None, typer.Option(
                       help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")] = None,
                   connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None,
@@ -151,36 +156,115 @@ def local_command(agent: Annotated[int, typer.Option(help="Local agent index i (
                   identity: Annotated[Path | None, typer.Option(
                       help="With --bundle, a secure run: the directory with ca.pem, local-<i>.pem, local-<i>.key.")] = None,
                   ) -> None:
-    """A local-agent client: acts on its observation + central message. Runs without torch.
+    """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
-    With --bundle the console script starts it without this CLI framework (local_agent/edge.py)."""
-    from local_agent.edge import edge_inputs, run_agent
-
+    With --bundle (one agent) the console script starts it without this CLI framework (local_agent/edge.py)."""
+    if (agent is None) == (agents is None):
+        _fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
-        try:
-            if run_dir is not None:
-                raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
-            inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity)
-        except (FileNotFoundError, ValueError) as e:
-            _fail(str(e))
-        _setup(f"local-{agent}")
-        run_agent(*inputs)
+        _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
+                    identity)
         return
-    _setup(f"local-{agent}", run_dir)
-    # Deliberately light imports: pydantic, msgpack, zenoh, numpy, safetensors.numpy.
-    from local_agent.client import AgentSpec
-
+    _setup(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
         _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config, f"local-{agent}")
-        cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
+        settings, cfg, spec = _read_settings(run_dir, zenoh_config), _read_config(run_dir), read_env_spec(run_dir)
+        members = [agent] if agents is None else _pool_agents(agents, cfg.n_agents)
+        transport = _local_transport(settings, run_dir, connect, zenoh_config, members, cfg.n_agents)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
+    if agents is not None:
+        _serve_pool(settings, transport, cfg, spec, members, run_dir)
+        return
     if not 0 <= agent < cfg.n_agents:
         _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
+    from local_agent.client import AgentSpec
+    from local_agent.edge import run_agent
+
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step))
+
+
+def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
+                identity) -> None:
+    """One agent from a bundle, no run directory (local_agent/edge.py; the console script's fast path)."""
+    from local_agent.edge import edge_inputs, run_agent
+
+    try:
+        if agents is not None:
+            raise ValueError("--bundle serves one agent: pass --agent i (an edge device runs one agent)")
+        if run_dir is not None:
+            raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
+        inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+    _setup(f"local-{agent}")
+    run_agent(*inputs)
+
+
+def _pool_agents(text: str, n_agents: int) -> list[int]:
+    from local_agent.pool import parse_agents
+
+    return parse_agents(text, n_agents)
+
+
+def _read_settings(run_dir: Path, zenoh_config: Path | None):
+    from deploy.settings import RuntimeSettings
+
+    s = RuntimeSettings.load(run_dir)
+    return s if zenoh_config is None else s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
+
+
+def _local_transport(settings, run_dir: Path, connect: str | None, zenoh_config: Path | None,
+                     members: list[int], n_agents: int):
+    """The transport of a local-agent process of a run: in a secure run the identity is the agent's
+    own (`local-<i>`) or its pool's, which must then be one of the run's pools (identities are made
+    by `hammer up`; the CA key is gone afterwards)."""
+    transport = settings.transport()
+    if connect is not None and zenoh_config is None:
+        transport = transport.model_copy(update={"connect": [connect]})
+    if not settings.secure:
+        return transport
+    from protocol.access import pool_name
+
+    role = f"local-{members[0]}" if len(members) == 1 else pool_name(members)
+    pools = dict(settings.pools(n_agents))
+    if len(members) > 1 and role not in pools:
+        raise ValueError(f"--agents: a secure run admits only its own pools ({', '.join(pools) or 'none'}), each "
+                         f"with an identity granted exactly its agents' keys; fix: pass one of those ranges, or "
+                         f"--agent i per agent (set runtime agents_per_process when starting the run)")
+    return settings.secured(transport, role, run_dir, n_agents)
+
+
+def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path | None) -> None:
+    """Several agents, one process and one event loop (`LocalAgentPool`); each agent's counters
+    are written as its own, as N single-agent processes would write them."""
+    from local_agent.client import AgentSpec
+    from local_agent.pool import LocalAgentPool
+    from protocol.access import pool_name
+    from protocol.session import HammerSession
+    from runtime.role import process_usage
+
+    specs = [AgentSpec.from_config(cfg, spec, i) for i in agents]
+    try:
+        # No fault layer on the shared session: each agent gets its own (its own streams and counters).
+        with HammerSession(settings.run_id, transport, None, sender=pool_name(agents)) as s:
+            pool = LocalAgentPool(s, specs, cfg.num_envs, settings.fallback, settings.fallback_k,
+                                  settings.msg_deadline_ms / 1e3, settings.weights_timeout_s, faults=settings.faults,
+                                  step_log_dir=_step_log_dir(run_dir) if run_dir else None,
+                                  step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
+                                  start_step=known_step(settings.resume_step))
+            pool.stall_warn_s = settings.stall_warn_s
+            pool.run()
+            pool.log.info("%s counters: %s", pool.name, pool.counters())
+            if run_dir is not None:
+                for m in pool.members:
+                    _write_counters(run_dir, m.name, m.final_counters())
+                # The process's own figures once, under the pool's name (its agents' counters carry none).
+                _write_counters(run_dir, pool.name, {**pool.counters(), **process_usage(pool.cpu_at_start)})
+    except KeyboardInterrupt:
+        pass
 
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
@@ -214,6 +298,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     from learning.run_env import make_env
     from learning.rundir import RunDir
     from protocol.session import HammerSession
+    from runtime.role import process_usage
 
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config, "env")
@@ -235,7 +320,8 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             summary["faults"] = s.fault_report()
             host.write_episode_links()
             _write_counters(run_dir, "env", {**host.links.as_dict(), **_fault_counters(s), "step": host.state.step,
-                                             "episodes": host.state.episodes, **host.rejection_counters()})
+                                             "episodes": host.state.episodes, **host.rejection_counters(),
+                                             **s.traffic(), **process_usage(host.cpu_at_start)})
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))

@@ -11,6 +11,9 @@ Imports stay light (pydantic + protocol): the local-agent edge client reads this
 from __future__ import annotations
 
 import json
+import math
+import os
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -25,6 +28,16 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "weights_republish_s",
            "weights_republish_max_s")
+
+
+def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
+    """How many local agents `hammer up` puts in one process by default: as many as keep the local
+    agents' processes to at most 2 x cores - 1 (the env host, the central agent and the learner
+    need the rest), so a 2-core machine runs cn3 as today (one process per agent) and cn20 as 3
+    pools of 7. More processes than that only wait for a core (docs/scale.md)."""
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, math.ceil(n_agents / max(1, 2 * cores - 1)))
 
 
 class RuntimeSettings(BaseModel):
@@ -83,6 +96,10 @@ class RuntimeSettings(BaseModel):
                                       "exceed this fraction of agent x env-copy steps")
     degraded_rejections: int = Field(
         0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
+    agents_per_process: int = Field(
+        0, ge=0, description="local agents per process: 1 = one process each (what an edge device runs); k > 1 = "
+                             "pools of k agents, each pool one process and one event loop (local_agent/pool.py); "
+                             "0 = from the machine's cores (`hammer up` resolves it: auto_agents_per_process)")
 
     weights_republish_s: float = Field(
         1.0, gt=0, description="eval: the policy server republishes the weights this long after a publish, then "
@@ -111,6 +128,22 @@ class RuntimeSettings(BaseModel):
             raise ValueError("resume_from: only a training run (mode=train) can be resumed")
         return self
 
+    def agent_groups(self, n_agents: int) -> list[list[int]]:
+        """The local agents of each local-agent process `hammer up` starts, in order: chunks of
+        `agents_per_process` (0 counts as 1 here: the launcher resolves it before saving) of the
+        agents that are not external (an external agent is started by hand, alone)."""
+        external = {int(m[1]) for e in self.external if (m := re.fullmatch(r"local-(\d+)", e))}
+        agents = [i for i in range(n_agents) if i not in external]
+        k = max(1, self.agents_per_process)
+        return [agents[j:j + k] for j in range(0, len(agents), k)]
+
+    def pools(self, n_agents: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
+        """The run's agent pools (groups of more than one agent): (pool name, agents); the secure
+        profile gives each one identity granted exactly its agents' keys (protocol.access)."""
+        from protocol.access import pool_name
+
+        return tuple((pool_name(g), tuple(g)) for g in self.agent_groups(n_agents) if len(g) > 1)
+
     def transport(self) -> TransportConfig:
         """Each role is a peer connecting to the hub; peers then meet directly (gossip), so the
         step loop has no extra router hop."""
@@ -138,13 +171,16 @@ class RuntimeSettings(BaseModel):
         return transport.model_copy(update={
             "listen": [tls_endpoint(e) for e in transport.listen],
             "connect": [tls_endpoint(e) for e in transport.connect],
-            "security": secure_link(where, role, Keys(self.run_id), n_agents, router=self.secure_hub)})
+            "security": secure_link(where, role, Keys(self.run_id), n_agents, self.pools(n_agents),
+                                    router=self.secure_hub)})
 
     def save(self, run_dir: Path) -> None:
         # `secure`, `secure_hub`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
         fields = type(self).model_fields
         exclude = {f for f in ("secure", "secure_hub", "external", *_BOUNDS)
                    if getattr(self, f) == fields[f].get_default(call_default_factory=True)}
+        if self.agents_per_process <= 1:  # one agent per process: what a runtime.json without it means
+            exclude.add("agents_per_process")
         (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
 
     @classmethod

@@ -31,6 +31,7 @@ class RoleSpec:
     args: list[str]
     restart: bool = False  # restart when it dies before the run is over
     max_restarts: int = 3
+    members: tuple[str, ...] = ()  # an agent pool: the liveliness names of its agents (else the role's own name)
 
 
 @dataclass

@@ -68,20 +68,44 @@ class Board:
         return (s1 - s0) / max(t1 - t0, 1e-9)
 
 
-def role_specs(cfg, run_dir: Path) -> list[RoleSpec]:
+def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> list[RoleSpec]:
+    """Every process `hammer up` starts. Local agents: one process each, or agent pools of
+    `settings.agents_per_process` agents (`hammer local --agents`), one process and one event loop
+    each; a pool's `members` are the liveliness names of its agents."""
+    from protocol.access import pool_name
+
     rd = ["--run-dir", str(run_dir)]
     specs = [RoleSpec("learner", ["learner", *rd])]
     if cfg.wiring.uses_central:
         specs.append(RoleSpec("central", ["central", *rd], restart=True))
-    specs += [RoleSpec(f"local-{i}", ["local", *rd, "--agent", str(i)], restart=True) for i in range(cfg.n_agents)]
+    groups = (settings or RuntimeSettings(run_id="-")).agent_groups(cfg.n_agents)
+    external = {int(e.split("-")[1]) for e in (settings.external if settings else ()) if re.fullmatch(r"local-\d+", e)}
+    for i in sorted(external):
+        groups.append([i])
+    for g in sorted(groups):
+        if len(g) == 1:
+            specs.append(RoleSpec(f"local-{g[0]}", ["local", *rd, "--agent", str(g[0])], restart=True))
+        else:
+            specs.append(RoleSpec(pool_name(g), ["local", *rd, "--agents", ",".join(map(str, g))], restart=True,
+                                  members=tuple(f"local-{i}" for i in g)))
     specs.append(RoleSpec("env", ["env-host", *rd]))
     return specs
 
 
-def external_commands(cfg, run_dir: Path, external: list[str]) -> dict[str, str]:
+def resolve_agents_per_process(cfg, settings: RuntimeSettings) -> RuntimeSettings:
+    """`agents_per_process=0` (the default) becomes the machine's choice (auto_agents_per_process),
+    written into runtime.json so every role of the run (and its access rules) agrees on the pools."""
+    from deploy.settings import auto_agents_per_process
+
+    if settings.agents_per_process:
+        return settings
+    return settings.model_copy(update={"agents_per_process": auto_agents_per_process(cfg.n_agents)})
+
+
+def external_commands(cfg, run_dir: Path, external: list[str], settings: RuntimeSettings | None = None) -> dict[str, str]:
     """The command that starts each role `hammer up --external NAME` leaves to the user (its log
     going where the launcher would put it, so the run directory is the same)."""
-    specs = {s.name: s for s in role_specs(cfg, run_dir)}
+    specs = {s.name: s for s in role_specs(cfg, run_dir, settings)}
     unknown = [n for n in external if n not in specs]
     if unknown:
         raise UpError(f"--external {', '.join(unknown)}: not a role of this run; fix: use one of {', '.join(specs)}")
@@ -212,12 +236,16 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     if external_agents:
         settings = settings.model_copy(update={"external": [*settings.external, *(
             f"local-{i}" for i in external_agents if f"local-{i}" not in settings.external)]})
-    external = external_commands(cfg, run_dir, settings.external)
+    if not resume:
+        settings = resolve_agents_per_process(cfg, settings)
+    specs = role_specs(cfg, run_dir, settings)
+    external = external_commands(cfg, run_dir, settings.external, settings)
     if chaos is None and settings.chaos:
         from faults.chaos import ChaosScheduler
 
         chaos = ChaosScheduler.from_strings(settings.chaos)
-        chaos.validate_roles({s.name for s in role_specs(cfg, run_dir)})
+        chaos.bind_pools(specs)
+        chaos.validate_roles({s.name for s in specs})
     if settings.hub_port == 0 and not settings.zenoh_config_file:
         settings = settings.model_copy(update={"hub_port": free_loopback_port()})
     if resume:
@@ -227,7 +255,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     hub_transport = settings.hub_transport()
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(role_specs(cfg, run_dir), run_dir, settings.startup_timeout_s, on_tick, chaos, external)
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external)
     with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
@@ -253,7 +281,8 @@ class Launcher:
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.on_tick, self.chaos = on_tick, chaos
         self.external = external or {}  # role -> the command that starts it by hand; never started here
-        self.names = {s.name for s in specs}
+        self.names = {s.name for s in specs}  # the processes
+        self.alive_expected = {m for s in specs for m in (s.members or (s.name,))}  # their liveliness tokens
         self.sup = Supervisor(run_dir / "logs")
         self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
         self.board = Board(restarts={n: 0 for n in self.names})
@@ -272,7 +301,7 @@ class Launcher:
                 if spec.name not in self.external and spec not in later:
                     self.sup.start(spec)
             if later:
-                self.wait_alive(self.names - {"env"})
+                self.wait_alive(self.alive_expected - {"env"})
                 self.sup.start(later[0])
             self.wait_alive()
             while not self.done:
@@ -282,7 +311,7 @@ class Launcher:
 
     def wait_alive(self, names: set[str] | None = None) -> None:
         """Until every role's liveliness token is up; a role that exits meanwhile ends the run."""
-        names = self.names if names is None else names
+        names = self.alive_expected if names is None else names
         deadline = time.monotonic() + self.startup_timeout_s
         while not names <= self.board.alive:
             self.on_liveliness()
@@ -372,10 +401,10 @@ def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transp
     from protocol.identity import create_identities, has_identities, identity_dir
     from protocol.keys import Keys
 
-    roles = role_names(cfg.n_agents, router=settings.secure_hub)
+    roles = role_names(cfg.n_agents, pools=settings.pools(cfg.n_agents), router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
-    rules = access_control(Keys(settings.run_id), cfg.n_agents, router=settings.secure_hub)
+    rules = access_control(Keys(settings.run_id), cfg.n_agents, settings.pools(cfg.n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
     return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
 

@@ -39,8 +39,8 @@ from learning.rundir import RunDir
 from learning.sampling import env_reset_seed
 from protocol.rollout_layout import RolloutLayout
 from protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
-from protocol.session import HammerSession
-from runtime.role import Role
+from protocol.session import HammerSession, burst_express
+from runtime.role import Role, process_cpu_s
 
 TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
 
@@ -54,6 +54,8 @@ class EnvHost(Role):
         if (resume_from is None) != (resume_step is None):
             raise ValueError("resume_from and resume_step go together")
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
+        # Where this session's wall time went (summary `time_s`; `hammer bench scale` reads it).
+        self.time_s = {"first_weights": 0.0, "wait_weights": 0.0, "loop": 0.0, "env_step": 0.0}
         self.wiring = cfg.wiring
         self.n, self.k = cfg.n_agents, cfg.num_envs
         self.local_view = local_view_from_config(cfg, self.spec)  # LocalObs only; GlobalState stays full
@@ -73,9 +75,10 @@ class EnvHost(Role):
         self.weights_in = session.subscribe(keys.weights("local"), Weights)
         self.state_out = LoggedPublisher(session.publisher(keys.state(), express=True), session, self.step_log,
                                          "env->central")
-        self.obs_out = [LoggedPublisher(session.publisher(keys.obs(i), express=True), session, self.step_log,
-                                        "env->local") for i in range(self.n)]
+        self.obs_out = [LoggedPublisher(session.publisher(keys.obs(i), express=burst_express(i, self.n)), session,
+                                        self.step_log, "env->local") for i in range(self.n)]  # a burst: BATCH_MIN
         self.experience_out = session.publisher(keys.exp("team"))
+        self.experience_out.max_bytes = ExperienceChunk.cap_for(RolloutLayout.from_config(cfg, self.spec))
         self.state = HostState()
         self.episodes = EpisodeRows(rd.path, self.k)
         self.weights_version = -1
@@ -97,6 +100,7 @@ class EnvHost(Role):
     def run(self) -> dict:
         cfg, st = self.cfg, self.state
         t_start = st.wall_start = time.perf_counter()
+        self.cpu_at_start = process_cpu_s()
         obs = prev = active = None
         if self.resume_from is not None:
             self._restore(self.resume_from, self.resume_step)
@@ -148,19 +152,24 @@ class EnvHost(Role):
         """Block until the learner has published local weights >= version (or stop/timeout). The
         learner cannot be ahead of the chunks it got: a version above version + max_policy_lag is
         forged or a bug, rejected and counted (runtime.bounds)."""
-        deadline = time.monotonic() + self.weights_timeout_s
+        t0 = time.monotonic()
+        deadline = t0 + self.weights_timeout_s
         self.stall_what = f"policy version {version} from the learner"
-        while self.weights_version < version:
-            if self.stop_requested():
-                return False
-            self.heartbeat("ready")
-            w = self.weights_in.get(timeout=0.2)
-            if w is not None:
-                self.on_weights(w, version)
-            elif time.monotonic() > deadline:
-                raise TimeoutError(f"learner did not publish policy version {version} within "
-                                   f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")
-        return True
+        try:
+            while self.weights_version < version:
+                if self.stop_requested():
+                    return False
+                self.heartbeat("ready")
+                w = self.weights_in.get(timeout=0.2)
+                if w is not None:
+                    self.on_weights(w, version)
+                elif time.monotonic() > deadline:
+                    raise TimeoutError(f"learner did not publish policy version {version} within "
+                                       f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")
+            return True
+        finally:
+            first = self.state.env_steps == self.state.steps_at_start
+            self.time_s["first_weights" if first else "wait_weights"] += time.monotonic() - t0
 
     def on_weights(self, w: Weights, version: int) -> None:
         """A weights announcement while `version` is the newest this host may see (+ the lag)."""
@@ -186,9 +195,12 @@ class EnvHost(Role):
         if not got.defaulted.all():  # a step of default actions only is no progress of the team
             self.progressed()
         # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
-        st.step_latency_ms.append((time.perf_counter() - t0) * 1e3)
+        t1 = time.perf_counter()
+        st.step_latency_ms.append((t1 - t0) * 1e3)
         self.episodes.count(got.fallback, got.defaulted)
         step = self.env.step(self.spec.env_action(got.actions))
+        self.time_s["loop"] += t1 - t0
+        self.time_s["env_step"] += time.perf_counter() - t1
         if self.trace is not None:
             for name, v in zip(TRACE_ARRAYS, (st.step, obs, got.msgs, got.actions, got.fallback, got.defaulted,
                                               self.rollout_version)):
@@ -212,6 +224,7 @@ class EnvHost(Role):
         """Evaluate the frozen policy (version 0) until the episode budget; no learning."""
         st = self.state
         t_start = st.wall_start = time.perf_counter()
+        self.cpu_at_start = process_cpu_s()
         self.rd.truncate_metrics(0)
         if not self.wait_weights(0) or not self._wait_actors_ready():
             return self.summary(t_start)
@@ -312,10 +325,16 @@ class EnvHost(Role):
             "episodes": st.episodes, "env_steps": st.env_steps, "updates": st.update,
             "final_paper_metric_last500": float(np.mean(recent)) if recent else None,
             "env_steps_per_s": (st.env_steps - st.steps_at_start) / max(elapsed, 1e-9),
+            # the same without the wait for the learner's first weights (its start-up: torch import,
+            # networks), as `hammer train` times itself after its set-up (`hammer bench scale`)
+            "env_steps_per_s_after_start": (st.env_steps - st.steps_at_start)
+            / max(elapsed - self.time_s["first_weights"], 1e-9),
             "step_latency_ms_p50": float(np.percentile(lat, 50)),
             "step_latency_ms_p99": float(np.percentile(lat, 99)),
             "wall_time": st.wall_time(), "session_wall_time": elapsed,
             "resumed_from": self.resume_from, "n_agents": cfg.n_agents, "episode_length": int(self.spec.max_steps),
             "variant": cfg.variant, "central_mode": cfg.central_mode, "env": cfg.env,
             "links": self.links.as_dict(), "step": st.step, "completed": st.episodes >= cfg.episodes,
+            "time_s": {**{k: round(v, 3) for k, v in self.time_s.items()},
+                       "rest": round(elapsed - sum(self.time_s.values()), 3)},
         }

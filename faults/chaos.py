@@ -10,6 +10,12 @@
 event fires within ~0.5 s of that step); `t=Ns` counts from the moment every role was alive.
 A role killed by chaos is "held": the launcher's automatic restart of dead agents leaves it alone
 until a `restart` (or the `for=` duration) brings it back, so an experiment sees a real outage.
+
+Agent pools (`agents_per_process` > 1): chaos acts on processes, so an event naming `local-3`
+acts on the pool process serving it (e.g. `locals-0-6`): killing or pausing it takes down every
+agent of that pool, as a crash of that process would. The chaos log says which process it hit.
+Name the pool itself (`kill:locals-0-6@...`) to say so explicitly; `agents_per_process=1` keeps
+one process per agent when an experiment needs a single agent's outage.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from __future__ import annotations
 import re
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 ACTIONS = ("kill", "pause", "resume", "restart")
 _EVENT_RE = re.compile(r"^(?P<action>[a-z]+):(?P<role>[A-Za-z0-9_\-]+)@(?P<when>[a-z]+)=(?P<at>[0-9.]+)s?"
@@ -77,6 +83,11 @@ class ChaosScheduler:
     @classmethod
     def from_strings(cls, items: list[str]) -> ChaosScheduler:
         return cls([parse_chaos(x) for x in items])
+
+    def bind_pools(self, specs) -> None:
+        """Events naming an agent served by a pool act on that pool's process (module docstring)."""
+        owner = {m: s.name for s in specs for m in getattr(s, "members", ())}
+        self.events = [replace(ev, role=owner.get(ev.role, ev.role)) for ev in self.events]
 
     def validate_roles(self, names: set[str]) -> None:
         for ev in self.events:

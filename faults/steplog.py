@@ -89,7 +89,7 @@ class LoggedPublisher:
     def __init__(self, pub, session, log: StepLog, link: str) -> None:
         self.pub, self.log = pub, log
         self.link = link
-        faults = session.faults
+        faults = getattr(pub, "faults", session.faults)  # an agent pool's agent: its own fault layer
         self._counters = [] if faults is None else [
             faults.counters[i] for i, r in enumerate(faults.spec.rules) if link_of_pattern(r.match) == link]
         self._sent, self._dropped, self._duplicated = (column(link, e) for e in ("sent", "dropped", "duplicated"))

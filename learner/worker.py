@@ -76,8 +76,10 @@ class LearnerWorker(Role):
         self.rollout = RemoteRollout(self.learner, spec)
         # Every size of the rollout layout declared: a chunk or record that does not fit this run
         # (array names, dtypes, shapes) is rejected and counted by the subscription, never learned from.
-        dims = Dims.from_layout(RolloutLayout.from_config(cfg, spec))
-        self.chunks = session.subscribe(self.keys.exp("team"), ExperienceChunk, dims)
+        layout = RolloutLayout.from_config(cfg, spec)
+        dims = Dims.from_layout(layout)
+        self.chunks = session.subscribe(self.keys.exp("team"), ExperienceChunk, dims,
+                                        max_bytes=ExperienceChunk.cap_for(layout))
         self.central_records = (session.subscribe(self.keys.exp("central"), ExperienceChunk, dims)
                                 if cfg.wiring.needs_central_record else None)
         if self.central_records is not None:

@@ -134,8 +134,13 @@ class LocalAgent:
         """Sample one action per env copy; draws exactly what the in-process trainer draws."""
         if self.policy is None:
             raise RuntimeError("no policy weights loaded yet")
-        out = self.policy.actor_out(self.policy_input(obs, msg))
-        k = obs.shape[0]
+        return self.sample(self.policy.actor_out(self.policy_input(obs, msg)))
+
+    def sample(self, out: np.ndarray) -> np.ndarray:
+        """Actions from the policy's output (logits or Gaussian means, one row per env copy), drawn
+        from this agent's own stream: the part of `act` an agent pool runs per agent after one
+        stacked forward for all its agents."""
+        k = out.shape[0]
         if self.spec.discrete:
             return categorical_inverse_cdf(softmax(out), self.rng.random(k))
         z = self.rng.standard_normal((k, self.spec.action_dim))
@@ -152,20 +157,18 @@ def load_policy_file(path: str) -> tuple[NumpyLocalPolicy, dict]:
     return NumpyLocalPolicy(params), meta
 
 
-class LocalAgentClient(Role):
-    """One local agent's process: observation (and message) in, action out.
+class AgentSteps:
+    """What one local agent does with its inputs, whoever drives it: its own process
+    (`LocalAgentClient`) or an agent pool serving many agents from one event loop
+    (`local_agent.pool.LocalAgentPool`). Everything here is the agent's own: its counters, its
+    fallback state, the messages it holds, its step window, its step log and its action publisher.
 
-    step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
+    A subclass provides `spec`, `agent`, `counts`, `fallback`, `pending`, `seen`, `last_step`,
+    `window`, `msg_window`, `step_log`, `action_pub`, `reject` and `progressed`."""
 
-    def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
-                 msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
-                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
-        name = f"local-{spec.agent}"
-        step_log = StepLog(step_log_dir, name, [*OBS_EVENTS.values(), *MSG_EVENTS.values(),
-                                                *(column("local->env", e) for e in ("sent", "dropped", "duplicated"))])
-        super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
-        self.spec, self.msg_deadline_s = spec, msg_deadline_s
+    def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
+                   start_step: int | None = None) -> None:
+        self.spec = spec
         self.agent = LocalAgent(spec)
         self.counts = LocalCounters()
         self.fallback = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
@@ -175,62 +178,26 @@ class LocalAgentClient(Role):
         # start_step: where the run is known to be (runtime.bounds.known_step), so a forged first step is refused
         self.window = StepWindow(step_window, start=start_step)
         self.msg_window = StepWindow(step_window, resync_s=None, start=start_step)  # messages follow the observations
-        self.stall_what = "observations"
-        dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
-                    msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
-        self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
-        self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
-        self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
-        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag)
-        self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
-                                          step_log, "local->env")
 
-    def counters(self) -> dict[str, int]:
-        return {**self.counts.as_dict(), "policy_version": self.agent.version}
-
-    # ----- a step, in the order it flows ---------------------------------------------------------
-    def on_obs(self, obs: LocalObs) -> None:
-        """Act on one vector step's observation with the version it names and its message (or a fallback)."""
+    def obs_refused(self, obs: LocalObs) -> bool:
+        """An observation for a step already acted on (counted stale) or beyond the step window
+        (rejected): not acted on."""
         if obs.step <= self.last_step and self.window.stale(obs.step, self.last_step):
             self.counts.obs_stale += 1
             self.step_log.add(obs.step, OBS_EVENTS["delivered"])
             self.step_log.add(obs.step, OBS_EVENTS["late"])
-            return
+            return True
         if obs.step <= self.last_step:  # the real stream is below an anchor it never followed
             self.reject("step_resync", f"observations of steps up to {obs.step} came steadily below {self.last_step}: "
                                        "following them")
         if self.window.ahead(obs.step, self.last_step):
             self.reject("step_ahead", f"observation for step {obs.step} while at {self.last_step}")
-            return
-        if self.weights.ahead(obs.policy_version):
-            self.reject("version_ahead", f"observation names policy version {obs.policy_version}")
-            return
-        self.weights.take(obs.policy_version)
-        self.sync_weight_counters()
-        if self.messages is not None:
-            msg, fallback_mask = self.message_for(obs)
-        else:
-            msg, fallback_mask = None, np.zeros(obs.k, dtype=bool)
-        action = self.agent.act(obs.obs, msg)
-        self.action_pub.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
-                                       policy_version=max(self.agent.version, 0), fallback=fallback_mask, msg=msg))
-        self.last_step = obs.step
-        self.counts.steps += 1
-        self.step_log.add(obs.step, OBS_EVENTS["delivered"])
-        self.progressed()
+            return True
+        return False
 
-    def message_for(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
-        """The message of each env copy of this step (waiting for it up to the deadline), and the
-        mask of copies that act on a fallback instead."""
-        for m in self.messages.drain():
-            self.on_message(m)
-        deadline = time.monotonic() + self.msg_deadline_s
-        while obs.step not in self.pending:
-            m = self.messages.get(timeout=max(0.0, deadline - time.monotonic()))
-            if m is None:
-                break
-            self.on_message(m)
+    def settle_message(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
+        """Once the message of `obs`'s step is here or its deadline passed: the message of each env
+        copy, and the mask of copies that act on a fallback instead."""
         received = self.pending.pop(obs.step, None)
         for step in [s for s in self.pending if s < obs.step]:  # older than this step: never usable
             del self.pending[step]
@@ -249,6 +216,17 @@ class LocalAgentClient(Role):
             self.counts.fallback_copies += int(fallback_mask.sum())
             self.step_log.add(obs.step, MSG_EVENTS["fallbacks"], int(fallback_mask.sum()))
         return msg, fallback_mask
+
+    def publish_action(self, obs: LocalObs, action: np.ndarray, msg: np.ndarray | None,
+                       fallback_mask: np.ndarray, pub: LoggedPublisher | None = None) -> None:
+        """Send this step's action (with the message it used) and count the step; `pub`: another
+        publisher of the same key (a pool's non-express one, inside a burst)."""
+        (pub or self.action_pub).publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
+                                       policy_version=max(self.agent.version, 0), fallback=fallback_mask, msg=msg))
+        self.last_step = obs.step
+        self.counts.steps += 1
+        self.step_log.add(obs.step, OBS_EVENTS["delivered"])
+        self.progressed()
 
     @staticmethod
     def fill_received(msg: np.ndarray, received: CentralMsg, env_idx: np.ndarray) -> np.ndarray:
@@ -285,6 +263,70 @@ class LocalAgentClient(Role):
         self.step_log.add(step, MSG_EVENTS["delivered"])
         if event is not None:
             self.step_log.add(step, MSG_EVENTS[event])
+
+
+def step_log_columns() -> list[str]:
+    """The link events a local agent logs per step (faults.steplog)."""
+    return [*OBS_EVENTS.values(), *MSG_EVENTS.values(),
+            *(column("local->env", e) for e in ("sent", "dropped", "duplicated"))]
+
+
+class LocalAgentClient(AgentSteps, Role):
+    """One local agent's process: observation (and message) in, action out.
+
+    step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
+
+    def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
+                 msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
+                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
+                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
+        name = f"local-{spec.agent}"
+        step_log = StepLog(step_log_dir, name, step_log_columns())
+        super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
+        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step)
+        self.msg_deadline_s = msg_deadline_s
+        self.stall_what = "observations"
+        dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
+                    msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
+        self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
+        self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
+        self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
+        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
+                                     reject=self.reject, max_policy_lag=max_policy_lag)
+        self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
+                                          step_log, "local->env")
+
+    def counters(self) -> dict[str, int]:
+        return {**self.counts.as_dict(), "policy_version": self.agent.version}
+
+    # ----- a step, in the order it flows ---------------------------------------------------------
+    def on_obs(self, obs: LocalObs) -> None:
+        """Act on one vector step's observation with the version it names and its message (or a fallback)."""
+        if self.obs_refused(obs):
+            return
+        if self.weights.ahead(obs.policy_version):
+            self.reject("version_ahead", f"observation names policy version {obs.policy_version}")
+            return
+        self.weights.take(obs.policy_version)
+        self.sync_weight_counters()
+        if self.messages is not None:
+            msg, fallback_mask = self.message_for(obs)
+        else:
+            msg, fallback_mask = None, np.zeros(obs.k, dtype=bool)
+        self.publish_action(obs, self.agent.act(obs.obs, msg), msg, fallback_mask)
+
+    def message_for(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
+        """The message of each env copy of this step (waiting for it up to the deadline), and the
+        mask of copies that act on a fallback instead."""
+        for m in self.messages.drain():
+            self.on_message(m)
+        deadline = time.monotonic() + self.msg_deadline_s
+        while obs.step not in self.pending:
+            m = self.messages.get(timeout=max(0.0, deadline - time.monotonic()))
+            if m is None:
+                break
+            self.on_message(m)
+        return self.settle_message(obs)
 
     def on_idle(self) -> None:
         """No policy yet: load the first one now, and say so at once (the env host may wait for it)."""

@@ -44,15 +44,39 @@ class Grant:
     relay: bool = False  # a router: forwards everyone's traffic (and checks each hop itself)
 
 
-def role_names(n_agents: int, uses_central: bool = True, router: bool = False) -> list[str]:
-    """Every identity a secure run creates (`hub` only for a run whose roles meet through a router)."""
+Pools = tuple[tuple[str, tuple[int, ...]], ...]  # agent pools: (pool name, its agents)
+
+
+def pool_name(agents: list[int]) -> str:
+    """The pool's process name (logs, supervisor, secure identity): `locals-<first>-<last>`, with
+    the full list when the agents are not one contiguous range."""
+    if agents == list(range(agents[0], agents[-1] + 1)):
+        return f"locals-{agents[0]}-{agents[-1]}"
+    return "locals-" + "_".join(map(str, agents))
+
+
+def role_names(n_agents: int, uses_central: bool = True, pools: Pools = (), router: bool = False) -> list[str]:
+    """Every identity a secure run creates: an agent pool has one identity of its own; `hub` only
+    for a run whose roles meet through a router."""
     return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
-            "learner", *([HUB] if router else [])]
+            *(name for name, _ in pools), "learner", *([HUB] if router else [])]
 
 
-def grants(keys: Keys, n_agents: int, router: bool = False) -> dict[str, Grant]:
-    """The role table: what each role's job needs, nothing more (docs/security.md). `router`: the
-    roles meet through a `hammer hub` router, which relays for everyone (and so is trusted with all)."""
+def pool_grant(keys: Keys, name: str, agents: tuple[int, ...]) -> Grant:
+    """An agent pool (one process serving several local agents, local_agent/pool.py) may do exactly
+    what its agents may do, together: their keys, their heartbeats and liveliness tokens, and no
+    other agent's."""
+    return Grant(
+        publish=(*(keys.act(i) for i in agents), *(keys.heartbeat(f"local-{i}") for i in agents)),
+        subscribe=(*(keys.obs(i) for i in agents), *(keys.msg(i) for i in agents), keys.weights("local"),
+                   keys.ctl("all")),
+        liveliness=tuple(keys.alive(f"local-{i}") for i in agents))
+
+
+def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -> dict[str, Grant]:
+    """The role table: what each role's job needs, nothing more (docs/security.md). `pools`: the
+    run's agent pools, each granted exactly its agents' keys (`pool_grant`); `router`: the roles meet
+    through a `hammer hub` router, which relays for everyone (and so is trusted with all)."""
     g = {
         LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
         "env": Grant(
@@ -76,6 +100,8 @@ def grants(keys: Keys, n_agents: int, router: bool = False) -> dict[str, Grant]:
             publish=(keys.act(i), keys.heartbeat(f"local-{i}")),
             subscribe=(keys.obs(i), keys.msg(i), keys.weights("local"), keys.ctl("all")),
             liveliness=(keys.alive(f"local-{i}"),))
+    for name, agents in pools:
+        g[name] = pool_grant(keys, name, agents)
     return g
 
 
@@ -83,7 +109,7 @@ def _rule(rid: str, flow: str, messages: list[str], key_exprs: tuple[str, ...] |
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": list(key_exprs)}
 
 
-def access_control(keys: Keys, n_agents: int, router: bool = False) -> dict:
+def access_control(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -> dict:
     """The `access_control` section every process of the run uses (default deny; relay rules for
     the `hub` identity only when the run uses a router)."""
     everything = [keys.all]
@@ -94,7 +120,7 @@ def access_control(keys: Keys, n_agents: int, router: bool = False) -> dict:
     ]
     subjects: list[dict] = []
     policies: list[dict] = [{"id": "own-declarations", "rules": ["own-declarations"], "subjects": []}]
-    for role, g in grants(keys, n_agents, router).items():
+    for role, g in grants(keys, n_agents, pools, router).items():
         subjects.append({"id": role, "cert_common_names": [role]})
         policies[0]["subjects"].append(role)
         mine = []
@@ -148,10 +174,11 @@ class SecureLink:
         cfg.insert_json5("access_control", json.dumps(self.access))
 
 
-def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int, router: bool = False) -> SecureLink:
+def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int, pools: Pools = (),
+                router: bool = False) -> SecureLink:
     from protocol.identity import identity_of
 
-    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents, router))
+    return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents, pools, router))
 
 
 def tls_endpoint(endpoint: str) -> str:

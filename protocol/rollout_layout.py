@@ -122,6 +122,10 @@ class RolloutLayout:
     def allocate(self, specs: tuple[ArraySpec, ...]) -> dict[str, np.ndarray]:
         return allocate(specs, self.sizes(), self.action_shape, self.discrete)
 
+    def chunk_nbytes(self) -> int:
+        """The bytes of a chunk's arrays (without the message's framing): what sizes its cap."""
+        return sum(int(np.prod(self.shape(s))) * self.dtype(s).itemsize for s in CHUNK)
+
     def chunk_steps(self) -> dict[str, np.ndarray]:
         """The per-step arrays of a chunk (leading T), which the env host fills as it steps."""
         return self.allocate(tuple(s for s in CHUNK if s.shape.startswith("T")))

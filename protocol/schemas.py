@@ -502,6 +502,13 @@ class ExperienceChunk(Message):
 
     RECORD_ROLE: ClassVar[str] = "central"
 
+    @classmethod
+    def cap_for(cls, layout: RolloutLayout) -> int:
+        """The size cap of one run's rollout chunk: the default cap, or the chunk's arrays plus 1 MiB
+        of framing when they are larger (cn with N=50 agents: ~100 MB per update). Sender and learner
+        both derive it from the run's layout, so a payload beyond it is still refused on arrival."""
+        return max(cls.MAX_BYTES, layout.chunk_nbytes() + MiB)
+
     def _check_dims(self, dims: Dims) -> None:
         layout = dims.rollout_layout()
         if layout is None:

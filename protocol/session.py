@@ -46,6 +46,19 @@ log = logging.getLogger(__name__)
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 
 
+# A burst of at least this many puts in a row (the env host's N observations, the central agent's N
+# messages, a pool's actions) goes out batched: every put but the last is not express, so Zenoh may
+# coalesce the puts to one peer into one batch and wake that peer once; the last put is express and
+# flushes. The loop floor (`hammer bench loop-floor`, pools, 2 cores, load ~25): N=50 p50 16-18 ->
+# 10-11 ms, N=20 6.6-7.1 -> 5.4-6.1 ms; N=3 unchanged (docs/scale.md). Shorter bursts stay express.
+BATCH_MIN = 5
+
+
+def burst_express(j: int, n: int) -> bool:
+    """Whether put j (0-based) of a burst of n puts is express (see BATCH_MIN)."""
+    return n < BATCH_MIN or j == n - 1
+
+
 def _quietly(undeclare: Any) -> None:
     """Undeclare at shutdown; an entity already gone with its session is not an error."""
     try:
@@ -141,6 +154,7 @@ class SubscriptionStats:
     received: int = 0
     delivered: int = 0
     overflow: int = 0
+    decode_s: float = 0.0  # wall time in decode + validation (hammer bench scale: where a step's time goes)
     rejected: collections.Counter = field(default_factory=collections.Counter)
 
     @property
@@ -153,7 +167,7 @@ class _QueueSub:
 
     cap: int | None = None  # payloads longer than this are rejected on arrival (None: no cap)
 
-    def __init__(self, key_expr: str, maxsize: int) -> None:
+    def __init__(self, key_expr: str, maxsize: int, inbox: Inbox | None = None) -> None:
         self.key_expr = key_expr
         self.stats = SubscriptionStats()
         # SimpleQueue, not Queue: put and get(timeout) run in C without Python-level locks and
@@ -162,10 +176,11 @@ class _QueueSub:
         self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._maxsize = maxsize
         self._zsub: Any = None
+        self._inbox = inbox  # when set, payloads go into that shared queue, tagged with this subscription
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
-        if self._maxsize and self._q.qsize() >= self._maxsize:  # only the consumer shrinks it meanwhile
+        if self._maxsize and self.pending() >= self._maxsize:  # only the consumer shrinks it meanwhile
             self.stats.overflow += 1
             return
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
@@ -173,10 +188,13 @@ class _QueueSub:
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, self.key_expr)
             return
-        self._q.put(sample.payload.to_bytes())
+        if self._inbox is None:
+            self._q.put(sample.payload.to_bytes())
+        else:
+            self._inbox.q.put((self, sample.payload.to_bytes()))
 
     def pending(self) -> int:
-        return self._q.qsize()
+        return self._q.qsize() if self._inbox is None else self._inbox.q.qsize()
 
     def close(self) -> None:
         if self._zsub is not None:
@@ -205,21 +223,24 @@ class Subscription(_QueueSub):
     """
 
     def __init__(self, key_expr: str, expected: Expected, dims: Dims | None, run: str,
-                 maxsize: int, max_bytes: int | None) -> None:
-        super().__init__(key_expr, maxsize)
+                 maxsize: int, max_bytes: int | None, inbox: Inbox | None = None) -> None:
+        super().__init__(key_expr, maxsize, inbox)
         self.expected, self.dims, self.run, self.max_bytes = expected, dims, run, max_bytes
         self.cap = max_bytes if max_bytes is not None else max(t.MAX_BYTES for t in _expected_types(expected))
 
     def _decode(self, data: bytes) -> Message | None:
         self.stats.received += 1
+        t0 = time.perf_counter()
         try:
             msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes, run=self.run)
         except ProtocolError as e:
+            self.stats.decode_s += time.perf_counter() - t0
             self.stats.rejected[e.reason] += 1
             n = self.stats.rejected[e.reason]
             if n <= 10 or n % 1000 == 0:
                 log.warning("rejected message #%d (%s) on %s: %s", n, e.reason, self.key_expr, e)
             return None
+        self.stats.decode_s += time.perf_counter() - t0
         self.stats.delivered += 1
         return msg
 
@@ -252,6 +273,33 @@ class Subscription(_QueueSub):
             if msg is not None:
                 out.append(msg)
         return out
+
+
+class Inbox:
+    """One queue fed by many subscriptions: a process serving many agents (an agent pool) waits on
+    all their inputs at once in one thread, instead of one thread or one poll per subscription.
+
+    Each payload is queued with the subscription it came from and is decoded and validated by that
+    subscription (its own dims, size cap and rejection counters), in the consumer's thread."""
+
+    def __init__(self) -> None:
+        self.q: queue.SimpleQueue[tuple[Subscription, bytes]] = queue.SimpleQueue()
+
+    def get(self, timeout: float | None = None) -> tuple[Subscription, Message] | None:
+        """The next valid message and its subscription, waiting up to `timeout` s (0: no wait)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                if deadline is None:
+                    sub, data = self.q.get()
+                else:
+                    remaining = deadline - time.monotonic()
+                    sub, data = self.q.get(timeout=remaining) if remaining > 0 else self.q.get_nowait()
+            except queue.Empty:
+                return None
+            msg = sub._decode(data)
+            if msg is not None:
+                return sub, msg
 
 
 @dataclass(frozen=True)
@@ -305,20 +353,33 @@ class Publisher:
         self._rel = session.keys.relative(key)
         self._seq = itertools.count()
         self._lock = threading.Lock()
+        self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
+        self.max_bytes: int | None = None  # a size cap other than the message type's (a large run's rollout chunk)
+        self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
+        self.sent_bytes = 0
+        self.encode_s = 0.0  # wall time stamping + encoding, and in the put (fault layer + Zenoh)
+        self.put_s = 0.0
 
     def publish(self, msg: Message) -> int:
         """Stamp run/ts/seq/sender, encode and send; returns the seq used."""
         run = self._session.run_id
         if msg.run and msg.run != run:
             raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
+        t0 = time.perf_counter()
         with self._lock:
             seq = next(self._seq)
-        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender})
+        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender},
+                      max_bytes=self.max_bytes)
+        t1 = time.perf_counter()
         self.put_bytes(data)
+        self.encode_s += t1 - t0
+        self.put_s += time.perf_counter() - t1
         return seq
 
     def put_bytes(self, data: bytes) -> None:
-        faults = self._session.faults
+        self.sent_msgs += 1
+        self.sent_bytes += len(data)
+        faults = self.faults
         if faults is None:
             self._zpub.put(data)
         else:
@@ -326,6 +387,14 @@ class Publisher:
 
     def close(self) -> None:
         _quietly(self._zpub.undeclare)
+
+
+def io_counters(pubs: list[Publisher], subs: list[Subscription]) -> dict[str, int | float]:
+    """tx_msgs, tx_bytes, rx_msgs and the seconds in encode, put and decode (+ validation) of these."""
+    return {"tx_msgs": sum(p.sent_msgs for p in pubs), "tx_bytes": sum(p.sent_bytes for p in pubs),
+            "rx_msgs": sum(s.stats.received for s in subs),
+            "encode_s": round(sum(p.encode_s for p in pubs), 4), "put_s": round(sum(p.put_s for p in pubs), 4),
+            "decode_s": round(sum(s.stats.decode_s for s in subs), 4)}
 
 
 class HammerSession:
@@ -424,10 +493,11 @@ class HammerSession:
     # ---- subscribe -------------------------------------------------------------------------
 
     def subscribe(self, key_expr: str, expected: Expected = None, dims: Dims | None = None, *,
-                  maxsize: int = 0, max_bytes: int | None = None) -> Subscription:
+                  maxsize: int = 0, max_bytes: int | None = None, inbox: Inbox | None = None) -> Subscription:
         """Validated messages of type(s) `expected` on `key_expr` (wildcards allowed).
-        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow)."""
-        sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes)
+        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow).
+        inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
+        sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -478,3 +548,10 @@ class HammerSession:
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}
+
+    def traffic(self) -> dict[str, int | float]:
+        """What this session's publishers sent (before faults) and its subscriptions took in, and the
+        wall time spent encoding, putting and decoding + validating (`hammer bench scale`)."""
+        with self._lock:
+            pubs = list(self._publishers.values())
+        return io_counters(pubs, [s for s in self._subs if isinstance(s, Subscription)])

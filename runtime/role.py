@@ -74,6 +74,7 @@ class Role:
         self.stall_warn_s: float | None = DEFAULT_STALL_WARN_S
         self.stall_what = "input"  # what a stalled role is waiting for (its heartbeat says)
         self._progress_t: float | None = None  # None until the role's first progress
+        self.cpu_at_start: float | None = None  # process CPU seconds when the role started work (run)
         self._stalled = False
 
     def handle(self, subscription: Subscription, handler: Callable[[Any], None]) -> None:
@@ -108,6 +109,10 @@ class Role:
     def on_stop(self) -> None:
         """The loop has ended (stop command or idle exit): final files, summaries."""
 
+    def alive_names(self) -> list[str]:
+        """The liveliness tokens this process declares: its name (an agent pool: each agent's)."""
+        return [self.name]
+
     def counters(self) -> dict[str, int | float]:
         """What the heartbeat reports (fault-layer counters are added when `report_faults`)."""
         return {}
@@ -126,9 +131,19 @@ class Role:
         total.update(self.rejected)
         return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
 
+    def fault_report(self) -> dict[str, dict[str, int]]:
+        """What the fault layer did to this role's publishes (an agent pool: each agent's own)."""
+        return self.session.fault_report()
+
+    def traffic(self) -> dict[str, int]:
+        """Messages and bytes this role published (`hammer bench scale`: messages and bytes per step)."""
+        return self.session.traffic()
+
     def final_counters(self) -> dict[str, int | float]:
-        """What the process writes at exit (faults.links.write_role_counters): counters, rejections, faults."""
-        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.session.fault_report())}
+        """What the process writes at exit (faults.links.write_role_counters): counters, rejections,
+        faults, traffic."""
+        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.fault_report()),
+                **self.traffic(), **process_usage(self.cpu_at_start)}
 
     def progressed(self) -> None:
         """The role did its work once more (acted on a step, learned from a chunk)."""
@@ -169,7 +184,7 @@ class Role:
         self._last_heartbeat = now
         counters = {**self.counters(), **self.rejection_counters()}
         if self.report_faults:
-            counters = {**counters, **flat_fault_counters(self.session.fault_report())}
+            counters = {**counters, **flat_fault_counters(self.fault_report())}
         self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status,
                                               counters=dict(list(counters.items())[:64]),
                                               detail=self.stall_detail()))
@@ -186,7 +201,9 @@ class Role:
     def run(self) -> None:
         """Declare this role alive (its subscriptions are in place), then handle input until a
         stop command, or `idle_exit_s` without input."""
-        self.session.declare_alive(self.name)
+        self.cpu_at_start = process_cpu_s()
+        for name in self.alive_names():
+            self.session.declare_alive(name)
         self.log.info("%s alive (pid %d)", self.name, os.getpid())  # a log's tail tells how far a dead role got
         self.on_start()
         self._last_input = time.monotonic()
@@ -203,6 +220,27 @@ class Role:
             self.step_log.flush()
         self.on_stop()
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
+
+
+def process_cpu_s() -> float:
+    """CPU seconds of this process so far, every thread (Zenoh's included)."""
+    import resource
+
+    u = resource.getrusage(resource.RUSAGE_SELF)
+    return u.ru_utime + u.ru_stime
+
+
+def process_usage(cpu_at_start: float | None = None) -> dict[str, float]:
+    """This process's CPU seconds, those since its role started work (`cpu_at_start`: imports and
+    set-up left out, which dominate a short run), and its peak RSS, for its final counters
+    (`hammer bench scale`: CPU and memory per role)."""
+    import resource
+
+    cpu = process_cpu_s()
+    out = {"cpu_s": round(cpu, 3), "rss_peak_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    if cpu_at_start is not None:
+        out["cpu_run_s"] = round(cpu - cpu_at_start, 3)
+    return out
 
 
 def _brief(counters: dict[str, int | float]) -> str:
