@@ -101,7 +101,7 @@ class RunConfig(BaseModel):
                 raise ValueError(f"{name}: needs at least one positive layer size, e.g. [64, 64]")
         if self.wiring.uses_central and self.msg_dim < 1:
             raise ValueError(f"msg_dim: variant {self.variant} needs msg_dim >= 1 (or use variant il)")
-        if self.central_net != "concat" and self.variant != "hammer":
+        if self.central_net != "concat" and not self.wiring.has_central_network:
             raise ValueError(f"central_net: variant {self.variant} has no central network, so central_net="
                              f"{self.central_net} would change nothing")
         if self.obs_conv and (len(self.obs_conv) != 3 or min(self.obs_conv) < 1):

@@ -16,11 +16,15 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+if TYPE_CHECKING:
+    from learning.variant import Wiring
 
 
 def _init(layer: nn.Linear, std: float) -> nn.Linear:
@@ -298,7 +302,7 @@ class SetCentralAgent(_Exportable):
         return self.critic(self.tokens(state)).squeeze(-1)
 
 
-def make_central(wiring, obs_dim: int, act_dim: int, hidden: list[int],
+def make_central(wiring: Wiring, obs_dim: int, act_dim: int, hidden: list[int],
                  critic_hidden: list[int]) -> CentralAgent | SetCentralAgent:
     """The central network a run's wiring (`learning.variant.Wiring`) asks for. act_dim is the width
     of one agent's previous action in the state (0 without `use_prev_actions`); the critic exists in

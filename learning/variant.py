@@ -17,7 +17,6 @@ if TYPE_CHECKING:
 
 VARIANTS = ("hammer", "il", "random", "centralized")
 CENTRAL_MODES = ("rl", "backprop")
-CENTRAL_NETS = ("concat", "set")  # concat: the paper's network over o_1 ⊕ … ⊕ o_N; set: per-agent + attention
 MESSAGE_VARIANTS = ("hammer", "random")  # the local agents receive a message vector
 
 
