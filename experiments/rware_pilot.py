@@ -9,7 +9,9 @@ here. Deliveries per episode = the team return (rware's individual reward: +1 pe
   learning  for a variant and N: all 3 seeds' final > floor mean + 3 standard errors. Judged only
             for runs that finished their budget; unfinished runs are listed with how far they got.
 
-    PYTHONPATH=. .venv/bin/python -m experiments.rware_pilot RUNS... [--out docs/results/warehouse-pilot.md]
+    .venv/bin/python -m experiments.rware_pilot docs/results/runs/rware-pilot \
+        --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md
+(`make paper-report` runs this; the floor is computed once, the first time, and kept in the JSON.)
 """
 
 from __future__ import annotations
