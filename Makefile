@@ -148,6 +148,8 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) report $(A)/cn3-dose $(A)/cn3-dose-full --auc 10000 --comparisons hammer-rl:il$(,)hammer-backprop:il --out docs/results/cn3-dose-auc-table.md)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) dose $(A)/cn3-dose $(A)/cn3-dose-full --out docs/results/cn3-dose-delta)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
+	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
+	$(if $(wildcard $(A)/rware-pilot/*/summary.json),-$(H) plot $(A)/rware-pilot --out docs/results/warehouse-pilot-curves)
 	-$(MAKE) --no-print-directory messages
 
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every

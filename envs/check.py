@@ -46,11 +46,15 @@ def check_env(name: str, env_kwargs: dict[str, Any], adapters: list[str] | None,
     from envs.adapters import needed_adapters
     from envs.catalog import parallel_env_factory
     from envs.registry import make_vec_env
+    from envs.rware_vec import is_rware, settings_from
 
     rep = CheckReport(name)
     if name == "cn":
         rep.problem = None
         rep.agents = [f"agent_{i}" for i in range(n_agents)]
+    elif is_rware(name):  # not PettingZoo: no adapters apply; the settings check names a bad field
+        rep.max_steps = settings_from(EnvDescription(name, n_agents, dict(env_kwargs))).max_steps
+        rep.agents = [f"robot_{i}" for i in range(n_agents)]
     else:
         factory, _, max_steps = parallel_env_factory(EnvDescription(name, n_agents, dict(env_kwargs)))
         raw = factory()

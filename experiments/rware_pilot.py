@@ -9,7 +9,9 @@ here. Deliveries per episode = the team return (rware's individual reward: +1 pe
   learning  for a variant and N: all 3 seeds' final > floor mean + 3 standard errors. Judged only
             for runs that finished their budget; unfinished runs are listed with how far they got.
 
-    PYTHONPATH=. .venv/bin/python -m experiments.rware_pilot RUNS... [--out docs/results/warehouse-pilot.md]
+    .venv/bin/python -m experiments.rware_pilot docs/results/runs/rware-pilot \
+        --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md
+(`make paper-report` runs this; the floor is computed once, the first time, and kept in the JSON.)
 """
 
 from __future__ import annotations
@@ -47,19 +49,28 @@ def floors(ns: list[int], seeds: list[int], episodes: int = 200) -> dict[int, di
 
 
 def run_rows(paths: list[Path]) -> list[dict]:
-    """One row per run: variant label, N, seed, episodes done of the budget, final and AUC."""
-    rows = []
-    for p in find_runs(paths):
-        r = load_run(p)
-        c = r.config
-        ret = np.asarray(r.team_return)
-        tail = ret[-max(1, len(ret) // 10):] if len(ret) else ret
-        label = c["variant"] + (f"-{c['central_mode']}" if c["variant"] == "hammer" else "")
-        rows.append({"run": p.name, "variant": label, "n": c["n_agents"], "seed": c["seed"], "done": len(ret),
-                     "budget": c["episodes"], "finished": bool(r.finished and len(ret) >= c["episodes"]),
-                     "final": float(tail.mean()) if len(ret) else float("nan"),
-                     "auc": float(ret.mean()) if len(ret) else float("nan")})
-    return rows
+    """One row per run name: variant label, N, seed, episodes done of the budget, final and AUC.
+    A run both archived and still in a sweep directory (or given twice) counts once, the copy
+    that got furthest."""
+    rows: dict[str, dict] = {}
+    for row in map(_row, find_runs(paths)):
+        old = rows.get(row["run"])
+        if old is None or (row["finished"], row["done"]) > (old["finished"], old["done"]):
+            rows[row["run"]] = row
+    return list(rows.values())
+
+
+def _row(p: Path) -> dict:
+    """The row of one run directory or archived run."""
+    r = load_run(p)
+    c = r.config
+    ret = np.asarray(r.team_return)
+    tail = ret[-max(1, len(ret) // 10):] if len(ret) else ret
+    label = c["variant"] + (f"-{c['central_mode']}" if c["variant"] == "hammer" else "")
+    return {"run": p.name, "variant": label, "n": c["n_agents"], "seed": c["seed"], "done": len(ret),
+            "budget": c["episodes"], "finished": bool(r.finished and len(ret) >= c["episodes"]),
+            "final": float(tail.mean()) if len(ret) else float("nan"),
+            "auc": float(ret.mean()) if len(ret) else float("nan")}
 
 
 def verdicts(rows: list[dict], floor: dict[int, dict], seeds: int = 3) -> dict[tuple[str, int], str]:

@@ -53,7 +53,13 @@ def test_presets_carry_the_paper_settings():
         cfg = merge_config(name)
         assert (cfg.n_agents, cfg.msg_dim, cfg.episodes, cfg.gamma, cfg.clip) == (n, m, budget, 0.95, 0.2)
         assert cfg.lr_central == 3e-4
-    assert set(PRESETS) == set(expected)
+    rware = {"rware-tiny-2ag": 2, "rware-tiny-4ag": 4}  # docs/results/plan-warehouse.md: B = 5M env steps
+    for name, n in rware.items():
+        cfg = merge_config(name)
+        assert (cfg.env, cfg.env_kwargs, cfg.n_agents, cfg.episodes, cfg.gamma) == ("rware", {"size": "tiny"}, n,
+                                                                                  10_000, 0.99)
+        assert cfg.rollout_steps * cfg.checkpoint_every % 500 == 0  # env reseeds fall on episode ends
+    assert set(PRESETS) == set(expected) | set(rware)
     assert RunConfig().use_prev_actions and RunConfig().msg_dropout == 0.0
     assert merge_config("cn3", overrides=["variant=il"]).effective_msg_dim == 0
 

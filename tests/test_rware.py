@@ -201,3 +201,19 @@ def test_up_equals_train(tmp_path):
         for key in wa:
             np.testing.assert_allclose(wa[key], wb[key], atol=1e-4, err_msg=f"{part}/{key}")
     assert processes_mentioning(str(up)) == []
+
+
+def test_pilot_rule_judges_only_finished_seeds():
+    """The plan's rule (experiments.rware_pilot): all 3 finished seeds above floor mean + 3 s.e."""
+    from experiments.rware_pilot import verdicts
+
+    floor = {2: {"threshold": 0.064}}
+
+    def row(variant: str, seed: int, final: float, finished: bool = True) -> dict:
+        return {"variant": variant, "n": 2, "seed": seed, "final": final, "finished": finished}
+
+    rows = [row("il", s, 0.5) for s in range(3)] + [row("hammer-rl", 0, 0.5), row("hammer-rl", 1, 0.05),
+                                                    row("hammer-rl", 2, 0.9)]
+    rows += [row("random", 0, 0.9), row("random", 1, 0.9, finished=False)]
+    assert verdicts(rows, floor) == {("hammer-rl", 2): "does not learn", ("il", 2): "learns",
+                                     ("random", 2): "not judged (1 of 3 seeds finished)"}
