@@ -97,7 +97,7 @@ class TeamActor:
 
         cfg = self.config(seed, episodes)
         env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs or None)
-        spec, view, agents, net = env.spec, local_view_from_config(cfg), *self._networks(cfg, env.spec)
+        spec, view, agents, net = env.spec, local_view_from_config(cfg, env.spec), *self._networks(cfg, env.spec)
         acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
         obs, _ = env.reset(env_reset_seed(cfg.seed, 0))
         prev = zero_prev_actions(spec, cfg.num_envs)
