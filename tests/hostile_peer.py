@@ -11,7 +11,6 @@ the run, only Zenoh's access control stands between it and the other roles.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ import numpy as np
 from protocol.codec import encode
 from protocol.schemas import Action, Control, LocalObs, Weights
 from protocol.session import HammerSession, TransportConfig
+from tests.peer_thread import PeerThread
 
 FORGED_STOP_SENDERS = ("launcher", "env")  # the senders every role obeys (runtime.role.STOP_SENDERS)
 
@@ -30,22 +30,14 @@ def zeroed(blob: bytes) -> bytes:
     return save({k: np.zeros_like(v) for k, v in load(blob).items()})
 
 
-class HostilePeer(threading.Thread):
+class HostilePeer(PeerThread):
     def __init__(self, run_id: str, transport: TransportConfig, num_envs: int, agent: int = 0) -> None:
-        super().__init__(daemon=True, name="hostile-peer")
+        super().__init__("hostile-peer")
         self.run_id, self.transport, self.k, self.agent = run_id, transport, num_envs, agent
-        self.stop_event = threading.Event()
         self.sent = {"answers": 0, "blind_actions": 0, "weights": 0, "control": 0}
         self.obs_seen = 0
         self.weights_seen = -1  # the newest real version it read (local-1 may read the local weights)
         self.max_peers = 0
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            self._attack()
-        except BaseException as e:  # noqa: BLE001 - the test reports it
-            self.error = e
 
     def _attack(self) -> None:
         with HammerSession(self.run_id, self.transport, sender="launcher") as s:

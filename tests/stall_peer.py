@@ -7,31 +7,22 @@ is well formed and passes validation: only the roles' bounds (runtime/bounds.py)
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 
 from protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
 from protocol.session import HammerSession, TransportConfig
+from tests.peer_thread import PeerThread
 
 HUGE_OBS_STEP = 2**64 - 1
 HUGE_STATE_STEP = 2**63
 HUGE_VERSION = 2**62
 
 
-class StallPeer(threading.Thread):
+class StallPeer(PeerThread):
     def __init__(self, run_id: str, transport: TransportConfig, n_agents: int) -> None:
-        super().__init__(daemon=True, name="stall-peer")
+        super().__init__("stall-peer")
         self.run_id, self.transport, self.n = run_id, transport, n_agents
-        self.stop_event = threading.Event()
         self.sent: dict[str, int] = {}
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            self._attack()
-        except BaseException as e:  # noqa: BLE001 - the test reports it
-            self.error = e
 
     def _send(self, what: str, publish, msg) -> None:
         publish(msg)
@@ -70,7 +61,7 @@ class StallPeer(threading.Thread):
             self.stop_event.wait(3.0)  # stay joined while the big payload is delivered
 
 
-class EarlyStallPeer(threading.Thread):
+class EarlyStallPeer(PeerThread):
     """The same stall messages before the run's first step, when no role has a step to measure them
     against: from the moment the launcher's hub listens until the env host's first observation, it
     sends every 50 ms a `LocalObs` of step 2^64-1 to every local agent, a `GlobalState` of step
@@ -79,18 +70,10 @@ class EarlyStallPeer(threading.Thread):
     for the learner, which loads torch), so each receives some of them before its first real step."""
 
     def __init__(self, run_dir, timeout_s: float = 120.0) -> None:
-        super().__init__(daemon=True, name="early-stall-peer")
+        super().__init__("early-stall-peer")
         self.run_dir, self.timeout_s = run_dir, timeout_s
-        self.stop_event = threading.Event()
         self.sent: dict[str, int] = {}
         self.first_real_step: int | None = None
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            self._attack()
-        except BaseException as e:  # noqa: BLE001 - the test reports it
-            self.error = e
 
     def _wait_for_run_files(self) -> tuple:
         import json
