@@ -203,10 +203,15 @@ def cut_table(results: list[dict]) -> list[str]:
             for agent in teams[0]["cut"]:
                 d = np.array([t["cut"][agent]["drop"] for t in teams])
                 m = mean_ci(d)
-                matters = np.isfinite(m[1]) and (m[1] > 0 or m[2] < 0)
+                # The plan's rule is "the CI excludes 0"; which side matters too: a CI below 0 means the
+                # team does better without that message (e.g. zeros are a quieter input than random noise).
+                if not (np.isfinite(m[1]) and (m[1] > 0 or m[2] < 0)):
+                    verdict = "no (CI includes 0)"
+                else:
+                    verdict = "yes: the cut costs" if m[1] > 0 else "yes, but the cut helps"
                 name = agent if agent != "all" else "all agents (check)"
                 lines.append(f"| {setting} | {label} | {name} | {len(d)} | {_ci(m, 2)} | {int((d > 0).sum())} of "
-                             f"{len(d)} | {'yes' if matters else 'no (CI includes 0)'} |")
+                             f"{len(d)} | {verdict} |")
     return lines
 
 

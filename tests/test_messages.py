@@ -229,3 +229,15 @@ def test_the_plans_comparisons_and_holm_family_over_settings_and_targets():
     assert len(two) == 4
     smallest = min(two, key=lambda c: c.p)
     assert smallest.p_holm == pytest.approx(4 * smallest.p)
+
+
+def test_the_cut_table_says_which_way_a_cut_matters():
+    """A CI below 0 (the team does better without the message, as random-message teams do at full
+    view) is not reported as "the cut costs"; the archived full-view and r=0 teams give one of each."""
+    from experiments.messages_report import cut_table
+
+    results = json.loads((ROOT / "docs/results/messages.json").read_text())["results"]
+    rows = {(r.split("|")[1].strip(), r.split("|")[2].strip(), r.split("|")[3].strip()): r.split("|")[7].strip()
+            for r in cut_table(results)[2:]}
+    assert rows[("cn N=3 (env_kwargs.obs_radius=0.0)", "hammer-rl-m4", "all agents (check)")] == "yes: the cut costs"
+    assert rows[("cn N=3", "random-m4", "all agents (check)")] == "yes, but the cut helps"
