@@ -61,6 +61,10 @@ G_CN3_DOSE_FULL = --out runs/paper/cn3-dose-full --archive $(A)/cn3-dose-full --
 # robots. Budget deviation, stated in docs/results/warehouse.md: 1M env steps (2,000 episodes) per run,
 # not the plan's B = 5M (10,000), which this shared machine could not give in the session that started it.
 G_RWARE_PILOT := --out runs/paper/rware-pilot --archive $(A)/rware-pilot --presets rware-tiny-2ag,rware-tiny-4ag --variants hammer-rl,il --seeds 0-2 --episodes 2000
+# Step 3, the comparison (plan-warehouse.md, addendum of 2026-12-03): N = 2 at the pilot's 1M env steps,
+# 10 seeds; seeds 0-2 of hammer rl and IL are the pilot's runs (copied into this archive).
+# $(call G_RWARE_CMP,VARIANTS,SEEDS)
+G_RWARE_CMP = --out runs/paper/rware-cmp --archive $(A)/rware-cmp --presets rware-tiny-2ag --variants $(or $(1),hammer-rl$(,)il$(,)hammer-backprop$(,)random) --seeds $(or $(2),0-9) --episodes 2000
 # The primary contrast (hammer-rl vs IL) first at every level, so a grid cut short still answers H1/H2.
 paper-dose: $(STAMP)
 	$(H) sweep $(call G_CN3_DOSE_FULL,hammer-rl$(,)il) --snapshot-every 20
@@ -70,6 +74,8 @@ paper-dose: $(STAMP)
 	$(MAKE) paper-report
 paper-warehouse: $(STAMP)
 	$(H) sweep $(G_RWARE_PILOT) --snapshot-every 20
+	$(H) sweep $(call G_RWARE_CMP,hammer-rl$(,)il,3-9) --snapshot-every 20
+	$(H) sweep $(call G_RWARE_CMP) --snapshot-every 20
 	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
@@ -100,6 +106,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot
 	$(H) sweep $(call G_CN3_DOSE) --snapshot
 	$(H) sweep $(G_RWARE_PILOT) --snapshot
+	$(H) sweep $(call G_RWARE_CMP) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
@@ -115,6 +122,7 @@ status: $(STAMP)
 	@$(H) sweep $(call G_CN3_DOSE_FULL) --status
 	@$(H) sweep $(call G_CN3_DOSE) --status
 	@$(H) sweep $(G_RWARE_PILOT) --status
+	@$(H) sweep $(call G_RWARE_CMP) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
@@ -150,6 +158,9 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
 	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
 	$(if $(wildcard $(A)/rware-pilot/*/summary.json),-$(H) plot $(A)/rware-pilot --out docs/results/warehouse-pilot-curves)
+	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-table.md)
+	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-auc-table.md)
+	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) plot $(A)/rware-cmp --band iqm --out docs/results/warehouse-cmp-curves)
 	-$(MAKE) --no-print-directory messages
 
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
