@@ -22,7 +22,9 @@ def _fail(msg: str) -> None:
 
 def train_command(
     preset: Annotated[str | None, typer.Option(help="cn3 | cn5 | mw3 | mw5 (the paper's settings), rware-tiny-2ag | rware-tiny-4ag")] = None,
-    variant: Annotated[str | None, typer.Option(help="hammer | il | random | centralized")] = None,
+    variant: Annotated[str | None, typer.Option(
+        help="hammer | il | random | centralized; hammer-rl / hammer-backprop (the sweep's spellings) "
+             "also set --central-mode")] = None,
     central_mode: Annotated[str | None, typer.Option(help="rl (paper text) | backprop (authors' code)")] = None,
     seed: Annotated[int | None, typer.Option(help="run seed")] = None,
     episodes: Annotated[int | None, typer.Option(help="episode budget (overrides the preset)")] = None,
@@ -46,6 +48,11 @@ def train_command(
     from learning.config import ConfigError, build_config, merge_config
     from learning.rundir import RunDir
 
+    if variant in ("hammer-rl", "hammer-backprop"):  # as `hammer sweep --variants` spells them
+        mode = variant.split("-")[1]
+        if central_mode not in (None, mode):
+            _fail(f"--variant {variant} with --central-mode {central_mode}: they disagree; fix: drop --central-mode")
+        variant, central_mode = "hammer", mode
     if seeds is not None:
         from learning.seeds_cli import train_seeds_command
 

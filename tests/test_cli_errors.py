@@ -76,3 +76,19 @@ def test_train_seeds_with_a_bad_env_is_one_line_and_writes_nothing(tmp_path):
     text = _err(res)
     assert "error:" in text and "cannot import module 'nosuchmod'" in text and "Traceback" not in res.output
     assert not any(tmp_path.iterdir()), "a refused seed batch must not leave run directories"
+
+
+def test_train_takes_the_sweeps_variant_spellings(tmp_path):
+    """`--variant hammer-backprop` (as `hammer sweep --variants` spells it) trains backprop mode; a
+    contradicting --central-mode is one error line and no run directory."""
+    import json
+
+    res = runner.invoke(app, ["train", "--preset", "cn3", "--variant", "hammer-backprop", "--episodes", "8",
+                              "--quiet", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    (cfg,) = tmp_path.glob("*/config.json")
+    c = json.loads(cfg.read_text())
+    assert (c["variant"], c["central_mode"]) == ("hammer", "backprop")
+    res = runner.invoke(app, ["train", "--preset", "cn3", "--variant", "hammer-rl", "--central-mode", "backprop",
+                              "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "drop --central-mode" in _err(res) and not (tmp_path / "x").exists()
