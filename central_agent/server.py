@@ -69,7 +69,8 @@ class CentralServer(Role):
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float, *,
                  idle_exit_s: float | None = None, load_when_idle: bool = False,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
+                 max_policy_lag: int = 0, start_step: int | None = None,
+                 start_version: int | None = None) -> None:
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
         super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
@@ -88,7 +89,7 @@ class CentralServer(Role):
         self.states = session.subscribe(self.keys.state(), GlobalState, dims)
         self.handle(self.states, self.on_state)
         self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s, reject=self.reject,
-                                      max_policy_lag=max_policy_lag)
+                                      max_policy_lag=max_policy_lag, start_version=start_version)
                         if self.acting.has_network else None)
         n = cfg.n_agents  # N messages a step: a burst (protocol.session.BATCH_MIN)
         self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=burst_express(i, n)), session,

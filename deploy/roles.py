@@ -20,7 +20,7 @@ from typing import Annotated
 
 import typer
 
-from runtime.bounds import known_step
+from runtime.bounds import known_step, known_version
 
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
@@ -183,7 +183,8 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
     from local_agent.edge import run_agent
 
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
-              step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step))
+              step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
+              start_version=known_version(settings.resume_from))
 
 
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
@@ -254,7 +255,8 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                                   settings.msg_deadline_ms / 1e3, settings.weights_timeout_s, faults=settings.faults,
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
                                   step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
-                                  start_step=known_step(settings.resume_step))
+                                  start_step=known_step(settings.resume_step),
+                                  start_version=known_version(settings.resume_from))
             pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
@@ -282,7 +284,8 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
                                    step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
-                                   max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step))
+                                   max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step),
+                                   start_version=known_version(settings.resume_from))
             server.stall_warn_s = settings.stall_warn_s
             server.run()
             logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())

@@ -30,7 +30,7 @@ from deploy.supervisor import RoleSpec, Supervisor
 from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat
 from protocol.session import HammerSession, free_loopback_port
-from runtime.bounds import RUN_STEP_ENV
+from runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
 
 log = logging.getLogger("hammer.up")
 
@@ -285,6 +285,7 @@ class Launcher:
         self.alive_expected = {m for s in specs for m in (s.members or (s.name,))}  # their liveliness tokens
         self.sup = Supervisor(run_dir / "logs")
         self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
+        self.sup.set_env(RUN_VERSION_ENV, None)  # ... and its resume version
         self.board = Board(restarts={n: 0 for n in self.names})
         self.t_start = time.monotonic()
         self.done = False
@@ -351,6 +352,8 @@ class Launcher:
         if h.role == "env":
             # a role (re)started from now on refuses a first step beyond this + step_window (runtime.bounds)
             self.sup.set_env(RUN_STEP_ENV, str(max(0, int(h.counters.get("step", 0)))))
+            # ... and first weights beyond this version + 1 + max_policy_lag
+            self.sup.set_env(RUN_VERSION_ENV, str(max(0, int(h.counters.get("policy_version", 0)))))
             board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
             board.steps_hist = board.steps_hist[-20:]
 

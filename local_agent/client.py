@@ -279,7 +279,8 @@ class LocalAgentClient(AgentSteps, Role):
     def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
                  msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
+                 max_policy_lag: int = 0, start_step: int | None = None,
+                 start_version: int | None = None) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, step_log_columns())
         super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
@@ -292,7 +293,7 @@ class LocalAgentClient(AgentSteps, Role):
         self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
         self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
         self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag)
+                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
         self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
                                           step_log, "local->env")
 

@@ -130,10 +130,11 @@ def edge_inputs(bundle_path: Path, agent: int, run_id: str | None, connect: str 
 
 
 def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | None = None,
-              run_dir: Path | None = None, start_step: int | None = None) -> None:
+              run_dir: Path | None = None, start_step: int | None = None,
+              start_version: int | None = None) -> None:
     """Serve as the local agent until the run stops it; the counters go to the log (and the run directory).
-    `start_step`: the run's known step (runtime.bounds.known_step), so a forged first step cannot anchor
-    the agent; an edge agent from a bundle knows none."""
+    `start_step` / `start_version`: the run's known step and policy version (runtime.bounds), so a forged
+    first step or weights cannot anchor the agent; an edge agent from a bundle knows neither."""
     from local_agent.client import LocalAgentClient
     from protocol.session import HammerSession
 
@@ -143,7 +144,8 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
             client = LocalAgentClient(s, spec, num_envs, settings.fallback, settings.fallback_k,
                                       settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
                                       step_log_dir=step_log_dir, step_window=settings.step_window,
-                                      max_policy_lag=settings.max_policy_lag, start_step=start_step)
+                                      max_policy_lag=settings.max_policy_lag, start_step=start_step,
+                                      start_version=start_version)
             client.stall_warn_s = settings.stall_warn_s
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())

@@ -144,7 +144,8 @@ class LocalAgentPool(Role):
                  fallback_k: int, msg_deadline_s: float, weights_timeout_s: float, *,
                  faults: FaultSpec | None = None, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None) -> None:
+                 max_policy_lag: int = 0, start_step: int | None = None,
+                 start_version: int | None = None) -> None:
         if session.faults is not None:
             raise ValueError("an agent pool's session must not have a fault layer: pass the FaultSpec as "
                              "`faults=` (each agent gets its own injector)")
@@ -160,7 +161,7 @@ class LocalAgentPool(Role):
             if m.messages is not None:
                 self._route[m.messages] = (m, self.on_message)
         self.weights = WeightsIntake(session, "local", self._load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag)
+                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
         self.forwards = self.stacked_forwards = 0  # forward calls, and those that served several agents at once
 
     def alive_names(self) -> list[str]:

@@ -24,9 +24,16 @@ of the one before it): one forged message can do neither.
   adopted before the first real one, or a hint from a forged heartbeat): at least
   `MIN_STREAM` in-order steps below the anchor and nothing accepted for resync_s, and the role
   drops its anchor and acts on the stream again.
-The first version a role holds is not bounded (weights have no known start a restarted role
-could trust): in the plain profile a forged first `Weights` is adopted; the secure profile's
-access rules let only the learner publish weights.
+Versions are bounded the same way: before a role holds any weights, the reference is the version
+the run is known to be at (`known_version`: the resume update of runtime.json, or the env host's last
+reported policy version, passed by the launcher to a role it starts) plus FIRST_VERSION_SLACK (the
+learner moves on while a role restarts: that hint is a floor, not the version the role will see), so
+a forged first `Weights` of version 2^62 is refused instead of disabling the bound for the rest of
+the run; one inside the slack is held but loaded only if a step names it. A versions stream
+beyond the bound is followed like a step stream ahead: when it has been the only weights for
+`resync_s` and continues itself (a role that missed versions while paused, or started with a stale
+hint). Only a role with no known version (an edge agent from a bundle) adopts its first one; the
+secure profile's access rules let only the learner (or the policy server) publish weights at all.
 """
 
 from __future__ import annotations
@@ -37,12 +44,21 @@ import time
 DEFAULT_STEP_WINDOW = 10_000
 DEFAULT_RESYNC_S = 5.0
 MIN_STREAM = 3  # in-order steps below the anchor before a role follows them (behind resync)
+FIRST_VERSION_SLACK = 1_000  # updates the learner may make while a role (re)starts (>= 100 s at 10 a second)
 RUN_STEP_ENV = "HAMMER_RUN_STEP"  # set by the launcher: the env host's last reported step
+RUN_VERSION_ENV = "HAMMER_RUN_VERSION"  # set by the launcher: the env host's last reported policy version
 
 
 def version_ahead(version: int, known: int, max_policy_lag: int) -> bool:
-    """A weights version further ahead than the learner can be (known < 0: nothing held yet)."""
+    """A weights version further ahead than the learner can be (known < 0: no reference yet)."""
     return known >= 0 and version > known + 1 + max_policy_lag
+
+
+def known_version(resume_from: int | None) -> int:
+    """The policy version a starting role's first weights cannot be far above: the run's start (0, or
+    the resume update), or the env host's last reported policy version when the launcher passed it."""
+    hint = os.environ.get(RUN_VERSION_ENV, "")
+    return max(resume_from or 0, int(hint) if hint.isdigit() else 0)
 
 
 def known_step(resume_step: int | None) -> int:
@@ -58,8 +74,10 @@ class StepWindow:
     run is known to be at before the role has acted on any (None: unknown, the first step anchors)."""
 
     def __init__(self, width: int = DEFAULT_STEP_WINDOW, resync_s: float | None = DEFAULT_RESYNC_S,
-                 start: int | None = None) -> None:
-        self.width, self.resync_s, self.start = width, resync_s, start
+                 start: int | None = None, repeats: bool = False) -> None:
+        """repeats=True: a stream ahead also continues by repeating its newest value (a policy server
+        republishes its current version until everyone has it; steps never repeat)."""
+        self.width, self.resync_s, self.start, self.repeats = width, resync_s, start, repeats
         self._in_window_t = time.monotonic()
         self._rejected = -1  # the last step rejected as ahead: a stream re-anchors only if it continues it
         self._behind, self._behind_run = -1, 0  # the last stale step and how many followed each other
@@ -72,7 +90,8 @@ class StepWindow:
             self._in_window_t = now
             self._behind, self._behind_run = -1, 0
             return False
-        follows = self._rejected >= 0 and self._rejected < step <= self._rejected + self.width
+        low = self._rejected if self.repeats else self._rejected + 1
+        follows = self._rejected >= 0 and low <= step <= self._rejected + self.width
         self._rejected = step
         return not (follows and self._resync_due(now))  # a stream that moves on steadily: followed
 

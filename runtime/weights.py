@@ -6,7 +6,8 @@ little after the step that needs them (the learner publishes as the env host mov
 acting role holds received versions (`learning.policy_versions.WeightsInbox`) and, when a step
 names a version it has not loaded, waits for it up to a timeout, then acts with what it has and
 counts the timeout. A version further ahead than the learner can be (runtime.bounds) is
-rejected, never held: one forged `Weights` of version 2^62 must not become "the newest".
+rejected, never held: one forged `Weights` of version 2^62 must not become "the newest", neither
+before the first real weights (the run's known version is the reference then) nor after.
 Torch-free: the edge local agent uses it.
 """
 
@@ -19,7 +20,7 @@ from collections.abc import Callable
 from learning.policy_versions import WeightsInbox
 from protocol.schemas import Weights
 from protocol.session import HammerSession
-from runtime.bounds import version_ahead
+from runtime.bounds import DEFAULT_RESYNC_S, FIRST_VERSION_SLACK, StepWindow, version_ahead
 
 log = logging.getLogger("hammer.weights")
 
@@ -29,8 +30,15 @@ class WeightsIntake:
 
     def __init__(self, session: HammerSession, network: str, load: Callable[[bytes, int], None],
                  timeout_s: float, version: int = -1, *, reject: Callable[[str, str], None] | None = None,
-                 max_policy_lag: int = 0) -> None:
+                 max_policy_lag: int = 0, start_version: int | None = None,
+                 resync_s: float | None = DEFAULT_RESYNC_S) -> None:
+        """start_version: the version the run is known to be at (runtime.bounds.known_version); None:
+        unknown (an edge agent from a bundle), the first weights received set the reference."""
         self.network = network
+        # Before any weights: the known version + the slack a restart needs (runtime.bounds).
+        self.start_version = None if start_version is None else start_version + FIRST_VERSION_SLACK
+        # Versions advance one per update: the bound is the step window's logic with width 1 + lag.
+        self._bound = StepWindow(1 + max_policy_lag, resync_s=resync_s, start=self.start_version, repeats=True)
         self.timeout_s = timeout_s
         self.max_policy_lag = max_policy_lag
         self._reject = reject or (lambda reason, what: log.warning("rejected (%s): %s", reason, what))
@@ -50,8 +58,10 @@ class WeightsIntake:
         return max(self._inbox.version, max(self._inbox.held, default=-1))
 
     def ahead(self, need: int) -> bool:
-        """A step naming version `need` names one the learner cannot have published yet."""
-        return version_ahead(need, self.known, self.max_policy_lag)
+        """A step naming version `need` names one the learner cannot have published yet (while no
+        weights are held: beyond what the run's known version allows, once weights came in time)."""
+        ref = self.known if self.known >= 0 else (self.start_version if self.start_version is not None else -1)
+        return version_ahead(need, ref, self.max_policy_lag)
 
     def take(self, need: int | None) -> None:
         """Load the version `need` names, never a newer one (see WeightsInbox), waiting for it up to
@@ -88,7 +98,8 @@ class WeightsIntake:
         return False
 
     def _offer(self, w: Weights) -> None:
-        if version_ahead(w.version, self.known, self.max_policy_lag):
-            self._reject("weights_ahead", f"{self.network} weights version {w.version} while at {self.known}")
+        if self._bound.ahead(w.version, self.known):
+            ref = self.known if self.known >= 0 else f"run version {self.start_version}"
+            self._reject("weights_ahead", f"{self.network} weights version {w.version} while at {ref}")
             return
         self._inbox.offer(w.version, w.blob)

@@ -253,6 +253,57 @@ def test_weights_intake_rejects_a_version_further_ahead_than_the_learner_can_be(
     assert intake.version == 3 and 2**62 not in loads
 
 
+def test_a_forged_first_weights_version_is_refused_when_the_run_version_is_known(hub_and_role_session):
+    """Before any weights are held, the run's known version is the reference: a forged 2^62 first is
+    refused (before: adopted, and every later bound was void); the real version 0 after it is loaded."""
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    refused: list[str] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=1.0,
+                           reject=lambda reason, what: refused.append(reason), start_version=0)
+    from runtime.bounds import FIRST_VERSION_SLACK
+
+    assert intake.ahead(2**62) and not intake.ahead(1)  # a step naming a version, before any weights
+    assert intake.ahead(FIRST_VERSION_SLACK + 2) and not intake.ahead(FIRST_VERSION_SLACK + 1)
+    _settle()
+    _publish_versions(hub, [2**62, 0])
+    time.sleep(0.3)
+    intake.take(0)
+    assert loads == [0] and refused == ["weights_ahead"] and intake.known == 0
+    assert intake.ahead(2**62 - 1)  # the bound holds from the real version on
+    no_start = WeightsIntake(s, "local", lambda blob, v: None, timeout_s=1.0)  # an edge agent from a bundle
+    assert not no_start.ahead(2**62)  # no known version: the first weights set the reference (as before)
+
+
+def test_weights_intake_follows_a_real_versions_stream_beyond_its_bound(hub_and_role_session):
+    """A role restarted with a stale hint (or paused while the learner moved on) sees real versions far
+    above what it holds; once they have been its only weights for resync_s and continue (or repeat, as
+    a policy server republishes), it follows them. One forged version never does."""
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=0.2,
+                           reject=lambda reason, what: None, start_version=0, resync_s=0.3)
+    _settle()
+    _publish_versions(hub, [0, 1])
+    time.sleep(0.2)
+    intake.take(None)
+    assert intake.known == 1
+    _publish_versions(hub, [40])
+    time.sleep(0.2)
+    intake.take(None)
+    assert intake.known == 1  # alone: refused
+    time.sleep(0.4)
+    _publish_versions(hub, [40, 41])  # the stream repeats and continues after resync_s of nothing else
+    time.sleep(0.3)
+    intake.take(None)
+    assert intake.known == 41 and loads[-1] in (40, 41)
+    restarted = WeightsIntake(s, "local", lambda blob, v: None, timeout_s=0.2, start_version=3)
+    _publish_versions(hub, [7])  # the learner moved on while the role restarted: inside the slack, taken
+    time.sleep(0.2)
+    restarted.take(None)
+    assert restarted.known == 7
+
+
 def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on():
     from runtime.bounds import StepWindow
 
@@ -308,3 +359,17 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, m
     assert known_step(None) == 0 and known_step(7) == 7
     monkeypatch.delenv(RUN_STEP_ENV)
     assert known_step(None) == 0
+
+
+def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_path, monkeypatch):
+    """The same for weights: the env host's last reported policy version bounds a (re)started role's
+    first weights; never below the run's resume update."""
+    from deploy.up import Launcher
+    from runtime.bounds import RUN_VERSION_ENV, known_version
+
+    launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
+    launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 5, "policy_version": 17}))
+    monkeypatch.setenv(RUN_VERSION_ENV, launcher.sup._env[RUN_VERSION_ENV])
+    assert known_version(None) == 17 and known_version(30) == 30
+    monkeypatch.setenv(RUN_VERSION_ENV, "-3")
+    assert known_version(None) == 0
