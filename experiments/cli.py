@@ -243,10 +243,13 @@ def dose(
         help="Use the area under the curve over the first N episodes instead of the final value.", min=1)] = None,
     last: Annotated[int, typer.Option(help="Final value = mean of each run's last N episodes.")] = 500,
     out: Annotated[Path | None, typer.Option(help="Write <out>.md (table) and <out>.png/.svg (Δ against h).")] = None,
+    learned_h: Annotated[Path | None, typer.Option(
+        help="Also write the exploratory table of the fraction hidden while each run's trained team plays "
+             "(runs with final/ weights; ~1 s a team).")] = None,
 ) -> None:
     """Dose-response of hidden information (docs/results/plan-dose-response.md): Δ = IQM(variant) −
     IQM(IL) per obs_radius level with bootstrap CIs, and the slope of Δ on the fraction hidden."""
-    from experiments.dose import cells, dose_levels, dose_slope, plot_dose, to_markdown
+    from experiments.dose import cells, dose_levels, dose_slope, learned_hidden_table, plot_dose, to_markdown
 
     loaded = _load(runs)
     measure = "final" if auc is None else "auc"
@@ -266,6 +269,10 @@ def dose(
         out.with_suffix(".md").write_text(md)
         for p in plot_dose(levels, out):
             typer.echo(f"wrote {p}")
+    if learned_h:
+        learned_h.parent.mkdir(parents=True, exist_ok=True)
+        learned_h.write_text(table := learned_hidden_table(loaded))
+        typer.echo(table)
 
 
 def diagnose(

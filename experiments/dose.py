@@ -67,6 +67,45 @@ def _hidden(radius: float | None) -> float:
     return 0.0 if radius is None else spread_hidden_fraction(radius)
 
 
+def learned_hidden(run: Run, episodes: int = 100, seed: int = 0) -> float:
+    """The fraction of relative-position slots the run's radius hides while its trained team plays
+    (evaluation seed `seed`, its first `episodes` episodes, the runtime's acting): the plan's
+    exploratory companion of the fixed random-play h (trained agents sit nearer their landmarks)."""
+    from experiments.messages import TeamActor, _observed_d2
+
+    radius = run_radius(run)
+    if radius is None:
+        return 0.0
+    actor = TeamActor(run.path, need_messages=False)
+    rec = actor.rollout(seed, episodes, record=True)
+    d2_landmarks, d2_agents = _observed_d2(rec.full_obs, rec.full_obs.shape[2])
+    d2 = np.concatenate([d2_landmarks.reshape(-1), d2_agents.reshape(-1)])
+    return float(np.mean(d2 >= radius * radius))
+
+
+def learned_hidden_table(runs: list[Run], episodes: int = 100) -> str:
+    """Per level: h under random play (the plan's x-axis) and under each variant's trained teams."""
+    got: dict[tuple[float | None, str], list[float]] = {}
+    for r in runs:
+        if (r.path / "final").is_dir() and r.config.get("variant") != "centralized":  # it sees everything
+            got.setdefault((run_radius(r), r.label), []).append(learned_hidden(r, episodes))
+    labels = sorted({lab for _, lab in got})
+    radii = sorted({rad for rad, _ in got}, key=lambda x: -np.inf if x is None else -x)  # full view first
+    lines = [(f"Exploratory (plan-dose-response.md): fraction of relative-position slots hidden, under random play "
+             f"(the plan's fixed h) and while each variant's trained teams play (evaluation seed 0, first {episodes} "
+             "episodes; mean ± s.e. over teams)."), "",
+             "| obs_radius | h, random play | " + " | ".join(labels) + " |",
+             "| --- | ---: | " + " | ".join("---:" for _ in labels) + " |"]
+    for rad in radii:
+        row = [("full" if rad is None else f"{rad:g}"), f"{_hidden(rad):.3f}"]
+        for lab in labels:
+            v = np.array(got.get((rad, lab), []))
+            se = v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0.0
+            row.append(f"{v.mean():.3f} ± {se:.3f}" if len(v) else "")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def dose_levels(values: dict[tuple[float | None, str], np.ndarray], variant: str, baseline: str = "il"
                 ) -> list[Level]:
     """Δ per level for `variant` (a name like hammer-rl, matching any message length) vs baseline."""

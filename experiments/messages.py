@@ -61,7 +61,8 @@ class Recording:
 class TeamActor:
     """A trained team (a run directory with final/, or a bundle) acting in this process."""
 
-    def __init__(self, run: Path) -> None:
+    def __init__(self, run: Path, need_messages: bool = True) -> None:
+        """need_messages=False: also a team without messages (IL), for what it sees, not what it is told."""
         from faults.sweep import team_source
 
         self.run = Path(run)
@@ -69,7 +70,7 @@ class TeamActor:
         cfg = self.config(0, 1)
         if cfg.env != "cn":
             raise MessagesError(f"{run}: env {cfg.env!r}; the hidden targets are defined for cn (envs.spread) only")
-        if not cfg.wiring.uses_central:
+        if need_messages and not cfg.wiring.uses_central:
             raise MessagesError(f"{run}: variant {cfg.variant} sends no messages; fix: pass hammer or random teams")
         self.local_blob = (self.policy_dir / "local.safetensors").read_bytes()
         self.central_blob = ((self.policy_dir / "central.safetensors").read_bytes()
@@ -144,7 +145,7 @@ def _episode_major(steps: list[tuple], t: int, episodes: int, metric: np.ndarray
         a = np.stack([s[j] for s in steps])  # (S, K, N, ...)
         a = a.reshape(len(steps) // t, t, *a.shape[1:])  # (R, T, K, ...)
         a = np.moveaxis(a, 2, 1)  # (R, K, T, ...)
-        return a.reshape(-1, *a.shape[2:])[:episodes]
+        return a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])[:episodes]  # explicit: IL's messages are empty
 
     return Recording(*(stack(j) for j in range(7)), paper_metric=metric)
 

@@ -1,5 +1,7 @@
 """`hammer dose`: Δ per hidden-information level and its slope, on runs in the on-disk format."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -49,3 +51,19 @@ def test_dose_cli(dose_dir, tmp_path):
     assert (tmp_path / "d.md").read_text().count("| hammer-rl |") == 4  # 3 levels + the slope row
     res = hammer("dose", str(dose_dir), "--variants", "random")
     assert res.returncode != 0 and "error: no level has runs of both il and one of random" in res.stderr
+
+
+def test_trained_teams_hide_less_than_random_play_and_the_ends_are_exact():
+    """The exploratory h under a trained team (its archived final/ weights, the runtime's acting): 1
+    when nothing is visible, and below the random-play h at r = 0.6 (trained agents sit nearer their
+    landmarks and each other), above 0."""
+    from envs.local_view import spread_hidden_fraction
+    from experiments.dose import learned_hidden
+    from experiments.runs import load_run
+
+    archive = Path(__file__).resolve().parents[1] / "docs/results/runs/cn3-dose"
+    blind = load_run(archive / "cn3-il-compile=true-env_kwargs_obs_radius=0.0-s0")
+    assert learned_hidden(blind, episodes=20) == 1.0
+    mid = load_run(archive / "cn3-hammer-rl-compile=true-env_kwargs_obs_radius=0.6-s0")
+    h = learned_hidden(mid, episodes=20)
+    assert 0.5 < h < spread_hidden_fraction(0.6) - 0.05
