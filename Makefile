@@ -65,6 +65,8 @@ G_RWARE_PILOT := --out runs/paper/rware-pilot --archive $(A)/rware-pilot --prese
 # 10 seeds; seeds 0-2 of hammer rl and IL are the pilot's runs (copied into this archive).
 # $(call G_RWARE_CMP,VARIANTS,SEEDS)
 G_RWARE_CMP = --out runs/paper/rware-cmp --archive $(A)/rware-cmp --presets rware-tiny-2ag --variants $(or $(1),hammer-rl$(,)il$(,)hammer-backprop$(,)random) --seeds $(or $(2),0-9) --episodes 2000
+# The same at N = 4 (addendum of 2026-12-03 13:45: both variants learned in the 4-robot pilot).
+G_RWARE_CMP4 = --out runs/paper/rware-cmp4 --archive $(A)/rware-cmp4 --presets rware-tiny-4ag --variants $(or $(1),hammer-rl$(,)il$(,)hammer-backprop$(,)random) --seeds $(or $(2),0-9) --episodes 2000
 # The primary contrast (hammer-rl vs IL) first at every level, so a grid cut short still answers H1/H2.
 paper-dose: $(STAMP)
 	$(H) sweep $(call G_CN3_DOSE_FULL,hammer-rl$(,)il) --snapshot-every 20
@@ -76,6 +78,8 @@ paper-warehouse: $(STAMP)
 	$(H) sweep $(G_RWARE_PILOT) --snapshot-every 20
 	$(H) sweep $(call G_RWARE_CMP,hammer-rl$(,)il,3-9) --snapshot-every 20
 	$(H) sweep $(call G_RWARE_CMP) --snapshot-every 20
+	$(H) sweep $(call G_RWARE_CMP4,hammer-rl$(,)il,3-9) --snapshot-every 20
+	$(H) sweep $(call G_RWARE_CMP4) --snapshot-every 20
 	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
 paper: $(STAMP)
@@ -107,6 +111,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(call G_CN3_DOSE) --snapshot
 	$(H) sweep $(G_RWARE_PILOT) --snapshot
 	$(H) sweep $(call G_RWARE_CMP) --snapshot
+	$(H) sweep $(call G_RWARE_CMP4) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(STAMP)
@@ -123,6 +128,7 @@ status: $(STAMP)
 	@$(H) sweep $(call G_CN3_DOSE) --status
 	@$(H) sweep $(G_RWARE_PILOT) --status
 	@$(H) sweep $(call G_RWARE_CMP) --status
+	@$(H) sweep $(call G_RWARE_CMP4) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
@@ -161,6 +167,9 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-table.md)
 	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-auc-table.md)
 	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) plot $(A)/rware-cmp --band iqm --out docs/results/warehouse-cmp-curves)
+	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) report $(A)/rware-cmp4 --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-table.md)
+	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) report $(A)/rware-cmp4 --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-auc-table.md)
+	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) plot $(A)/rware-cmp4 --band iqm --out docs/results/warehouse-cmp4-curves)
 	-$(MAKE) --no-print-directory messages
 
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
