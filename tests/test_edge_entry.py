@@ -51,7 +51,7 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
     assert (settings.run_id, settings.msg_deadline_ms, settings.fallback, settings.fallback_k, settings.step_window) \
         == ("served-x", 12, "last", 5, 77)
     assert transport.connect == ["tcp/127.0.0.1:7447"] and (spec.agent, spec.obs_dim, spec.msg_dim, k) == (1, 18, 4, 32)
-    s, _, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/10.0.0.1:7447", None, 5)
+    s, _, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/127.0.0.1:7448", None, 5)
     assert (s.fallback, s.msg_deadline_ms) == ("zeros", 50.0)  # no settings: the bundle's fallback, defaults
     with pytest.raises(ValueError, match="--run-id"):
         edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None)
