@@ -130,7 +130,12 @@ def spread_hidden_fraction(radius: float, n_agents: int = 3, copies: int = 512, 
     states = [obs]
     for _ in range(steps):
         states.append(env.step(rng.integers(0, 5, (copies, n_agents))).obs)
-    o = np.concatenate(states)
+    return hidden_fraction(np.concatenate(states), radius, n_agents)
+
+
+def hidden_fraction(obs: np.ndarray, radius: float, n_agents: int) -> float:
+    """The fraction of the relative-position slots (landmarks, other agents) of spread observations
+    (..., obs_dim) at distance >= radius: what SpreadRadiusView hides."""
     pairs = 2 * n_agents - 1
-    rel = o[..., 4:4 + 2 * pairs].reshape(*o.shape[:-1], pairs, 2).astype(np.float64)
+    rel = obs[..., 4:4 + 2 * pairs].reshape(*obs.shape[:-1], pairs, 2).astype(np.float64)
     return float(np.mean(np.square(rel).sum(axis=-1) >= radius * radius))

@@ -71,16 +71,14 @@ def learned_hidden(run: Run, episodes: int = 100, seed: int = 0) -> float:
     """The fraction of relative-position slots the run's radius hides while its trained team plays
     (evaluation seed `seed`, its first `episodes` episodes, the runtime's acting): the plan's
     exploratory companion of the fixed random-play h (trained agents sit nearer their landmarks)."""
-    from experiments.messages import TeamActor, _observed_d2
+    from envs.local_view import hidden_fraction
+    from experiments.messages import TeamActor
 
     radius = run_radius(run)
     if radius is None:
         return 0.0
-    actor = TeamActor(run.path, need_messages=False)
-    rec = actor.rollout(seed, episodes, record=True)
-    d2_landmarks, d2_agents = _observed_d2(rec.full_obs, rec.full_obs.shape[2])
-    d2 = np.concatenate([d2_landmarks.reshape(-1), d2_agents.reshape(-1)])
-    return float(np.mean(d2 >= radius * radius))
+    rec = TeamActor(run.path, need_messages=False).rollout(seed, episodes, record=True)
+    return hidden_fraction(rec.full_obs, radius, rec.full_obs.shape[2])
 
 
 def learned_hidden_table(runs: list[Run], episodes: int = 100) -> str:

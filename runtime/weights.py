@@ -35,10 +35,10 @@ class WeightsIntake:
         """start_version: the version the run is known to be at (runtime.bounds.known_version); None:
         unknown (an edge agent from a bundle), the first weights received set the reference."""
         self.network = network
-        # Before any weights: the known version + the slack a restart needs (runtime.bounds).
-        self.start_version = None if start_version is None else start_version + FIRST_VERSION_SLACK
+        # The reference before any weights: the known version + the slack a restart needs (runtime.bounds).
+        self.first_reference = None if start_version is None else start_version + FIRST_VERSION_SLACK
         # Versions advance one per update: the bound is the step window's logic with width 1 + lag.
-        self._bound = StepWindow(1 + max_policy_lag, resync_s=resync_s, start=self.start_version, repeats=True)
+        self._bound = StepWindow(1 + max_policy_lag, resync_s=resync_s, start=self.first_reference, repeats=True)
         self.timeout_s = timeout_s
         self.max_policy_lag = max_policy_lag
         self._reject = reject or (lambda reason, what: log.warning("rejected (%s): %s", reason, what))
@@ -57,11 +57,16 @@ class WeightsIntake:
         """The newest version loaded or held (-1: none yet)."""
         return max(self._inbox.version, max(self._inbox.held, default=-1))
 
+    @property
+    def reference(self) -> int:
+        """What the bound is measured from: the newest version held, else the run's (-1: none known)."""
+        if self.known >= 0 or self.first_reference is None:
+            return self.known
+        return self.first_reference
+
     def ahead(self, need: int) -> bool:
-        """A step naming version `need` names one the learner cannot have published yet (while no
-        weights are held: beyond what the run's known version allows, once weights came in time)."""
-        ref = self.known if self.known >= 0 else (self.start_version if self.start_version is not None else -1)
-        return version_ahead(need, ref, self.max_policy_lag)
+        """A step naming version `need` names one the learner cannot have published yet."""
+        return version_ahead(need, self.reference, self.max_policy_lag)
 
     def take(self, need: int | None) -> None:
         """Load the version `need` names, never a newer one (see WeightsInbox), waiting for it up to
@@ -99,7 +104,6 @@ class WeightsIntake:
 
     def _offer(self, w: Weights) -> None:
         if self._bound.ahead(w.version, self.known):
-            ref = self.known if self.known >= 0 else f"run version {self.start_version}"
-            self._reject("weights_ahead", f"{self.network} weights version {w.version} while at {ref}")
+            self._reject("weights_ahead", f"{self.network} weights version {w.version} beyond {self.reference}")
             return
         self._inbox.offer(w.version, w.blob)
