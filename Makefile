@@ -164,13 +164,18 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
 	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
 	$(if $(wildcard $(A)/rware-pilot/*/summary.json),-$(H) plot $(A)/rware-pilot --out docs/results/warehouse-pilot-curves)
-	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-table.md)
-	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) report $(A)/rware-cmp --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-auc-table.md)
-	$(if $(wildcard $(A)/rware-cmp/*/summary.json),-$(H) plot $(A)/rware-cmp --band iqm --out docs/results/warehouse-cmp-curves)
-	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) report $(A)/rware-cmp4 --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-table.md)
-	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) report $(A)/rware-cmp4 --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-auc-table.md)
-	$(if $(wildcard $(A)/rware-cmp4/*/summary.json),-$(H) plot $(A)/rware-cmp4 --band iqm --out docs/results/warehouse-cmp4-curves)
+	$(if $(call FAMILY_DONE,rware-cmp),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-table.md)
+	$(if $(call FAMILY_DONE,rware-cmp),-$(H) report $(A)/rware-cmp --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-auc-table.md)
+	$(if $(call FAMILY_DONE,rware-cmp),-$(H) plot $(A)/rware-cmp --band iqm --out docs/results/warehouse-cmp-curves)
+	$(if $(call FAMILY_DONE,rware-cmp4),-$(H) report $(A)/rware-cmp4 --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-table.md)
+	$(if $(call FAMILY_DONE,rware-cmp4),-$(H) report $(A)/rware-cmp4 --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp4-auc-table.md)
+	$(if $(call FAMILY_DONE,rware-cmp4),-$(H) plot $(A)/rware-cmp4 --band iqm --out docs/results/warehouse-cmp4-curves)
 	-$(MAKE) --no-print-directory messages
+
+# A warehouse family (plan-warehouse.md, step 3) is analysed only once all its 40 runs are archived.
+FAMILY_DONE = $(filter 40,$(words $(wildcard $(A)/$(1)/*/summary.json)))
+# The warehouse teams' messages (plan-messages.md, addendum of 2026-12-03), one family per N.
+WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backprop$(,)random --episodes 64 --out docs/results/messages-$(2) --figure docs/results/messages-episode-$(2).png
 
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
 # archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said
@@ -182,6 +187,8 @@ MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
 messages: $(STAMP)
 	$(H) messages $(MESSAGE_RUNS) --out docs/results/messages-cn3-ownobs --figure docs/results/messages-episode.png
 	$(if $(wildcard $(A)/cn3-dose),$(H) messages $(MESSAGE_RUNS) $(A)/cn3-dose $(A)/cn3-dose-full --teams hammer-rl$(,)random --out docs/results/messages --figure docs/results/messages-episode-dose.png)
+	$(if $(call FAMILY_DONE,rware-cmp),$(call WAREHOUSE_MESSAGES,rware-cmp,warehouse2))
+	$(if $(call FAMILY_DONE,rware-cmp4),$(call WAREHOUSE_MESSAGES,rware-cmp4,warehouse4))
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds

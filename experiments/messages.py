@@ -20,6 +20,14 @@ when the observation is made), which the agents never receive. Per receiving age
   V           i's nearest landmark minus p_i, a control i sees (obs_radius: only where visible)
   X_actions   exploratory, not in the plan: each other agent's previous action as its force direction
               (x, y in {-1, 0, 1}), which the central agent's state holds and no local agent sees
+
+The warehouse (rware teams; plan-messages.md, addendum of 2026-12-03): the targets come from the
+observation's central-only columns (every shelf's cell and requested flag, `envs.rware_vec`), which
+the local view zeroes. Per receiving robot i, cells relative to its own (x, y):
+  H_agents    each other robot's cell, only where it is outside i's (2·sensor_range+1)² window
+  H_shelf     the requested shelf no robot carries that is nearest to i (Euclidean, ties by shelf id),
+              only where i carries nothing and that shelf is outside its window ("where to fetch")
+  V           the same shelf where it is inside i's window (a control i sees)
 """
 
 from __future__ import annotations
@@ -33,9 +41,9 @@ import numpy as np
 
 from experiments.probes import FOLDS, cv_r2
 
-PLAN_TARGETS = ("H_agents", "H_landmark", "V")
+PLAN_TARGETS = ("H_agents", "H_landmark", "H_shelf", "V")  # a team has those of its task (cn or rware)
 TARGETS = (*PLAN_TARGETS, "X_actions")
-TESTED = ("H_agents", "H_landmark")  # the plan's tested targets; V is its control; X_actions is exploratory
+TESTED = ("H_agents", "H_landmark", "H_shelf")  # the plan's tested targets; V is its control; X_actions exploratory
 FEATURES = ("u", "o", "ou")  # [u_i], [o_i], [o_i, u_i]
 ANALYSIS_VERSION = 2  # bump when a per-team figure would change: cached results are then recomputed
 
@@ -52,10 +60,25 @@ class Recording:
     mean: np.ndarray  # (E, T, N, M) float32: the central policy's mean (rl: before the Gaussian noise)
     local_obs: np.ndarray  # (E, T, N, D) float32: what each local agent saw
     full_obs: np.ndarray  # (E, T, N, D) float32: the env's observation (the central state's part)
-    pos: np.ndarray  # (E, T, N, 2) float64: agent positions when the observation was made
-    landmarks: np.ndarray  # (E, T, N, 2) float64
+    pos: np.ndarray | None  # (E, T, N, 2) float64: cn agent positions when the observation was made
+    landmarks: np.ndarray | None  # (E, T, N, 2) float64: cn landmarks; rware: None (targets from full_obs)
     prev: np.ndarray  # (E, T, N, A) float32: the previous actions in the central agent's state
     paper_metric: np.ndarray  # (E,)
+
+
+@dataclass(frozen=True)
+class WarehouseLayout:
+    """Where rware's observation row keeps what the targets need (`envs.rware_vec`): the local part's
+    length, the shelves and goals of the central-only columns, the robots' sensor range."""
+
+    local_dim: int
+    n_shelves: int
+    n_goals: int
+    sensor_range: int
+
+
+View = float | None | WarehouseLayout  # cn: the local view's obs_radius (None: none); rware: its layout
+ENVS = ("cn", "rware")
 
 
 class TeamActor:
@@ -68,8 +91,9 @@ class TeamActor:
         self.run = Path(run)
         self.data, self.policy_dir = team_source(self.run)
         cfg = self.config(0, 1)
-        if cfg.env != "cn":
-            raise MessagesError(f"{run}: env {cfg.env!r}; the hidden targets are defined for cn (envs.spread) only")
+        if cfg.env not in ENVS:
+            raise MessagesError(f"{run}: env {cfg.env!r}; the hidden targets are defined for "
+                                f"{' and '.join(ENVS)} only (envs.spread, envs.rware_vec)")
         if need_messages and not cfg.wiring.uses_central:
             raise MessagesError(f"{run}: variant {cfg.variant} sends no messages; fix: pass hammer or random teams")
         self.local_blob = (self.policy_dir / "local.safetensors").read_bytes()
@@ -80,6 +104,19 @@ class TeamActor:
         from faults.sweep import eval_config
 
         return eval_config(self.run, episodes, seed)
+
+    def view(self) -> View:
+        """What defines the targets of this team's task: cn's obs_radius, or the warehouse's layout."""
+        cfg = self.config(0, 1)
+        if cfg.env == "cn":
+            return (cfg.env_kwargs or {}).get("obs_radius")
+        from envs.registry import make_vec_env
+
+        env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+        try:
+            return WarehouseLayout(env.local_dim, env.n_shelves, env.n_goals, env.settings.sensor_range)
+        finally:
+            env.close()
 
     def weights_digest(self) -> str:
         h = hashlib.sha256(self.local_blob)
@@ -111,7 +148,8 @@ class TeamActor:
             msgs[:, list(cut)] = 0.0
             seen = view(obs)
             if record:
-                steps.append((msgs, out.mean, seen, obs, env.pos.copy(), env.landmarks.copy(), prev))
+                world = (env.pos.copy(), env.landmarks.copy()) if cfg.env == "cn" else (None, None)
+                steps.append((msgs, out.mean, seen, obs, *world, prev))
             actions = np.stack([a.act(seen[:, i], msgs[:, i]) for i, a in enumerate(agents)], axis=1)
             step = env.step(spec.env_action(actions))
             prev = next_prev_actions(spec, actions, step).prev
@@ -135,13 +173,15 @@ class TeamActor:
 
 
 def _episode_major(steps: list[tuple], t: int, episodes: int, metric: np.ndarray) -> Recording:
-    """Per-step (K, N, ...) arrays -> (E, T, N, ...): every cn copy's episodes last exactly T steps and
-    all copies reset together, so step s belongs to round s // T; episodes are round-major, copy
-    within round (the order the env reports them)."""
+    """Per-step (K, N, ...) arrays -> (E, T, N, ...): every cn and rware copy's episodes last exactly T
+    steps (rware: its time limit, no early end) and all copies reset together, so step s belongs to
+    round s // T; episodes are round-major, copy within round (the order the env reports them)."""
     if len(steps) % t:
         raise MessagesError(f"{len(steps)} steps is not a whole number of {t}-step episodes")
 
-    def stack(j: int) -> np.ndarray:
+    def stack(j: int) -> np.ndarray | None:
+        if steps[0][j] is None:
+            return None
         a = np.stack([s[j] for s in steps])  # (S, K, N, ...)
         a = a.reshape(len(steps) // t, t, *a.shape[1:])  # (R, T, K, ...)
         a = np.moveaxis(a, 2, 1)  # (R, K, T, ...)
@@ -199,11 +239,40 @@ def _observed_d2(full_obs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return d2[..., :n], d2[..., n:]
 
 
-def recording_targets(rec: Recording, radius: float | None) -> dict[str, Target]:
-    """`hidden_targets` of every row (episode, step) of a recording, and the exploratory X_actions."""
+def warehouse_targets(full_obs: np.ndarray, layout: WarehouseLayout) -> dict[str, Target]:
+    """The warehouse's targets per row and receiving robot (module docstring), from the observation rows
+    (R, N, D): robot i's x, y and load at columns 0-2 of its own row, the shelves' x, y, requested flag
+    in the central-only columns (the same in every row)."""
+    r, n = full_obs.shape[:2]
+    xy, loaded = full_obs[:, :, 0:2].astype(np.float64), full_obs[:, :, 2] > 0.5  # (R, N, 2), (R, N)
+    s0 = layout.local_dim
+    shelves = full_obs[:, 0, s0:s0 + 3 * layout.n_shelves].reshape(r, layout.n_shelves, 3).astype(np.float64)
+    rel = shelves[:, None, :, :2] - xy[:, :, None]  # (R, N, S, 2)
+    # A carried shelf sits on its carrier's cell; an empty robot may stand under a shelf it does not carry.
+    on_carrier = (np.all(shelves[:, None, :, :2] == xy[:, :, None], axis=-1) & loaded[:, :, None]).any(axis=1)
+    free = (shelves[:, :, 2] > 0.5) & ~on_carrier  # (R, S): requested and on the floor
+    dist = np.where(free[:, None], np.linalg.norm(rel, axis=-1), np.inf)  # (R, N, S)
+    near = dist.argmin(axis=-1)  # first index among ties
+    any_free = np.isfinite(np.take_along_axis(dist, near[..., None], axis=2)[..., 0])  # (R, N)
+    shelf_rel = np.take_along_axis(rel, near[..., None, None], axis=2)  # (R, N, 1, 2)
+    sr = layout.sensor_range
+    outside = lambda d: np.abs(d).max(axis=-1) > sr
+    seek = (any_free & ~loaded)[..., None]  # (R, N, 1)
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])
+    rel_agents = xy[:, others] - xy[:, :, None]  # (R, N, N-1, 2)
+    return {"H_agents": Target(rel_agents, outside(rel_agents), [f"other robot {m + 1}" for m in range(n - 1)]),
+            "H_shelf": Target(shelf_rel, seek & outside(shelf_rel), ["requested shelf to fetch"]),
+            "V": Target(shelf_rel, seek & ~outside(shelf_rel), ["requested shelf in view"])}
+
+
+def recording_targets(rec: Recording, radius: View) -> dict[str, Target]:
+    """`hidden_targets` of every row (episode, step) of a recording, and the exploratory X_actions; for a
+    warehouse team (`radius` is its layout) `warehouse_targets`."""
     from envs.spread import _ACTION_FORCE, SENSITIVITY
 
     e, t, n = rec.msgs.shape[:3]
+    if isinstance(radius, WarehouseLayout):
+        return warehouse_targets(rec.full_obs.reshape(e * t, *rec.full_obs.shape[2:]), radius)
     flat = [a.reshape(e * t, *a.shape[2:]) for a in (rec.pos, rec.landmarks, rec.full_obs, rec.prev)]
     out = hidden_targets(*flat[:3], radius)
     others = np.array([[j for j in range(n) if j != i] for i in range(n)])
@@ -216,7 +285,8 @@ def recording_targets(rec: Recording, radius: float | None) -> dict[str, Target]
 # ----- probes -------------------------------------------------------------------------------------
 def concat(recs: list[Recording]) -> Recording:
     """The evaluation seeds of one team as one recording (episodes stay whole, ids stay distinct)."""
-    return Recording(*(np.concatenate([getattr(r, f) for r in recs]) for f in Recording.__dataclass_fields__))
+    cat = lambda f: None if getattr(recs[0], f) is None else np.concatenate([getattr(r, f) for r in recs])
+    return Recording(*(cat(f) for f in Recording.__dataclass_fields__))
 
 
 def features(rec: Recording, agent: int, message: str = "msgs") -> dict[str, np.ndarray]:
@@ -228,7 +298,7 @@ def features(rec: Recording, agent: int, message: str = "msgs") -> dict[str, np.
     return {"u": u, "o": o, "ou": np.concatenate([o, u], axis=1)}
 
 
-def probe_recording(rec: Recording, radius: float | None, message: str = "msgs") -> dict:
+def probe_recording(rec: Recording, radius: View, message: str = "msgs") -> dict:
     """Held-out R² of every feature set and the gain R²([o,u]) − R²([o]), per target: averaged over
     receiving agents and slots (`per_agent` keeps each agent's), each (agent, slot) probe fitted on
     the rows where the slot is defined; NaN where fewer than FOLDS episodes define it."""
@@ -324,7 +394,7 @@ def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool 
     info = load_run(run)
     recs = [actor.rollout(s, episodes, record=True) for s in seeds]
     rec = concat(recs)
-    radius = (actor.data.get("env_kwargs") or {}).get("obs_radius")
+    radius = actor.view()
     res = {"run": str(run), "setting": info.setting, "label": info.label, "seed": info.seed,
            "key": team_key(actor, seeds, episodes), "episodes": len(rec.paper_metric), "eval_seeds": seeds,
            "paper_metric": float(rec.paper_metric.mean()),
@@ -341,18 +411,19 @@ def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool 
 
 
 # ----- one episode, for the figure -----------------------------------------------------------------
-def hidden_scalars(rec: Recording, radius: float | None) -> list[tuple[list[str], np.ndarray]]:
+def hidden_scalars(rec: Recording, radius: View) -> list[tuple[list[str], np.ndarray]]:
     """Every hidden scalar: (its name for each receiving agent, values (R, N) with NaN where the plan
-    leaves it undefined), the x and y of H_agents' and H_landmark's slots."""
+    leaves it undefined), the x and y of the tested targets' slots (H_agents, and H_landmark or H_shelf)."""
     tg = recording_targets(rec, radius)
     n = rec.msgs.shape[2]
     others = [[j for j in range(n) if j != i] for i in range(n)]
+    who = "robot" if isinstance(radius, WarehouseLayout) else "agent"
     out = []
-    for name in TESTED:
+    for name in (t for t in TESTED if t in tg):
         for s in range(tg[name].mask.shape[2]):
             for c, axis in enumerate("xy"):
-                names = [f"agent {others[i][s]} {axis} − own {axis} (H_agents)" if name == "H_agents"
-                         else f"landmark to take {axis} (H_landmark)" for i in range(n)]
+                names = [f"{who} {others[i][s]} {axis} − own {axis} (H_agents)" if name == "H_agents"
+                         else f"{tg[name].names[s]} {axis} ({name})" for i in range(n)]
                 out.append((names, np.where(tg[name].mask[:, :, s], tg[name].values[:, :, s, c], np.nan)))
     return out
 
@@ -373,7 +444,7 @@ def best_hidden(h_all: list[tuple[list[str], np.ndarray]], u: np.ndarray, i: int
     return best
 
 
-def episode_trace(rec: Recording, radius: float | None, episode: int = 0) -> dict:
+def episode_trace(rec: Recording, radius: View, episode: int = 0) -> dict:
     """One episode's messages and, per agent and component, the hidden scalar that best predicts it
     over the whole recording (largest |correlation|), for messages-episode.png."""
     e, t, n, m = rec.msgs.shape

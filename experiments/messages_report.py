@@ -45,6 +45,11 @@ def raw_gains(teams: list[dict], target: str, key: str = "probes") -> np.ndarray
     return np.array([t[key][target]["gain"] for t in teams], dtype=np.float64)
 
 
+def present(results: list[dict], names: tuple[str, ...]) -> list[str]:
+    """The targets among `names` that these teams' task defines (cn: H_landmark, rware: H_shelf), in order."""
+    return [n for n in names if any(n in r["probes"] for r in results)]
+
+
 def iqm_ci_or_nan(g: np.ndarray) -> tuple[float, float, float]:
     """`iqm_ci`, or NaNs (printed as dashes) when no team defines the target."""
     return iqm_ci(g) if len(g) else (float("nan"),) * 3
@@ -81,7 +86,7 @@ def comparisons(results: list[dict]) -> list[Comparison]:
     comps = []
     for setting, by_label in groups(results).items():
         for a, b in pairs(list(by_label)):
-            for target in TESTED:
+            for target in present(by_label[a] + by_label[b], TESTED):
                 x, y = gains(by_label[a], target), gains(by_label[b], target)
                 if not len(x) or not len(y):  # the target is never hidden at this setting: no comparison made
                     continue
@@ -124,7 +129,7 @@ def probe_table(results: list[dict]) -> list[str]:
             kinds = [("probes", label)] + [(key, f"{label} ({what}, exploratory)") for key, what in EXPLORATORY
                                            if all(key in t for t in teams)]
             for key, name in kinds:
-                for target in PLAN_TARGETS:
+                for target in present(teams, PLAN_TARGETS):
                     g = gains(teams, target, key)
                     r2s = [np.nanmean([t[key][target][f] for t in teams]) if len(g) else np.nan for f in FEATURES]
                     se = g.std(ddof=1) / np.sqrt(len(g)) if len(g) > 1 else float("nan")
@@ -182,7 +187,7 @@ def initial_table(results: list[dict]) -> list[str]:
         for label, teams in by_label.items():
             if not all("probes_initial" in t for t in teams):
                 continue
-            for target in TARGETS:
+            for target in present(teams, TARGETS):
                 a, b = raw_gains(teams, target), raw_gains(teams, target, "probes_initial")
                 ok = np.isfinite(a) & np.isfinite(b)
                 a, b = a[ok], b[ok]
@@ -216,14 +221,18 @@ def cut_table(results: list[dict]) -> list[str]:
 
 
 def team_table(results: list[dict]) -> list[str]:
-    lines = [("| setting | teams | seed | paper metric | gain H_agents | gain H_landmark | gain V | "
-             "cut drops (agent 0, 1, 2; all) |"), "|---|---|---|---|---|---|---|---|"]
+    targets = present(results, PLAN_TARGETS)
+    agents = max((len(r["cut"]) - 1 for r in results), default=0)
+    lines = [("| setting | teams | seed | paper metric | " + "".join(f"gain {k} | " for k in targets)
+              + f"cut drops (agent {', '.join(map(str, range(agents)))}; all) |"),
+             "|---|---|---|---|" + "---|" * (len(targets) + 1)]
     for setting, by_label in groups(results).items():
         for label, teams in by_label.items():
             for t in teams:
                 drops = ", ".join(_f(v["drop"], 2) for v in t["cut"].values())
+                gains_ = [_f(t["probes"][k]["gain"]) if k in t["probes"] else "–" for k in targets]
                 lines.append(f"| {setting} | {label} | {t['seed']} | {_f(t['paper_metric'], 2)} | "
-                             + " | ".join(_f(t["probes"][k]["gain"]) for k in PLAN_TARGETS) + f" | {drops} |")
+                             + " | ".join(gains_) + f" | {drops} |")
     return lines
 
 
@@ -240,11 +249,13 @@ def method_header(n_teams: int, seeds: list[int], episodes: int) -> str:
 
 def to_markdown(results: list[dict], header: str = "") -> str:
     comps = comparisons(results)
+    control = ("the requested shelf to fetch where it is in the robot's window, which it sees"
+               if present(results, ("H_shelf",)) else "the receiver's nearest landmark, which it sees")
     parts = [header,
              "## Probes: held-out R² and the gain R²([o,u]) − R²([o])\n", *probe_table(results),
              "\n## The plan's comparisons: hammer-rl gain vs random gain (Holm across the pairs below)\n",
              *comparison_table(comps),
-             "\n## Control target V (the receiver's nearest landmark, which it sees)\n", *control_table(results),
+             f"\n## Control target V ({control})\n", *control_table(results),
              "\n## Exploratory target: the other agents' previous actions (X_actions, not in the plan)\n",
              *exploratory_target_table(results),
              "\n## Exploratory: trained vs untrained central agent, same recorded states (not in the plan)\n",
