@@ -175,7 +175,7 @@ paper-report: $(STAMP)
 # A warehouse family (plan-warehouse.md, step 3) is analysed only once all its 40 runs are archived.
 FAMILY_DONE = $(filter 40,$(words $(wildcard $(A)/$(1)/*/summary.json)))
 # The warehouse teams' messages (plan-messages.md, addendum of 2026-12-03), one family per N.
-WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backprop$(,)random --episodes 64 --out docs/results/messages-$(2) --figure docs/results/messages-episode-$(2).png
+WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backprop$(,)random --episodes 64 --jobs 2 --out docs/results/messages-$(2) --figure docs/results/messages-episode-$(2).png
 
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
 # archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said

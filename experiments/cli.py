@@ -324,6 +324,8 @@ def messages(
     teams: Annotated[str | None, typer.Option(
         help="Only teams whose label starts with one of these, comma-separated, e.g. hammer-rl,random "
              "(the dose-response grid's plan analyses those two).")] = None,
+    jobs: Annotated[int, typer.Option(help="Teams analysed at once, one process each (the results do not "
+                                      "depend on it).", min=1)] = 1,
 ) -> None:
     """What the messages say (docs/results/plan-messages.md): each trained team acts with its frozen weights
     (the runtime's numpy acting code, in this process), ridge probes from each message to what its receiver
@@ -362,7 +364,7 @@ def messages(
                    + ", ".join(f"{t} {v['gain']:+.3f}" for t, v in res["probes"].items()))
 
     try:
-        results = analyse(found.teams, seeds, episodes, previous, progress)
+        results = analyse(found.teams, seeds, episodes, previous, progress, jobs=jobs)
     except MessagesError as e:
         _fail(str(e))
     md = to_markdown(results, method_header(len(results), seeds, episodes))

@@ -339,24 +339,51 @@ def select_teams(paths: list[Path], labels: list[str] | None = None) -> Teams:
 
 
 def analyse(teams: list[Path], seeds: list[int], episodes: int, previous: list[dict] | None = None,
-            progress=None, figure_seed: int = 0) -> list[dict]:
+            progress=None, figure_seed: int = 0, jobs: int = 1) -> list[dict]:
     """Every team's result; a team whose weights, evaluation and analysis version match a previous
-    result (the committed JSON) is not recomputed, so redrawing the tables costs nothing."""
+    result (the committed JSON) is not recomputed, so redrawing the tables costs nothing. jobs > 1:
+    the teams to compute run in that many processes (each team's result does not depend on the others
+    or on the order: the same JSON, tested)."""
     from experiments.messages import TeamActor, analyse_team, team_key
 
     cached = {r["key"]: r for r in previous or []}
-    out = []
-    for k, run in enumerate(teams):
+    todo: dict[int, tuple[Path, bool]] = {}
+    out: list[dict | None] = []
+    for run in teams:
         actor = TeamActor(run)
         wants_episode = actor.data.get("seed") == figure_seed and actor.data.get("variant") == "hammer"
         hit = cached.get(team_key(actor, seeds, episodes))
         if hit is not None and (not wants_episode or "episode" in hit):
-            res, how = {**hit, "run": str(run)}, "cached"
+            out.append({**hit, "run": str(run)})
         else:
-            res, how = analyse_team(run, seeds, episodes, keep_episode=wants_episode), "analysed"
-        out.append(res)
+            out.append(None)
+            todo[len(out) - 1] = (run, wants_episode)
+    done = 0
+
+    def report(k: int, how: str) -> None:
+        nonlocal done
+        done += 1
         if progress is not None:
-            progress(k + 1, len(teams), res, how)
+            progress(done, len(teams), out[k], how)
+
+    for k, res in enumerate(out):
+        if res is not None:
+            report(k, "cached")
+    if jobs <= 1 or len(todo) <= 1:
+        for k, (run, ep) in todo.items():
+            out[k] = analyse_team(run, seeds, episodes, keep_episode=ep)
+            report(k, "analysed")
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawn: a fresh interpreter per worker (no forked torch or BLAS thread state)
+        with ProcessPoolExecutor(min(jobs, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(analyse_team, run, seeds, episodes, keep_episode=ep): k
+                       for k, (run, ep) in todo.items()}
+            for f in as_completed(futures):
+                out[futures[f]] = f.result()
+                report(futures[f], "analysed")
     return out
 
 

@@ -192,6 +192,9 @@ def test_cli_writes_tables_json_figure_and_reuses_results(runs, tmp_path):
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and again.output.count("cached") == 2, again.output
     assert out.with_suffix(".md").read_text() == md
+    parallel = CliRunner().invoke(app, [*args, "--fresh", "--jobs", "2"])  # two processes, recomputed
+    assert parallel.exit_code == 0 and parallel.output.count("analysed") == 2, parallel.output
+    assert out.with_suffix(".md").read_text() == md
     only = CliRunner().invoke(app, [*args[:-2], "--teams", "random"])
     assert only.exit_code == 0 and only.output.count("cached") == 1, only.output
     assert "hammer-backprop" not in out.with_suffix(".md").read_text()
