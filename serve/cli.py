@@ -213,8 +213,9 @@ def play_command(
     max_steps: Annotated[int, typer.Option(min=1, help="At most this many steps per episode (multiwalker runs 500).")] = 200,
     fps: Annotated[float, typer.Option(min=1, help="Frames per second of the GIF.")] = 8.0,
 ) -> None:
-    """Watch a trained team: a few episodes drawn by the environment's own renderer (mpe2, multiwalker),
-    each agent's message beside the frame. Needs the training install."""
+    """Watch a trained team: a few episodes drawn by the environment's own renderer (mpe2, multiwalker;
+    the warehouse is drawn by hammer, each robot's view outlined), each agent's message beside the frame.
+    Needs the training install."""
     import os
 
     from serve.bundle import BundleError, load_bundle

@@ -32,7 +32,8 @@ def render_env(env_id: str, n_agents: int, env_kwargs: dict):
     from envs.catalog import _PETTINGZOO
 
     if env_id not in RENDERED:
-        raise PlayError(f"env {env_id!r}: play renders {', '.join(RENDERED)}; fix: export a team of one of those")
+        raise PlayError(f"env {env_id!r}: play renders {', '.join((*RENDERED, 'rware'))}; fix: export a team of "
+                        "one of those")
     name, rename = RENDERED[env_id]
     kwargs = dict(env_kwargs)
     keep = None
@@ -87,12 +88,80 @@ def _side_by_side(frame: np.ndarray, panel: np.ndarray) -> np.ndarray:
     return np.concatenate(pad, axis=1).astype(np.uint8)
 
 
+# ----- the warehouse, drawn here ---------------------------------------------------------------------
+CELL = 30  # pixels per warehouse cell
+LEGEND = 14  # pixels per legend line under the floor
+_ROBOT_COLOURS = ((230, 120, 20), (40, 150, 60), (150, 60, 200), (200, 40, 90), (30, 120, 200), (120, 90, 40))
+_ARROW = {0: (0, -1), 1: (0, 1), 2: (-1, 0), 3: (1, 0)}  # rware's Direction: UP, DOWN, LEFT, RIGHT
+
+
+def warehouse_frame(wh, sensor_range: int) -> np.ndarray:
+    """(H, W, 3) uint8 picture of one rware `Warehouse`: goal cells dark, shelves blue (requested: red),
+    robots as numbered discs with their heading (filled dark when carrying a shelf), each robot's
+    (2·sensor_range+1)² window outlined in its colour."""
+    from PIL import Image, ImageDraw
+
+    rows, cols = wh.grid_size
+    img = Image.new("RGB", (cols * CELL + 1, rows * CELL + 1 + 2 * LEGEND), (255, 255, 255))
+    d = ImageDraw.Draw(img)
+    d.text((3, rows * CELL + 3), "red: requested shelf, dark: goal", fill=(0, 0, 0))
+    d.text((3, rows * CELL + 3 + LEGEND), "box: what a robot sees (dark disc: loaded)", fill=(0, 0, 0))
+    box = lambda x, y, pad=0: (x * CELL + pad, y * CELL + pad, (x + 1) * CELL - pad, (y + 1) * CELL - pad)
+    for x in range(cols + 1):
+        d.line((x * CELL, 0, x * CELL, rows * CELL), fill=(225, 225, 225))
+    for y in range(rows + 1):
+        d.line((0, y * CELL, cols * CELL, y * CELL), fill=(225, 225, 225))
+    for gx, gy in wh.goals:
+        d.rectangle(box(gx, gy), fill=(60, 60, 60))
+    requested = {sh.id for sh in wh.request_queue}
+    for sh in wh.shelfs:
+        d.rectangle(box(sh.x, sh.y, 4), fill=(220, 50, 50) if sh.id in requested else (90, 130, 200))
+    for k, a in enumerate(wh.agents):
+        c = _ROBOT_COLOURS[k % len(_ROBOT_COLOURS)]
+        r = sensor_range
+        x0, y0 = max(a.x - r, 0) * CELL + 1, max(a.y - r, 0) * CELL + 1  # the window, clipped to the floor
+        x1, y1 = min(a.x + r + 1, cols) * CELL - 1, min(a.y + r + 1, rows) * CELL - 1
+        d.rectangle((x0, y0, x1, y1), outline=c, width=2)
+        d.ellipse(box(a.x, a.y, 6), fill=tuple(v // 2 for v in c) if a.carrying_shelf is not None else c,
+                  outline=(0, 0, 0))
+        cx, cy = (a.x + 0.5) * CELL, (a.y + 0.5) * CELL
+        dx, dy = _ARROW[a.dir.value]
+        d.line((cx, cy, cx + dx * CELL * 0.45, cy + dy * CELL * 0.45), fill=(0, 0, 0), width=3)
+        d.text((a.x * CELL + 3, a.y * CELL + 1), str(k), fill=(0, 0, 0))
+    return np.asarray(img)
+
+
+def _warehouse_episodes(cfg, spec, episodes: int, max_steps: int, act):
+    """(frame, messages (N, M), mean step reward, episode, step from 1) per step of `episodes` episodes of
+    hammer's own rware env (one copy, reset with seed + episode like the PettingZoo path), acting with
+    `act(obs, prev)`."""
+    from envs.registry import make_vec_env
+    from learning.central_acting import zero_prev_actions
+    from learning.rollout import next_prev_actions
+
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+    sr = env.settings.sensor_range
+    try:
+        for ep in range(episodes):
+            obs, _ = env.reset(cfg.seed + ep)
+            prev = zero_prev_actions(spec, 1)
+            for t in range(1, min(max_steps, spec.max_steps) + 1):
+                frame = warehouse_frame(env.envs[0], sr)
+                actions, msgs = act(obs, prev)
+                step = env.step(actions)
+                yield frame, msgs, float(step.reward.mean()), ep, t
+                prev, obs = next_prev_actions(spec, actions, step).prev, step.obs
+    finally:
+        env.close()
+
+
 def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
          fps: float = 8.0) -> dict:
     """Render `episodes` episodes of the bundle's team into the GIF `out`; returns what was played."""
     from PIL import Image
     from safetensors.numpy import load as load_safetensors
 
+    from envs.rware_vec import is_rware
     from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
     from learning.numpy_policy import numpy_central
     from learning.sampling import ActingStreams
@@ -102,7 +171,6 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
         raise PlayError(f"--out {out}: play writes a GIF; fix: name it *.gif")
     cfg = bundle.config(msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
     spec, w = bundle.env_spec(), cfg.wiring
-    env, keep = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
     local_blob = (bundle.path / "local.safetensors").read_bytes()
     agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
     for a in agents:
@@ -110,34 +178,58 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
     acting, streams = CentralActing.from_config(cfg), ActingStreams(cfg.seed, cfg.n_agents)
     net = (numpy_central(load_safetensors((bundle.path / "central.safetensors").read_bytes()))
            if w.has_central_network else None)
-    frames, returns = [], []
-    try:
-        for ep in range(episodes):
-            obs_d, _ = env.reset(seed=cfg.seed + ep)
-            prev, ret, t = zero_prev_actions(spec, 1), 0.0, 0
-            while env.agents and t < max_steps:
-                t += 1
-                present = np.array([[aid in obs_d for aid in spec.agent_ids]])
-                obs = np.stack([np.asarray(obs_d[aid], np.float32)[:keep] if aid in obs_d else np.zeros(spec.obs_dim,
-                                np.float32) for aid in spec.agent_ids])[None]
-                msgs = acting.messages(acting.global_state(obs, prev), streams, 0.0,
-                                       net.message_mean if net is not None else None,
-                                       net.values if net is not None and acting.rl else None).sent
-                joint = obs.reshape(1, -1)
-                acts = [a.act(joint if w.joint_obs else obs[:, i], msgs[:, i] if w.msg_dim else None)[0]
-                        for i, a in enumerate(agents)]
-                act_arr = np.array(acts)[None]
-                frame = env.render()
-                step = {aid: (int(acts[i]) if spec.discrete else np.clip(acts[i], spec.action_low, spec.action_high))
-                        for i, aid in enumerate(spec.agent_ids) if aid in env.agents}
-                obs_d, rew, _, _, _ = env.step(step)
-                r = float(np.mean(list(rew.values()))) if rew else 0.0
-                ret += r
-                frames.append(_side_by_side(frame, message_panel(msgs[0], frame.shape[0], t, r)))
-                prev = encode_actions(spec, act_arr, present)
-            returns.append(ret)
-    finally:
-        env.close()
+
+    def messages(obs: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        return acting.messages(acting.global_state(obs, prev), streams, 0.0,
+                               net.message_mean if net is not None else None,
+                               net.values if net is not None and acting.rl else None).sent
+
+    frames: list[np.ndarray] = []
+    if is_rware(cfg.env):
+        from envs.local_view import local_view_from_config
+
+        view = local_view_from_config(cfg, spec)
+
+        def act(obs: np.ndarray, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            msgs = messages(obs, prev)  # the central agent sees every row whole, as on the wire
+            seen = obs.reshape(1, -1) if w.joint_obs else view(obs)
+            acts = [a.act(seen if w.joint_obs else seen[:, i], msgs[:, i] if w.msg_dim else None)[0]
+                    for i, a in enumerate(agents)]
+            return np.array(acts)[None], msgs[0]
+
+        returns = [0.0] * episodes
+        for frame, msgs, r, ep, t in _warehouse_episodes(cfg, spec, episodes, max_steps, act):
+            returns[ep] += r
+            frames.append(_side_by_side(frame, message_panel(msgs, max(frame.shape[0], 240), t, r)))
+    else:
+        env, keep = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
+        returns = []
+        try:
+            for ep in range(episodes):
+                obs_d, _ = env.reset(seed=cfg.seed + ep)
+                prev, ret, t = zero_prev_actions(spec, 1), 0.0, 0
+                while env.agents and t < max_steps:
+                    t += 1
+                    present = np.array([[aid in obs_d for aid in spec.agent_ids]])
+                    obs = np.stack([np.asarray(obs_d[aid], np.float32)[:keep] if aid in obs_d
+                                    else np.zeros(spec.obs_dim, np.float32) for aid in spec.agent_ids])[None]
+                    msgs = messages(obs, prev)
+                    joint = obs.reshape(1, -1)
+                    acts = [a.act(joint if w.joint_obs else obs[:, i], msgs[:, i] if w.msg_dim else None)[0]
+                            for i, a in enumerate(agents)]
+                    act_arr = np.array(acts)[None]
+                    frame = env.render()
+                    step = {aid: (int(acts[i]) if spec.discrete else np.clip(acts[i], spec.action_low,
+                                                                              spec.action_high))
+                            for i, aid in enumerate(spec.agent_ids) if aid in env.agents}
+                    obs_d, rew, _, _, _ = env.step(step)
+                    r = float(np.mean(list(rew.values()))) if rew else 0.0
+                    ret += r
+                    frames.append(_side_by_side(frame, message_panel(msgs[0], frame.shape[0], t, r)))
+                    prev = encode_actions(spec, act_arr, present)
+                returns.append(ret)
+        finally:
+            env.close()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     imgs = [Image.fromarray(f) for f in frames]
