@@ -315,7 +315,9 @@ def messages(
     runs: Annotated[list[Path], typer.Argument(help="Archived runs with final/ weights, or folders holding them "
                                                "(hammer and random teams are analysed, the others skipped).")],
     out: Annotated[Path, typer.Option(help="Output path without extension: writes <out>.md (tables) and <out>.json "
-                                      "(every team's result; re-read so unchanged teams are not recomputed).")],
+                                      "(every team's result; re-read so unchanged teams are not recomputed; while it "
+                                      "runs, <out>.partial.json keeps each finished team, so a run cut short resumes)."
+                                      )],
     figure: Annotated[Path | None, typer.Option(
         help="messages-episode.png: one episode of each setting's hammer-rl team of training seed 0.")] = None,
     episodes: Annotated[int, typer.Option(help="Evaluation episodes per evaluation seed.", min=10)] = 500,
@@ -356,21 +358,28 @@ def messages(
                        + (" ..." if len(skipped) > 4 else ""))
     if not found.teams:
         _fail("no team with messages and final/ weights under the given paths")
-    js = out.with_suffix(".json")
-    previous = None if fresh or not js.is_file() else json.loads(js.read_text())["results"]
+    js, part = out.with_suffix(".json"), out.with_suffix(".partial.json")
+    previous = [] if fresh else [r for f in (js, part) if f.is_file() for r in json.loads(f.read_text())["results"]]
+
+    def save(done: list[dict]) -> None:  # an analysis cut short resumes from here (not a result: no table)
+        part.parent.mkdir(parents=True, exist_ok=True)
+        tmp = part.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"eval_seeds": seeds, "episodes": episodes, "partial": True, "results": done}))
+        tmp.replace(part)
 
     def progress(k: int, n: int, res: dict, how: str) -> None:
         typer.echo(f"[{k}/{n}] {how} {Path(res['run']).name}: paper metric {res['paper_metric']:.2f}, gains "
                    + ", ".join(f"{t} {v['gain']:+.3f}" for t, v in res["probes"].items()))
 
     try:
-        results = analyse(found.teams, seeds, episodes, previous, progress, jobs=jobs)
+        results = analyse(found.teams, seeds, episodes, previous, progress, jobs=jobs, save=save)
     except MessagesError as e:
         _fail(str(e))
     md = to_markdown(results, method_header(len(results), seeds, episodes))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".md").write_text(md)
     js.write_text(json.dumps({"eval_seeds": seeds, "episodes": episodes, "results": results}, indent=1))
+    part.unlink(missing_ok=True)
     typer.echo(md)
     if figure is not None:
         for path, team in figure_paths(results, figure).items():

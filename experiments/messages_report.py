@@ -339,11 +339,12 @@ def select_teams(paths: list[Path], labels: list[str] | None = None) -> Teams:
 
 
 def analyse(teams: list[Path], seeds: list[int], episodes: int, previous: list[dict] | None = None,
-            progress=None, figure_seed: int = 0, jobs: int = 1) -> list[dict]:
+            progress=None, figure_seed: int = 0, jobs: int = 1, save=None) -> list[dict]:
     """Every team's result; a team whose weights, evaluation and analysis version match a previous
     result (the committed JSON) is not recomputed, so redrawing the tables costs nothing. jobs > 1:
     the teams to compute run in that many processes (each team's result does not depend on the others
-    or on the order: the same JSON, tested)."""
+    or on the order: the same JSON, tested). save(results so far) after each computed team, so an
+    analysis cut short keeps what it finished (`hammer messages` re-reads it as its cache)."""
     from experiments.messages import TeamActor, analyse_team, team_key
 
     cached = {r["key"]: r for r in previous or []}
@@ -363,6 +364,8 @@ def analyse(teams: list[Path], seeds: list[int], episodes: int, previous: list[d
     def report(k: int, how: str) -> None:
         nonlocal done
         done += 1
+        if save is not None and how == "analysed":
+            save([r for r in out if r is not None])
         if progress is not None:
             progress(done, len(teams), out[k], how)
 

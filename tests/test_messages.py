@@ -192,6 +192,12 @@ def test_cli_writes_tables_json_figure_and_reuses_results(runs, tmp_path):
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and again.output.count("cached") == 2, again.output
     assert out.with_suffix(".md").read_text() == md
+    js, part = out.with_suffix(".json"), out.with_suffix(".partial.json")
+    assert not part.exists()  # removed once the analysis finished
+    js.rename(part)  # as if cut short after both teams: the resumed run computes nothing
+    resumed = CliRunner().invoke(app, args)
+    assert resumed.exit_code == 0 and resumed.output.count("cached") == 2 and not part.exists(), resumed.output
+    assert out.with_suffix(".md").read_text() == md
     parallel = CliRunner().invoke(app, [*args, "--fresh", "--jobs", "2"])  # two processes, recomputed
     assert parallel.exit_code == 0 and parallel.output.count("analysed") == 2, parallel.output
     assert out.with_suffix(".md").read_text() == md
@@ -244,3 +250,15 @@ def test_the_cut_table_says_which_way_a_cut_matters():
             for r in cut_table(results)[2:]}
     assert rows[("cn N=3 (env_kwargs.obs_radius=0.0)", "hammer-rl-m4", "all agents (check)")] == "yes: the cut costs"
     assert rows[("cn N=3", "random-m4", "all agents (check)")] == "yes, but the cut helps"
+
+
+def test_analyse_saves_each_finished_team_so_a_cut_short_analysis_resumes(runs):
+    from experiments.messages_report import analyse
+
+    saved: list[list[str]] = []
+    results = analyse([runs["backprop"], runs["random"]], [0], 10, save=lambda done: saved.append(
+        [r["run"] for r in done]))
+    assert saved == [[str(runs["backprop"])], [str(runs["backprop"]), str(runs["random"])]]
+    again = analyse([runs["backprop"], runs["random"]], [0], 10, previous=results[:1],
+                    save=lambda done: saved.append(len(done)))
+    assert saved[-1] == 2 and len(saved) == 3 and again == results  # one cached, one computed and saved
