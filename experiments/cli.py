@@ -44,6 +44,10 @@ def sweep(
     grid: Annotated[list[str] | None, typer.Option(
         help="Extra grid axis KEY=V1,V2,... (repeatable), e.g. --grid msg_dim=1,2,4,8.")] = None,
     jobs: Annotated[int | None, typer.Option(help="Runs at once (default: number of cores).")] = None,
+    seed_batch: Annotated[int | None, typer.Option(
+        help="Most seeds trained in one process (fresh cn points that differ only in seed; default: as many "
+             "as free memory allows, up to 16). 1: every point alone, so each run is bit for bit the "
+             "`hammer train` of its seed (a batch is statistically equivalent, not bit-identical).", min=1)] = None,
     episodes: Annotated[int | None, typer.Option(
         help="Override the preset's episode budget (the run names then say so, e.g. mw3-il-ep2000-s0).")] = None,
     archive: Annotated[Path | None, typer.Option(
@@ -104,7 +108,7 @@ def sweep(
     console.print(f"sweep: {len(points)} runs into {out}" + (f" ({launcher.describe()})" if backend == "ray" else ""))
     try:
         res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive, launcher=launcher,
-                        snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None)
+                        snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None, seed_batch=seed_batch)
     finally:
         launcher.close()
     console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "

@@ -28,7 +28,8 @@ needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
 
 GRID = [("num_envs", ["4"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["2"])]
 GRID_ARGS = ["--grid", "num_envs=4", "--grid", "rollout_steps=25", "--grid", "checkpoint_every=2"]
-EPISODES = 48  # 12 updates of 4 episodes, a checkpoint every 2
+EPISODES = 400  # 100 updates of 4 episodes, a checkpoint every 2: long enough that a SIGTERM sent at
+# the first checkpoint lands mid-run also on a loaded machine (at 48 episodes the runs once finished first)
 
 
 def _metrics(run_dir: Path) -> list[dict[str, str]]:
@@ -170,7 +171,8 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
     with open(log, "wb") as f:
         sweep = subprocess.Popen([sys.executable, "-m", "hammer.cli", "sweep", "--out", str(out), "--backend", "ray",
                                   "--ray-address", address, "--presets", "cn3", "--variants", "il",
-                                  "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2"],
+                                  "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2",
+                                  "--seed-batch", "1"],
                                  stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
@@ -196,8 +198,10 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
 def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head, tmp_path):
     from experiments.ray_backend import RayLauncher
 
-    pts = expand(["cn3"], ["il"], [0, 1], GRID, episodes=EPISODES)  # one seed batch; resumed, each alone
-    local = run_sweep(pts, tmp_path / "local", jobs=2)
+    # Every point alone (--seed-batch 1): a seed batch is not bit-identical to solo runs over 100 updates,
+    # and an interrupted batch resumes as solo runs.
+    pts = expand(["cn3"], ["il"], [0, 1], GRID, episodes=EPISODES)
+    local = run_sweep(pts, tmp_path / "local", jobs=2, seed_batch=1)
     assert sorted(local.done) == sorted(p.name for p in pts) and not local.failed
 
     interrupted = _interrupt_cli_sweep(ray_head.address, tmp_path / "ray")
@@ -205,8 +209,9 @@ def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head
     events: list[tuple[str, str]] = []
     launcher = RayLauncher(ray_head.address)
     try:
-        res = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher, on_event=lambda k, n: events.append((k, n)))
-        again = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher)
+        res = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher, seed_batch=1,
+                        on_event=lambda k, n: events.append((k, n)))
+        again = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher, seed_batch=1)
         sockets = _family(ray_head.pid) + [os.getpid()]
         assert len(sockets) > 5, "the Ray node's processes were not found"
         assert _off_loopback(sockets) == []  # the node and this driver: loopback only
