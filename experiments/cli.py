@@ -78,7 +78,14 @@ def sweep(
     Re-running the same command skips finished runs, resumes interrupted ones from their last
     checkpoint and starts the rest. Each run is its own run directory under OUT.
     """
-    from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, snapshot_sweep
+    from experiments.sweep import (
+        duplicate_points,
+        expand,
+        parse_grid_overrides,
+        parse_seeds,
+        run_sweep,
+        snapshot_sweep,
+    )
     from hammer.console import table_console
 
     console = table_console()
@@ -104,6 +111,12 @@ def sweep(
         taken = snapshot_sweep(points, out, archive, on_event=event)
         console.print(f"snapshot: {len(taken)} runs in progress -> {archive / '_partial'}")
         return
+    dups = duplicate_points(points)
+    if dups:
+        fields = sorted({f for _, f in dups})
+        console.print(f"note: {len(dups)} runs repeat another run of this grid: their variant ignores "
+                      f"{', '.join(fields)} (e.g. {dups[0][0].name}); drop those values for that variant "
+                      "to save the compute", highlight=False, soft_wrap=True)
     launcher = _launcher(backend, ray_address, ray_cpus)
     console.print(f"sweep: {len(points)} runs into {out}" + (f" ({launcher.describe()})" if backend == "ray" else ""))
     try:

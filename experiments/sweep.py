@@ -137,6 +137,30 @@ SEED_MEMORY = 200 * 2**20  # bytes a seed of a seed batch may take (networks, bu
 MAX_SEEDS = 16
 
 
+# Config fields a variant never reads: its runs at different values are the same run (a sweep that
+# crosses them computes duplicates). The fully centralised wiring feeds every local policy the joint
+# observation, so the local view's radius never reaches it (docs/results: 50 such runs of the
+# dose-response grid are bit for bit its full-view runs).
+IGNORED_BY_VARIANT = {"centralized": ("env_kwargs.obs_radius",)}
+
+
+def duplicate_points(points: list[SweepPoint]) -> list[tuple[SweepPoint, str]]:
+    """(point, field) for each point that differs from another point of the grid only in a field its
+    variant ignores (`IGNORED_BY_VARIANT`): the sweep would train the same run twice. Not an error (a
+    grid may keep them as a check); `hammer sweep` says so before it starts."""
+    seen: dict[tuple, SweepPoint] = {}
+    out = []
+    for p in points:
+        ignored = IGNORED_BY_VARIANT.get(p.variant, ())
+        kept = tuple((k, v) for k, v in p.overrides if k not in ignored)
+        key = (p.preset, p.variant, p.seed, kept, p.episodes)
+        if key in seen:
+            out.append((p, next(k for k, _ in p.overrides if k in ignored)))
+        else:
+            seen[key] = p
+    return out
+
+
 def seed_cap() -> int:
     """Most seeds one batched process takes: MAX_SEEDS, fewer if the free memory is short."""
     try:

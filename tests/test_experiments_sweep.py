@@ -83,3 +83,14 @@ def test_a_point_held_by_a_live_sweep_is_not_run_twice(tmp_path):
         holder.wait()
     res = run_sweep(pts, tmp_path, jobs=1, episodes=8)  # the holder is gone: a stale lock
     assert res.done == [pts[0].name] and not (run_dir / LOCK).exists()
+
+
+def test_points_that_differ_only_in_a_field_their_variant_ignores_are_named():
+    """The centralised wiring never reads the local view's radius: its runs at two radii are one run."""
+    from experiments.sweep import duplicate_points, expand
+
+    pts = expand(["cn3"], ["centralized", "il"], [0, 1], [("env_kwargs.obs_radius", ["0.3", "0.6"])])
+    assert [(p.name, f) for p, f in duplicate_points(pts)] == [
+        ("cn3-centralized-env_kwargs_obs_radius=0.6-s0", "env_kwargs.obs_radius"),
+        ("cn3-centralized-env_kwargs_obs_radius=0.6-s1", "env_kwargs.obs_radius")]
+    assert duplicate_points(expand(["cn3"], ["il", "hammer-rl"], [0], [("env_kwargs.obs_radius", ["0.3", "0.6"])])) == []
