@@ -164,6 +164,7 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
 	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
 	$(if $(wildcard $(A)/rware-pilot/*/summary.json),-$(H) plot $(A)/rware-pilot --out docs/results/warehouse-pilot-curves)
+	$(if $(wildcard $(A)/$(RWARE_STILLS)/final),-$(H) export $(A)/$(RWARE_STILLS) --out runs/bundles/rware-stills --force && $(H) play runs/bundles/rware-stills --out docs/results/warehouse-team.png --episodes 1 --max-steps 80)
 	$(if $(call FAMILY_DONE,rware-cmp),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-table.md)
 	$(if $(call FAMILY_DONE,rware-cmp),-$(H) report $(A)/rware-cmp --auc 2000 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --out docs/results/warehouse-cmp-auc-table.md)
 	$(if $(call FAMILY_DONE,rware-cmp),-$(H) plot $(A)/rware-cmp --band iqm --out docs/results/warehouse-cmp-curves)
@@ -172,6 +173,8 @@ paper-report: $(STAMP)
 	$(if $(call FAMILY_DONE,rware-cmp4),-$(H) plot $(A)/rware-cmp4 --band iqm --out docs/results/warehouse-cmp4-curves)
 	-$(MAKE) --no-print-directory messages
 
+# Still frames of a trained 4-robot team (the pilot's hammer rl seed 1) with its messages: warehouse-team.png.
+RWARE_STILLS := rware-pilot/rware-tiny-4ag-hammer-rl-ep2000-s1
 # A warehouse family (plan-warehouse.md, step 3) is analysed only once all its 40 runs are archived.
 FAMILY_DONE = $(filter 40,$(words $(wildcard $(A)/$(1)/*/summary.json)))
 # The warehouse teams' messages (plan-messages.md, addendum of 2026-12-03), one family per N.

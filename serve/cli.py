@@ -207,11 +207,14 @@ def rollback_command(
 
 def play_command(
     bundle: Annotated[Path, typer.Argument(help="A bundle made by `hammer export`.")],
-    out: Annotated[Path, typer.Option(help="The GIF to write.")] = Path("team.gif"),
+    out: Annotated[Path, typer.Option(help="The GIF to write; a *.png is a sheet of still frames (--stills) "
+                                      "for a document.")] = Path("team.gif"),
     episodes: Annotated[int, typer.Option(min=1, help="Episodes to render.")] = 3,
     seed: Annotated[int | None, typer.Option(help="Seed of resets and sampling (default: the team's).")] = None,
     max_steps: Annotated[int, typer.Option(min=1, help="At most this many steps per episode (multiwalker runs 500).")] = 200,
     fps: Annotated[float, typer.Option(min=1, help="Frames per second of the GIF.")] = 8.0,
+    stills: Annotated[int, typer.Option(min=1, help="With --out *.png: frames on the sheet, spread evenly "
+                                        "over the steps played.")] = 4,
 ) -> None:
     """Watch a trained team: a few episodes drawn by the environment's own renderer (mpe2, multiwalker;
     the warehouse is drawn by hammer, each robot's view outlined), each agent's message beside the frame.
@@ -223,7 +226,7 @@ def play_command(
 
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
     try:
-        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps)
+        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps, stills)
     except (BundleError, PlayError) as e:
         _fail(str(e))
     typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "

@@ -69,7 +69,11 @@ def message_panel(msgs: np.ndarray, height: int, step: int, reward: float) -> np
         ax.bar(np.arange(n) + (j - (m - 1) / 2) * width, msgs[:, j], width, label=f"u[{j}]")
     ax.set_ylim(-1.05, 1.05)
     ax.axhline(0, color="black", linewidth=0.6)
-    ax.set_xticks(range(n), [f"agent {i}" for i in range(n)])
+    if n <= 3:
+        ax.set_xticks(range(n), [f"agent {i}" for i in range(n)])
+    else:  # "agent i" labels would overlap
+        ax.set_xticks(range(n), [str(i) for i in range(n)])
+        ax.set_xlabel("agent", fontsize=8)
     ax.set_title(f"messages, step {step}\nstep reward {reward:+.2f}", fontsize=9)
     if m:
         ax.legend(fontsize=7, loc="lower right")
@@ -156,8 +160,9 @@ def _warehouse_episodes(cfg, spec, episodes: int, max_steps: int, act):
 
 
 def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
-         fps: float = 8.0) -> dict:
-    """Render `episodes` episodes of the bundle's team into the GIF `out`; returns what was played."""
+         fps: float = 8.0, stills: int = 4) -> dict:
+    """Render `episodes` episodes of the bundle's team into the GIF `out` (a *.png: a sheet of `stills`
+    frames spread over them); returns what was played."""
     from PIL import Image
     from safetensors.numpy import load as load_safetensors
 
@@ -167,8 +172,9 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
     from learning.sampling import ActingStreams
     from local_agent.client import AgentSpec, LocalAgent
 
-    if Path(out).suffix.lower() != ".gif":
-        raise PlayError(f"--out {out}: play writes a GIF; fix: name it *.gif")
+    kind = Path(out).suffix.lower()
+    if kind not in (".gif", ".png"):
+        raise PlayError(f"--out {out}: play writes a GIF (or a PNG sheet of still frames); fix: name it *.gif or *.png")
     cfg = bundle.config(msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
     spec, w = bundle.env_spec(), cfg.wiring
     local_blob = (bundle.path / "local.safetensors").read_bytes()
@@ -232,6 +238,27 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
             env.close()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if kind == ".png":
+        sheet = still_sheet(frames, stills)
+        Image.fromarray(sheet).save(out)
+        return {"frames": len(frames), "episodes": episodes, "paper_metric": returns, "size": sheet.shape[1::-1]}
     imgs = [Image.fromarray(f) for f in frames]
     imgs[0].save(out, save_all=True, append_images=imgs[1:], duration=int(1000 / fps), loop=0, optimize=False)
     return {"frames": len(frames), "episodes": episodes, "paper_metric": returns, "size": imgs[0].size}
+
+
+def still_sheet(frames: list[np.ndarray], stills: int = 4, columns: int = 2) -> np.ndarray:
+    """`stills` frames spread evenly over the played steps (never the first: nothing has happened
+    yet), `columns` to a row, as one picture for a document."""
+    if not frames:
+        raise PlayError("no frames were played; fix: --max-steps 1 or more")
+    k = min(stills, len(frames))
+    picks = [round((j + 1) * (len(frames) - 1) / k) for j in range(k)]
+    h, w = max(f.shape[0] for f in frames), max(f.shape[1] for f in frames)
+    rows = -(-k // columns)
+    sheet = np.full((rows * h, min(k, columns) * w, 3), 255, np.uint8)
+    for j, i in enumerate(picks):
+        f = frames[i]
+        r, c = divmod(j, columns)
+        sheet[r * h:r * h + f.shape[0], c * w:c * w + f.shape[1]] = f
+    return sheet

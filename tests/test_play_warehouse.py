@@ -66,3 +66,21 @@ def test_hammer_play_writes_the_warehouse_team_with_its_messages(tmp_path):
     floor = 10 * CELL  # tiny: 10 columns
     assert not np.array_equal(frames[0][:, floor + 5:], frames[6][:, floor + 5:])  # the messages change
     assert not np.array_equal(frames[0][:, :floor], frames[11][:, :floor])  # the robots move
+
+
+def test_a_png_is_a_sheet_of_still_frames(tmp_path):
+    from PIL import Image
+
+    runner = CliRunner()
+    assert runner.invoke(app, ["export", str(TEAM), "--out", str(tmp_path / "b")]).exit_code == 0
+    gif, png = tmp_path / "team.gif", tmp_path / "sheet.png"
+    for out, extra in ((gif, []), (png, ["--stills", "3"])):
+        r = runner.invoke(app, ["play", str(tmp_path / "b"), "--out", str(out), "--episodes", "1", "--max-steps", "9",
+                                *extra])
+        assert r.exit_code == 0, r.output
+    frame = np.asarray(Image.open(gif).convert("RGB"))
+    sheet = np.asarray(Image.open(png).convert("RGB"))
+    h, w = frame.shape[:2]
+    assert sheet.shape == (2 * h, 2 * w, 3)  # three stills, two to a row
+    assert np.all(sheet[h:, w:] == 255)  # the fourth place is empty
+    assert not np.array_equal(sheet[:h, :w], sheet[:h, w:])  # different steps
