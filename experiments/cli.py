@@ -209,6 +209,8 @@ def report(
     plan: Annotated[Path | None, typer.Option(
         help="Read the comparisons from a pre-registered plan's `comparisons:` line "
              "(docs/results/plan-*.md) instead of --comparisons.", exists=True, dir_okay=False)] = None,
+    digits: Annotated[int, typer.Option(help="Decimals of the metric in the tables (the warehouse's deliveries "
+                                        "per robot need 3).", min=0, max=8)] = 2,
 ) -> None:
     """Table of final performance: mean ± standard error, IQM with a bootstrap CI, team return,
     Welch's t-test vs IL; then the declared comparisons with probability of improvement and
@@ -239,7 +241,7 @@ def report(
         else:
             pairs = default_comparisons(rows)
         comps = build_comparisons(rows, pairs) if pairs else []
-        md = to_markdown(rows, last, best_window, comps, auc)
+        md = to_markdown(rows, last, best_window, comps, auc, digits)
     except ValueError as e:
         _fail(str(e))
     typer.echo(md)

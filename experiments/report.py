@@ -175,7 +175,9 @@ def comparisons_from_plan(path: Path) -> list[tuple[str, str]]:
 
 
 def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
-                comparisons: list[Comparison] | None = None, auc: int | None = None) -> str:
+                comparisons: list[Comparison] | None = None, auc: int | None = None, digits: int = 2) -> str:
+    """The report's markdown; `digits` decimals for the metric (a task whose values are small, like the
+    warehouse's deliveries per robot, needs more than the default 2)."""
     team_window = f"the first {auc} episodes" if auc else f"the last {last} episodes"
     shortest = min((r.episodes for r in rows), default=last)
     if auc is not None:
@@ -202,15 +204,16 @@ def to_markdown(rows: list[Row], last: int, best_window: int | None = None,
     ]
     for r in rows:
         p = "" if r.p_vs_il is None else f"{r.p_vs_il:.3g}"
-        se = "" if np.isnan(r.sem) else f" ± {r.sem:.2f}"  # one seed has no standard error
-        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.2f}{se} | "
-                   f"{r.iqm:.2f} [{r.iqm_lo:.2f}, {r.iqm_hi:.2f}] | {r.team:.1f} | {p} |")
+        d, t = digits, max(1, digits - 1)
+        se = "" if np.isnan(r.sem) else f" ± {r.sem:.{d}f}"  # one seed has no standard error
+        out.append(f"| {r.setting} | {r.label} | {r.n_seeds} | {r.episodes} | {r.mean:.{d}f}{se} | "
+                   f"{r.iqm:.{d}f} [{r.iqm_lo:.{d}f}, {r.iqm_hi:.{d}f}] | {r.team:.{t}f} | {p} |")
     if comparisons:
-        out += comparisons_markdown(comparisons)
+        out += comparisons_markdown(comparisons, digits)
     return "\n".join(out) + "\n"
 
 
-def comparisons_markdown(comps: list[Comparison]) -> list[str]:
+def comparisons_markdown(comps: list[Comparison], digits: int = 2) -> list[str]:
     out = [
         "",
         (f"Declared comparisons ({len(comps)}, one family): difference of means; IQM(A) − IQM(B) with a 95 % "
@@ -223,6 +226,7 @@ def comparisons_markdown(comps: list[Comparison]) -> list[str]:
     for c in comps:
         p = "" if c.p is None else f"{c.p:.3g}"
         ph = "" if c.p_holm is None else f"{c.p_holm:.3g}"
-        out.append(f"| {c.setting} | {c.a} | {c.b} | {c.diff:+.2f} | {c.iqm_diff:+.2f} [{c.iqm_diff_lo:+.2f}, "
-                   f"{c.iqm_diff_hi:+.2f}] | {c.poi:.2f} [{c.poi_lo:.2f}, {c.poi_hi:.2f}] | {p} | {ph} |")
+        d = digits
+        out.append(f"| {c.setting} | {c.a} | {c.b} | {c.diff:+.{d}f} | {c.iqm_diff:+.{d}f} [{c.iqm_diff_lo:+.{d}f}, "
+                   f"{c.iqm_diff_hi:+.{d}f}] | {c.poi:.2f} [{c.poi_lo:.2f}, {c.poi_hi:.2f}] | {p} | {ph} |")
     return out

@@ -103,3 +103,12 @@ def test_auc_is_the_mean_over_the_first_episodes(runs_dir):  # noqa: F811
     assert "| AUC 200 (mean ± s.e.) |" in to_markdown(list(rows.values()), 500, auc=200)
     with pytest.raises(ValueError, match="fewer than"):
         build_rows(runs, auc=5000)
+
+
+def test_report_digits_for_small_metrics():
+    """--digits: the warehouse's deliveries per robot (~0.1) need more than two decimals."""
+    from experiments.report import Row, to_markdown
+
+    rows = [Row("rware N=2", "il", 2, 2000, 0.1234, 0.0111, None, [0.1123, 0.1345])]
+    assert "| 0.12 ± 0.01 |" in to_markdown(rows, 200)
+    assert "| 0.123 ± 0.011 |" in to_markdown(rows, 200, digits=3)
