@@ -31,9 +31,13 @@ def zeroed(blob: bytes) -> bytes:
 
 
 class HostilePeer(PeerThread):
-    def __init__(self, run_id: str, transport: TransportConfig, num_envs: int, agent: int = 0) -> None:
+    def __init__(self, run_id: str, transport: TransportConfig, num_envs: int, agent: int = 0,
+                 templates: dict[str, bytes] | None = None) -> None:
+        """`templates`: weights blobs of the run's architecture (the code is public), forged from
+        until real weights are read, so the forgery never waits on catching a publication."""
         super().__init__("hostile-peer")
         self.run_id, self.transport, self.k, self.agent = run_id, transport, num_envs, agent
+        self.forged = {net: zeroed(blob) for net, blob in (templates or {}).items()}
         self.sent = {"answers": 0, "blind_actions": 0, "weights": 0, "control": 0}
         self.obs_seen = 0
         self.weights_seen = -1  # the newest real version it read (local-1 may read the local weights)
@@ -45,7 +49,6 @@ class HostilePeer(PeerThread):
             obs = s.subscribe(k.obs(self.agent), LocalObs)
             real_weights = s.subscribe(k.weights("local"), Weights)
             act = s.publisher(k.act(self.agent), express=True)
-            forged: bytes | None = None
             last_blind = 0.0
             guess = 0
             while not self.stop_event.is_set():
@@ -57,12 +60,11 @@ class HostilePeer(PeerThread):
                     self.sent["answers"] += 1
                 for w in real_weights.drain():
                     if w.version > self.weights_seen:
-                        self.weights_seen, forged = w.version, zeroed(w.blob)
+                        self.weights_seen, self.forged["local"] = w.version, zeroed(w.blob)
                 if time.monotonic() - last_blind > 0.02:
                     last_blind = time.monotonic()
                     guess = self._blind_actions(act, guess)
-                    if forged is not None:
-                        self._weights(s, forged)
+                    self._weights(s)
                     self._stops(s)
                 time.sleep(0.002)
 
@@ -74,10 +76,12 @@ class HostilePeer(PeerThread):
         self.sent["blind_actions"] += 50
         return (guess + 50) % 20_000
 
-    def _weights(self, s: HammerSession, blob: bytes) -> None:
-        """Version newest + 1: what the learner publishes next, inside every bound (runtime/bounds.py)."""
-        for net in ("local", "central"):
-            s.publish(s.keys.weights(net), Weights.from_blob(net, self.weights_seen + 1, blob))
+    def _weights(self, s: HammerSession) -> None:
+        """Version newest + 1: what the learner publishes next, inside every bound (runtime/bounds.py);
+        before any real version is read, a guess among the first 20."""
+        version = self.weights_seen + 1 if self.weights_seen >= 0 else 1 + (self.sent["weights"] // 2) % 20
+        for net, blob in self.forged.items():
+            s.publish(s.keys.weights(net), Weights.from_blob(net, version, blob))
             self.sent["weights"] += 1
 
     def _stops(self, s: HammerSession) -> None:

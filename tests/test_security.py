@@ -275,6 +275,16 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
+def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
+    """Blobs of the run's own architecture: what an attacker who read the public code can build."""
+    from deploy.roles import read_env_spec
+    from learner.worker import weights_blob
+    from learning.team import Team
+
+    team = Team(cfg, read_env_spec(run_dir))
+    return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}
+
+
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True):
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
@@ -291,7 +301,7 @@ def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure:
             rt = RuntimeSettings.load(run_dir)
             stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{rt.hub_port}"]),
                                 "local-1", run_dir, cfg.n_agents)
-            peer = HostilePeer(rt.run_id, stolen, cfg.num_envs, agent=0)
+            peer = HostilePeer(rt.run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir))
             peer.start()
             hostile.append(peer)
 
@@ -311,8 +321,10 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     assert peer.error is None, peer.error
     assert peer.max_peers >= 2, "the hostile peer never joined the run: the test would prove nothing"
     assert peer.sent["blind_actions"] > 0 and peer.sent["control"] > 0
-    # it read the real local weights (local-1 may) and forged the next version, inside every bound
-    assert peer.weights_seen >= 0 and peer.sent["weights"] > 0
+    # it forged weights for both networks, inside every bound: the next version once it had read the
+    # real local weights (local-1 may: test_legitimate_traffic_flows), a guess among the first 20 before.
+    # (Whether it caught a publication is timing on a loaded host, so it is not asserted.)
+    assert peer.sent["weights"] > 0
     assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
     assert calm.summary["completed"] and attacked.summary["completed"]
     a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
