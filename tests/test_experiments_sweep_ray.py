@@ -5,6 +5,7 @@ a node that cannot see OUT failing the run with a message that says so."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import os
@@ -179,21 +180,28 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
         while not any(state_of(d) == "resume" for d in out.glob("cn3-*")):
             assert sweep.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.1)
-        at_term = {d.name: state_of(d) for d in out.glob("cn3-*")}
-        trainers = _trainers(out)
+        trainers = [p for p in _trainers(out) if p.pid != sweep.pid]
         assert trainers, "no training process of the Ray sweep found on this machine"
+        # Frozen, the runs cannot finish while the sweep shuts down (Ray's cancel took longer than the
+        # 98 updates left on a loaded machine, twice): the signals the sweep sends them wait, and
+        # act the moment they are thawed, or a SIGKILL ends them frozen.
+        for p in trainers:
+            p.suspend()
+        at_term = {d.name: state_of(d) for d in out.glob("cn3-*")}
         sweep.send_signal(signal.SIGTERM)
-        assert sweep.wait(60) != 0
+        assert sweep.wait(90) != 0
     finally:
         if sweep.poll() is None:
             sweep.kill()
             sweep.wait()
+        for p in trainers if "trainers" in locals() else []:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                p.resume()
     _gone, alive = psutil.wait_procs(trainers, timeout=20)
     for p in alive:  # never leave them running if the test fails
         p.kill()
     assert not alive, f"training processes left behind by the interrupted Ray sweep: {[p.pid for p in alive]}"
     left = sorted(d.name for d in out.glob("cn3-*") if state_of(d) == "resume")
-    # what a failure needs to be read (it has happened once on a loaded machine and not since)
     assert left, (f"the interrupted sweep left no run to resume: states at the SIGTERM {at_term}, after "
                   f"{ {d.name: state_of(d) for d in out.glob('cn3-*')} }, sweep log:\n{log.read_text()[-3000:]}")
     return left
