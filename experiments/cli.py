@@ -68,7 +68,7 @@ def sweep(
         help="Where the runs run: local (child processes here) or ray (Ray tasks; a private local "
              "instance, or the cluster at --ray-address; OUT must be on storage every node mounts).")] = "local",
     ray_address: Annotated[str | None, typer.Option(
-        help="With --backend ray: the cluster to join, e.g. 10.0.0.5:6379 or auto (default: start Ray "
+        help="With --backend ray: the cluster to join, e.g. <head-host>:6379 or auto (default: start Ray "
              "on this machine, on 127.0.0.1 only).")] = None,
     ray_cpus: Annotated[float, typer.Option(
         help="With --backend ray: CPUs Ray reserves for each run (a seed batch is one run).", min=0.01)] = 1.0,

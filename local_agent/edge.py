@@ -30,7 +30,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--agent", type=int, required=True, help="Local agent index i (0-based).")
     ap.add_argument("--bundle", type=Path, required=True, help="A bundle made by `hammer export`.")
     ap.add_argument("--run-id", help="The run id of the run to join (`hammer serve` prints it; or --settings).")
-    ap.add_argument("--connect", help="Zenoh endpoint of the run's hub, e.g. tcp/10.0.0.1:7447.")
+    ap.add_argument("--connect", help="Zenoh endpoint of the run's hub, e.g. tcp/<hub-host>:7447.")
     ap.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 config (router/client/TLS deployments).")
     ap.add_argument("--seed", type=int, help="The run's seed (the agent's sampling stream); default the bundle's.")
     ap.add_argument("--settings", type=Path, help="A copy of the served run's runtime.json: its deadlines, "

@@ -175,6 +175,7 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
                                   "--seeds", "0-1", *GRID_ARGS, "--episodes", str(EPISODES), "--jobs", "2",
                                   "--seed-batch", "1"],
                                  stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    trainers: list = []
     try:
         deadline = time.monotonic() + 120
         while not any(state_of(d) == "resume" for d in out.glob("cn3-*")):
@@ -194,7 +195,7 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
         if sweep.poll() is None:
             sweep.kill()
             sweep.wait()
-        for p in trainers if "trainers" in locals() else []:
+        for p in trainers:
             with contextlib.suppress(psutil.NoSuchProcess):
                 p.resume()
     _gone, alive = psutil.wait_procs(trainers, timeout=20)
