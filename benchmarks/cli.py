@@ -9,7 +9,7 @@ part against a baseline taken in the same run:
   workers      multiwalker in-process vs subprocess workers vs the ceiling  (benchmarks.bench_workers)
   train        the in-process trainer's speed, PPO updates included         (benchmarks.train)
   runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
-  security     `hammer up --secure` vs plain, same run                       (benchmarks.security)
+  security     `hammer up --secure` vs plain vs a flood on one agent's key    (benchmarks.security)
   edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
   seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
   scale        cn N=3..50: train vs up vs up with agent pools, the floor      (benchmarks.scale)
@@ -287,10 +287,11 @@ def bench_runtime(
 def bench_security(
     preset: Annotated[str, typer.Option(help="Preset to run.")] = "cn3",
     episodes: Annotated[int, typer.Option(help="Episodes per run.")] = 100,
-    repeats: Annotated[int, typer.Option(help="Plain/secure pairs, alternated (medians are shown).")] = 2,
+    repeats: Annotated[int, typer.Option(help="Plain/secure/flooded triples, alternated (medians are shown).")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
 ) -> None:
-    """What `hammer up --secure` costs: env-steps/s and step latency p50/p99, plain vs secure, same run."""
+    """What `hammer up --secure` costs, and what a 4 MB x 25/s flood on one agent's own key (with that agent's
+    identity) costs: env-steps/s and step latency p50/p99, plain vs secure vs secure+flood, same run."""
     from rich.table import Table
 
     from benchmarks.security import FIGURES, PROFILES, bench_security
@@ -308,7 +309,13 @@ def bench_security(
         t.add_row(p, f"{m['env_steps_per_s']:,.0f}", f"{m['step_latency_ms_p50']:.2f}", f"{m['step_latency_ms_p99']:.2f}")
     q = r["secure_over_plain"]
     t.add_row("secure / plain", *(f"{q[f]:.2f}" for f in FIGURES))
-    t.caption = f"same metrics.csv: {r['same_metrics']}"
+    q = r["flood_over_secure"]
+    t.add_row("secure+flood / secure", *(f"{q[f]:.2f}" for f in FIGURES))
+    flood = [x for x in r["runs"] if x["profile"] == "secure+flood"]
+    t.caption = (f"same metrics.csv in every profile: {r['same_metrics']}; flood: 4 MB x 25/s on agent 1's own key "
+                 f"with its identity, {sum(x['flood_sent'] for x in flood)} sent, "
+                 f"{sum(x['env_rejected_size'] for x in flood)} refused by size at the env host; "
+                 f"verdict degraded in {sum(bool(x['degraded']) for x in flood)} of {len(flood)} flooded runs")
     table_console().print(t)
     if json_out is not None:
         json_out.write_text(json.dumps(r, indent=1))

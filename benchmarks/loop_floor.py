@@ -108,7 +108,10 @@ def local_main(run_id: str, connect: list[str], agents: list[int], k: int, n: in
     """Echo role standing in for one local agent (or, grouped, several): obs and message in, action out."""
     kw, size = _sizes(k, n, d, m)
     dims = _dims(k, n, d, m)
-    with HammerSession(run_id, _role_transport(connect), sender="local") as s:
+    from protocol.access import pool_name
+
+    sender = f"local-{agents[0]}" if len(agents) == 1 else pool_name(agents)  # what its action keys say
+    with HammerSession(run_id, _role_transport(connect), sender=sender) as s:
         keys = s.keys
         if typed:
             obs = [s.subscribe(keys.obs(i), LocalObs, dims) for i in agents]

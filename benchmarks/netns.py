@@ -162,18 +162,19 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
     procs = Procs(work)
     with topology(n, tag, rate_kbit, central) as top:
         try:
-            hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}"], f"hub-{rate_kbit}.log")
+            hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}", "--insecure"], f"hub-{rate_kbit}.log")
             _wait_for("the hub listening", lambda: b"listening" in (work / f"hub-{rate_kbit}.log").read_bytes(),
                       30, [hub])
             inside = client_config(work / "hub-client.json5", f"tcp/127.0.0.1:{PORT}")
             before = {k: link_bytes(top.hub, dev) for k, (dev, _) in top.links.items()}
             external = ",".join([*map(str, range(n)), *(["central"] if central else [])])
-            rt = [f"zenoh_config_file={inside}", *(["trace=true"] if push else []), *runtime]
+            # Plain across namespaces on purpose (the bench measures the plain wire); --insecure says so.
+            rt = [f"zenoh_config_file={inside}", "insecure=true", *(["trace=true"] if push else []), *runtime]
             serve = procs.start(top.hub, [*py, "serve", str(bundle), "--episodes", str(episodes), "--external",
                                           external, *(x for r in rt for x in ("--runtime", r)), "--run-dir", str(run),
                                           "--no-dashboard"], f"serve-{rate_kbit}.log")
             edges = [procs.start(ns, [*edge_py, "local", "--bundle", str(bundle), "--agent", str(i), "--run-id",
-                                      run.name, "--zenoh-config",
+                                      run.name, "--insecure", "--zenoh-config",
                                       str(client_config(work / f"edge{i}.json5", f"tcp/{top.links[f'local-{i}'][1]}:{PORT}"))],
                                  f"local-{i}-{rate_kbit}.log", env=_edge_env(edge_python))
                      for i, ns in enumerate(top.agents)]

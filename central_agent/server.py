@@ -102,7 +102,10 @@ class CentralServer(Role):
         return self.weights.version if self.weights is not None else 0
 
     def counters(self) -> dict[str, int]:
-        return {**self.counts.as_dict(), "policy_version": self.version}
+        return self.counts.as_dict()
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": self.version}
 
     # ----- a step, in the order it flows ---------------------------------------------------------
     def on_state(self, state: GlobalState) -> None:

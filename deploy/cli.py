@@ -95,7 +95,7 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
     from rich.table import Table
 
     env = board.heartbeats.get("env")
-    c = env.counters if env else {}
+    c = {**env.counters, **env.gauges} if env else {}
     t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
               show_header=True, expand=False)
     t.add_column("what")
@@ -107,7 +107,7 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
     t.add_row("late / duplicate actions", f"{int(c.get('actions_late', 0))} / {int(c.get('actions_duplicate', 0))}")
     t.add_row("default actions / msg fallbacks", f"{int(c.get('default_actions', 0))} / "
                                                  f"{int(c.get('msg_fallback_copies', 0))}")
-    versions = ", ".join(f"{r}:{int(h.counters.get('policy_version', -1))}" for r, h in sorted(board.heartbeats.items()))
+    versions = ", ".join(f"{r}:{int(h.gauges.get('policy_version', -1))}" for r, h in sorted(board.heartbeats.items()))
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
@@ -156,6 +156,9 @@ def up_command(
     secure: Annotated[bool, typer.Option(
         help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md); "
              "the same as --runtime secure=true.")] = False,
+    insecure: Annotated[bool, typer.Option(
+        help="Accept the plain profile beyond loopback (a Zenoh config reaching other machines): only on a "
+             "network you trust; the same as --runtime insecure=true.")] = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -188,7 +191,7 @@ def up_command(
         given = {"--config": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
                  "--seed": seed, "--set": set_, "--runtime": runtime, "--faults": faults, "--fault": fault,
                  "--fault-seed": fault_seed, "--chaos": chaos, "--out": out, "--run-dir": run_dir,
-                 "--external": external, "--secure": secure or None}
+                 "--external": external, "--secure": secure or None, "--insecure": insecure or None}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
             _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
@@ -229,6 +232,8 @@ def up_command(
         rt["external"] = external
     if secure:
         rt["secure"] = True
+    if insecure:
+        rt["insecure"] = True
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
@@ -321,7 +326,7 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
             env = board.heartbeats.get("env")
-            c = env.counters if env else {}
+            c = {**env.counters, **env.gauges} if env else {}
             console.print(f"episodes {int(c.get('episodes', 0))}/{cfg.episodes}  "
                           f"env-steps/s {board.env_rate():,.0f}  metric(100) {c.get('paper_metric_100', 0):.2f}  "
                           f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "

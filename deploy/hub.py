@@ -25,6 +25,8 @@ def hub_command(
     run_dir: Annotated[Path | None, typer.Option(
         help="A secure run's directory (runtime.json, config.json, identity/): relay that run over mutual TLS "
              "and enforce its access rules.")] = None,
+    insecure: Annotated[bool, typer.Option(
+        help="Relay plain traffic beyond loopback (no --run-dir): only on a network you trust.")] = False,
 ) -> None:
     """Run a Zenoh router until Ctrl-C / SIGTERM (multicast scouting off)."""
     from protocol.session import HammerSession, TransportConfig
@@ -37,6 +39,14 @@ def hub_command(
     run_id = "hub"
     if run_dir is not None:
         transport, run_id = _secure_hub(transport, run_dir)
+    else:
+        from deploy.settings import refuse_plain_beyond_loopback
+
+        try:
+            refuse_plain_beyond_loopback(transport, secure=False, insecure=insecure)
+        except ValueError as e:
+            typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with HammerSession(run_id, transport, sender="hub"):

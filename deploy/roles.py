@@ -86,6 +86,7 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
         transport = transport.model_copy(update={"connect": [connect]})
     if s.secure:
         transport = s.secured(transport, role, run_dir, _read_config(run_dir).n_agents)
+    s.refuse_plain_beyond_loopback(transport)  # runtime.json's insecure=true is the run's consent
     return s, transport
 
 
@@ -155,6 +156,9 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
                       "--runtime", help="With --bundle: RuntimeSettings FIELD=VALUE, repeatable.")] = None,
                   identity: Annotated[Path | None, typer.Option(
                       help="With --bundle, a secure run: the directory with ca.pem, local-<i>.pem, local-<i>.key.")] = None,
+                  insecure: Annotated[bool, typer.Option(
+                      help="Run plain (no TLS) although --connect is beyond loopback: only on a network you trust "
+                           "(docs/security.md).")] = False,
                   ) -> None:
     """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
@@ -163,7 +167,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         _fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
         _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                    identity)
+                    identity, insecure)
         return
     _setup(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
@@ -172,6 +176,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         settings, cfg, spec = _read_settings(run_dir, zenoh_config), _read_config(run_dir), read_env_spec(run_dir)
         members = [agent] if agents is None else _pool_agents(agents, cfg.n_agents)
         transport = _local_transport(settings, run_dir, connect, zenoh_config, members, cfg.n_agents)
+        settings.refuse_plain_beyond_loopback(transport, insecure)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     if agents is not None:
@@ -188,7 +193,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 
 
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                identity) -> None:
+                identity, insecure: bool = False) -> None:
     """One agent from a bundle, no run directory (local_agent/edge.py; the console script's fast path)."""
     from local_agent.edge import edge_inputs, run_agent
 
@@ -197,7 +202,8 @@ def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, s
             raise ValueError("--bundle serves one agent: pass --agent i (an edge device runs one agent)")
         if run_dir is not None:
             raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
-        inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity)
+        inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity,
+                             insecure)
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     _setup(f"local-{agent}")

@@ -40,6 +40,18 @@ def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
     return max(1, math.ceil(n_agents / max(1, 2 * cores - 1)))
 
 
+def refuse_plain_beyond_loopback(transport: TransportConfig, secure: bool, insecure: bool) -> None:
+    """A plain run trusts every process that reaches its Zenoh port (docs/security.md): fine on
+    loopback, not on a network. Raise ValueError naming what reaches out and the two fixes."""
+    if secure or insecure or transport.security is not None:
+        return
+    out = transport.beyond_loopback()
+    if out:
+        raise ValueError(f"refusing to run plain on {', '.join(out)} (beyond loopback): whoever reaches it could act "
+                         "for any agent, publish weights or stop the run; fix: add --secure (mutual TLS and per-role "
+                         "access rules, docs/security.md), or --insecure to accept that on a network you trust")
+
+
 class RuntimeSettings(BaseModel):
     """How the roles of one run talk. Defaults suit one host on loopback."""
 
@@ -75,6 +87,9 @@ class RuntimeSettings(BaseModel):
     secure: bool = Field(
         False, description="mutual TLS with per-run identities (RUN/identity/) and per-role access rules "
                            "(protocol.access); see docs/security.md")
+    insecure: bool = Field(
+        False, description="accept the plain profile beyond loopback (`--insecure`): without it a run whose "
+                           "endpoints reach past this machine refuses to start unless secure=true")
     secure_hub: bool = Field(
         False, description="secure run whose roles meet through a `hammer hub --run-dir RUN` router (several "
                            "machines): a `hub` identity is created and every role accepts what the router relays")
@@ -113,6 +128,17 @@ class RuntimeSettings(BaseModel):
         if self.mode == "eval" and not self.policy_dir:
             raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
         return self
+
+    @model_validator(mode="after")
+    def _secure_or_insecure(self) -> RuntimeSettings:
+        if self.secure and self.insecure:
+            raise ValueError("secure=true and insecure=true contradict each other: pass one of --secure, --insecure")
+        return self
+
+    def refuse_plain_beyond_loopback(self, transport: TransportConfig, insecure: bool = False) -> None:
+        """Raise ValueError (one line) when `transport` reaches past this machine in the plain profile
+        and neither this run nor the command (`insecure`) accepted that (CockroachDB's convention)."""
+        refuse_plain_beyond_loopback(transport, self.secure, self.insecure or insecure)
 
     @model_validator(mode="after")
     def _hub_is_secure(self) -> RuntimeSettings:

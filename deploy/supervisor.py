@@ -42,6 +42,7 @@ class RoleProcess:
     restarts: int = 0
     started_at: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
+    pids: list[int] = field(default_factory=list)  # every process started for this role, restarts included
 
 
 class Supervisor:
@@ -73,6 +74,7 @@ class Supervisor:
         rp.proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                    env=self._env, close_fds=True)
         logf.close()
+        rp.pids.append(rp.proc.pid)
         rp.started_at = time.monotonic()
         return rp
 
@@ -89,6 +91,14 @@ class Supervisor:
     def alive(self, name: str) -> bool:
         rp = self.roles.get(name)
         return rp is not None and rp.proc is not None and rp.proc.poll() is None
+
+    def started_pids(self, member: str) -> set[int] | None:
+        """The pids of every process started for `member` (a role, or an agent of a pool); None if
+        no process of it was started here (a hand-started or external role)."""
+        for rp in self.roles.values():
+            if rp.spec.name == member or member in rp.spec.members:
+                return set(rp.pids)
+        return None
 
     def pid(self, name: str) -> int | None:
         rp = self.roles.get(name)

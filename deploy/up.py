@@ -15,6 +15,7 @@ see `prepare_resume` and docs/runtime.md ("Resuming a run").
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import re
@@ -31,6 +32,7 @@ from protocol.access import LAUNCHER
 from protocol.schemas import Control, Heartbeat
 from protocol.session import HammerSession, free_loopback_port
 from runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
+from runtime.heartbeats import HeartbeatLedger
 
 log = logging.getLogger("hammer.up")
 
@@ -253,6 +255,10 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     else:
         prepare_run_dir(cfg, settings, run_dir)
     hub_transport = settings.hub_transport()
+    try:
+        settings.refuse_plain_beyond_loopback(hub_transport)
+    except ValueError as e:
+        raise UpError(str(e)) from None
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
     launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external)
@@ -260,7 +266,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         launcher.run(hub)
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
-    links, roles = _write_links(cfg, run_dir, launcher.board)
+    links, roles = _write_links(cfg, run_dir, launcher.board, launcher.own_rejections)
     _write_episode_links(run_dir, list(links))
     if not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
@@ -287,6 +293,9 @@ class Launcher:
         self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
         self.sup.set_env(RUN_VERSION_ENV, None)  # ... and its resume version
         self.board = Board(restarts={n: 0 for n in self.names})
+        # Only counters the launcher can believe reach the verdict (runtime.heartbeats).
+        self.ledger = HeartbeatLedger(self.sup.started_pids)
+        self.own_rejections: dict[str, int] = {}  # the launcher's, as a role's final counters: rejected.<reason>
         self.t_start = time.monotonic()
         self.done = False
 
@@ -347,13 +356,15 @@ class Launcher:
 
     def on_heartbeat(self, h: Heartbeat) -> None:
         board = self.board
+        if not self.ledger.offer(h):
+            return
         board.heartbeats[h.role] = h
-        board.last_by_pid[(h.role, h.pid)] = dict(h.counters)
+        board.last_by_pid[(h.role, h.pid)] = self.ledger.last[(h.role, h.pid)]
         if h.role == "env":
             # a role (re)started from now on refuses a first step beyond this + step_window (runtime.bounds)
             self.sup.set_env(RUN_STEP_ENV, str(max(0, int(h.counters.get("step", 0)))))
             # ... and first weights beyond this version + 1 + max_policy_lag
-            self.sup.set_env(RUN_VERSION_ENV, str(max(0, int(h.counters.get("policy_version", 0)))))
+            self.sup.set_env(RUN_VERSION_ENV, str(max(0, int(h.gauges.get("policy_version", 0)))))
             board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
             board.steps_hist = board.steps_hist[-20:]
 
@@ -382,6 +393,13 @@ class Launcher:
             raise UpError(f"role {name} exited with code {code} and cannot be restarted: "
                           f"{_tail(rp.log_path)} (log: {rp.log_path})")
 
+    def rejection_counters(self, hub: HammerSession) -> dict[str, int]:
+        """What the launcher itself refused: malformed or mismatched heartbeats (its subscriptions)
+        and heartbeats it could not believe (the ledger)."""
+        total = collections.Counter(hub.rejection_counts())
+        total.update({k.removeprefix("rejected."): v for k, v in self.ledger.rejection_counters().items()})
+        return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
+
     def stop_all(self, hub: HammerSession) -> None:
         """Tell every role to stop, give them 10 s to exit cleanly, then end the rest."""
         try:
@@ -393,6 +411,7 @@ class Launcher:
             self.sup.poll()
             time.sleep(0.1)
         self.sup.stop_all()
+        self.own_rejections = self.rejection_counters(hub)
 
 
 def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
@@ -412,12 +431,14 @@ def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transp
     return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
 
 
-def _write_links(cfg, run_dir: Path, board: Board) -> dict[str, dict[str, int]]:
+def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str, int] | None = None):
     """links.json: per-link counters from every role's final counters (or last heartbeat), plus the
-    chaos events that fired."""
+    chaos events that fired; the launcher's own rejections under `launcher`."""
     from faults.links import collect_role_counters, link_table
 
     roles = collect_role_counters(run_dir, board.last_by_pid)
+    if launcher_rejections:
+        roles[LAUNCHER] = {**roles.get(LAUNCHER, {}), **launcher_rejections}
     links = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
     (run_dir / "links.json").write_text(json.dumps({"links": links, "roles": roles, "chaos": board.chaos_log},
                                                    indent=1))

@@ -90,10 +90,14 @@ class EnvHost(Role):
 
     def counters(self) -> dict[str, int | float]:
         st = self.state
+        return {**self.links.as_dict(), "episodes": st.episodes, "env_steps": st.env_steps, "step": st.step,
+                "update": st.update}
+
+    def gauges(self) -> dict[str, int | float]:
+        st = self.state
         lat = np.array(st.step_latency_ms) if st.step_latency_ms else np.zeros(1)
         running = float(np.mean(list(st.recent)[-100:])) if st.recent else 0.0
-        return {**self.links.as_dict(), "episodes": st.episodes, "env_steps": st.env_steps, "step": st.step,
-                "update": st.update, "policy_version": self.weights_version, "paper_metric_100": running,
+        return {"policy_version": self.weights_version, "paper_metric_100": running,
                 "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99))}
 
     # ----- training -----------------------------------------------------------------------------
@@ -265,7 +269,7 @@ class EnvHost(Role):
                 if self.stop_requested():
                     return False
                 for r, sub in list(subs.items()):
-                    if any(hb.counters.get("policy_version", -1) >= 0 for hb in sub.drain()):
+                    if any(hb.gauges.get("policy_version", -1) >= 0 for hb in sub.drain()):
                         del subs[r]
                 if subs:
                     time.sleep(0.005)

@@ -40,7 +40,7 @@ from learning.learner import TeamLearner
 from learning.rundir import RunDir
 from protocol.rollout_layout import RolloutLayout
 from protocol.schemas import Dims, ExperienceChunk, Weights
-from protocol.session import HammerSession
+from protocol.session import QUEUE_DEPTH, HammerSession
 from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from runtime.role import Role
 
@@ -80,7 +80,10 @@ class LearnerWorker(Role):
         dims = Dims.from_layout(layout)
         self.chunks = session.subscribe(self.keys.exp("team"), ExperienceChunk, dims,
                                         max_bytes=ExperienceChunk.cap_for(layout))
-        self.central_records = (session.subscribe(self.keys.exp("central"), ExperienceChunk, dims)
+        # One record per vector step arrives while an update runs: room for every step the env host
+        # may run ahead (a rollout per update of policy lag, and one more), never a dropped record.
+        self.central_records = (session.subscribe(self.keys.exp("central"), ExperienceChunk, dims,
+                                                  maxsize=max(QUEUE_DEPTH, layout.t * (max_policy_lag + 2)))
                                 if cfg.wiring.needs_central_record else None)
         if self.central_records is not None:
             self.handle_queued(self.central_records, self.on_central_record)
@@ -103,7 +106,10 @@ class LearnerWorker(Role):
         self.last_publish = 0.0
 
     def counters(self) -> dict[str, Any]:
-        return {**self.stats, "bad_chunks": self.bad_chunks, "policy_version": self.update}
+        return {**self.stats, "bad_chunks": self.bad_chunks}
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": self.update}
 
     @property
     def bad_chunks(self) -> int:
@@ -203,7 +209,7 @@ class LearnerWorker(Role):
                               {"variant": self.cfg.variant, "central_mode": self.cfg.central_mode,
                                "version": str(self.update)})
         (self.rd.path / "learner_summary.json").write_text(json.dumps(
-            {**self.counters(), **self.rejection_counters(), "resumed_from": self.resume_from, "host": host_info()},
+            {**self.counters(), **self.gauges(), **self.rejection_counters(), "resumed_from": self.resume_from, "host": host_info()},
             indent=1))
         self.log.info("stopped: %s", self.counters())
 

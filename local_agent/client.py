@@ -298,7 +298,10 @@ class LocalAgentClient(AgentSteps, Role):
                                           step_log, "local->env")
 
     def counters(self) -> dict[str, int]:
-        return {**self.counts.as_dict(), "policy_version": self.agent.version}
+        return self.counts.as_dict()
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": self.agent.version}
 
     # ----- a step, in the order it flows ---------------------------------------------------------
     def on_obs(self, obs: LocalObs) -> None:

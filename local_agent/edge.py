@@ -39,6 +39,8 @@ def parser() -> argparse.ArgumentParser:
                     help="RuntimeSettings field, repeatable, e.g. msg_deadline_ms=20.")
     ap.add_argument("--identity", type=Path, help="A secure run: the directory with ca.pem, local-<i>.pem and "
                                                   "local-<i>.key (copied from the launcher's RUN/identity/).")
+    ap.add_argument("--insecure", action="store_true", help="Run plain (no TLS) although the hub is beyond "
+                                                            "loopback: only on a network you trust (docs/security.md).")
     ap.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)  # refused with a bundle, in one line
     return ap
 
@@ -88,7 +90,7 @@ def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtim
 
 
 def edge_transport(settings, role: str, n_agents: int, connect: str | None, zenoh_config: Path | None,
-                   identity: Path | None):
+                   identity: Path | None, insecure: bool = False):
     """The agent's Zenoh transport: --zenoh-config, or a peer connecting to --connect; TLS with the
     agent's identity files for a secure run."""
     from protocol.session import TransportConfig
@@ -105,6 +107,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")
     if identity is None:
+        settings.refuse_plain_beyond_loopback(transport, insecure)
         return transport
     from protocol.identity import identity_of
 
@@ -118,14 +121,15 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
 
 def edge_inputs(bundle_path: Path, agent: int, run_id: str | None, connect: str | None, zenoh_config: Path | None,
                 seed: int | None, settings_file: Path | None = None, runtime: list[str] | None = None,
-                identity: Path | None = None):
+                identity: Path | None = None, insecure: bool = False):
     """(settings, transport, AgentSpec, num_envs) of an edge agent; ValueError (BundleError) with the reason."""
     from serve.bundle import load_bundle
 
     b = load_bundle(bundle_path, check_config=False)
     spec, num_envs = agent_spec(b, agent, seed)
     settings = edge_settings(b, run_id, settings_file, runtime or [])
-    return settings, edge_transport(settings, f"local-{agent}", spec.n_agents, connect, zenoh_config, identity), \
+    return settings, edge_transport(settings, f"local-{agent}", spec.n_agents, connect, zenoh_config, identity,
+                                    insecure), \
         spec, num_envs
 
 
@@ -186,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.run_dir is not None:
             raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
         inputs = edge_inputs(a.bundle, a.agent, a.run_id, a.connect, a.zenoh_config, a.seed, a.settings, a.runtime,
-                             a.identity)
+                             a.identity, a.insecure)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

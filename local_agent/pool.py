@@ -112,7 +112,10 @@ class PooledAgent(AgentSteps):
     def counters(self) -> dict[str, int | float]:
         weights = self.pool.weights
         self.counts.weights_loaded, self.counts.weights_wait_timeouts = weights.loaded, weights.wait_timeouts
-        return {**self.counts.as_dict(), "policy_version": self.agent.version}
+        return self.counts.as_dict()
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": self.agent.version}
 
     def rejection_counters(self) -> dict[str, int]:
         """This agent's rejections: its subscriptions' and its own (the first agent: the pool's too)."""
@@ -133,7 +136,7 @@ class PooledAgent(AgentSteps):
     def final_counters(self) -> dict[str, int | float]:
         """What a single-agent process would write at exit for this agent (faults.links.write_role_counters)."""
         subs = [s for s in (self.observations, self.messages) if s is not None]
-        return {**self.counters(), **self.rejection_counters(), **self.fault_counters(),
+        return {**self.counters(), **self.gauges(), **self.rejection_counters(), **self.fault_counters(),
                 **io_counters(list(self.publishers), subs)}
 
 
@@ -265,7 +268,8 @@ class LocalAgentPool(Role):
         for m in self.members:
             counters = {**m.counters(), **m.rejection_counters(), **m.fault_counters()}
             m.heartbeat_pub.publish(Heartbeat(role=m.name, pid=os.getpid(), status=status,
-                                              counters=dict(list(counters.items())[:64]), detail=detail))
+                                              counters=dict(list(counters.items())[:64]), gauges=m.gauges(),
+                                              detail=detail))
             m.step_log.flush()
         if now - self._last_progress_log >= self.progress_every_s:
             self._last_progress_log = now

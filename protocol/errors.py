@@ -83,6 +83,12 @@ class RunMismatchError(ProtocolError):
     reason = "run"
 
 
+class KeyMismatchError(ProtocolError):
+    """The payload names another agent, role or sender than the key it came on (protocol/binding.py)."""
+
+    reason = "key_mismatch"
+
+
 # Reasons used in pydantic custom errors raised by the schema validators, mapped back to classes.
 REASON_TO_ERROR: dict[str, type[ProtocolError]] = {
     cls.reason: cls
@@ -98,5 +104,6 @@ REASON_TO_ERROR: dict[str, type[ProtocolError]] = {
         RangeError,
         ChecksumError,
         RunMismatchError,
+        KeyMismatchError,
     )
 }

@@ -42,7 +42,8 @@ def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
                         meta={"lr": 3e-4, "note": "x", "n": 3, "flag": True, "none": None}),
         Weights.from_blob("central", 4, bytes(rng.integers(0, 256, 1000, dtype=np.uint8)), **h),
         Control(**h, command="stop", target="learner", args={"path": "runs/a", "every": 10}),
-        Heartbeat(**h, role="env", pid=42, status="running", counters={"steps": 100, "fps": 950.5}),
+        Heartbeat(**h, role="env", pid=42, status="running", counters={"steps": 100, "busy_s": 950.5},
+                  gauges={"policy_version": -1, "paper_metric_100": -15.2}),
     ]
 
 

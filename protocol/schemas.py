@@ -46,7 +46,7 @@ from pydantic_core import PydanticCustomError, core_schema
 from protocol.errors import RangeError, ShapeError
 from protocol.rollout_layout import RolloutLayout
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 # dtype names on the wire -> numpy dtype (always little-endian on the wire).
 WIRE_DTYPES: dict[str, np.dtype] = {
@@ -73,6 +73,9 @@ MAX_NDIM = 8
 
 MiB = 1 << 20
 DEFAULT_MAX_BYTES = 4 * MiB
+# Everything of a message but its array bytes, bounded: field names, ints, the type tag, run id
+# (<= 64 chars), sender (<= 128) and up to four array maps ({"dtype", "shape" (<= 8 ints), "data"}).
+HEADER_BYTES = 2048
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 NAME_RULE = "1-64 chars of letters, digits, '_', '-', '.', starting with a letter or digit"
@@ -190,6 +193,7 @@ def NDArray(dtypes: str | tuple[str, ...], ndims: int | tuple[int, ...] | None =
 
 NonNegInt = Annotated[int, Strict(), Field(ge=0)]
 FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
+NonNegFloat = Annotated[float, Strict(), AllowInfNan(False), Field(ge=0)]
 Name = Annotated[str, Strict(), Field(pattern=NAME_RE.pattern)]
 
 
@@ -319,6 +323,21 @@ class Message(BaseModel):
                 raise _err("shape", "env_idx", "env indices must be unique")
         return a
 
+    @classmethod
+    def cap_for_dims(cls, dims: Dims) -> int:
+        """The most a valid message of this type can weigh for a receiver that declares `dims`: the
+        type's cap, or less where the declared sizes bound every array (a subscription refuses a
+        payload beyond it on arrival, before decoding: a flood of oversized payloads costs nothing)."""
+        arrays = cls._array_bytes(dims)
+        if arrays is None:
+            return cls.MAX_BYTES
+        return min(cls.MAX_BYTES, HEADER_BYTES + arrays)
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        """Bytes of this type's arrays at the sizes `dims` declares (None: not bounded by them)."""
+        return None
+
     @property
     def k(self) -> int:
         """Number of env copies carried."""
@@ -361,6 +380,12 @@ class LocalObs(Message):
     active: NDArray("bool", 1) = Field(description="(K,) bool: the agent is present in that copy")
     policy_version: NonNegInt = Field(0, description="policy version the agent must act with (on-policy sync)")
 
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        if dims.num_envs is None or dims.obs_dim is None:
+            return None
+        return dims.num_envs * (8 + 4 * dims.obs_dim + 1)  # env_idx, obs, active
+
     @model_validator(mode="after")
     def _shapes(self) -> LocalObs:
         k = self.k
@@ -385,6 +410,13 @@ class GlobalState(Message):
     )
     active: NDArray("bool", 2) = Field(description="(K, N) bool")
     policy_version: NonNegInt = Field(0, description="policy version the central agent must use")
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        k, n, d, a = dims.num_envs, dims.n_agents, dims.obs_dim, dims.action_dim
+        if k is None or n is None or d is None or a is None:
+            return None
+        return k * (8 + n * (4 * d + 4 * max(a, 1) + 1))  # env_idx, obs, prev_actions, active
 
     @model_validator(mode="after")
     def _shapes(self) -> GlobalState:
@@ -412,6 +444,12 @@ class CentralMsg(Message):
     agent: NonNegInt
     msg: NDArray("float32", 2) = Field(description="(K, M) float32 in [-1, 1]")
     policy_version: NonNegInt = 0
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        if dims.num_envs is None or dims.msg_dim is None:
+            return None
+        return dims.num_envs * (8 + 4 * dims.msg_dim)  # env_idx, msg
 
     @model_validator(mode="after")
     def _shapes(self) -> CentralMsg:
@@ -441,6 +479,13 @@ class Action(Message):
     msg: NDArray("float32", 2) | None = Field(
         None, description="(K, M) float32: the message the agent acted on (received or fallback)"
     )
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        k, a, m = dims.num_envs, dims.action_dim, dims.msg_dim
+        if k is None or a is None or m is None or dims.discrete is None:
+            return None
+        return k * (8 + (8 if dims.discrete else 4 * a) + 1 + 4 * m)  # env_idx, action, fallback, msg
 
     @model_validator(mode="after")
     def _shapes(self) -> Action:
@@ -570,7 +615,13 @@ class Heartbeat(Message):
     role: Name
     pid: NonNegInt
     status: HeartbeatStatus
-    counters: dict[ArrayName, StrictInt | FiniteFloat] = Field(default_factory=dict, max_length=64)
+    counters: dict[ArrayName, NonNegInt | NonNegFloat] = Field(
+        default_factory=dict, max_length=64,
+        description="totals since the process started: finite, >= 0, never falling for one role and pid "
+                    "(a receiver refuses a heartbeat whose counters fall)")
+    gauges: dict[ArrayName, StrictInt | FiniteFloat] = Field(
+        default_factory=dict, max_length=16,
+        description="current values that may move either way (policy version, latency percentiles, a running metric)")
     detail: Annotated[str, Strict(), Field(max_length=1024)] = ""
 
 

@@ -18,6 +18,7 @@ Rules it enforces (learned the hard way, see shared/zenoh-notes.md):
 from __future__ import annotations
 
 import collections
+import ipaddress
 import itertools
 import json
 import logging
@@ -35,6 +36,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol.access import SecureLink
+from protocol.binding import check_key, sender_of
 from protocol.codec import Expected, _expected_types, decode, encode
 from protocol.errors import ProtocolError, RunMismatchError
 from protocol.fault_injection import FaultInjector, FaultSpec
@@ -76,6 +78,28 @@ def free_loopback_port() -> int:
 
 def loopback_endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (`tcp/127.0.0.1:7447`, `tls/[::1]:7447#iface=lo`) stays on this machine."""
+    proto, _, addr = endpoint.partition("/")
+    if proto.startswith("unixsock"):
+        return True
+    host = re.split(r"[#?]", addr, maxsplit=1)[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve anywhere
+
+
+def _endpoint_list(raw: str, mode: str) -> list[str]:
+    """Endpoints from a Zenoh config value: a list, or per mode {"router": [...], "peer": [...]}."""
+    value = json.loads(raw)
+    if isinstance(value, dict):
+        value = value.get(mode, [])
+    return list(value) if isinstance(value, list) else []
 
 
 class TransportConfig(BaseModel):
@@ -121,6 +145,22 @@ class TransportConfig(BaseModel):
         """A peer connecting to 127.0.0.1:port."""
         return cls(connect=[loopback_endpoint(port)])
 
+    def beyond_loopback(self) -> list[str]:
+        """What of this transport reaches past this machine: every listen or connect endpoint that is
+        not a loopback address (0.0.0.0 and host names included), and multicast scouting when a
+        Zenoh config file leaves it on. Empty for a loopback-only transport."""
+        if self.zenoh_config_file is None:
+            listen, connect, multicast = self.listen, self.connect, False
+        else:
+            cfg = self.to_zenoh()
+            mode = json.loads(cfg.get_json("mode"))
+            listen, connect = (_endpoint_list(cfg.get_json(f"{k}/endpoints"), mode) for k in ("listen", "connect"))
+            if mode == "client":
+                listen = []  # a client only connects
+            multicast = json.loads(cfg.get_json("scouting/multicast/enabled")) is not False
+        out = [e for e in [*listen, *connect] if not is_loopback_endpoint(e)]
+        return out + (["multicast scouting"] if multicast else [])
+
     def to_zenoh(self) -> zenoh.Config:
         if self.zenoh_config_file is not None:
             cfg = zenoh.Config.from_file(str(self.zenoh_config_file))
@@ -144,12 +184,15 @@ class TransportConfig(BaseModel):
 # --------------------------------------------------------------------------------------------
 
 
+QUEUE_DEPTH = 256  # payloads held per key by default before the newest are dropped (see _QueueSub)
+
+
 @dataclass
 class SubscriptionStats:
     """received: payloads taken off the queue; delivered: valid messages returned;
     rejected: invalid payloads per reason (size, decode, version, type, field, dtype, shape,
-    nonfinite, range, checksum, run); overflow: payloads dropped because the queue was full.
-    An oversize payload is counted (`size`) on arrival, without being copied or queued."""
+    nonfinite, range, checksum, run, key_mismatch); overflow: payloads dropped because their key's
+    queue was full. An oversize payload is counted (`size`) on arrival, without being copied or queued."""
 
     received: int = 0
     delivered: int = 0
@@ -163,7 +206,15 @@ class SubscriptionStats:
 
 
 class _QueueSub:
-    """Shared part: a Zenoh subscriber whose callback only enqueues raw bytes."""
+    """Shared part: a Zenoh subscriber whose callback only enqueues raw bytes with their key.
+
+    Intake is bounded before anything is decoded, so a flood on one key costs the receiver neither
+    memory nor step time: a payload over the size cap is refused on arrival without a copy (`size`),
+    and each key (a wildcard subscription covers several, e.g. every agent's actions) may hold at
+    most `maxsize` payloads not yet taken; beyond that the newest is dropped and counted
+    (`overflow`). Dropping the newest keeps one FIFO per subscription, so a flooded key can put at
+    most `maxsize` payloads ahead of another key's, and a key that floods loses its own messages,
+    nobody else's."""
 
     cap: int | None = None  # payloads longer than this are rejected on arrival (None: no cap)
 
@@ -171,27 +222,47 @@ class _QueueSub:
         self.key_expr = key_expr
         self.stats = SubscriptionStats()
         # SimpleQueue, not Queue: put and get(timeout) run in C without Python-level locks and
-        # conditions, so the Zenoh thread holds the GIL for less time and the consumer wakes sooner
-        # (loopback ping-pong p50 ~300 vs ~370 us per round trip on a loaded 2-core host).
-        self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        # conditions, so the Zenoh thread holds the GIL for less time and the consumer wakes sooner.
+        self._q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._maxsize = maxsize
+        self._pending: collections.Counter[str] = collections.Counter()  # per key: queued, not yet taken
+        self._pending_lock = threading.Lock()
         self._zsub: Any = None
         self._inbox = inbox  # when set, payloads go into that shared queue, tagged with this subscription
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
-        if self._maxsize and self.pending() >= self._maxsize:  # only the consumer shrinks it meanwhile
-            self.stats.overflow += 1
-            return
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
             self.stats.rejected["size"] += 1  # Counter update on one key: atomic enough under the GIL
             if self.stats.rejected["size"] <= 10:
-                log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, self.key_expr)
+                log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
             return
+        key = str(sample.key_expr)
+        if self._maxsize:
+            with self._pending_lock:
+                full = self._pending[key] >= self._maxsize
+                if not full:
+                    self._pending[key] += 1
+            if full:
+                self.stats.overflow += 1
+                if self.stats.overflow <= 10 or self.stats.overflow % 1000 == 0:
+                    log.warning("queue of %s full (%d): dropped the newest payload (#%d)", key, self._maxsize,
+                                self.stats.overflow)
+                return
         if self._inbox is None:
-            self._q.put(sample.payload.to_bytes())
+            self._q.put((key, sample.payload.to_bytes()))
         else:
-            self._inbox.q.put((self, sample.payload.to_bytes()))
+            self._inbox.q.put((self, key, sample.payload.to_bytes()))
+
+    def _taken(self, key: str) -> None:
+        """The consumer took one payload of `key` off the queue."""
+        if self._maxsize:
+            with self._pending_lock:
+                left = self._pending[key] - 1
+                if left > 0:
+                    self._pending[key] = left
+                else:
+                    del self._pending[key]
 
     def pending(self) -> int:
         return self._q.qsize() if self._inbox is None else self._inbox.q.qsize()
@@ -207,9 +278,10 @@ class RawSubscription(_QueueSub):
 
     def get(self, timeout: float | None = None) -> bytes | None:
         try:
-            data = self._q.get(timeout=timeout) if timeout != 0 else self._q.get_nowait()
+            key, data = self._q.get(timeout=timeout) if timeout != 0 else self._q.get_nowait()
         except queue.Empty:
             return None
+        self._taken(key)
         self.stats.received += 1
         self.stats.delivered += 1
         return data
@@ -219,26 +291,38 @@ class Subscription(_QueueSub):
     """Validated messages of the expected type(s) from one key expression.
 
     `get()` / `drain()` decode in the caller's thread. Invalid payloads are counted in
-    `stats.rejected[reason]` and logged, never raised: the next valid message is delivered.
+    `stats.rejected[reason]` and logged, never raised: the next valid message is delivered. Every
+    message delivered says what its key says (protocol.binding.check_key). The size cap is the
+    smallest of `max_bytes`, the expected types' caps and, where `dims` declares every size of the
+    type, what a valid message of those sizes can weigh (`Message.cap_for`).
     """
 
     def __init__(self, key_expr: str, expected: Expected, dims: Dims | None, run: str,
                  maxsize: int, max_bytes: int | None, inbox: Inbox | None = None) -> None:
         super().__init__(key_expr, maxsize, inbox)
         self.expected, self.dims, self.run, self.max_bytes = expected, dims, run, max_bytes
-        self.cap = max_bytes if max_bytes is not None else max(t.MAX_BYTES for t in _expected_types(expected))
+        self._prefix_len = len(Keys(run).prefix) + 1
+        types = _expected_types(expected)
+        if max_bytes is not None:
+            self.cap = max_bytes
+        else:
+            caps = [t.cap_for_dims(dims) if dims is not None else t.MAX_BYTES for t in types]
+            self.cap = max(caps)
 
-    def _decode(self, data: bytes) -> Message | None:
+    def _decode(self, key: str, data: bytes) -> Message | None:
+        self._taken(key)
         self.stats.received += 1
         t0 = time.perf_counter()
         try:
             msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes, run=self.run)
+            check_key(msg, key[self._prefix_len:])
         except ProtocolError as e:
             self.stats.decode_s += time.perf_counter() - t0
             self.stats.rejected[e.reason] += 1
             n = self.stats.rejected[e.reason]
             if n <= 10 or n % 1000 == 0:
-                log.warning("rejected message #%d (%s) on %s: %s", n, e.reason, self.key_expr, e)
+                log.warning("rejected message #%d (%s) on %s: %s%s", n, e.reason, self.key_expr, e,
+                            "" if key == self.key_expr else f" (key {key})")
             return None
         self.stats.decode_s += time.perf_counter() - t0
         self.stats.delivered += 1
@@ -251,13 +335,13 @@ class Subscription(_QueueSub):
         while True:
             try:
                 if deadline is None:
-                    data = self._q.get()
+                    key, data = self._q.get()
                 else:
                     remaining = deadline - time.monotonic()
-                    data = self._q.get(timeout=remaining) if remaining > 0 else self._q.get_nowait()
+                    key, data = self._q.get(timeout=remaining) if remaining > 0 else self._q.get_nowait()
             except queue.Empty:
                 return None
-            msg = self._decode(data)
+            msg = self._decode(key, data)
             if msg is not None:
                 return msg
 
@@ -266,10 +350,10 @@ class Subscription(_QueueSub):
         out: list[Message] = []
         while max_items is None or len(out) < max_items:
             try:
-                data = self._q.get_nowait()
+                key, data = self._q.get_nowait()
             except queue.Empty:
                 break
-            msg = self._decode(data)
+            msg = self._decode(key, data)
             if msg is not None:
                 out.append(msg)
         return out
@@ -280,10 +364,10 @@ class Inbox:
     all their inputs at once in one thread, instead of one thread or one poll per subscription.
 
     Each payload is queued with the subscription it came from and is decoded and validated by that
-    subscription (its own dims, size cap and rejection counters), in the consumer's thread."""
+    subscription (its own dims, size cap, queue bound and rejection counters), in the consumer's thread."""
 
     def __init__(self) -> None:
-        self.q: queue.SimpleQueue[tuple[Subscription, bytes]] = queue.SimpleQueue()
+        self.q: queue.SimpleQueue[tuple[Subscription, str, bytes]] = queue.SimpleQueue()
 
     def get(self, timeout: float | None = None) -> tuple[Subscription, Message] | None:
         """The next valid message and its subscription, waiting up to `timeout` s (0: no wait)."""
@@ -291,13 +375,13 @@ class Inbox:
         while True:
             try:
                 if deadline is None:
-                    sub, data = self.q.get()
+                    sub, key, data = self.q.get()
                 else:
                     remaining = deadline - time.monotonic()
-                    sub, data = self.q.get(timeout=remaining) if remaining > 0 else self.q.get_nowait()
+                    sub, key, data = self.q.get(timeout=remaining) if remaining > 0 else self.q.get_nowait()
             except queue.Empty:
                 return None
-            msg = sub._decode(data)
+            msg = sub._decode(key, data)
             if msg is not None:
                 return sub, msg
 
@@ -351,6 +435,7 @@ class Publisher:
         self._session = session
         self._zpub = zpub
         self._rel = session.keys.relative(key)
+        self._sender = sender_of(self._rel) or session.sender  # what the key says, else the session's name
         self._seq = itertools.count()
         self._lock = threading.Lock()
         self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
@@ -361,14 +446,15 @@ class Publisher:
         self.put_s = 0.0
 
     def publish(self, msg: Message) -> int:
-        """Stamp run/ts/seq/sender, encode and send; returns the seq used."""
+        """Stamp run/ts/seq/sender (the sender the key implies, protocol.binding), encode and send;
+        returns the seq used."""
         run = self._session.run_id
         if msg.run and msg.run != run:
             raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
         t0 = time.perf_counter()
         with self._lock:
             seq = next(self._seq)
-        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._session.sender},
+        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._sender},
                       max_bytes=self.max_bytes)
         t1 = time.perf_counter()
         self.put_bytes(data)
@@ -493,16 +579,17 @@ class HammerSession:
     # ---- subscribe -------------------------------------------------------------------------
 
     def subscribe(self, key_expr: str, expected: Expected = None, dims: Dims | None = None, *,
-                  maxsize: int = 0, max_bytes: int | None = None, inbox: Inbox | None = None) -> Subscription:
+                  maxsize: int = QUEUE_DEPTH, max_bytes: int | None = None, inbox: Inbox | None = None) -> Subscription:
         """Validated messages of type(s) `expected` on `key_expr` (wildcards allowed).
-        maxsize=0: unbounded queue; otherwise extra payloads are dropped and counted (overflow).
+        maxsize: payloads each key may queue before the newest are dropped and counted (overflow);
+        0: unbounded (only for a consumer that never falls behind by design).
         inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
         sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
 
-    def subscribe_raw(self, key_expr: str, *, maxsize: int = 0) -> RawSubscription:
+    def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)

@@ -114,7 +114,13 @@ class Role:
         return [self.name]
 
     def counters(self) -> dict[str, int | float]:
-        """What the heartbeat reports (fault-layer counters are added when `report_faults`)."""
+        """Totals the heartbeat reports (fault-layer counters are added when `report_faults`): each
+        >= 0 and never falling while the process lives (the launcher refuses a heartbeat whose
+        counters fall, and sums them over a role's processes)."""
+        return {}
+
+    def gauges(self) -> dict[str, int | float]:
+        """Current values the heartbeat reports that may move either way (policy version, latency)."""
         return {}
 
     # ----- the shell ----------------------------------------------------------------------------
@@ -142,8 +148,8 @@ class Role:
     def final_counters(self) -> dict[str, int | float]:
         """What the process writes at exit (faults.links.write_role_counters): counters, rejections,
         faults, traffic."""
-        return {**self.counters(), **self.rejection_counters(), **flat_fault_counters(self.fault_report()),
-                **self.traffic(), **process_usage(self.cpu_at_start)}
+        return {**self.counters(), **self.gauges(), **self.rejection_counters(),
+                **flat_fault_counters(self.fault_report()), **self.traffic(), **process_usage(self.cpu_at_start)}
 
     def progressed(self) -> None:
         """The role did its work once more (acted on a step, learned from a chunk)."""
@@ -187,12 +193,12 @@ class Role:
             counters = {**counters, **flat_fault_counters(self.fault_report())}
         self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status,
                                               counters=dict(list(counters.items())[:64]),
-                                              detail=self.stall_detail()))
+                                              gauges=self.gauges(), detail=self.stall_detail()))
         if self.step_log is not None:
             self.step_log.flush()
         if now - self._last_progress_log >= self.progress_every_s:
             self._last_progress_log = now
-            self.log.info("%s progress: %s", self.name, _brief(counters))
+            self.log.info("%s progress: %s", self.name, _brief({**counters, **self.gauges()}))
 
     def heartbeat_soon(self) -> None:
         """Make the next loop turn publish a heartbeat (something the launcher waits for changed)."""

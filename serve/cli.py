@@ -101,6 +101,9 @@ def serve_command(
     secure: Annotated[bool, typer.Option(
         help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules, as `hammer up --secure` "
              "(docs/security.md).")] = False,
+    insecure: Annotated[bool, typer.Option(
+        help="Accept the plain profile beyond loopback (a Zenoh config reaching other machines): only on a "
+             "network you trust.")] = False,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`."""
@@ -118,7 +121,8 @@ def serve_command(
         skip, roles = _external(external, cfg)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
         settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
-                                                                                   *(["secure=true"] if secure else [])])
+                                                                                   *(["secure=true"] if secure else []),
+                                                                                   *(["insecure=true"] if insecure else [])])
         if roles:
             settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
         if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now

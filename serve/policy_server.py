@@ -62,8 +62,11 @@ class PolicyServer(Role):
         self.updates_rejected = 0
 
     def counters(self) -> dict[str, int]:
-        return {"policy_version": self.version, "frozen_publishes": self.published,
-                "updates_rejected": self.updates_rejected, "roles_joined": self.joined}
+        return {"frozen_publishes": self.published, "updates_rejected": self.updates_rejected,
+                "roles_joined": self.joined}
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": self.version}
 
     def on_start(self) -> None:
         self.publish()

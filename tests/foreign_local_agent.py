@@ -28,7 +28,7 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?"}
 ST_DTYPES = {"F32": "<f4", "F64": "<f8", "I64": "<i8", "I32": "<i4", "U8": "u1", "BOOL": "?"}
 LOCAL_STREAM = 1  # the randomness contract: local agent i draws from default_rng([seed, 1, i])
@@ -159,6 +159,9 @@ class ForeignLocalAgent:
         self.subs = [self._subscribe(name, key) for name, key in [
             ("obs", f"{p}/env/obs/{agent}"), ("weights", f"{p}/learn/local/weights"), ("ctl", f"{p}/ctl/all"),
             *([("msg", f"{p}/central/msg/{agent}")] if self.msg_dim else [])]]
+        # What each key says about its payload (docs/wire-format.md, "Bound to its key"): anything else is rejected.
+        self.binding = {"obs": {"agent": agent, "sender": "env"}, "msg": {"agent": agent, "sender": "central"},
+                        "weights": {"role": "local", "sender": "learner"}, "ctl": {}}
         self.act_key, self.hb_key = f"{p}/agent/act/{agent}", f"{p}/ctl/hb/{self.name}"
         self.act_pub = self.z.declare_publisher(self.act_key, congestion_control=zenoh.CongestionControl.BLOCK,
                                                 express=True)
@@ -181,9 +184,13 @@ class ForeignLocalAgent:
             except queue.Empty:
                 return None
             try:
-                return parse(raw, self.run_id, tag)
+                m = parse(raw, self.run_id, tag)
             except Rejected:
                 self.counters["rejected"] += 1
+                continue
+            if all(m.get(k) == v for k, v in self.binding[name].items()):
+                return m
+            self.counters["rejected"] += 1
 
     # ----- inputs -------------------------------------------------------------------------------
     def on_control(self) -> None:
@@ -309,7 +316,8 @@ class ForeignLocalAgent:
             return
         self.last_hb = time.monotonic()
         hb = {**self.stamper.header(self.hb_key, "heartbeat", 0, np.zeros(0, np.int64)), "role": self.name,
-              "pid": os.getpid(), "status": status, "counters": {**self.counters, "policy_version": self.version},
+              "pid": os.getpid(), "status": status, "counters": self.counters,
+              "gauges": {"policy_version": self.version},
               "detail": "foreign client"}
         self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
 

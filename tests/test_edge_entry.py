@@ -62,18 +62,19 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
         edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=tmp_path / "runtime.json")
 
 
-def _join_when_ready(run, bundle, port, ids, out: dict) -> None:
+def _join_when_ready(run, bundle, port, ids, out: dict, agent: int = 2) -> None:
     """What a person does on the edge machine: copy the agent's three identity files and runtime.json
     from the launcher's run directory, then start the agent from the bundle."""
     deadline = time.monotonic() + 60
-    while not (run / "identity" / "local-2.key").is_file() and time.monotonic() < deadline:
+    while not (run / "identity" / f"local-{agent}.key").is_file() and time.monotonic() < deadline:
         time.sleep(0.05)
     ids.mkdir()
-    for name in ("ca.pem", "local-2.pem", "local-2.key"):
+    for name in ("ca.pem", f"local-{agent}.pem", f"local-{agent}.key"):
         shutil.copy(run / "identity" / name, ids / name)
     shutil.copy(run / "runtime.json", ids.parent / "served-runtime.json")
     env = {k: v for k, v in ENV.items()}
-    out["proc"] = subprocess.Popen([sys.executable, "-m", "hammer", "local", "--bundle", str(bundle.path), "--agent", "2",
+    out["proc"] = subprocess.Popen([sys.executable, "-m", "hammer", "local", "--bundle", str(bundle.path), "--agent",
+                                    str(agent),
                                     "--settings", str(ids.parent / "served-runtime.json"), "--identity", str(ids),
                                     "--connect", f"tcp/127.0.0.1:{port}"], cwd=ROOT, env=env,
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -99,3 +100,52 @@ def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(te
     assert out["proc"].returncode == 0, text
     assert "tls/" in text and "'steps': 50," in text  # over TLS, every step of the run (64 episodes on 32 copies)
     assert res.links["local->env"]["defaults"] == 0
+
+
+def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, tmp_path):
+    """Issue 28 in the served profile: the real agent 1 on the edge entry with its three files, and a
+    thief holding the same three files attacking through agent 1's own keys (tests/own_key_thief.py).
+    The run completes with no default action, every attempt refused and named in the summary."""
+    from deploy.settings import RuntimeSettings as RS
+    from protocol.session import TransportConfig
+    from tests.own_key_thief import OwnKeyThief
+
+    bundle, _ = team
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "secure-thief", runtime=[f"hub_port={port}", "secure=true",
+                                                                  "msg_deadline_ms=5000", "act_deadline_ms=10000"])
+    run, out, thieves = tmp_path / "served", {}, []
+    joiner = threading.Thread(target=_join_when_ready, args=(run, bundle, port, tmp_path / "edge" / "id", out, 1))
+    (tmp_path / "edge").mkdir()
+    joiner.start()
+
+    def chaos(sup, board) -> None:
+        if not thieves and "local-1" in board.alive:
+            rt = RS.load(run)
+            stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]),
+                                "local-1", None, 3, identity_directory=tmp_path / "edge" / "id")
+            thieves.append(OwnKeyThief(rt.run_id, stolen, agent=1))
+            thieves[0].start()
+
+    try:
+        res = launch(bundle.config(episodes=64, msg_dropout=0.0), settings, run, chaos=chaos, external_agents=(1,))
+        joiner.join(timeout=30)
+        text, _ = out["proc"].communicate(timeout=30)
+    finally:
+        for t in thieves:
+            t.stop_event.set()
+            t.join(10)
+        joiner.join(timeout=30)
+        if "proc" in out and out["proc"].poll() is None:
+            out["proc"].kill()
+    thief = thieves[0]
+    assert thief.error is None, thief.error
+    assert thief.obs_seen > 0 and all(n > 0 for n in thief.sent.values()), thief.sent
+    assert res.summary["completed"] and res.summary["episodes"] == 64
+    assert out["proc"].returncode == 0, text
+    assert res.links["local->env"]["defaults"] == 0 and res.links["local->env"]["duplicate"] == 0
+    rejected = res.summary["rejected"]
+    assert {"key_mismatch", "size"} <= rejected["env"].keys(), rejected
+    # an external agent may come and go, but no more than 8 processes of it count; falling counters never
+    assert {"key_mismatch", "field", "counters_fell", "heartbeat_processes"} <= rejected["launcher"].keys(), rejected
+    assert res.summary["degraded"] is True

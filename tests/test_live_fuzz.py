@@ -30,6 +30,7 @@ from hypothesis import strategies as st
 from envs.registry import make_vec_env
 from learning.config import merge_config
 from protocol import codec
+from protocol.binding import check_key
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.rollout_layout import CHUNK, RECORD, RolloutLayout
@@ -68,8 +69,10 @@ class Target:
 
     def reason(self, payload: bytes) -> str | None:
         """The reason its receivers reject `payload`, None if they would accept it."""
+        if self.dims is not None and len(payload) > self.expected.cap_for_dims(self.dims):
+            return "size"  # refused on arrival: over what a message of the receiver's sizes can weigh
         try:
-            codec.decode(payload, self.expected, self.dims, run=RUN)
+            check_key(codec.decode(payload, self.expected, self.dims, run=RUN), Keys(RUN).relative(self.key))
         except ProtocolError as e:
             return e.reason
         return None
@@ -171,7 +174,7 @@ def mutated(draw, base: bytes) -> bytes:
         if part == "run":
             d["run"] = draw(st.sampled_from(["fuzz2", "other-run", ""]))
         elif part == "v":
-            d["v"] = draw(st.sampled_from([1, 3, 2**31]))
+            d["v"] = draw(st.sampled_from([1, 2, 2**31]))
         elif part == "type":
             d["type"] = draw(st.sampled_from(["local_obs", "action", "weights", "control", "step_result"]))
         elif "blob" in d:

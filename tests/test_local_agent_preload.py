@@ -38,13 +38,13 @@ def test_agent_holds_the_policy_before_its_first_observation():
         agent = threading.Thread(target=client.run, daemon=True)
         agent.start()
         first = hb.get(timeout=5.0)  # announced before any weights: no policy yet
-        assert first is not None and first.counters["policy_version"] == -1
+        assert first is not None and first.gauges["policy_version"] == -1
         hub.publish(hub.keys.weights("local"), Weights.from_blob("local", 0, _policy_blob(8, 5)))
         t0, version = time.monotonic(), -1
         while version < 0 and time.monotonic() - t0 < 3.0:
             m = hb.get(timeout=0.5)
             if m is not None:
-                version = m.counters["policy_version"]
+                version = m.gauges["policy_version"]
         # No observation was ever sent, and the news came well before the 1 s heartbeat period.
         assert version == 0 and time.monotonic() - t0 < 0.9
         agent.join(timeout=10.0)

@@ -271,7 +271,7 @@ def test_hand_built_map_from_the_docs_decodes():
     import struct
 
     wire = {
-        "v": 2, "type": "local_obs", "run": "exp1", "step": 12,
+        "v": 3, "type": "local_obs", "run": "exp1", "step": 12,
         "env_idx": {"dtype": "int64", "shape": [1], "data": struct.pack("<q", 0)},
         "ts": 1732240000000000000, "seq": 12, "sender": "env", "agent": 1,
         "obs": {"dtype": "float32", "shape": [1, 2], "data": struct.pack("<2f", 1.0, -2.0)},

@@ -114,7 +114,7 @@ def test_faults_through_zenoh_drop_rate():
     spec = FaultSpec(seed=5, rules=[FaultRule(match="env/obs/*", drop=0.3)])
     with HammerSession("faulty", t, faults=spec) as pub_s, \
          HammerSession("faulty", TransportConfig.connector(port)) as sub_s:
-        sub = sub_s.subscribe(sub_s.keys.obs("*"), LocalObs)
+        sub = sub_s.subscribe(sub_s.keys.obs("*"), LocalObs, maxsize=0)  # read after the whole burst
         time.sleep(0.3)
         obs = np.zeros((1, 18), np.float32)
         for step in range(n):

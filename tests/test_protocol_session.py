@@ -41,7 +41,8 @@ def pair():
     """Two sessions of run 'r1' in this process: `a` listens, `b` connects to it."""
     t = TransportConfig.listener()
     port = int(t.listen[0].rsplit(":", 1)[1])
-    with HammerSession("r1", t, sender="a") as a, HammerSession("r1", TransportConfig.connector(port), sender="b") as b:
+    with HammerSession("r1", t, sender="env") as a, \
+            HammerSession("r1", TransportConfig.connector(port), sender="local-0") as b:
         yield a, b
 
 
@@ -60,7 +61,7 @@ def test_every_message_type_through_zenoh(pair):
     for m, g in zip(sent, got):
         assert g is not None
         _same_payload(m, g)
-        assert g.run == "r1" and g.sender == "a" and g.ts > 0
+        assert g.run == "r1" and g.sender == "env" and g.ts > 0
     assert [g.seq for g in got] == seqs
     assert sub.stats.delivered == len(sent) and sub.stats.rejected_total == 0
 
@@ -141,7 +142,8 @@ def test_two_runs_on_one_host_do_not_cross_talk():
     t = TransportConfig.listener()
     port = int(t.listen[0].rsplit(":", 1)[1])
     # Both runs are connected to the same listener; only key prefixes separate them.
-    with HammerSession("runA", t) as hub, HammerSession("runB", TransportConfig.connector(port)) as other, \
+    with HammerSession("runA", t, sender="env") as hub, \
+            HammerSession("runB", TransportConfig.connector(port), sender="env") as other, \
          HammerSession("runA", TransportConfig.connector(port)) as same:
         sub_a = same.subscribe(same.keys.obs("*"), LocalObs)
         sub_b = other.subscribe(other.keys.obs("*"), LocalObs)

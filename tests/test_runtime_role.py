@@ -368,7 +368,7 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_pa
     from runtime.bounds import RUN_VERSION_ENV, known_version
 
     launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
-    launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 5, "policy_version": 17}))
+    launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 5}, gauges={"policy_version": 17}))
     monkeypatch.setenv(RUN_VERSION_ENV, launcher.sup._env[RUN_VERSION_ENV])
     assert known_version(None) == 17 and known_version(30) == 30
     monkeypatch.setenv(RUN_VERSION_ENV, "-3")

@@ -285,11 +285,18 @@ def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
     return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}
 
 
-def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True):
+def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
+    from tests.hostile_peer import HostilePeer
+
+    return HostilePeer(run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir))
+
+
+def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
+    """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
+    joins it with local-1's identity once the run is up and is appended to the list."""
     from deploy.settings import RuntimeSettings
     from deploy.up import launch
     from learning.config import merge_config
-    from tests.hostile_peer import HostilePeer
 
     cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
@@ -301,20 +308,27 @@ def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure:
             rt = RuntimeSettings.load(run_dir)
             stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{rt.hub_port}"]),
                                 "local-1", run_dir, cfg.n_agents)
-            peer = HostilePeer(rt.run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir))
-            peer.start()
-            hostile.append(peer)
+            p = peer(cfg, run_dir, stolen, rt.run_id)
+            p.start()
+            hostile.append(p)
 
     try:
         return launch(cfg, settings, run_dir, chaos=chaos)
     finally:
-        for peer in hostile or []:
-            peer.stop_event.set()
-            peer.join(10)
+        for p in hostile or []:
+            p.stop_event.set()
+            p.join(10)
 
 
-def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path):
-    calm = _secure_run(tmp_path / "calm", "sec-calm")
+@pytest.fixture(scope="module")
+def calm(tmp_path_factory):
+    """The secure run nobody attacks: what an attacked run must reproduce exactly."""
+    d = tmp_path_factory.mktemp("calm")
+    return _secure_run(d / "calm", "sec-calm"), d / "calm"
+
+
+def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path, calm):
+    calm, calm_dir = calm
     hostile: list = []
     attacked = _secure_run(tmp_path / "attacked", "sec-attacked", hostile)
     peer = hostile[0]
@@ -327,12 +341,50 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     assert peer.sent["weights"] > 0
     assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
     assert calm.summary["completed"] and attacked.summary["completed"]
-    a, b = _metrics_without_wall_time(tmp_path / "calm"), _metrics_without_wall_time(tmp_path / "attacked")
+    a, b = _metrics_without_wall_time(calm_dir), _metrics_without_wall_time(tmp_path / "attacked")
     assert len(a) == 100 and a == b
     links = attacked.summary["links"]
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
     # nothing reached a role for its own checks to refuse: only the access rules stood in the way
     assert attacked.summary["rejected"] == {} and attacked.summary["degraded"] is False
+
+
+def _thief(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
+    from tests.own_key_thief import OwnKeyThief
+
+    return OwnKeyThief(run_id, stolen, agent=1)
+
+
+def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
+    """Issue 28, as a hostile peer with local-1's real identity files would try it through local-1's
+    own keys: act for agents 0 and 2, file heartbeats under `env`, negative and falling counters, a
+    4 MB flood. None takes effect; each is counted and named in summary.json; the run completes with
+    exactly the calm run's metrics."""
+    import json
+
+    calm, calm_dir = calm
+    hostile: list = []
+    run = tmp_path / "thief"
+    attacked = _secure_run(run, "sec-thief", hostile, peer=_thief)
+    thief = hostile[0]
+    assert thief.error is None, thief.error
+    assert thief.obs_seen > 0, "the thief never read agent 1's observations: it was not in the run"
+    assert all(n > 0 for n in thief.sent.values()), thief.sent
+    assert attacked.summary["completed"] and attacked.summary["episodes"] == 100
+    assert _metrics_without_wall_time(calm_dir) == _metrics_without_wall_time(run)
+    rejected = attacked.summary["rejected"]
+    # the env host: actions naming agents 0 and 2 (or sender local-0) on agent 1's key; the flood,
+    # refused on arrival by its size (an action of this run weighs at most a few kB)
+    assert rejected["env"]["key_mismatch"] >= thief.sent["other_agent_actions"] // 2, rejected
+    assert rejected["env"]["size"] > 0, rejected
+    # the launcher: a heartbeat on local-1's key filed as env; negative counters; pids it never started
+    assert {"key_mismatch", "field", "heartbeat_pid"} <= rejected["launcher"].keys(), rejected
+    assert attacked.summary["degraded"] is True
+    assert any("key_mismatch" in r and "launcher" in r for r in attacked.summary["degraded_reasons"])
+    links = json.loads((run / "links.json").read_text())
+    env = links["roles"]["env"]
+    assert env.get("actions_duplicate", 0) == 0 and env.get("default_actions", 0) == 0  # the real agent 1 counted
+    assert env["step"] < 10**6 and links["roles"]["local-1"]["steps"] < 10**6  # no forged figure was summed
 
 
 def test_the_same_peer_ends_a_plain_run_early(tmp_path):

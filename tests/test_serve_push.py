@@ -89,7 +89,7 @@ def test_push_and_rollback_switch_every_agent_at_one_step(bundles, tmp_path):
     def update(sup, board) -> None:  # the launcher's tick: push at ~step 300, roll back ~400 steps later
         env = board.heartbeats.get("env")
         step = int(env.counters.get("step", 0)) if env else 0
-        version = int(env.counters.get("policy_version", 0)) if env else 0
+        version = int(env.gauges.get("policy_version", 0)) if env else 0
         if not done and step >= 300:
             push(b.path, run)
             done.append("push")
