@@ -162,7 +162,7 @@ paper-report: $(STAMP)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) report $(A)/cn3-dose $(A)/cn3-dose-full --auc 10000 --comparisons hammer-rl:il$(,)hammer-backprop:il --out docs/results/cn3-dose-auc-table.md)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) dose $(A)/cn3-dose $(A)/cn3-dose-full --out docs/results/cn3-dose-delta --learned-h docs/results/cn3-dose-hidden-learned.md)
 	$(if $(wildcard $(A)/cn3-dose),-$(H) plot $(A)/cn3-dose $(A)/cn3-dose-full --band iqm --out docs/results/cn3-dose-curves)
-	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
+	$(if $(wildcard $(A)/rware-pilot),-$(PY) -m hammer.experiments.rware_pilot $(A)/rware-pilot --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md)
 	$(if $(wildcard $(A)/rware-pilot/*/summary.json),-$(H) plot $(A)/rware-pilot --out docs/results/warehouse-pilot-curves)
 	$(if $(wildcard $(A)/$(RWARE_STILLS)/final),-$(H) export $(A)/$(RWARE_STILLS) --out runs/bundles/rware-stills --force && $(H) play runs/bundles/rware-stills --out docs/results/warehouse-team.png --episodes 1 --max-steps 80)
 	$(if $(call FAMILY_DONE,rware-cmp),-$(H) report $(A)/rware-cmp --last 200 --comparisons hammer-rl:il$(,)hammer-backprop:il$(,)random:il --digits 3 --out docs/results/warehouse-cmp-table.md)
@@ -212,7 +212,7 @@ faults-ownobs: $(STAMP)
 # a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.
 edge-chain: $(STAMP)
-	$(PY) -m benchmarks.edge_chain $(ARGS)
+	$(PY) -m hammer.benchmarks.edge_chain $(ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -32,14 +32,13 @@ def _load() -> str:
 
 def time_acting(preset: str, mode: str, k: int, calls: int, block: int = 200) -> dict:
     import torch
+    from hammer.envs.registry import make_vec_env
+    from hammer.learner.worker import weights_blob
+    from hammer.learning.config import merge_config
+    from hammer.learning.numpy_policy import NumpyCentralAgent
+    from hammer.learning.sampling import ActingStreams
+    from hammer.learning.team import Team
     from safetensors.numpy import load as load_safetensors
-
-    from envs.registry import make_vec_env
-    from learner.worker import weights_blob
-    from learning.config import merge_config
-    from learning.numpy_policy import NumpyCentralAgent
-    from learning.sampling import ActingStreams
-    from learning.team import Team
 
     torch.set_num_threads(1)
     cfg = merge_config(preset, overrides=[f"num_envs={k}", f"central_mode={mode}"])
@@ -82,10 +81,10 @@ def time_acting(preset: str, mode: str, k: int, calls: int, block: int = 200) ->
 def central_rss(episodes: int) -> dict:
     """Peak RSS (MiB) per role of a real `hammer up` run of the cn3 preset (RssSampler of benchmarks.runtime),
     with its env-steps/s and control-loop latency (env host publishes -> every action back)."""
-    from benchmarks.runtime import RssSampler
-    from deploy.settings import RuntimeSettings
-    from deploy.up import launch
-    from learning.config import merge_config
+    from hammer.benchmarks.runtime import RssSampler
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.deploy.up import launch
+    from hammer.learning.config import merge_config
 
     cfg = merge_config("cn3", overrides=[f"episodes={episodes}"])
     rss = RssSampler()

@@ -14,7 +14,7 @@ the default layer sizes, central mode rl so the critic is included) it prints, p
 Both networks are timed alternately in blocks in one process, so load from other processes hits
 both alike; the 1-min load average is printed (the machine is shared: compare the ratio).
 
-    .venv/bin/python -m benchmarks.bench_central_net [--sizes 10,20,50] [--reps 7] [--json FILE]
+    .venv/bin/python -m hammer.benchmarks.bench_central_net [--sizes 10,20,50] [--reps 7] [--json FILE]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 
 def _macs(net) -> int:
     """Multiply-accumulates of one state's forward (message means + values), from the weight shapes."""
-    from learning.networks import AgentAttention, CentralAgent
+    from hammer.learning.networks import AgentAttention, CentralAgent
 
     if isinstance(net, CentralAgent):
         enc = sum(p.numel() for n, p in net.encoder.named_parameters() if n.endswith("weight"))
@@ -60,10 +60,9 @@ def _median_time(fn, reps: int, inner: int) -> float:
 def measure(n: int, reps: int) -> list[dict]:
     import numpy as np
     import torch
-
-    from learning.config import merge_config
-    from learning.networks import make_central
-    from learning.numpy_policy import numpy_central
+    from hammer.learning.config import merge_config
+    from hammer.learning.networks import make_central
+    from hammer.learning.numpy_policy import numpy_central
 
     torch.set_num_threads(1)
     obs_dim, act_dim, k, rows = 6 * n, 5, 32, 200

@@ -14,9 +14,9 @@ import tempfile
 import threading
 import time
 
-from learning.config import build_config, preset_dict
-from learning.rundir import RunDir
-from learning.trainer import Trainer
+from hammer.learning.config import build_config, preset_dict
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import Trainer
 
 
 def main(argv: list[str] | None = None) -> None:

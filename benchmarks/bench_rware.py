@@ -7,7 +7,7 @@ this machine is shared and the wall-clock speed moves with what else runs:
   train    `hammer train` env-steps/s with its PPO updates (the preset, one process, eager torch);
   budget   the wall time 1M and 5M env steps imply, at the measured speed and per full core.
 
-    PYTHONPATH=. .venv/bin/python -m benchmarks.bench_rware [--n 2 4] [--seconds 8] [--episodes 48]
+    PYTHONPATH=. .venv/bin/python -m hammer.benchmarks.bench_rware [--n 2 4] [--seconds 8] [--episodes 48]
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
-
-from envs.registry import make_vec_env
+from hammer.envs.registry import make_vec_env
 
 
 def _own_cpu_seconds() -> float:
@@ -57,9 +56,9 @@ def env_phase(n: int, num_envs: int, workers: int, seconds: float, seed: int = 0
 
 def train_phase(n: int, variant: str, episodes: int, seed: int = 0) -> dict:
     """`hammer train` on the preset for `episodes` episodes (16 copies x 500 steps each)."""
-    from learning.config import merge_config
-    from learning.rundir import RunDir
-    from learning.trainer import train
+    from hammer.learning.config import merge_config
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.trainer import train
 
     cfg = merge_config(preset=f"rware-tiny-{n}ag", extra={"variant": variant, "episodes": episodes, "seed": seed})
     with tempfile.TemporaryDirectory() as tmp:

@@ -17,7 +17,7 @@ import numpy as np
 
 
 def bench_ours(k: int, n: int, seconds: float) -> float:
-    from envs.spread import VecSimpleSpread
+    from hammer.envs.spread import VecSimpleSpread
 
     env = VecSimpleSpread(k, n_agents=n)
     env.reset(0)

@@ -20,9 +20,8 @@ import time
 
 import numpy as np
 import psutil
-
-from benchmarks.parallel_ceiling import ceiling, slices
-from envs.registry import make_vec_env
+from hammer.benchmarks.parallel_ceiling import ceiling, slices
+from hammer.envs.registry import make_vec_env
 
 CEIL = "ceiling: independent processes, no IPC"
 FREE = "the slices alone, no IPC"

@@ -43,7 +43,7 @@ def bench_all(
     """Whole-system figures in one run; subcommands measure one part each."""
     if ctx.invoked_subcommand is not None:
         return
-    from benchmarks.suite import run_suite
+    from hammer.benchmarks.suite import run_suite
 
     run_suite(episodes, Path(json_dir) if json_dir else None)
 
@@ -56,9 +56,9 @@ def bench_transport(
 ) -> None:
     """Messages/s and round-trip p50/p99 of typed messages vs raw bytes of the same size,
     over Zenoh on 127.0.0.1 to an echo peer in another (spawned) process."""
+    from hammer.benchmarks.transport import bench_meta, rows_as_dicts, run_bench
     from rich.table import Table
 
-    from benchmarks.transport import bench_meta, rows_as_dicts, run_bench
     from hammer.console import table_console
 
     rows = run_bench(rounds=rounds, flood=flood)
@@ -93,9 +93,9 @@ def bench_codec(
 ) -> None:
     """Microseconds to build (validate), encode and decode (validate) each message of the
     control loop, fast path vs the pydantic reference measured in the same run."""
+    from hammer.benchmarks.transport import codec_bench, codec_rows_as_dicts, role_costs
     from rich.table import Table
 
-    from benchmarks.transport import codec_bench, codec_rows_as_dicts, role_costs
     from hammer.console import table_console
 
     sizes = ((3, 18, 4), (5, 30, 8))
@@ -142,10 +142,10 @@ def bench_loop_floor(
     """Latency floor of the step loop: env -> central -> local agents -> env with every role's
     work removed (same keys, publishers and subscriptions as `hammer up`), typed messages vs raw
     bytes, one process per local agent vs one for all. Compare with `hammer bench runtime`."""
+    from hammer.benchmarks.loop_floor import rows_as_dicts as floor_dicts
+    from hammer.benchmarks.loop_floor import run_floor
     from rich.table import Table
 
-    from benchmarks.loop_floor import rows_as_dicts as floor_dicts
-    from benchmarks.loop_floor import run_floor
     from hammer.console import table_console
 
     rows = run_floor(k=k, steps=steps)
@@ -175,7 +175,7 @@ def bench_workers(
     steps: int = typer.Option(300, help="batched steps per timed phase"),
 ) -> None:
     """Multiwalker env-steps/s in-process vs SubprocVecEnv vs the ceiling of independent processes (no IPC), same run; prints the speed-ups and load."""
-    from benchmarks.bench_workers import main
+    from hammer.benchmarks.bench_workers import main
 
     main([f"--num-envs={num_envs}", f"--workers={workers}", f"--n-agents={n_agents}", f"--steps={steps}"])
 
@@ -193,9 +193,8 @@ def bench_train(
     json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
 ) -> None:
     """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
+    from hammer.benchmarks.train import print_table, run_bench
     from rich.console import Console
-
-    from benchmarks.train import print_table, run_bench
 
     err = Console(stderr=True)
     if min(cn_episodes, mw_updates, extrapolate_from) < 1:
@@ -221,9 +220,9 @@ def bench_seeds(
 ) -> None:
     """Aggregate env-steps/s of S seeds trained as one batch (`hammer train --seeds`) vs one solo run,
     and the cn3 grid's wall time (5 variants x 5 seeds x 30,000 episodes) with and without batching."""
+    from hammer.benchmarks.seeds import grid_estimate, run_bench
     from rich.table import Table
 
-    from benchmarks.seeds import grid_estimate, run_bench
     from hammer.console import table_console
 
     try:
@@ -262,9 +261,9 @@ def bench_runtime(
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
 ) -> None:
     """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
+    from hammer.benchmarks.runtime import bench_runtime, same_label
     from rich.table import Table
 
-    from benchmarks.runtime import bench_runtime, same_label
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -292,9 +291,9 @@ def bench_security(
 ) -> None:
     """What `hammer up --secure` costs, and what a 4 MB x 25/s flood on one agent's own key (with that agent's
     identity) costs: env-steps/s and step latency p50/p99, plain vs secure vs secure+flood, same run."""
+    from hammer.benchmarks.security import FIGURES, PROFILES, bench_security
     from rich.table import Table
 
-    from benchmarks.security import FIGURES, PROFILES, bench_security
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -327,16 +326,16 @@ def bench_edge_command(
     repeats: Annotated[int, typer.Option(min=1, help="Measurements per entry, alternated (medians are shown).")] = 3,
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
     python: Annotated[Path | None, typer.Option(
-        help="The agents' interpreter, e.g. a torch-free edge venv (python -m benchmarks.edge_venv PATH); "
+        help="The agents' interpreter, e.g. a torch-free edge venv (python -m hammer.benchmarks.edge_venv PATH); "
              "default this one.")] = None,
 ) -> None:
     """An edge agent's footprint: RSS while acting and cold start (process start to first action), for
     `hammer local --bundle` (no run directory) and today's `hammer local --run-dir`, in one run."""
     import tempfile
 
+    from hammer.benchmarks.edge import bench_edge
     from rich.table import Table
 
-    from benchmarks.edge import bench_edge
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -370,7 +369,7 @@ def bench_scale_command(
     """Scaling on cn: per N, `hammer train`, `hammer up` (one process per agent), `hammer up` with
     agent pools and the loop floor at the same N: env-steps/s, step p50/p99, messages and bytes per
     step, CPU and RSS per role, where the step's time goes; a markdown table and a PNG plot."""
-    from benchmarks.scale import bench_scale, markdown
+    from hammer.benchmarks.scale import bench_scale, markdown
 
     logging.basicConfig(level=logging.WARNING)
     try:

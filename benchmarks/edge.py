@@ -32,13 +32,13 @@ class EdgeFigures:
 
 def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
     """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
-    from deploy.settings import RuntimeSettings
-    from deploy.up import prepare_run_dir
-    from envs.registry import make_vec_env
-    from learning.config import merge_config
-    from learning.rundir import RunDir
-    from learning.team import Team
-    from serve.bundle import export_bundle
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.deploy.up import prepare_run_dir
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.config import merge_config
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.team import Team
+    from hammer.serve.bundle import export_bundle
 
     cfg = merge_config(preset, overrides=["variant=hammer", "central_mode=rl", "seed=0", *overrides])
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
@@ -56,9 +56,8 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
             env: dict | None = None) -> EdgeFigures:
     """Start `cmd` (a `hammer local` joining run `run_id` at the hub on `port`) and play the run to it."""
     import psutil
-
-    from protocol.schemas import Action, CentralMsg, Dims, LocalObs, Weights
-    from protocol.session import HammerSession, TransportConfig, loopback_endpoint
+    from hammer.protocol.schemas import Action, CentralMsg, Dims, LocalObs, Weights
+    from hammer.protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
     k, agent = cfg.num_envs, 0
     dims = Dims(num_envs=k, n_agents=cfg.n_agents, obs_dim=spec.obs_dim, msg_dim=cfg.msg_dim,
@@ -116,9 +115,9 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
 def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | None = None) -> dict:
     """Both entries, alternated `repeats` times; the median of each figure per entry. python: the agents'
     interpreter (e.g. a torch-free edge venv: its own install, so PYTHONPATH is dropped)."""
-    from benchmarks.edge_venv import clean_env
-    from deploy.settings import RuntimeSettings
-    from protocol.session import free_loopback_port
+    from hammer.benchmarks.edge_venv import clean_env
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.protocol.session import free_loopback_port
 
     bundle, run, cfg, spec = make_team(work)
     blob = (bundle.path / "local.safetensors").read_bytes()

@@ -1,6 +1,6 @@
 """Issue 19's "done when", end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
 
-    python -m benchmarks.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
+    python -m hammer.benchmarks.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
                                     [--episodes 2400] [--work runs/edge-chain] [--edge-venv PY]   (root)
     make edge-chain                                                                  (the same, defaults)
 
@@ -55,8 +55,8 @@ def replay_check(trace_file: Path, bundles: dict[int, Path]) -> dict:
     """Replay every local agent on the trace's observations and messages with the weights of the
     version each step names (one random stream per agent, as the edge agents draw): the fraction of
     actions (acted in time) that match, overall and per version."""
-    from local_agent.client import AgentSpec, LocalAgent
-    from serve.bundle import load_bundle
+    from hammer.local_agent.client import AgentSpec, LocalAgent
+    from hammer.serve.bundle import load_bundle
 
     loaded = {v: load_bundle(p) for v, p in bundles.items()}
     first = loaded[min(loaded)]
@@ -80,7 +80,7 @@ def replay_check(trace_file: Path, bundles: dict[int, Path]) -> dict:
 def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[int, ...], episodes: int,
           push_at: int = 150, play_episodes: int = 1, tag: str | None = None) -> dict:
     """Steps 2-5 for two trained run directories; returns every figure (also written to WORK/chain.json)."""
-    from benchmarks.netns import served_run
+    from hammer.benchmarks.netns import served_run
 
     work.mkdir(parents=True, exist_ok=True)
     a, b = work / "bundle-a", work / "bundle-b"
@@ -107,8 +107,8 @@ def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[
 def main() -> None:
     import argparse
 
-    from benchmarks.edge_venv import EdgeVenvError, build_edge_venv
-    from benchmarks.netns import NetnsUnavailable
+    from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+    from hammer.benchmarks.netns import NetnsUnavailable
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--team", type=Path, default=ARCHIVE / ARCHIVED_TEAM.format(seed=0))

@@ -1,6 +1,6 @@
 """A fresh venv with only the edge install of hammer: what an edge machine would have.
 
-    python -m benchmarks.edge_venv PATH        (prints the venv's python)
+    python -m hammer.benchmarks.edge_venv PATH        (prints the venv's python)
 
 Built with pip: the project (from this checkout, not an editable link) with --no-deps, then exactly
 its base dependencies from pyproject.toml, so nothing of the `train` extra (torch, PettingZoo,
@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -36,27 +37,41 @@ def clean_env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
 
 
-def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180, compile_pyc: bool = True) -> Path:
+def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180, compile_pyc: bool = True,
+                    python: str | Path = sys.executable) -> Path:
     """Make `path` a venv with only the base install of `project`; returns its python.
     Reuses a venv already built there from the same sources (its marker file). compile_pyc=False:
-    pip skips byte-compiling (quicker to build; the first imports compile what they load)."""
+    pip skips byte-compiling (quicker to build; the first imports compile what they load).
+    `python`: the interpreter of the venv (e.g. a python3.13, what Debian 13 ships)."""
     path = Path(path)
     py = path / "bin" / "python"
-    marker, stamp = path / ".hammer-edge", source_stamp(project)
+    marker, stamp = path / ".hammer-edge", f"{python} {source_stamp(project)}"
     if py.is_file() and marker.is_file() and marker.read_text() == stamp:
         return py
-    subprocess.run([sys.executable, "-m", "venv", "--clear", str(path)], check=True, timeout=60)
+    subprocess.run([str(python), "-m", "venv", "--clear", str(path)], check=True, timeout=60, env=clean_env())
     base = tomllib.loads((project / "pyproject.toml").read_text())["project"]["dependencies"]
     pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", *([] if compile_pyc else ["--no-compile"])]
-    for args in (["--no-deps", str(project)], base):
-        r = subprocess.run([*pip, *args], check=False, timeout=timeout_s, capture_output=True, text=True,
-                           env=clean_env())
-        if r.returncode != 0:
-            err = (r.stderr.strip().splitlines() or ["(no output)"])[-1]
-            raise EdgeVenvError(f"pip install {' '.join(args)[:80]} failed: {err}",
-                                offline=any(s in r.stderr for s in OFFLINE_SIGNS))
+    with tempfile.TemporaryDirectory(prefix="hammer-src-") as tmp:
+        src = source_copy(project, Path(tmp) / "src")
+        for args in (["--no-deps", str(src)], base):
+            r = subprocess.run([*pip, *args], check=False, timeout=timeout_s, capture_output=True, text=True,
+                               env=clean_env())
+            if r.returncode != 0:
+                err = (r.stderr.strip().splitlines() or ["(no output)"])[-1]
+                raise EdgeVenvError(f"pip install {' '.join(args)[:80]} failed: {err}",
+                                    offline=any(s in r.stderr for s in OFFLINE_SIGNS))
     marker.write_text(stamp)
     return py
+
+
+def source_copy(project: Path, dest: Path) -> Path:
+    """The files a build of `project` needs, copied to `dest`: pip builds in the source tree, and a
+    stale build/ there (an older layout's packages) would end up in the wheel."""
+    import shutil
+
+    shutil.copytree(project, dest, ignore=shutil.ignore_patterns(
+        ".venv", "build", ".git", "runs", "docs", "__pycache__", "*.egg-info", "tests", "dist"))
+    return dest
 
 
 def source_stamp(project: Path) -> str:

@@ -26,11 +26,10 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
-
-from benchmarks.transport import loop_messages
-from protocol.codec import encode
-from protocol.schemas import Action, CentralMsg, GlobalState, LocalObs
-from protocol.session import HammerSession, TransportConfig, burst_express
+from hammer.benchmarks.transport import loop_messages
+from hammer.protocol.codec import encode
+from hammer.protocol.schemas import Action, CentralMsg, GlobalState, LocalObs
+from hammer.protocol.session import HammerSession, TransportConfig, burst_express
 
 _STEP = struct.Struct("<q")
 
@@ -108,7 +107,7 @@ def local_main(run_id: str, connect: list[str], agents: list[int], k: int, n: in
     """Echo role standing in for one local agent (or, grouped, several): obs and message in, action out."""
     kw, size = _sizes(k, n, d, m)
     dims = _dims(k, n, d, m)
-    from protocol.access import pool_name
+    from hammer.protocol.access import pool_name
 
     sender = f"local-{agents[0]}" if len(agents) == 1 else pool_name(agents)  # what its action keys say
     with HammerSession(run_id, _role_transport(connect), sender=sender) as s:

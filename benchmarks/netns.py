@@ -1,6 +1,6 @@
 """A served team across Linux network namespaces: real links instead of loopback.
 
-    python -m benchmarks.netns BUNDLE [--rates 0,1024,256] [--episodes 16] [--edge-venv PY] [--push BUNDLE_B]
+    python -m hammer.benchmarks.netns BUNDLE [--rates 0,1024,256] [--episodes 16] [--edge-venv PY] [--push BUNDLE_B]
                                                                                 (root; see docs/deploy.md)
 
 The hub namespace holds the Zenoh router (`hammer hub`), the launcher, env host and policy server
@@ -147,7 +147,7 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
     """One served run across namespaces; returns its figures (raises NetnsUnavailable where it cannot).
     edge_python: the local agents' interpreter (a torch-free venv); push: a bundle to push mid-run and
     roll back; baseline_steps_per_s: the unlimited run's rate, for `keeps_up`."""
-    from serve.bundle import load_bundle
+    from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle)
     cfg, ep_len = b.config(), int(b.env_spec_data.get("max_steps") or 25)
@@ -194,7 +194,7 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
 def _edge_env(edge_python: Path | None) -> dict | None:
     if edge_python is None:
         return None
-    from benchmarks.edge_venv import clean_env
+    from hammer.benchmarks.edge_venv import clean_env
 
     return clean_env()
 
@@ -212,7 +212,7 @@ def _start_central_and_driver(procs: Procs, top: Topology, run: Path, py: list[s
         out.append(procs.start(top.central, [*py, "central", "--run-dir", str(run), "--zenoh-config", str(cfg)],
                                f"central-{rate_kbit}.log"))
     if push is not None:
-        out.append(procs.start(top.hub, [sys.executable, "-m", "benchmarks.push_driver", str(run), *push,
+        out.append(procs.start(top.hub, [sys.executable, "-m", "hammer.benchmarks.push_driver", str(run), *push,
                                          "--zenoh-config", str(inside)], f"push-{rate_kbit}.log"))
     return out
 
@@ -269,7 +269,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--work", type=Path, default=Path("runs/netns"))
     ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv for the local agents "
-                                                   "(python -m benchmarks.edge_venv PATH builds one)")
+                                                   "(python -m hammer.benchmarks.edge_venv PATH builds one)")
     ap.add_argument("--push", type=Path, help="a bundle to push mid-run, then roll back (through the CLI)")
     ap.add_argument("--runtime", action="append", default=[], help="RuntimeSettings FIELD=VALUE for the served run")
     ap.add_argument("--timeout", type=float, default=600)

@@ -18,10 +18,9 @@ import multiprocessing as mp
 import time
 
 import numpy as np
-
-from envs.catalog import build_local
-from envs.description import EnvDescription
-from envs.workers import slice_counts
+from hammer.envs.catalog import build_local
+from hammer.envs.description import EnvDescription
+from hammer.envs.workers import slice_counts
 
 
 def _one_slice(env: str, n_agents: int, num_envs: int, offset: int, count: int, steps: int, seed: int,

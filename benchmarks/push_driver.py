@@ -1,6 +1,6 @@
 """Drive a hot update and a rollback of a live served run through the real CLI, at chosen steps.
 
-    python -m benchmarks.push_driver RUN_DIR BUNDLE_B (--connect tcp/HUB:PORT | --zenoh-config FILE)
+    python -m hammer.benchmarks.push_driver RUN_DIR BUNDLE_B (--connect tcp/HUB:PORT | --zenoh-config FILE)
                                      [--push-at 150] [--rollback-after 150]
 
 Why a separate process: the env host's step counter is only visible on the wire (its heartbeats),
@@ -30,9 +30,9 @@ def _cli(*args: str) -> str:
 
 def drive(run_dir: Path, bundle: Path, transport, push_at: int, rollback_after: int, timeout_s: float = 300) -> dict:
     """Push, then roll back, at the env host's steps; returns what happened when."""
-    from deploy.settings import RuntimeSettings
-    from protocol.schemas import Heartbeat
-    from protocol.session import HammerSession
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.protocol.schemas import Heartbeat
+    from hammer.protocol.session import HammerSession
 
     deadline = time.monotonic() + timeout_s
     while not (run_dir / "runtime.json").is_file():
@@ -62,7 +62,7 @@ def drive(run_dir: Path, bundle: Path, transport, push_at: int, rollback_after: 
 def main() -> None:
     import argparse
 
-    from protocol.session import TransportConfig
+    from hammer.protocol.session import TransportConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir", type=Path)

@@ -22,7 +22,7 @@ import psutil
 
 def raw_env_steps(env_name: str, n_agents: int, num_envs: int, seconds: float = 2.0) -> float:
     """Env-copy steps per second of the bare VecEnv with uniform random actions."""
-    from envs.registry import make_vec_env
+    from hammer.envs.registry import make_vec_env
 
     env = make_vec_env(env_name, n_agents, num_envs)
     spec = env.spec
@@ -42,8 +42,8 @@ def raw_env_steps(env_name: str, n_agents: int, num_envs: int, seconds: float = 
 
 
 def _train(cfg, path: Path) -> dict:
-    from learning.rundir import RunDir
-    from learning.trainer import train
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.trainer import train
 
     return train(cfg, RunDir.create(path, cfg), tensorboard=False)
 
@@ -90,9 +90,9 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
                   out: Path | None = None, raw: bool = True, lagged: bool = True) -> list[dict]:
     """One row per preset. `lagged`: also run `hammer up` with max_policy_lag=1 (the env host
     collects the next rollout while the learner updates), reported as up_lag1_*."""
-    from deploy.settings import RuntimeSettings
-    from deploy.up import launch
-    from learning.config import merge_config
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.deploy.up import launch
+    from hammer.learning.config import merge_config
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:

@@ -11,7 +11,7 @@ robot move when its target is free or being vacated, the lowest index winning a 
 rotations of 3+ robots do not move. An exact version needs the same array work plus tie-breaking as
 networkx breaks ties, so its cost is of the same order.
 
-    PYTHONPATH=. .venv/bin/python -m benchmarks.rware_vec_prototype [--n 2 4] [--k 16 64 256]
+    PYTHONPATH=. .venv/bin/python -m hammer.benchmarks.rware_vec_prototype [--n 2 4] [--k 16 64 256]
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ class VecWarehouse:
     """K tiny warehouses (11 x 10, 32 shelves, goals at the bottom middle) as arrays."""
 
     def __init__(self, k: int, n: int, seed: int = 0, sensor_range: int = 1) -> None:
-        from envs.rware_vec import RwareSettings
+        from hammer.envs.rware_vec import RwareSettings
 
         wh = RwareSettings(n, 1, 3, 8, sensor_range, n, 500, "individual").warehouse()
         wh.reset(seed=seed)

@@ -37,7 +37,7 @@ ROLE_KINDS = ("env", "central", "learner", "local")
 
 def scale_config(n: int, episodes: int):
     """cn with N agents: the cn3 preset at N=3, the cn5 settings (message length 8) beyond."""
-    from learning.config import merge_config
+    from hammer.learning.config import merge_config
 
     return merge_config("cn3" if n <= 3 else "cn5", overrides=[f"n_agents={n}", f"episodes={episodes}"])
 
@@ -45,7 +45,7 @@ def scale_config(n: int, episodes: int):
 def pooled_size(n: int) -> int:
     """Agents per process of the `up-pools` runner: the machine's default, or all N in one pool
     where the default is one agent per process (so every N has a pooled figure)."""
-    from deploy.settings import auto_agents_per_process
+    from hammer.deploy.settings import auto_agents_per_process
 
     k = auto_agents_per_process(n)
     return k if k > 1 else n
@@ -80,8 +80,8 @@ def run_train(n: int, episodes: int, path: Path) -> dict:
 def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
     """`hammer up` (launch in this process): its summary figures plus traffic, CPU and RSS per role
     from the roles' final counters (links.json `roles`)."""
-    from deploy.settings import RuntimeSettings
-    from deploy.up import launch
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.deploy.up import launch
 
     settings = RuntimeSettings(run_id=f"scale{n}-{per_process}-{os.getpid()}", agents_per_process=per_process,
                                startup_timeout_s=60.0 + 3.0 * n)
@@ -119,10 +119,10 @@ def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
 
 def run_floor(n: int, per_process: int, steps: int) -> dict:
     """The loop floor at N with the run's payload sizes: typed and raw, split and pooled."""
-    from benchmarks.loop_floor import measure
+    from hammer.benchmarks.loop_floor import measure
 
     cfg = scale_config(n, 1)
-    from envs.registry import make_vec_env
+    from hammer.envs.registry import make_vec_env
 
     env = make_vec_env(cfg.env, n, 1)
     d = env.spec.obs_dim

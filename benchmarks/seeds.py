@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.seed_batch import SeedBatch
-from learning.trainer import Trainer
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.seed_batch import SeedBatch
+from hammer.learning.trainer import Trainer
 
 GRID_RUNS, GRID_SEEDS, GRID_EPISODES = 25, 5, 30_000
 

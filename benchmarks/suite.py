@@ -26,9 +26,9 @@ def machine() -> dict:
 
 def _floor(preset: str, steps: int = 300) -> dict:
     """The loop-floor p50 (ms) for this preset's N, K, observation and message sizes."""
-    from benchmarks.loop_floor import measure
-    from envs.registry import make_vec_env
-    from learning.config import merge_config
+    from hammer.benchmarks.loop_floor import measure
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.config import merge_config
 
     cfg = merge_config(preset, None, [], {"variant": "hammer", "central_mode": "backprop"})
     env = make_vec_env(cfg.env, cfg.n_agents, 1)
@@ -41,10 +41,9 @@ def _floor(preset: str, steps: int = 300) -> dict:
 
 
 def run_suite(episodes: int, out_dir: Path | None) -> dict:
+    from hammer.benchmarks.runtime import bench_runtime, same_label
     from rich.console import Console
     from rich.table import Table
-
-    from benchmarks.runtime import bench_runtime, same_label
 
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     rows = bench_runtime(["cn3", "cn5"], episodes)

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from learning.config import RunConfig, merge_config
+from hammer.learning.config import RunConfig, merge_config
 
 
 def _load() -> float:
@@ -42,8 +42,8 @@ def time_train(cfg: RunConfig) -> dict[str, Any]:
     Returns env-steps/s of the training loop (the trainer's own figure), the whole wall time
     including startup (env, networks, optimisers, first checkpoint) and the load average.
     """
-    from learning.rundir import RunDir
-    from learning.trainer import train
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.trainer import train
 
     load = _load()
     with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:
@@ -60,9 +60,9 @@ def time_train(cfg: RunConfig) -> dict[str, Any]:
 def time_updates(cfg: RunConfig, updates: int, warmup: int = 1) -> dict[str, Any]:
     """env-steps/s over `updates` rollout+PPO updates after `warmup` ones (for long-episode envs,
     where an episode budget would make the run length depend on how soon the walkers fall)."""
-    from learning.run_env import make_env
-    from learning.rundir import RunDir
-    from learning.trainer import Trainer
+    from hammer.learning.run_env import make_env
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.trainer import Trainer
 
     load = _load()
     t0 = time.perf_counter()

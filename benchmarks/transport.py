@@ -25,9 +25,8 @@ from dataclasses import asdict, dataclass
 
 import msgpack
 import numpy as np
-
-from protocol.codec import decode, encode
-from protocol.schemas import (
+from hammer.protocol.codec import decode, encode
+from hammer.protocol.schemas import (
     Action,
     CentralMsg,
     Control,
@@ -36,7 +35,7 @@ from protocol.schemas import (
     LocalObs,
     Message,
 )
-from protocol.session import HammerSession, TransportConfig, loopback_endpoint
+from hammer.protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
 _STOP = "stop"
 

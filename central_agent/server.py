@@ -28,19 +28,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from hammer.envs.base import EnvSpec
+from hammer.faults.steplog import LoggedPublisher, StepLog, column
+from hammer.learning.central_acting import CentralActing, CentralOut
+from hammer.learning.config import RunConfig
+from hammer.learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
+from hammer.learning.sampling import ActingStreams
+from hammer.protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
+from hammer.protocol.session import HammerSession, burst_express
+from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 from safetensors.numpy import load as load_safetensors
-
-from envs.base import EnvSpec
-from faults.steplog import LoggedPublisher, StepLog, column
-from learning.central_acting import CentralActing, CentralOut
-from learning.config import RunConfig
-from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
-from learning.sampling import ActingStreams
-from protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
-from protocol.session import HammerSession, burst_express
-from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
-from runtime.role import Role
-from runtime.weights import WeightsIntake
 
 DELIVERED, LATE = column("env->central", "delivered"), column("env->central", "late")
 

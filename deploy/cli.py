@@ -20,9 +20,8 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
     """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
     import difflib
 
+    from hammer.deploy.settings import RuntimeSettings
     from pydantic import ValidationError
-
-    from deploy.settings import RuntimeSettings
 
     if not isinstance(err, ValidationError):
         return f"{flag}: {' '.join(str(err).split())}"
@@ -40,7 +39,7 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
 
 
 def register(app: typer.Typer) -> None:
-    from deploy import roles
+    from hammer.deploy import roles
 
     app.command("up")(up_command)
     app.command("env-host")(roles.env_host_command)
@@ -51,10 +50,9 @@ def register(app: typer.Typer) -> None:
 
 def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
+    from hammer.faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
+    from hammer.faults.spec import LinkFault
     from rich.table import Table
-
-    from faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
-    from faults.spec import LinkFault
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
     title = "faults: " + ("; ".join(lf.describe() for lf in plan) if plan else
@@ -81,7 +79,7 @@ def _links_table(board, cfg, settings):
 
 def _eta(board, cfg, rate: dict) -> str:
     """Time left at the episode rate seen since the first finished episode of this session."""
-    from learning.cli import eta
+    from hammer.learning.cli import eta
 
     env = board.heartbeats.get("env")
     episodes = int(env.counters.get("episodes", 0)) if env else 0
@@ -174,13 +172,12 @@ def up_command(
     update with both a learner checkpoint and the env host's state (every checkpoint_every updates).
     """
     import yaml
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.faults.chaos import ChaosSpecError, parse_chaos
+    from hammer.faults.spec import FaultSpecError, build_plan
+    from hammer.learning.config import ConfigError, load_yaml, merge_config
+    from hammer.protocol.fault_injection import FaultSpec
     from rich.console import Console
-
-    from deploy.settings import RuntimeSettings
-    from faults.chaos import ChaosSpecError, parse_chaos
-    from faults.spec import FaultSpecError, build_plan
-    from learning.config import ConfigError, load_yaml, merge_config
-    from protocol.fault_injection import FaultSpec
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -264,8 +261,8 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
     """config.json and runtime.json of a `hammer up` run directory (episodes possibly changed)."""
     import json
 
-    from deploy.settings import RuntimeSettings
-    from learning.config import ConfigError, build_config
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.learning.config import ConfigError, build_config
 
     missing = [f for f in ("config.json", "runtime.json", "env_spec.json") if not (run_dir / f).is_file()]
     if missing:
@@ -300,14 +297,13 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
 
 def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
             external_agents: tuple[int, ...] = ()) -> None:
+    from hammer.deploy.up import UpError, launch
+    from hammer.envs.registry import EnvConfigError
     from rich.live import Live
-
-    from deploy.up import UpError, launch
-    from envs.registry import EnvConfigError
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    from deploy.up import resolve_agents_per_process
+    from hammer.deploy.up import resolve_agents_per_process
 
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
     console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,
@@ -366,11 +362,11 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     if settings.faults is not None or settings.chaos:
         for link, row in res.links.items():
             console.print(f"{link}: " + ", ".join(f"{k} {v:,}" for k, v in row.items() if v))
-        from faults.links import COUNTERS_NOTE
+        from hammer.faults.links import COUNTERS_NOTE
 
         console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
     if served:  # a frozen team: nothing to resume or to train further
         return
-    from learning.cli import print_next_steps
+    from hammer.learning.cli import print_next_steps
 
     print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

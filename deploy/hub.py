@@ -29,7 +29,7 @@ def hub_command(
         help="Relay plain traffic beyond loopback (no --run-dir): only on a network you trust.")] = False,
 ) -> None:
     """Run a Zenoh router until Ctrl-C / SIGTERM (multicast scouting off)."""
-    from protocol.session import HammerSession, TransportConfig
+    from hammer.protocol.session import HammerSession, TransportConfig
 
     try:
         transport = TransportConfig(mode="router", listen=listen)
@@ -40,7 +40,7 @@ def hub_command(
     if run_dir is not None:
         transport, run_id = _secure_hub(transport, run_dir)
     else:
-        from deploy.settings import refuse_plain_beyond_loopback
+        from hammer.deploy.settings import refuse_plain_beyond_loopback
 
         try:
             refuse_plain_beyond_loopback(transport, secure=False, insecure=insecure)
@@ -64,8 +64,8 @@ def _secure_hub(transport, run_dir: Path):
     """The router as identity `hub` of the secure run in `run_dir`: (transport, run id)."""
     import json
 
-    from deploy.settings import RuntimeSettings
-    from protocol.access import HUB
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.protocol.access import HUB
 
     def fail(msg: str):
         typer.secho(f"error: --run-dir {run_dir}: {msg}", fg=typer.colors.RED, err=True)

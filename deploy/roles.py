@@ -19,8 +19,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-
-from runtime.bounds import known_step, known_version
+from hammer.runtime.bounds import known_step, known_version
 
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
@@ -46,7 +45,7 @@ def _setup(role: str, run_dir: Path | None = None) -> None:
                  cfg.get("variant"), cfg.get("central_mode"), cfg.get("seed"), cfg.get("episodes"), rt.get("mode"),
                  rt.get("msg_deadline_ms"), rt.get("act_deadline_ms"), rt.get("max_policy_lag"), rt.get("fallback"),
                  f", resume from update {rt['resume_from']}" if rt.get("resume_from") is not None else "")
-    from deploy.supervisor import parent_watchdog
+    from hammer.deploy.supervisor import parent_watchdog
 
     parent_watchdog()
 
@@ -63,7 +62,7 @@ def write_env_spec(run_dir: Path, spec) -> None:
 
 
 def read_env_spec(run_dir: Path):
-    from envs.base import EnvSpec
+    from hammer.envs.base import EnvSpec
 
     path = Path(run_dir) / "env_spec.json"
     if not path.is_file():
@@ -76,7 +75,7 @@ def read_env_spec(run_dir: Path):
 def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, role: str):
     """Runtime settings and this role's transport; a secure run adds the role's identity from
     RUN/identity/ (protocol.identity) and the run's access rules."""
-    from deploy.settings import RuntimeSettings
+    from hammer.deploy.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
     if zenoh_config is not None:
@@ -91,7 +90,7 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
 
 
 def _read_config(run_dir: Path):
-    from learning.config import build_config
+    from hammer.learning.config import build_config
 
     path = Path(run_dir) / "config.json"
     if not path.is_file():
@@ -100,7 +99,7 @@ def _read_config(run_dir: Path):
 
 
 def _fault_counters(session) -> dict:
-    from faults.links import flat_fault_counters
+    from hammer.faults.links import flat_fault_counters
 
     return flat_fault_counters(session.fault_report())
 
@@ -109,7 +108,7 @@ def _write_counters(run_dir: Path, role: str, counters: dict) -> None:
     """Final counters of this process for the launcher's per-link table (faults.links)."""
     import os
 
-    from faults.links import write_role_counters
+    from hammer.faults.links import write_role_counters
 
     try:
         write_role_counters(run_dir, role, os.getpid(), counters)
@@ -119,7 +118,7 @@ def _write_counters(run_dir: Path, role: str, counters: dict) -> None:
 
 def _step_log_dir(run_dir: Path) -> Path | None:
     """Where this process logs its link events per step (faults.steplog), if the run dir is writable."""
-    from faults.steplog import STEP_LOG_DIR
+    from hammer.faults.steplog import STEP_LOG_DIR
 
     d = Path(run_dir) / STEP_LOG_DIR
     try:
@@ -184,8 +183,8 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         return
     if not 0 <= agent < cfg.n_agents:
         _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
-    from local_agent.client import AgentSpec
-    from local_agent.edge import run_agent
+    from hammer.local_agent.client import AgentSpec
+    from hammer.local_agent.edge import run_agent
 
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
@@ -195,7 +194,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
                 identity, insecure: bool = False) -> None:
     """One agent from a bundle, no run directory (local_agent/edge.py; the console script's fast path)."""
-    from local_agent.edge import edge_inputs, run_agent
+    from hammer.local_agent.edge import edge_inputs, run_agent
 
     try:
         if agents is not None:
@@ -211,13 +210,13 @@ def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, s
 
 
 def _pool_agents(text: str, n_agents: int) -> list[int]:
-    from local_agent.pool import parse_agents
+    from hammer.local_agent.pool import parse_agents
 
     return parse_agents(text, n_agents)
 
 
 def _read_settings(run_dir: Path, zenoh_config: Path | None):
-    from deploy.settings import RuntimeSettings
+    from hammer.deploy.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
     return s if zenoh_config is None else s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
@@ -233,7 +232,7 @@ def _local_transport(settings, run_dir: Path, connect: str | None, zenoh_config:
         transport = transport.model_copy(update={"connect": [connect]})
     if not settings.secure:
         return transport
-    from protocol.access import pool_name
+    from hammer.protocol.access import pool_name
 
     role = f"local-{members[0]}" if len(members) == 1 else pool_name(members)
     pools = dict(settings.pools(n_agents))
@@ -247,11 +246,11 @@ def _local_transport(settings, run_dir: Path, connect: str | None, zenoh_config:
 def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path | None) -> None:
     """Several agents, one process and one event loop (`LocalAgentPool`); each agent's counters
     are written as its own, as N single-agent processes would write them."""
-    from local_agent.client import AgentSpec
-    from local_agent.pool import LocalAgentPool
-    from protocol.access import pool_name
-    from protocol.session import HammerSession
-    from runtime.role import process_usage
+    from hammer.local_agent.client import AgentSpec
+    from hammer.local_agent.pool import LocalAgentPool
+    from hammer.protocol.access import pool_name
+    from hammer.protocol.session import HammerSession
+    from hammer.runtime.role import process_usage
 
     specs = [AgentSpec.from_config(cfg, spec, i) for i in agents]
     try:
@@ -278,8 +277,8 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
     _setup("central", run_dir)
-    from central_agent.server import CentralServer
-    from protocol.session import HammerSession
+    from hammer.central_agent.server import CentralServer
+    from hammer.protocol.session import HammerSession
 
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config, "central")
@@ -303,11 +302,11 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
 def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The env host: steps the K env copies and drives the step loop; writes metrics and the summary."""
     _setup("env", run_dir)
-    from env_host.host import EnvHost
-    from learning.run_env import make_env
-    from learning.rundir import RunDir
-    from protocol.session import HammerSession
-    from runtime.role import process_usage
+    from hammer.env_host.host import EnvHost
+    from hammer.learning.run_env import make_env
+    from hammer.learning.rundir import RunDir
+    from hammer.protocol.session import HammerSession
+    from hammer.runtime.role import process_usage
 
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config, "env")
@@ -336,7 +335,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
             # The run is over: tell everyone (roles started by hand have no launcher to stop them). In a
             # secure run the access rules keep control to the launcher, which stops everyone as this exits.
-            from protocol.schemas import Control
+            from hammer.protocol.schemas import Control
 
             s.publish(s.keys.ctl("all"), Control(command="stop"))
     except KeyboardInterrupt:
@@ -352,7 +351,7 @@ def learner_command(run_dir: RunDirOpt,
                     connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
     _setup(f"learner-{role}", run_dir)
-    from protocol.session import HammerSession
+    from hammer.protocol.session import HammerSession
 
     if role != "team":
         _fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
@@ -363,7 +362,7 @@ def learner_command(run_dir: RunDirOpt,
     except (FileNotFoundError, ValueError) as e:
         _fail(str(e))
     if settings.mode == "eval":  # serve the frozen policy; no torch, no learning
-        from serve.policy_server import PolicyDirError, PolicyServer
+        from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
@@ -374,8 +373,8 @@ def learner_command(run_dir: RunDirOpt,
         except KeyboardInterrupt:
             pass
         return
-    from learner.worker import LearnerWorker
-    from learning.rundir import RunDir
+    from hammer.learner.worker import LearnerWorker
+    from hammer.learning.rundir import RunDir
 
     rd = RunDir(run_dir)
     try:

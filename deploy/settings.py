@@ -17,10 +17,9 @@ import re
 from pathlib import Path
 from typing import Literal
 
+from hammer.protocol.fault_injection import FaultSpec
+from hammer.protocol.session import TransportConfig, loopback_endpoint
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from protocol.fault_injection import FaultSpec
-from protocol.session import TransportConfig, loopback_endpoint
 
 Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
@@ -166,7 +165,7 @@ class RuntimeSettings(BaseModel):
     def pools(self, n_agents: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
         """The run's agent pools (groups of more than one agent): (pool name, agents); the secure
         profile gives each one identity granted exactly its agents' keys (protocol.access)."""
-        from protocol.access import pool_name
+        from hammer.protocol.access import pool_name
 
         return tuple((pool_name(g), tuple(g)) for g in self.agent_groups(n_agents) if len(g) > 1)
 
@@ -189,9 +188,9 @@ class RuntimeSettings(BaseModel):
         access rules; unchanged when the run is not secure."""
         if not self.secure:
             return transport
-        from protocol.access import secure_link, tls_endpoint
-        from protocol.identity import identity_dir
-        from protocol.keys import Keys
+        from hammer.protocol.access import secure_link, tls_endpoint
+        from hammer.protocol.identity import identity_dir
+        from hammer.protocol.keys import Keys
 
         where = identity_directory if identity_directory is not None else identity_dir(run_dir)
         return transport.model_copy(update={

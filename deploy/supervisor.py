@@ -69,7 +69,9 @@ class Supervisor:
         rp = self.roles.get(spec.name) or RoleProcess(spec, self.log_dir / f"{spec.name}.log")
         self.roles[spec.name] = rp
         logf = open(rp.log_path, "ab")  # noqa: SIM115 - owned by the child for its lifetime
-        cmd = [sys.executable, "-m", "hammer.cli", *spec.args]
+        # -P: the current folder is not put first on sys.path, so no folder of the user's project (an
+        # `experiments/` of their own) can shadow a part of hammer in a role process.
+        cmd = [sys.executable, "-P", "-m", "hammer.cli", *spec.args]
         log.info("starting %s: %s", spec.name, " ".join(cmd))
         rp.proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                    env=self._env, close_fds=True)

@@ -25,14 +25,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from deploy.roles import write_env_spec
-from deploy.settings import RuntimeSettings
-from deploy.supervisor import RoleSpec, Supervisor
-from protocol.access import LAUNCHER
-from protocol.schemas import Control, Heartbeat
-from protocol.session import HammerSession, free_loopback_port
-from runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
-from runtime.heartbeats import HeartbeatLedger
+from hammer.deploy.roles import write_env_spec
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.supervisor import RoleSpec, Supervisor
+from hammer.protocol.access import LAUNCHER
+from hammer.protocol.schemas import Control, Heartbeat
+from hammer.protocol.session import HammerSession, free_loopback_port
+from hammer.runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
+from hammer.runtime.heartbeats import HeartbeatLedger
 
 log = logging.getLogger("hammer.up")
 
@@ -74,7 +74,7 @@ def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> l
     """Every process `hammer up` starts. Local agents: one process each, or agent pools of
     `settings.agents_per_process` agents (`hammer local --agents`), one process and one event loop
     each; a pool's `members` are the liveliness names of its agents."""
-    from protocol.access import pool_name
+    from hammer.protocol.access import pool_name
 
     rd = ["--run-dir", str(run_dir)]
     specs = [RoleSpec("learner", ["learner", *rd])]
@@ -97,7 +97,7 @@ def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> l
 def resolve_agents_per_process(cfg, settings: RuntimeSettings) -> RuntimeSettings:
     """`agents_per_process=0` (the default) becomes the machine's choice (auto_agents_per_process),
     written into runtime.json so every role of the run (and its access rules) agrees on the pools."""
-    from deploy.settings import auto_agents_per_process
+    from hammer.deploy.settings import auto_agents_per_process
 
     if settings.agents_per_process:
         return settings
@@ -123,10 +123,10 @@ SESSION_LEFTOVERS = ("host_state", "linksteps", "counters")
 def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
     import shutil
 
-    from envs.registry import make_vec_env
-    from learning.config import ConfigError
-    from learning.run_env import check_env_fits
-    from learning.rundir import RunDir
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.config import ConfigError
+    from hammer.learning.run_env import check_env_fits
+    from hammer.learning.rundir import RunDir
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
     spec = env.spec
@@ -149,7 +149,7 @@ def resume_point(run_dir: Path) -> int:
     """The latest update with both a learner checkpoint and the env host's state. The two are
     written at the same points (every checkpoint_every updates) by different processes, so a kill
     between them leaves one without the other."""
-    from env_host.checkpoint import host_state_updates
+    from hammer.env_host.checkpoint import host_state_updates
 
     ckpt_dir = Path(run_dir) / "checkpoints"
     learner = {int(p.stem[5:]) for p in ckpt_dir.glob("ckpt_*.json")} if ckpt_dir.is_dir() else set()
@@ -168,10 +168,10 @@ def prepare_resume(cfg, settings: RuntimeSettings, run_dir: Path) -> RuntimeSett
     a step counter above any step the killed session can have reached: at most checkpoint_every x
     rollout_steps vector steps after its latest host state (an env host writes one at every
     checkpoint point, including the one it resumes from, before stepping)."""
-    from env_host.checkpoint import host_state_updates, read_host_state
-    from faults.chaos import parse_chaos
-    from faults.steplog import STEP_LOG_DIR
-    from learning.rundir import RunDir
+    from hammer.env_host.checkpoint import host_state_updates, read_host_state
+    from hammer.faults.chaos import parse_chaos
+    from hammer.faults.steplog import STEP_LOG_DIR
+    from hammer.learning.rundir import RunDir
 
     if settings.mode != "train":
         raise UpError(f"{run_dir}: only a training run can be resumed (runtime.json has mode={settings.mode})")
@@ -243,7 +243,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     specs = role_specs(cfg, run_dir, settings)
     external = external_commands(cfg, run_dir, settings.external, settings)
     if chaos is None and settings.chaos:
-        from faults.chaos import ChaosScheduler
+        from hammer.faults.chaos import ChaosScheduler
 
         chaos = ChaosScheduler.from_strings(settings.chaos)
         chaos.bind_pools(specs)
@@ -419,9 +419,9 @@ def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transp
     keep the files they were given), and RUN/access_control.json, the rules every process applies
     (a client in another language inserts it into its Zenoh config; docs/wire-format.md). Returns
     the launcher's own secured transport."""
-    from protocol.access import LAUNCHER, access_control, role_names
-    from protocol.identity import create_identities, has_identities, identity_dir
-    from protocol.keys import Keys
+    from hammer.protocol.access import LAUNCHER, access_control, role_names
+    from hammer.protocol.identity import create_identities, has_identities, identity_dir
+    from hammer.protocol.keys import Keys
 
     roles = role_names(cfg.n_agents, pools=settings.pools(cfg.n_agents), router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
@@ -434,7 +434,7 @@ def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transp
 def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str, int] | None = None):
     """links.json: per-link counters from every role's final counters (or last heartbeat), plus the
     chaos events that fired; the launcher's own rejections under `launcher`."""
-    from faults.links import collect_role_counters, link_table
+    from hammer.faults.links import collect_role_counters, link_table
 
     roles = collect_role_counters(run_dir, board.last_by_pid)
     if launcher_rejections:
@@ -447,7 +447,7 @@ def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str
 
 def _verdict(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, links: dict, roles: dict) -> dict:
     """summary.json (and env_summary.json) gain `degraded`, its reasons and the rejections per role."""
-    from faults.links import degraded_reasons, rejections
+    from hammer.faults.links import degraded_reasons, rejections
 
     steps = int(roles.get("env", {}).get("step", 0)) - (settings.resume_step or 0)
     reasons = degraded_reasons(roles, links, max(steps, 0) * cfg.num_envs * cfg.n_agents,
@@ -464,7 +464,7 @@ def _verdict(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, links
 def _write_episode_links(run_dir: Path, links: list[str]) -> None:
     """episode_links.csv gets the per-episode link columns: the roles' step logs (RUN/linksteps)
     summed over each episode's steps (faults.episode_links). Every role has stopped by now."""
-    from faults.episode_links import write_episode_links
+    from hammer.faults.episode_links import write_episode_links
 
     try:
         write_episode_links(run_dir, links)

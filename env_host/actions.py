@@ -18,10 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from faults.steplog import StepLog, column
-from protocol.schemas import Action
-from protocol.session import Subscription
+from hammer.faults.steplog import StepLog, column
+from hammer.protocol.schemas import Action
+from hammer.protocol.session import Subscription
 
 log = logging.getLogger("hammer.env")
 

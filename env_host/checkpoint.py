@@ -20,8 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
-from learning.rundir import RunDir, fsync_file
+from hammer.learning.rundir import RunDir, fsync_file
 
 HOST_STATE_DIR = "host_state"
 EPISODE_LINKS = "episode_links.csv"

@@ -25,22 +25,21 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
-from env_host import checkpoint
-from env_host.actions import ActionCollector, StepActions
-from env_host.checkpoint import EpisodeRows, HostState
-from envs.base import VecEnv, VecStep
-from envs.local_view import local_view_from_config
-from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
-from learning.central_acting import zero_prev_actions
-from learning.config import RunConfig
-from learning.rollout import RolloutWriter, next_prev_actions
-from learning.rundir import RunDir
-from learning.sampling import env_reset_seed
-from protocol.rollout_layout import RolloutLayout
-from protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
-from protocol.session import HammerSession, burst_express
-from runtime.role import Role, process_cpu_s
+from hammer.env_host import checkpoint
+from hammer.env_host.actions import ActionCollector, StepActions
+from hammer.env_host.checkpoint import EpisodeRows, HostState
+from hammer.envs.base import VecEnv, VecStep
+from hammer.envs.local_view import local_view_from_config
+from hammer.faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
+from hammer.learning.central_acting import zero_prev_actions
+from hammer.learning.config import RunConfig
+from hammer.learning.rollout import RolloutWriter, next_prev_actions
+from hammer.learning.rundir import RunDir
+from hammer.learning.sampling import env_reset_seed
+from hammer.protocol.rollout_layout import RolloutLayout
+from hammer.protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
+from hammer.protocol.session import HammerSession, burst_express
+from hammer.runtime.role import Role, process_cpu_s
 
 TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
 

@@ -23,8 +23,7 @@ import re
 from typing import Any
 
 import numpy as np
-
-from envs.description import EnvConfigError
+from hammer.envs.description import EnvConfigError
 
 ORDER = ("gray", "resize", "flatten", "one_hot", "pad", "agent_id")
 _RESIZE = re.compile(r"^resize:(\d+)x(\d+)$")

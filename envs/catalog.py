@@ -17,9 +17,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from envs.base import VecEnv
-from envs.description import EnvConfigError, EnvDescription
-from envs.pettingzoo_vec import PettingZooVecEnv
+from hammer.envs.base import VecEnv
+from hammer.envs.description import EnvConfigError, EnvDescription
+from hammer.envs.pettingzoo_vec import PettingZooVecEnv
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ _PETTINGZOO: dict[str, _Entry] = {
         "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
         "pettingzoo.sisl.multiwalker.multiwalker_base:MultiWalkerEnv",
         "SISL multiwalker_v9, paper settings (continuous, 500 steps, fallen walkers removed)",
-        wrap="envs.multiwalker_direct:wrap_if_exact",
+        wrap="hammer.envs.multiwalker_direct:wrap_if_exact",
     ),
     "mw-pettingzoo": _Entry(
         "pettingzoo.sisl.multiwalker_v9", "parallel_env", "n_walkers", _MW_DEFAULTS,
@@ -70,7 +70,7 @@ def env_names() -> list[str]:
 
 def env_descriptions() -> dict[str, str]:
     """One line per registered name (each builds at any N), for `hammer envs list` and error messages."""
-    from envs.rware_vec import ABOUT
+    from hammer.envs.rware_vec import ABOUT
 
     return {"cn": _CN_ABOUT, **{n: e.about for n, e in _PETTINGZOO.items()}, "rware": ABOUT}
 
@@ -187,14 +187,14 @@ def parallel_env_factory(desc: EnvDescription) -> tuple[Callable[[], Any], str, 
 def _adapted(factory: Callable[[], Any], desc: EnvDescription) -> Callable[[], Any]:
     if not desc.adapters:
         return factory
-    from envs.adapters import apply_adapters
+    from hammer.envs.adapters import apply_adapters
 
     return lambda: apply_adapters(factory(), desc.adapters)
 
 
 def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:
     """The in-process VecEnv for `desc`; also what each worker of `SubprocVecEnv` runs on its slice."""
-    from envs.rware_vec import build_rware, is_rware
+    from hammer.envs.rware_vec import build_rware, is_rware
 
     if is_rware(desc.name):
         return build_rware(desc, num_envs, index_offset)
@@ -210,7 +210,7 @@ def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> V
 
 def build_cn(n_agents: int, num_envs: int, kwargs: dict[str, Any], workers: int) -> VecEnv:
     """The vectorised CN. It steps all K copies in one numpy program, so workers would only add IPC."""
-    from envs.spread import VecSimpleSpread
+    from hammer.envs.spread import VecSimpleSpread
 
     valid = _kwarg_names(VecSimpleSpread)
     if valid is not None:

@@ -12,8 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from envs.description import EnvConfigError, EnvDescription
+from hammer.envs.description import EnvConfigError, EnvDescription
 
 
 @dataclass
@@ -41,12 +40,11 @@ class CheckReport:
 
 def check_env(name: str, env_kwargs: dict[str, Any], adapters: list[str] | None, n_agents: int,
               seconds: float = 1.5) -> CheckReport:
+    from hammer.envs.adapters import needed_adapters
+    from hammer.envs.catalog import parallel_env_factory
+    from hammer.envs.registry import make_vec_env
+    from hammer.envs.rware_vec import is_rware, settings_from
     from pettingzoo import AECEnv
-
-    from envs.adapters import needed_adapters
-    from envs.catalog import parallel_env_factory
-    from envs.registry import make_vec_env
-    from envs.rware_vec import is_rware, settings_from
 
     rep = CheckReport(name)
     if name == "cn":

@@ -22,10 +22,10 @@ def register(app: typer.Typer) -> None:
     @envs.command("list")
     def list_envs(n_agents: int = typer.Option(DEFAULT_N, "--n-agents", "-n", help="team size N to describe")) -> None:
         """List env names with N, observation size and action space (builds one copy of each)."""
+        from hammer.envs.catalog import env_descriptions
+        from hammer.envs.registry import make_vec_env
         from rich.table import Table
 
-        from envs.catalog import env_descriptions
-        from envs.registry import make_vec_env
         from hammer.console import table_console
 
         table = Table("name", "N", "obs dim", "actions", "max steps", "description")
@@ -50,13 +50,13 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Build the env, print its agents, spaces, episode length and speed, and say which env_adapters it
         needs or why it cannot run."""
+        from hammer.envs.check import check_env
+        from hammer.envs.description import EnvConfigError
+        from hammer.learning.config import ConfigError, parse_override
         from rich.markup import escape
         from rich.table import Table
 
-        from envs.check import check_env
-        from envs.description import EnvConfigError
         from hammer.console import table_console
-        from learning.config import ConfigError, parse_override
 
         kwargs, adapters, n = {}, None, DEFAULT_N
         try:

@@ -122,7 +122,7 @@ def spread_hidden_fraction(radius: float, n_agents: int = 3, copies: int = 512, 
     """The fraction of relative-position slots (landmarks and other agents) a radius hides over
     uniformly random play: the fixed x-axis of the dose-response study
     (docs/results/plan-dose-response.md), computed without any trained policy."""
-    from envs.spread import VecSimpleSpread
+    from hammer.envs.spread import VecSimpleSpread
 
     env = VecSimpleSpread(copies, n_agents=n_agents)
     obs, _ = env.reset(seed)

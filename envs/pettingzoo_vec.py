@@ -17,9 +17,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-
-from envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
-from envs.description import EnvConfigError
+from hammer.envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
+from hammer.envs.description import EnvConfigError
 
 ParallelEnvFactory = Callable[[], Any]
 

@@ -37,12 +37,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from envs.adapters import parse_adapters
-from envs.base import VecEnv
-from envs.catalog import build_cn, build_local, parallel_env_factory, valid_names
-from envs.description import EnvConfigError, EnvDescription
-from envs.rware_vec import is_rware, settings_from
-from envs.workers import SubprocVecEnv
+from hammer.envs.adapters import parse_adapters
+from hammer.envs.base import VecEnv
+from hammer.envs.catalog import build_cn, build_local, parallel_env_factory, valid_names
+from hammer.envs.description import EnvConfigError, EnvDescription
+from hammer.envs.rware_vec import is_rware, settings_from
+from hammer.envs.workers import SubprocVecEnv
 
 
 def make_vec_env(env: str, n_agents: int, num_envs: int, *, env_kwargs: dict[str, Any] | None = None,

@@ -30,9 +30,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
-from envs.description import EnvConfigError, EnvDescription
+from hammer.envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
+from hammer.envs.description import EnvConfigError, EnvDescription
 
 # (shelf_rows, shelf_columns) per size and the request-queue factor per difficulty, as rware/__init__.py
 # registers its gym ids (rware-<size>-<N>ag[-easy|-hard]-v2).
@@ -215,5 +214,5 @@ def build_rware(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> R
         import rware.warehouse  # noqa: F401
     except ImportError as e:
         raise EnvConfigError(f"env {desc.name!r}: the rware package is not installed ({e}); fix: "
-                             "pip install 'hammer[train]' (or pip install rware==2.0.0 --no-deps networkx)") from e
+                             "pip install 'hammer-marl[train]' (or pip install rware==2.0.0 --no-deps networkx)") from e
     return RwareVecEnv(settings_from(desc), num_envs, name=desc.name, index_offset=index_offset)

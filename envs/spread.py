@@ -46,8 +46,7 @@ and other agent at distance >= r. The env itself only validates the value.
 from __future__ import annotations
 
 import numpy as np
-
-from envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
+from hammer.envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
 
 # Physical constants of mpe2's World / simple_spread Scenario.
 DT = 0.1

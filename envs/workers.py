@@ -30,10 +30,9 @@ from typing import Any
 
 import msgpack
 import numpy as np
-
-from envs.base import EnvSpec, EpisodeStats, VecEnv, VecStep
-from envs.catalog import build_local
-from envs.description import EnvDescription
+from hammer.envs.base import EnvSpec, EpisodeStats, VecEnv, VecStep
+from hammer.envs.catalog import build_local
+from hammer.envs.description import EnvDescription
 
 _POLL_S = 0.5  # how often an idle worker checks that its parent is still alive
 

@@ -44,9 +44,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.metrics_csv import read_metrics_csv
-from experiments.train_stats import write_train_stats
+from hammer.experiments.metrics_csv import read_metrics_csv
+from hammer.experiments.train_stats import write_train_stats
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +106,7 @@ def partial_dir(archive: Path, name: str) -> Path:
 def latest_checkpoint(run_dir: Path) -> Path | None:
     """The run's newest complete checkpoint stem: the trainer's own rule (`RunDir.latest_checkpoint`,
     the JSON is written last and marks a complete pair)."""
-    from learning.rundir import RunDir
+    from hammer.learning.rundir import RunDir
 
     return RunDir(run_dir).latest_checkpoint()
 
@@ -178,10 +177,9 @@ def check_partial(src: Path, expected: dict | None = None) -> tuple[Path, str]:
     """Validate a snapshot before it is used; returns (checkpoint stem, metrics CSV text) or raises
     ValueError with a one-line reason. `expected` is the point's resolved config (model_dump): the
     snapshot must be a run of exactly that point."""
+    from hammer.learning.config import ConfigError, build_config, config_changes
     from safetensors import SafetensorError
     from safetensors.numpy import load_file
-
-    from learning.config import ConfigError, build_config, config_changes
 
     src = Path(src)
     try:

@@ -24,7 +24,7 @@ def _fail(msg: str) -> None:
 
 def _load(paths: list[Path]) -> list:
     """Every run under `paths`, or a one-line error."""
-    from experiments.runs import find_runs, load_run
+    from hammer.experiments.runs import find_runs, load_run
 
     try:
         loaded = [load_run(p) for p in find_runs(paths)]
@@ -78,7 +78,7 @@ def sweep(
     Re-running the same command skips finished runs, resumes interrupted ones from their last
     checkpoint and starts the rest. Each run is its own run directory under OUT.
     """
-    from experiments.sweep import (
+    from hammer.experiments.sweep import (
         duplicate_points,
         expand,
         parse_grid_overrides,
@@ -86,6 +86,7 @@ def sweep(
         run_sweep,
         snapshot_sweep,
     )
+
     from hammer.console import table_console
 
     console = table_console()
@@ -135,12 +136,12 @@ def _launcher(backend: str, ray_address: str | None, ray_cpus: float):
     if backend == "local":
         if ray_address is not None:
             _fail("--ray-address joins a Ray cluster; fix: add --backend ray")
-        from experiments.launch import LocalLauncher
+        from hammer.experiments.launch import LocalLauncher
 
         return LocalLauncher()
     if backend != "ray":
         _fail(f"--backend {backend!r}: expected local or ray")
-    from experiments.ray_backend import RayLauncher, RayUnavailable
+    from hammer.experiments.ray_backend import RayLauncher, RayUnavailable
 
     try:
         return RayLauncher(ray_address, ray_cpus)
@@ -151,9 +152,8 @@ def _launcher(backend: str, ray_address: str | None, ray_cpus: float):
 def _print_status(console, points, out: Path, archive: Path | None) -> None:
     from collections import Counter
 
+    from hammer.experiments.sweep import sweep_status
     from rich.table import Table
-
-    from experiments.sweep import sweep_status
 
     rows = sweep_status(points, out, archive)
     table = Table(title=f"{out}" + (f" (archive {archive})" if archive else ""), title_justify="left")
@@ -182,7 +182,7 @@ def plot(
              "95 % stratified-bootstrap CI (robust to one outlying seed).")] = "se",
 ) -> None:
     """Learning curves: paper metric vs episodes, one line per variant, a band over seeds."""
-    from experiments.plot import BANDS, plot_runs
+    from hammer.experiments.plot import BANDS, plot_runs
 
     if band not in BANDS:
         _fail(f"--band must be one of {', '.join(BANDS)}, got {band!r}")
@@ -220,7 +220,7 @@ def report(
     changed from their paper preset (e.g. `cn N=3 (lr_local=0.0001)`): runs are pooled as seeds
     only when nothing but the seed differs, and IL is compared within the same setting.
     """
-    from experiments.report import (
+    from hammer.experiments.report import (
         build_comparisons,
         build_rows,
         comparisons_from_plan,
@@ -248,7 +248,7 @@ def report(
     if out:
         out.write_text(md)
     if export:
-        from experiments.export import export_runs
+        from hammer.experiments.export import export_runs
 
         export_runs(loaded, export)
 
@@ -268,7 +268,14 @@ def dose(
 ) -> None:
     """Dose-response of hidden information (docs/results/plan-dose-response.md): Δ = IQM(variant) −
     IQM(IL) per obs_radius level with bootstrap CIs, and the slope of Δ on the fraction hidden."""
-    from experiments.dose import cells, dose_levels, dose_slope, learned_hidden_table, plot_dose, to_markdown
+    from hammer.experiments.dose import (
+        cells,
+        dose_levels,
+        dose_slope,
+        learned_hidden_table,
+        plot_dose,
+        to_markdown,
+    )
 
     loaded = _load(runs)
     measure = "final" if auc is None else "auc"
@@ -311,9 +318,9 @@ def diagnose(
     Reads the learner statistics from an archived run's train_stats.npz or a run directory's
     TensorBoard events (tb/); runs with neither show a dash.
     """
-    from experiments.diagnose import diagnose as diagnose_run
-    from experiments.diagnose import plot_diagnostics, to_markdown
-    from experiments.train_stats import load_train_stats
+    from hammer.experiments.diagnose import diagnose as diagnose_run
+    from hammer.experiments.diagnose import plot_diagnostics, to_markdown
+    from hammer.experiments.train_stats import load_train_stats
 
     loaded = _load(runs)
     try:
@@ -354,8 +361,8 @@ def messages(
     IQM difference, P(A > B) and Holm, and the team's paper-metric drop when one agent's message is cut."""
     import json
 
-    from experiments.messages import MessagesError
-    from experiments.messages_report import (
+    from hammer.experiments.messages import MessagesError
+    from hammer.experiments.messages_report import (
         analyse,
         figure_paths,
         method_header,
@@ -363,7 +370,7 @@ def messages(
         select_teams,
         to_markdown,
     )
-    from experiments.sweep import parse_seeds
+    from hammer.experiments.sweep import parse_seeds
 
     try:
         seeds = parse_seeds(eval_seeds)

@@ -12,11 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.plot import save_figure
-from experiments.report import final_performance
-from experiments.runs import Run, best_rolling, rolling_mean
-from experiments.train_stats import load_train_stats
+from hammer.experiments.plot import save_figure
+from hammer.experiments.report import final_performance
+from hammer.experiments.runs import Run, best_rolling, rolling_mean
+from hammer.experiments.train_stats import load_train_stats
 
 Stats = dict[str, tuple[np.ndarray, np.ndarray]]  # load_train_stats: {tag: (episodes, values)}
 

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.report import area_under_curve, final_performance
-from experiments.runs import Run
-from experiments.stats import REPS, SEED, iqm, iqm_difference_ci, welch_p
+from hammer.experiments.report import area_under_curve, final_performance
+from hammer.experiments.runs import Run
+from hammer.experiments.stats import REPS, SEED, iqm, iqm_difference_ci, welch_p
 
 
 @dataclass
@@ -62,7 +61,7 @@ def cells(runs: list[Run], measure: str = "final", last: int = 500, auc: int = 1
 
 
 def _hidden(radius: float | None) -> float:
-    from envs.local_view import spread_hidden_fraction
+    from hammer.envs.local_view import spread_hidden_fraction
 
     return 0.0 if radius is None else spread_hidden_fraction(radius)
 
@@ -71,8 +70,8 @@ def learned_hidden(run: Run, episodes: int = 100, seed: int = 0) -> float:
     """The fraction of relative-position slots the run's radius hides while its trained team plays
     (evaluation seed `seed`, its first `episodes` episodes, the runtime's acting): the plan's
     exploratory companion of the fixed random-play h (trained agents sit nearer their landmarks)."""
-    from envs.local_view import hidden_fraction
-    from experiments.messages import TeamActor
+    from hammer.envs.local_view import hidden_fraction
+    from hammer.experiments.messages import TeamActor
 
     radius = run_radius(run)
     if radius is None:
@@ -164,8 +163,7 @@ def plot_dose(levels: list[Level], out: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from experiments.plot import save_figure
+    from hammer.experiments.plot import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for variant in sorted({lv.variant for lv in levels}):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from experiments.runs import Run, rolling_mean
+from hammer.experiments.runs import Run, rolling_mean
 
 
 def export_runs(runs: list[Run], out: Path, window: int = 500, every: int = 250) -> None:

@@ -38,8 +38,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-
-from experiments.probes import FOLDS, cv_r2
+from hammer.experiments.probes import FOLDS, cv_r2
 
 PLAN_TARGETS = ("H_agents", "H_landmark", "H_shelf", "V")  # a team has those of its task (cn or rware)
 TARGETS = (*PLAN_TARGETS, "X_actions")
@@ -86,7 +85,7 @@ class TeamActor:
 
     def __init__(self, run: Path, need_messages: bool = True) -> None:
         """need_messages=False: also a team without messages (IL), for what it sees, not what it is told."""
-        from faults.sweep import team_source
+        from hammer.faults.sweep import team_source
 
         self.run = Path(run)
         self.data, self.policy_dir = team_source(self.run)
@@ -101,7 +100,7 @@ class TeamActor:
                              if cfg.wiring.has_central_network else None)
 
     def config(self, seed: int, episodes: int):
-        from faults.sweep import eval_config
+        from hammer.faults.sweep import eval_config
 
         return eval_config(self.run, episodes, seed)
 
@@ -110,7 +109,7 @@ class TeamActor:
         cfg = self.config(0, 1)
         if cfg.env == "cn":
             return (cfg.env_kwargs or {}).get("obs_radius")
-        from envs.registry import make_vec_env
+        from hammer.envs.registry import make_vec_env
 
         env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
         try:
@@ -127,11 +126,11 @@ class TeamActor:
                 ) -> Recording | np.ndarray:
         """The first `episodes` episodes of evaluation seed `seed` (the runtime's episode order), with the
         messages of the agents in `cut` replaced by zeros; the per-episode paper metric, or everything."""
-        from envs.local_view import local_view_from_config
-        from envs.registry import make_vec_env
-        from learning.central_acting import CentralActing, zero_prev_actions
-        from learning.rollout import next_prev_actions
-        from learning.sampling import ActingStreams, env_reset_seed
+        from hammer.envs.local_view import local_view_from_config
+        from hammer.envs.registry import make_vec_env
+        from hammer.learning.central_acting import CentralActing, zero_prev_actions
+        from hammer.learning.rollout import next_prev_actions
+        from hammer.learning.sampling import ActingStreams, env_reset_seed
 
         cfg = self.config(seed, episodes)
         env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs or None)
@@ -160,10 +159,9 @@ class TeamActor:
         return _episode_major(steps, spec.max_steps, episodes, metric) if record else metric
 
     def _networks(self, cfg, spec):
+        from hammer.learning.numpy_policy import NumpyCentralAgent
+        from hammer.local_agent.client import AgentSpec, LocalAgent
         from safetensors.numpy import load as load_safetensors
-
-        from learning.numpy_policy import NumpyCentralAgent
-        from local_agent.client import AgentSpec, LocalAgent
 
         agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
         for a in agents:
@@ -268,7 +266,7 @@ def warehouse_targets(full_obs: np.ndarray, layout: WarehouseLayout) -> dict[str
 def recording_targets(rec: Recording, radius: View) -> dict[str, Target]:
     """`hidden_targets` of every row (episode, step) of a recording, and the exploratory X_actions; for a
     warehouse team (`radius` is its layout) `warehouse_targets`."""
-    from envs.spread import _ACTION_FORCE, SENSITIVITY
+    from hammer.envs.spread import _ACTION_FORCE, SENSITIVITY
 
     e, t, n = rec.msgs.shape[:3]
     if isinstance(radius, WarehouseLayout):
@@ -349,8 +347,8 @@ def initial_central_weights(cfg) -> dict[str, np.ndarray]:
     """The central agent's weights before training: `learning.team.Team` builds the networks right after
     `torch.manual_seed(cfg.seed)`, so building it again gives the run's exact initialisation (its
     checkpoint 0; tests/test_messages.py compares)."""
-    from envs.registry import make_vec_env
-    from learning.team import Team
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.team import Team
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     try:
@@ -364,9 +362,9 @@ def initial_messages(actor: TeamActor, rec: Recording, seed: int = 0) -> np.ndar
     with the run's seed, so these are its exact initial weights) would have sent in the recorded states,
     sampled as it samples (rl: mean + msg_std × N(0, 1) clipped to [-1, 1]). A reference for the probe:
     any function of the global state carries some of what the receiver cannot see, learned or not."""
-    from learning.central_acting import CentralActing
-    from learning.config import build_config
-    from learning.numpy_policy import NumpyCentralAgent
+    from hammer.learning.central_acting import CentralActing
+    from hammer.learning.config import build_config
+    from hammer.learning.numpy_policy import NumpyCentralAgent
 
     cfg = build_config(actor.data)
     net = NumpyCentralAgent(initial_central_weights(cfg))
@@ -388,7 +386,7 @@ def team_key(actor: TeamActor, seeds: list[int], episodes: int) -> str:
 
 def analyse_team(run: Path, seeds: list[int], episodes: int, keep_episode: bool = False) -> dict:
     """Record, probe and cut one team; a JSON-ready dict (with one episode for the figure if asked)."""
-    from experiments.runs import load_run
+    from hammer.experiments.runs import load_run
 
     actor = TeamActor(run)
     info = load_run(run)

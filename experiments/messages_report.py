@@ -15,9 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.messages import FEATURES, PLAN_TARGETS, TARGETS, TESTED
-from experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, stratified_bootstrap_ci, welch_p
+from hammer.experiments.messages import FEATURES, PLAN_TARGETS, TARGETS, TESTED
+from hammer.experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, stratified_bootstrap_ci, welch_p
 
 ALPHA = 0.05
 # Probes beside the plan's, reported and never tested with it: the rl central policy's noise-free mean,
@@ -321,7 +320,7 @@ def select_teams(paths: list[Path], labels: list[str] | None = None) -> Teams:
     runs whose label (`experiments.runs.Run.label`, e.g. hammer-rl-m4) starts with one of them."""
     import json
 
-    from experiments.runs import Run, find_runs
+    from hammer.experiments.runs import Run, find_runs
 
     found = Teams([], [], [])
     for run in find_runs(paths):
@@ -345,7 +344,7 @@ def analyse(teams: list[Path], seeds: list[int], episodes: int, previous: list[d
     the teams to compute run in that many processes (each team's result does not depend on the others
     or on the order: the same JSON, tested). save(results so far) after each computed team, so an
     analysis cut short keeps what it finished (`hammer messages` re-reads it as its cache)."""
-    from experiments.messages import TeamActor, analyse_team, team_key
+    from hammer.experiments.messages import TeamActor, analyse_team, team_key
 
     cached = {r["key"]: r for r in previous or []}
     todo: dict[int, tuple[Path, bool]] = {}

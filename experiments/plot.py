@@ -8,8 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from experiments.runs import Run, group_runs, rolling_mean
+from hammer.experiments.runs import Run, group_runs, rolling_mean
 
 
 def seed_curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -48,7 +47,7 @@ def seed_band(runs: list[Run], window: int, band: str, stride_to: int = 3000
     if band == "se":
         x, mean, se = x[::stride], mean[::stride], se[::stride]
         return x, mean, mean - se, mean + se
-    from experiments.stats import iqm_band
+    from hammer.experiments.stats import iqm_band
 
     n = len(seed_curves(runs, window)[0])
     skip = first_plotted(window, n)

@@ -24,8 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.launch import THREAD_ENV
-from experiments.sweep import LOCK
+from hammer.experiments.launch import THREAD_ENV
+from hammer.experiments.sweep import LOCK
 
 EXTRA = "cluster"  # pyproject's optional extra that brings Ray
 STOP_GRACE_S = 15.0  # how long a cancelled task has to end its command before its worker is killed
@@ -57,7 +57,7 @@ def import_ray(loopback: bool):
         import ray
         from ray._private import ray_constants
     except ImportError:
-        raise RayUnavailable(f"--backend ray needs Ray, which is not installed; fix: pip install 'hammer[{EXTRA}]'"
+        raise RayUnavailable(f"--backend ray needs Ray, which is not installed; fix: pip install 'hammer-marl[{EXTRA}]'"
                              ) from None
     if loopback:
         ray_constants.ENABLE_RAY_CLUSTER = False  # read at import: set it too if Ray was imported before

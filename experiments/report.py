@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.runs import Run, best_rolling, group_runs
-from experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, welch_p
+from hammer.experiments.runs import Run, best_rolling, group_runs
+from hammer.experiments.stats import holm, iqm_ci, iqm_difference_ci, poi_ci, welch_p
 
 
 @dataclass

@@ -13,9 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
-from experiments.metrics_csv import read_metrics_csv
+from hammer.experiments.archive import METRICS_NPZ, PARTIAL, load_metrics_npz
+from hammer.experiments.metrics_csv import read_metrics_csv
 
 # Fields that never make two runs different comparisons: the seed, the fields `Run.label` shows
 # (variant, central mode, central network, message length) and those that change speed or bookkeeping, not learning.
@@ -27,8 +26,8 @@ _NOT_SETTING = frozenset({"env", "n_agents", "seed", "variant", "central_mode", 
 def _reference(env: str, n_agents: int) -> dict:
     """The resolved config of a run of this env and N with nothing overridden: its paper preset
     (cn3, cn5, mw3, mw5), or RunConfig's defaults for any other env and N."""
-    from learning.config import merge_config
-    from learning.presets import PRESETS
+    from hammer.learning.config import merge_config
+    from hammer.learning.presets import PRESETS
 
     preset = next((p for p, d in PRESETS.items() if d["env"] == env and d["n_agents"] == n_agents), None)
     return merge_config(preset=preset, extra={"env": env, "n_agents": n_agents}).model_dump(mode="json")
@@ -37,7 +36,7 @@ def _reference(env: str, n_agents: int) -> dict:
 def setting_changes(config: dict) -> list[str]:
     """`field=value` for every field of `config` that differs from its reference, by
     `learning.config.config_changes` (nested as `env_kwargs.field=value`), minus `_NOT_SETTING`."""
-    from learning.config import config_changes
+    from hammer.learning.config import config_changes
 
     try:
         ref = _reference(config.get("env"), config.get("n_agents"))

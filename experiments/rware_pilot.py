@@ -9,7 +9,7 @@ here. Deliveries per episode = the team return (rware's individual reward: +1 pe
   learning  for a variant and N: all 3 seeds' final > floor mean + 3 standard errors. Judged only
             for runs that finished their budget; unfinished runs are listed with how far they got.
 
-    .venv/bin/python -m experiments.rware_pilot docs/results/runs/rware-pilot \
+    .venv/bin/python -m hammer.experiments.rware_pilot docs/results/runs/rware-pilot \
         --floor-json docs/results/warehouse-random-floor.json --out docs/results/warehouse-pilot-table.md
 (`make paper-report` runs this; the floor is computed once, the first time, and kept in the JSON.)
 """
@@ -21,9 +21,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-
-from envs.registry import make_vec_env
-from experiments.runs import find_runs, load_run
+from hammer.envs.registry import make_vec_env
+from hammer.experiments.runs import find_runs, load_run
 
 
 def random_floor(n_agents: int, seed: int, episodes: int = 200, num_envs: int = 16) -> np.ndarray:

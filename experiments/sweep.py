@@ -24,7 +24,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from experiments.archive import (
+from hammer.experiments.archive import (
     Snapshot,
     archive_run,
     drop_partial,
@@ -34,7 +34,8 @@ from experiments.archive import (
     restore_partial,
     snapshot_run,
 )
-from experiments.launch import Job, Launcher, LocalLauncher
+from hammer.experiments.launch import Job, Launcher, LocalLauncher
+from hammer.protocol.ranges import parse_indices
 
 # Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
 VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
@@ -72,7 +73,7 @@ class SweepPoint:
 
     def expected_config(self, episodes: int | None) -> dict:
         """The RunConfig `hammer train` resolves for this point (as `train_args` would pass it)."""
-        from learning.config import merge_config
+        from hammer.learning.config import merge_config
 
         variant, _, mode = self.variant.partition("-")
         return merge_config(self.preset, None, [f"{k}={v}" for k, v in self.overrides],
@@ -81,15 +82,8 @@ class SweepPoint:
 
 
 def parse_seeds(text: str) -> list[int]:
-    """`0-4` or `0,2,5` → list of seeds."""
-    seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            lo, dash, hi = part.partition("-")
-            seeds += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
-    except ValueError:
-        raise ValueError(f"--seeds {text!r}: expected a range like 0-4 or a list like 0,1,2") from None
-    return seeds
+    """`0-4` or `0,2,5` -> sorted distinct seeds (protocol.ranges)."""
+    return parse_indices(text, "--seeds", what="seed")
 
 
 def parse_grid_overrides(items: list[str]) -> list[tuple[str, list[str]]]:
@@ -341,16 +335,16 @@ def _command(group: list[tuple[SweepPoint, Path]], st: str, budget: int | None) 
     or fresh points of one setting as a seed batch (their run directories created here first)."""
     p, run_dir = group[0]
     if len(group) == 1:
-        return ["-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
+        return ["-P", "-m", "hammer.cli", *(["train", "--resume", str(run_dir)] if st == "resume"
                                      else p.train_args(run_dir, budget))]
-    from learning.config import build_config
-    from learning.rundir import RunDir
+    from hammer.learning.config import build_config
+    from hammer.learning.rundir import RunDir
 
     for q, d in group:
         RunDir.create(d, build_config(q.expected_config(budget)))
     for _, d in group[1:]:
         _note(d / "train.log", f"seed batch: log in {run_dir / 'train.log'}")
-    return ["-m", "learning.seeds_cli", *(str(d) for _, d in group)]
+    return ["-P", "-m", "hammer.learning.seeds_cli", *(str(d) for _, d in group)]
 
 
 def _note(log: Path, line: str) -> None:
@@ -512,36 +506,67 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _holders(path: Path) -> list[int]:
+    try:
+        return [int(x) for x in path.read_text().split()]
+    except (OSError, ValueError):
+        return []
+
+
 def _held(run_dir: Path) -> bool:
     """Whether a live process (a sweep or its `hammer train` child) holds the run directory's lock."""
+    return any(_alive(pid) for pid in _holders(run_dir / LOCK))
+
+
+def _create(path: Path, text: str) -> bool:
+    """Create `path` holding `text` unless it exists, atomically: the file appears with its content
+    (a hard link of a finished temporary file), so no other sweep ever reads it empty."""
+    tmp = path.with_name(f"{LOCK}.{os.getpid()}.tmp")
+    tmp.write_text(text)
     try:
-        holders = [int(x) for x in (run_dir / LOCK).read_text().split()]
-    except (OSError, ValueError):
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
         return False
-    return any(_alive(pid) for pid in holders)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _lock(run_dir: Path, child: int | None = None) -> bool:
     """Claim a run directory for this sweep process (and, once started, its `hammer train` child),
     so that several sweeps over one directory (e.g. one per core, or a restarted one next to a
     still-running child) never run the same point twice. A lock whose processes are all gone is
-    stale and taken over. Returns False if a live process holds it."""
+    stale and taken over. Returns False if a live process holds it.
+
+    Every step is atomic: the lock appears with its pids in it (`_create`), the child's pid is added
+    by replacing the file whole, and a stale lock is moved aside by one rename before it is taken
+    over, so of two sweeps that both found it stale only one moves it; the other then finds the
+    winner's lock and backs off (a lock it moved by mistake, taken meanwhile, goes back)."""
     path = run_dir / LOCK
     me = f"{os.getpid()} {child or ''}".strip()
     if child is not None:  # we hold it already: record the child too
-        path.write_text(me)
+        tmp = path.with_name(f"{LOCK}.{os.getpid()}.tmp")
+        tmp.write_text(me)
+        os.replace(tmp, path)
         return True
-    for _ in range(2):
+    for _ in range(3):
+        if _create(path, me):
+            return True
+        if _held(run_dir):
+            return False
+        aside = path.with_name(f"{LOCK}.stale-{os.getpid()}")
         try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            if _held(run_dir):
-                return False
-            path.unlink(missing_ok=True)  # stale: its sweep and child are gone
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(me)
-        return True
+            os.rename(path, aside)  # stale: its sweep and child are gone
+        except FileNotFoundError:
+            continue  # another sweep moved it first
+        if any(_alive(pid) for pid in _holders(aside)):  # a live lock taken between our check and the move
+            try:
+                os.link(aside, path)
+            except FileExistsError:
+                pass
+            aside.unlink(missing_ok=True)
+            return False
+        aside.unlink(missing_ok=True)
     return False
 
 

@@ -22,8 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from experiments.metrics_csv import read_metrics_csv
+from hammer.experiments.metrics_csv import read_metrics_csv
 
 TRAIN_STATS_NPZ = "train_stats.npz"
 PREFIX = "train/"  # only the learners' statistics; speed and running means are elsewhere

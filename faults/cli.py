@@ -51,8 +51,8 @@ def sweep_command(
 ) -> None:
     """Evaluate trained teams (real runtime, frozen weights) under a grid of message drop rates and
     delays, several seeds each; writes a CSV, a markdown table and a plot with the IL reference line."""
-    from faults.sweep import grid, run_sweep
-    from serve.bundle import BundleError, is_bundle, load_bundle
+    from hammer.faults.sweep import grid, run_sweep
+    from hammer.serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     teams = dict(_team_arg(r) for r in runs)
@@ -95,11 +95,11 @@ def eval_command(
     import json
     import time
 
-    from deploy.up import UpError, launch
-    from faults.chaos import ChaosSpecError, parse_chaos
-    from faults.spec import FaultSpecError, build_plan
-    from faults.sweep import eval_config, team_source
-    from serve.bundle import BundleError, is_bundle, load_bundle
+    from hammer.deploy.up import UpError, launch
+    from hammer.faults.chaos import ChaosSpecError, parse_chaos
+    from hammer.faults.spec import FaultSpecError, build_plan
+    from hammer.faults.sweep import eval_config, team_source
+    from hammer.serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -112,7 +112,7 @@ def eval_command(
         _fail(str(e))
     path = run_dir or run.parent / f"{run.name}-eval-{time.strftime('%Y%m%d-%H%M%S')}"
     if is_bundle(run):  # served as `hammer serve` serves it: the bundle's fallback applies
-        from serve.cli import serve_settings
+        from hammer.serve.cli import serve_settings
 
         try:
             settings, _ = serve_settings(load_bundle(run), path.name, fault, fault_seed, chaos, runtime)
@@ -136,8 +136,7 @@ def eval_command(
 def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | None, runtime: list[str] | None):
     """RuntimeSettings of the evaluation of a run directory's final/ policy (default fallback)."""
     import yaml
-
-    from deploy.settings import RuntimeSettings
+    from hammer.deploy.settings import RuntimeSettings
 
     rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
           "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
@@ -149,6 +148,6 @@ def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | Non
     try:
         return RuntimeSettings.model_validate(rt)
     except ValueError as e:
-        from deploy.cli import settings_error
+        from hammer.deploy.cli import settings_error
 
         _fail(settings_error(e))

@@ -23,9 +23,8 @@ import logging
 from pathlib import Path
 
 import numpy as np
-
-from faults.links import LINK_IDS
-from faults.steplog import STEP_LOG_DIR
+from hammer.faults.links import LINK_IDS
+from hammer.faults.steplog import STEP_LOG_DIR
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from faults.spec import LINKS
+from hammer.faults.spec import LINKS
 
 LINK_IDS = {link: link.replace("->", "_") for link in LINKS}
 _FAULT_FIELDS = ("matched", "sent", "dropped", "duplicated", "delayed", "reordered")

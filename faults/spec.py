@@ -23,9 +23,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from hammer.protocol.fault_injection import FaultRule, FaultSpec
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-
-from protocol.fault_injection import FaultRule, FaultSpec
 
 LINKS: dict[str, str] = {
     "env->central": "env/state",

@@ -19,10 +19,9 @@ Torch-free: the local-agent client uses it.
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
-from faults.links import LINK_IDS, link_of_pattern
+from hammer.faults.links import LINK_IDS, link_of_pattern
 
 EVENTS = ("sent", "dropped", "duplicated", "delivered", "late", "duplicate", "fallbacks", "defaults")
 STEP_LOG_DIR = "linksteps"
@@ -44,7 +43,6 @@ class StepLog:
         self.columns = list(columns)
         self._index = {c: j for j, c in enumerate(self.columns)}
         self._pending: dict[int, list[int]] = {}
-        self._last_flush = time.monotonic()
         self.path: Path | None = None
         if directory is not None:
             Path(directory).mkdir(parents=True, exist_ok=True)
@@ -62,17 +60,12 @@ class StepLog:
 
     def flush(self) -> None:
         """Append the pending rows (one write, so a kill tears at most the last line)."""
-        self._last_flush = time.monotonic()
         if self.path is None or not self._pending:
             return
         text = "".join(f"{s},{','.join(map(str, row))}\n" for s, row in sorted(self._pending.items()))
         self._pending.clear()
         with open(self.path, "a") as f:
             f.write(text)
-
-    def maybe_flush(self, every_s: float = 1.0) -> None:
-        if time.monotonic() - self._last_flush >= every_s:
-            self.flush()
 
 
 class LoggedPublisher:

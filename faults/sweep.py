@@ -61,7 +61,7 @@ class PointResult:
 def team_source(run: Path) -> tuple[dict, Path]:
     """(config fields, policy directory) of a trained team: a bundle (`hammer export`, checked whole)
     or a run directory (its final/ policy)."""
-    from serve.bundle import is_bundle, load_bundle
+    from hammer.serve.bundle import is_bundle, load_bundle
 
     run = Path(run)
     if is_bundle(run):
@@ -77,7 +77,7 @@ def team_source(run: Path) -> tuple[dict, Path]:
 def eval_config(run: Path, episodes: int, seed: int):
     """The trained team's config for evaluation: its task and networks, a new seed and budget,
     no message dropout (the evaluation's faults come from the fault layer)."""
-    from learning.config import build_config
+    from hammer.learning.config import build_config
 
     data, _ = team_source(run)
     data.update(episodes=episodes, seed=seed, msg_dropout=0.0)
@@ -88,9 +88,9 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
     """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
     served as `hammer serve` serves it (serve.cli.serve_settings: its fallback applies); a run directory
     with the default fallback."""
-    from deploy.settings import RuntimeSettings
-    from faults.spec import FaultPlan, LinkFault
-    from serve.bundle import is_bundle, load_bundle
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.faults.spec import FaultPlan, LinkFault
+    from hammer.serve.bundle import is_bundle, load_bundle
 
     run = Path(p.run)
     links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
@@ -98,7 +98,7 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
     faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
     run_id = p.name.replace(".", "_")[:64]
     if is_bundle(run):
-        from serve.cli import serve_settings
+        from hammer.serve.cli import serve_settings
 
         base, _ = serve_settings(load_bundle(run), run_id, runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
         return base.model_copy(update=faults)
@@ -107,7 +107,7 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
 
 
 def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000) -> PointResult:
-    from deploy.up import launch
+    from hammer.deploy.up import launch
 
     run = Path(p.run)
     trained, _ = team_source(run)

@@ -43,15 +43,15 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
 
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
-    from benchmarks import cli as benchmarks_cli
-    from deploy import cli as deploy_cli
-    from deploy.hub import hub_command
-    from envs import cli as envs_cli
-    from experiments import cli as experiments_cli
-    from faults import cli as faults_cli
-    from learning import cli as learning_cli
-    from protocol import cli as protocol_cli
-    from serve import cli as serve_cli
+    from hammer.benchmarks import cli as benchmarks_cli
+    from hammer.deploy import cli as deploy_cli
+    from hammer.deploy.hub import hub_command
+    from hammer.envs import cli as envs_cli
+    from hammer.experiments import cli as experiments_cli
+    from hammer.faults import cli as faults_cli
+    from hammer.learning import cli as learning_cli
+    from hammer.protocol import cli as protocol_cli
+    from hammer.serve import cli as serve_cli
 
     app.command("hub")(hub_command)
     for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli,
@@ -63,7 +63,8 @@ _register_all()
 
 
 # Installed by the `train` extra only: a base (edge) install has none of them.
-TRAIN_ONLY = {"torch", "pettingzoo", "mpe2", "matplotlib", "tensorboard", "psutil", "scipy", "gymnasium", "pymunk"}
+TRAIN_ONLY = {"torch", "pettingzoo", "mpe2", "matplotlib", "tensorboard", "psutil", "scipy", "gymnasium", "pymunk",
+              "PIL"}
 
 
 def main() -> None:
@@ -77,7 +78,7 @@ def main() -> None:
         if root not in TRAIN_ONLY:
             raise
         typer.secho(f"error: this command needs the training install ({root} is not installed); "
-                    "fix: pip install 'hammer[train]'", fg=typer.colors.RED, err=True)
+                    "fix: pip install 'hammer-marl[train]'", fg=typer.colors.RED, err=True)
         sys.exit(2)
 
 

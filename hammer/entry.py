@@ -18,7 +18,7 @@ def is_edge(argv: list[str]) -> bool:
 def main() -> None:
     argv = sys.argv[1:]
     if is_edge(argv):
-        from local_agent.edge import main as edge
+        from hammer.local_agent.edge import main as edge
 
         sys.exit(edge(argv[1:]))
     from hammer.cli import main as cli

@@ -12,10 +12,9 @@ from contextlib import contextmanager
 
 import numpy as np
 import torch
-
-from envs.base import EnvSpec
-from learning.learner import TeamLearner
-from learning.team import Team
+from hammer.envs.base import EnvSpec
+from hammer.learning.learner import TeamLearner
+from hammer.learning.team import Team
 
 
 class RemoteRollout:

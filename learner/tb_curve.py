@@ -16,10 +16,9 @@ import time
 from collections import deque
 
 import numpy as np
-
-from envs.base import EpisodeTracker
-from learning.config import RunConfig
-from learning.rundir import RunDir
+from hammer.envs.base import EpisodeTracker
+from hammer.learning.config import RunConfig
+from hammer.learning.rundir import RunDir
 
 
 class TrainCurve:

@@ -29,20 +29,19 @@ import time
 from typing import Any
 
 import numpy as np
+from hammer.envs.base import EnvSpec
+from hammer.learner.remote_rollout import BehaviourSnapshots, RemoteRollout
+from hammer.learner.tb_curve import TrainCurve
+from hammer.learning.config import RunConfig
+from hammer.learning.host_info import host_info
+from hammer.learning.learner import TeamLearner
+from hammer.learning.rundir import RunDir
+from hammer.protocol.rollout_layout import RolloutLayout
+from hammer.protocol.schemas import Dims, ExperienceChunk, Weights
+from hammer.protocol.session import QUEUE_DEPTH, HammerSession
+from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.role import Role
 from safetensors.numpy import save as save_safetensors
-
-from envs.base import EnvSpec
-from learner.remote_rollout import BehaviourSnapshots, RemoteRollout
-from learner.tb_curve import TrainCurve
-from learning.config import RunConfig
-from learning.host_info import host_info
-from learning.learner import TeamLearner
-from learning.rundir import RunDir
-from protocol.rollout_layout import RolloutLayout
-from protocol.schemas import Dims, ExperienceChunk, Weights
-from protocol.session import QUEUE_DEPTH, HammerSession
-from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
-from runtime.role import Role
 
 
 def weights_blob(params: dict[str, np.ndarray]) -> bytes:

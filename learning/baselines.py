@@ -48,7 +48,7 @@ def baselines() -> list[Baseline]:
 
 def preset_of(cfg: Any) -> str | None:
     """The preset whose env a config runs (same env, team size and env kwargs), else None."""
-    from learning.config import PRESETS, preset_dict
+    from hammer.learning.config import PRESETS, preset_dict
 
     for name in PRESETS:
         p = preset_dict(name)

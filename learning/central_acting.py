@@ -13,12 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from envs.base import EnvSpec
-from learning.config import RunConfig
-from learning.numpy_policy import gaussian_logp_of_draw
-from learning.sampling import ActingStreams
-from learning.variant import Wiring
+from hammer.envs.base import EnvSpec
+from hammer.learning.config import RunConfig
+from hammer.learning.numpy_policy import gaussian_logp_of_draw
+from hammer.learning.sampling import ActingStreams
+from hammer.learning.variant import Wiring
 
 Forward = Callable[[np.ndarray], np.ndarray]
 

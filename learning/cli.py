@@ -45,8 +45,8 @@ def train_command(
              "--resume or --branch")] = None,
 ) -> None:
     """Train a HAMMER team (or a baseline) in-process; writes a run directory."""
-    from learning.config import ConfigError, build_config, merge_config
-    from learning.rundir import RunDir
+    from hammer.learning.config import ConfigError, build_config, merge_config
+    from hammer.learning.rundir import RunDir
 
     if variant in ("hammer-rl", "hammer-backprop"):  # as `hammer sweep --variants` spells them
         mode = variant.split("-")[1]
@@ -54,7 +54,7 @@ def train_command(
             _fail(f"--variant {variant} with --central-mode {central_mode}: they disagree; fix: drop --central-mode")
         variant, central_mode = "hammer", mode
     if seeds is not None:
-        from learning.seeds_cli import train_seeds_command
+        from hammer.learning.seeds_cli import train_seeds_command
 
         train_seeds_command(seeds, preset, variant, central_mode, episodes, config, set_ or [], out, name,
                             conflicts={"--seed": seed, "--run-dir": run_dir, "--resume": resume, "--branch": branch},
@@ -93,8 +93,8 @@ def train_command(
             if "HAMMER_TORCH_THREADS" in os.environ and not any(s.startswith("torch_threads") for s in set_ or []):
                 extra["torch_threads"] = int(os.environ["HAMMER_TORCH_THREADS"])
             cfg = merge_config(preset, config, set_ or [], extra)
-        from envs.registry import EnvConfigError
-        from learning.run_env import check_env_fits, make_env
+        from hammer.envs.registry import EnvConfigError
+        from hammer.learning.run_env import check_env_fits, make_env
 
         try:  # build the env first so a bad env name/kwarg fails before any file is written
             env = make_env(cfg)
@@ -116,6 +116,7 @@ def train_command(
 
 
 def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
+    from hammer.learning.trainer import train
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -125,8 +126,6 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
         TimeElapsedColumn,
         TimeRemainingColumn,
     )
-
-    from learning.trainer import train
 
     console = Console(stderr=True)
     console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
@@ -169,13 +168,18 @@ def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
     done, elapsed = episodes - e0, time.monotonic() - t0
     if done <= 0 or elapsed <= 0:
         return "-"
-    left = max(0, budget - episodes) * elapsed / done
-    return time.strftime("%H:%M:%S", time.gmtime(left))
+    return hms(max(0, budget - episodes) * elapsed / done)
+
+
+def hms(seconds: float) -> str:
+    """h:mm:ss with as many hours as it takes (26:03:00, not the 02:03:00 a clock shows after 24 h)."""
+    s = int(seconds)
+    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
     """The result among the preset's references and what to run next (shared by both runners)."""
-    from learning.baselines import in_context
+    from hammer.learning.baselines import in_context
 
     line = in_context(cfg, metric)
     if line:

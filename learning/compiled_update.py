@@ -16,13 +16,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from hammer.learning.ppo import PPOUpdater
 from torch import nn
 from torch.optim.adam import adam as functional_adam
 
-from learning.ppo import PPOUpdater
-
 if TYPE_CHECKING:
-    from learning.learner import TeamLearner
+    from hammer.learning.learner import TeamLearner
 
 # cpp_wrapper: the graph's glue code (buffer allocation, size asserts, kernel calls) in C++ instead
 # of Python, which is a large part of a call at these sizes.

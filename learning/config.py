@@ -14,10 +14,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from hammer.learning.presets import PRESETS
+from hammer.learning.variant import Wiring
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-
-from learning.presets import PRESETS
-from learning.variant import Wiring
 
 Variant = Literal["hammer", "il", "random", "centralized"]
 CentralMode = Literal["rl", "backprop"]
@@ -203,6 +202,17 @@ def preset_dict(name: str) -> dict[str, Any]:
     return d
 
 
+def _merge(data: dict[str, Any], layer: dict[str, Any]) -> None:
+    """`layer` over `data`, mapping into mapping: a YAML `env_kwargs: {n_walkers: 3}` over the mw3
+    preset changes n_walkers and keeps the preset's other env_kwargs, as `--set env_kwargs.n_walkers=3` does."""
+    for key, value in layer.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = copy.deepcopy(data[key])
+            _merge(data[key], value)
+        else:
+            data[key] = value
+
+
 def merge_config(
     preset: str | None = None,
     file: str | Path | None = None,
@@ -216,8 +226,8 @@ def merge_config(
     if preset:
         data.update(preset_dict(preset))
     if file:
-        data.update(load_yaml(file))
-    data.update({k: v for k, v in (extra or {}).items() if v is not None})
+        _merge(data, load_yaml(file))
+    _merge(data, {k: v for k, v in (extra or {}).items() if v is not None})
     for item in overrides or []:
         keys, value = parse_override(item)
         node = data

@@ -14,12 +14,11 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from envs.base import EnvSpec
-from learning.compiled_update import CompiledUpdate
-from learning.config import RunConfig
-from learning.networks import gaussian_logp
-from learning.ppo import (
+from hammer.envs.base import EnvSpec
+from hammer.learning.compiled_update import CompiledUpdate
+from hammer.learning.config import RunConfig
+from hammer.learning.networks import gaussian_logp
+from hammer.learning.ppo import (
     PPOUpdater,
     clipped_surrogate,
     gae,
@@ -29,10 +28,10 @@ from learning.ppo import (
     normalize_advantages,
     value_loss,
 )
-from learning.rollout import RolloutBuffer
-from learning.rundir import optimizer_from_tensors, optimizer_to_tensors
-from learning.sampling import MINIBATCH_STREAM, stream
-from learning.team import Team
+from hammer.learning.rollout import RolloutBuffer
+from hammer.learning.rundir import optimizer_from_tensors, optimizer_to_tensors
+from hammer.learning.sampling import MINIBATCH_STREAM, stream
+from hammer.learning.team import Team
 
 
 class TeamLearner:

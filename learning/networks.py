@@ -24,7 +24,7 @@ from torch import nn
 from torch.nn import functional as F
 
 if TYPE_CHECKING:
-    from learning.variant import Wiring
+    from hammer.learning.variant import Wiring
 
 
 def _init(layer: nn.Linear, std: float) -> nn.Linear:

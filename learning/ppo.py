@@ -14,8 +14,7 @@ from collections.abc import Iterable
 
 import numpy as np
 import torch
-
-from learning.fused_adam import fused_adam_step
+from hammer.learning.fused_adam import fused_adam_step
 
 
 def next_values(values: np.ndarray, last_values: np.ndarray, final_values: np.ndarray,

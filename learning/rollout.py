@@ -13,10 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from envs.base import EnvSpec, VecStep
-from learning.central_acting import encode_actions
-from protocol.rollout_layout import BUFFER, allocate
+from hammer.envs.base import EnvSpec, VecStep
+from hammer.learning.central_acting import encode_actions
+from hammer.protocol.rollout_layout import BUFFER, allocate
 
 
 class RolloutBuffer:

@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from hammer.learning.config import ConfigError, RunConfig, build_config, save_yaml
 from safetensors.numpy import save_file as save_numpy
-
-from learning.config import ConfigError, RunConfig, build_config, save_yaml
 
 if TYPE_CHECKING:  # torch is imported where checkpoints are made: the env host never needs it
     import torch
@@ -195,7 +194,7 @@ class RunDir:
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         """summary.json, with the machine's maths path (`learning.host_info`) under "host"."""
-        from learning.host_info import host_info
+        from hammer.learning.host_info import host_info
 
         summary = dict(summary, written_at=time.strftime("%Y-%m-%dT%H:%M:%S"), host=host_info())
         (self.path / "summary.json").write_text(json.dumps(summary, indent=1))

@@ -27,15 +27,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from hammer.learning.config import ConfigError, RunConfig, config_changes
+from hammer.learning.fused_adam import fused_adam_step
+from hammer.learning.ppo import clip_grad_norm_per_slice, minibatch_indices
+from hammer.learning.rundir import RunDir
+from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
+from hammer.learning.trainer import Progress, Trainer
+from hammer.protocol.ranges import parse_indices
 from torch import nn
 from torch.func import functional_call, grad, vmap
-
-from learning.config import ConfigError, RunConfig, config_changes
-from learning.fused_adam import fused_adam_step
-from learning.ppo import clip_grad_norm_per_slice, minibatch_indices
-from learning.rundir import RunDir
-from learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
-from learning.trainer import Progress, Trainer
 
 # Fields a seed batch may differ in: the seed itself and where the run is written.
 PER_SEED_FIELDS = frozenset({"seed", "out"})
@@ -43,22 +43,10 @@ PER_SEED_FIELDS = frozenset({"seed", "out"})
 
 def parse_seeds(text: str) -> list[int]:
     """`0-7`, `0,3,5` or `0-3,8` -> a sorted list of distinct seeds."""
-    seeds: set[int] = set()
     try:
-        for part in text.split(","):
-            part = part.strip()
-            if "-" in part:
-                lo, hi = (int(x) for x in part.split("-", 1))
-                if hi < lo:
-                    raise ValueError
-                seeds.update(range(lo, hi + 1))
-            elif part:
-                seeds.add(int(part))
-    except ValueError:
-        raise ConfigError(f"--seeds '{text}': expected seeds like 0-7 or 0,3,5; fix: e.g. --seeds 0-7") from None
-    if not seeds or min(seeds) < 0:
-        raise ConfigError(f"--seeds '{text}': needs at least one seed >= 0; fix: e.g. --seeds 0-7")
-    return sorted(seeds)
+        return parse_indices(text, "--seeds", what="seed")
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def check_batchable(cfgs: list[RunConfig]) -> None:
@@ -161,14 +149,6 @@ class SeedBatch:
         self._opt_from_seeds()
 
     # ----- batched forward passes ---------------------------------------------------------------
-    def _vmapped(self, fn: Callable[..., Any], *args: torch.Tensor) -> Any:
-        """fn (a function of the lead seed's networks) for every seed: slice s of each arg with
-        seed s's parameters."""
-        def one(params: dict[str, torch.Tensor], *a: torch.Tensor) -> Any:
-            return functional_call(self.call, params, (fn, *a))
-
-        return vmap(one)(self.params, *args)
-
     @torch.no_grad()
     def _act(self, live: list[int], obs: list[np.ndarray], prev: list[np.ndarray], t: int) -> None:
         """One vector step for the live seeds: batched forward, per-seed sampling, env step, record."""

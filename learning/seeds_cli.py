@@ -12,11 +12,10 @@ import typer
 def train_seeds_command(seeds: str, preset: str | None, variant: str | None, central_mode: str | None,
                         episodes: int | None, config: Path | None, overrides: list[str], out: str | None,
                         name: str | None, conflicts: dict[str, Any], quiet: bool) -> None:
+    from hammer.learning.config import ConfigError, merge_config
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.seed_batch import parse_seeds, train_seeds
     from rich.console import Console
-
-    from learning.config import ConfigError, merge_config
-    from learning.rundir import RunDir
-    from learning.seed_batch import parse_seeds, train_seeds
 
     try:
         used = [flag for flag, value in conflicts.items() if value is not None]
@@ -57,9 +56,9 @@ def _final(summary: dict) -> str:
 def _check_env(cfg) -> None:
     """Build the env once and check it fits the config, so a bad env name or kwarg fails in one line
     before any run directory exists (as a solo `hammer train` does)."""
-    from envs.registry import EnvConfigError
-    from learning.config import ConfigError
-    from learning.run_env import check_env_fits, make_env
+    from hammer.envs.registry import EnvConfigError
+    from hammer.learning.config import ConfigError
+    from hammer.learning.run_env import check_env_fits, make_env
 
     try:
         env = make_env(cfg)
@@ -74,14 +73,14 @@ def _check_env(cfg) -> None:
 
 
 def main(argv: list[str]) -> int:
-    """`python -m learning.seeds_cli RUN_DIR...`: train run directories that hold only their config
+    """`python -m hammer.learning.seeds_cli RUN_DIR...`: train run directories that hold only their config
     (as `hammer sweep` creates them) as one seed batch. Exit status 0 when every seed finished."""
-    from learning.config import ConfigError
-    from learning.rundir import RunDir
-    from learning.seed_batch import train_seeds
+    from hammer.learning.config import ConfigError
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.seed_batch import train_seeds
 
     if not argv:
-        print("error: usage: python -m learning.seeds_cli RUN_DIR... (fresh run directories with a config.json)")
+        print("error: usage: python -m hammer.learning.seeds_cli RUN_DIR... (fresh run directories with a config.json)")
         return 2
     try:
         opened = [RunDir.open(p) for p in argv]

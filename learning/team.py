@@ -13,15 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-
-from envs.base import EnvSpec
-from envs.local_view import local_view_from_config
-from learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
-from learning.config import RunConfig
-from learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
-from learning.numpy_policy import gaussian_logp_of_draw, softmax
-from learning.run_env import check_env_fits
-from learning.sampling import ActingStreams, categorical_inverse_cdf
+from hammer.envs.base import EnvSpec
+from hammer.envs.local_view import local_view_from_config
+from hammer.learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
+from hammer.learning.config import RunConfig
+from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
+from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax
+from hammer.learning.run_env import check_env_fits
+from hammer.learning.sampling import ActingStreams, categorical_inverse_cdf
 
 
 class Team:

@@ -21,15 +21,14 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from envs.base import VecEnv, VecStep
-from learning.central_acting import CentralOut
-from learning.config import RunConfig
-from learning.learner import TeamLearner
-from learning.rollout import RolloutWriter
-from learning.run_env import make_env
-from learning.rundir import RunDir
-from learning.sampling import ActingStreams, env_reset_seed
+from hammer.envs.base import VecEnv, VecStep
+from hammer.learning.central_acting import CentralOut
+from hammer.learning.config import RunConfig
+from hammer.learning.learner import TeamLearner
+from hammer.learning.rollout import RolloutWriter
+from hammer.learning.run_env import make_env
+from hammer.learning.rundir import RunDir
+from hammer.learning.sampling import ActingStreams, env_reset_seed
 
 
 @dataclass

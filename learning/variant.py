@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from learning.config import RunConfig
+    from hammer.learning.config import RunConfig
 
 VARIANTS = ("hammer", "il", "random", "centralized")
 CENTRAL_MODES = ("rl", "backprop")

@@ -25,20 +25,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from hammer.faults.steplog import LoggedPublisher, StepLog, column
+from hammer.learning.numpy_policy import NumpyLocalPolicy, softmax
+from hammer.learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
+from hammer.protocol.schemas import Action, CentralMsg, Dims, LocalObs
+from hammer.protocol.session import HammerSession
+from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 from safetensors.numpy import load as load_safetensors
 
-from faults.steplog import LoggedPublisher, StepLog, column
-from learning.numpy_policy import NumpyLocalPolicy, softmax
-from learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
-from protocol.schemas import Action, CentralMsg, Dims, LocalObs
-from protocol.session import HammerSession
-from runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
-from runtime.role import Role
-from runtime.weights import WeightsIntake
-
 if TYPE_CHECKING:  # annotations only: the edge agent builds its AgentSpec without the (pydantic) RunConfig
-    from envs.base import EnvSpec
-    from learning.config import RunConfig
+    from hammer.envs.base import EnvSpec
+    from hammer.learning.config import RunConfig
 
 OBS_EVENTS = {e: column("env->local", e) for e in ("delivered", "late")}
 MSG_EVENTS = {e: column("central->local", e) for e in ("delivered", "late", "duplicate", "fallbacks")}
@@ -145,16 +144,6 @@ class LocalAgent:
             return categorical_inverse_cdf(softmax(out), self.rng.random(k))
         z = self.rng.standard_normal((k, self.spec.action_dim))
         return (out + self.policy.std * z).astype(np.float32)
-
-
-def load_policy_file(path: str) -> tuple[NumpyLocalPolicy, dict]:
-    """An exported policy (safetensors) for deployment without a learner; returns (policy, metadata)."""
-    from safetensors import safe_open  # numpy framework: no torch
-
-    with safe_open(path, framework="numpy") as f:
-        meta = dict(f.metadata() or {})
-        params = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open is not a dict
-    return NumpyLocalPolicy(params), meta
 
 
 class AgentSteps:

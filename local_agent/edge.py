@@ -47,7 +47,7 @@ def parser() -> argparse.ArgumentParser:
 
 def agent_spec(bundle, agent: int, seed: int | None):
     """(AgentSpec, num_envs) of agent `agent` from the manifest alone (no RunConfig)."""
-    from local_agent.client import AgentSpec
+    from hammer.local_agent.client import AgentSpec
 
     m, c = bundle.manifest, bundle.config_data
     env, w = m["env_spec"], bundle.wiring()
@@ -61,7 +61,7 @@ def agent_spec(bundle, agent: int, seed: int | None):
 def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtime: list[str]):
     """RuntimeSettings of the run to join: the served run's runtime.json if given, else the bundle's
     fallback; then the --runtime items. Raises ValueError with a one-line reason."""
-    from deploy.settings import RuntimeSettings
+    from hammer.deploy.settings import RuntimeSettings
 
     if settings_file is not None:
         try:
@@ -93,7 +93,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
                    identity: Path | None, insecure: bool = False):
     """The agent's Zenoh transport: --zenoh-config, or a peer connecting to --connect; TLS with the
     agent's identity files for a secure run."""
-    from protocol.session import TransportConfig
+    from hammer.protocol.session import TransportConfig
 
     if connect is None and zenoh_config is None:
         raise ValueError("--bundle needs --connect tcp/<hub>:<port> (or --zenoh-config): where the run's hub listens")
@@ -109,7 +109,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
     if identity is None:
         settings.refuse_plain_beyond_loopback(transport, insecure)
         return transport
-    from protocol.identity import identity_of
+    from hammer.protocol.identity import identity_of
 
     missing = identity_of(identity, role).missing()
     if missing:
@@ -123,7 +123,7 @@ def edge_inputs(bundle_path: Path, agent: int, run_id: str | None, connect: str 
                 seed: int | None, settings_file: Path | None = None, runtime: list[str] | None = None,
                 identity: Path | None = None, insecure: bool = False):
     """(settings, transport, AgentSpec, num_envs) of an edge agent; ValueError (BundleError) with the reason."""
-    from serve.bundle import load_bundle
+    from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle_path, check_config=False)
     spec, num_envs = agent_spec(b, agent, seed)
@@ -139,8 +139,8 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
     """Serve as the local agent until the run stops it; the counters go to the log (and the run directory).
     `start_step` / `start_version`: the run's known step and policy version (runtime.bounds), so a forged
     first step or weights cannot anchor the agent; an edge agent from a bundle knows neither."""
-    from local_agent.client import LocalAgentClient
-    from protocol.session import HammerSession
+    from hammer.local_agent.client import LocalAgentClient
+    from hammer.protocol.session import HammerSession
 
     name = f"local-{spec.agent}"
     try:
@@ -154,7 +154,7 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
             if run_dir is not None:
-                from faults.links import write_role_counters
+                from hammer.faults.links import write_role_counters
 
                 try:
                     write_role_counters(run_dir, name, os.getpid(), client.final_counters())
@@ -171,7 +171,7 @@ def setup_process(role: str) -> None:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
     logging.captureWarnings(True)
-    from deploy.supervisor import parent_watchdog
+    from hammer.deploy.supervisor import parent_watchdog
 
     parent_watchdog()
 

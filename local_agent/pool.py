@@ -34,37 +34,24 @@ import time
 from pathlib import Path
 
 import numpy as np
+from hammer.faults.links import flat_fault_counters
+from hammer.faults.steplog import LoggedPublisher, StepLog
+from hammer.learning.numpy_policy import NumpyLocalPolicy
+from hammer.local_agent.client import AgentSpec, AgentSteps, step_log_columns
+from hammer.protocol.access import pool_name
+from hammer.protocol.fault_injection import FaultInjector, FaultSpec
+from hammer.protocol.ranges import parse_indices
+from hammer.protocol.schemas import CentralMsg, Dims, Heartbeat, LocalObs
+from hammer.protocol.session import HammerSession, Inbox, burst_express, io_counters
+from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
+from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 from safetensors.numpy import load as load_safetensors
-
-from faults.links import flat_fault_counters
-from faults.steplog import LoggedPublisher, StepLog
-from learning.numpy_policy import NumpyLocalPolicy
-from local_agent.client import AgentSpec, AgentSteps, step_log_columns
-from protocol.access import pool_name
-from protocol.fault_injection import FaultInjector, FaultSpec
-from protocol.schemas import CentralMsg, Dims, Heartbeat, LocalObs
-from protocol.session import HammerSession, Inbox, burst_express, io_counters
-from runtime.bounds import DEFAULT_STEP_WINDOW
-from runtime.role import Role
-from runtime.weights import WeightsIntake
 
 
 def parse_agents(text: str, n_agents: int | None = None) -> list[int]:
     """`0-19`, `0,2,5-7` -> sorted agent indices; a ValueError names the field and the fix."""
-    out: set[int] = set()
-    for part in (p.strip() for p in text.split(",")):
-        try:
-            lo, _, hi = part.partition("-")
-            first, last = int(lo), int(hi or lo)
-        except ValueError:
-            raise ValueError(f"--agents {text!r}: {part!r} is not an index or a range; fix: e.g. --agents 0-19 "
-                             "or --agents 0,2,5-7") from None
-        if first < 0 or last < first:
-            raise ValueError(f"--agents {text!r}: range {part!r} must be FIRST-LAST with 0 <= FIRST <= LAST")
-        out.update(range(first, last + 1))
-    if n_agents is not None and max(out) >= n_agents:
-        raise ValueError(f"--agents {text!r}: this run has agents 0..{n_agents - 1}")
-    return sorted(out)
+    return parse_indices(text, "--agents", n_agents, "agent")
 
 
 class PooledAgent(AgentSteps):

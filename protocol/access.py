@@ -26,8 +26,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from protocol.identity import Identity
-from protocol.keys import Keys
+from hammer.protocol.identity import Identity
+from hammer.protocol.keys import Keys
 
 LAUNCHER = "launcher"
 HUB = "hub"  # the `hammer hub` router of a secure multi-machine run: relays the run's traffic
@@ -176,7 +176,7 @@ class SecureLink:
 
 def secure_link(identity_directory: Path, role: str, keys: Keys, n_agents: int, pools: Pools = (),
                 router: bool = False) -> SecureLink:
-    from protocol.identity import identity_of
+    from hammer.protocol.identity import identity_of
 
     return SecureLink(identity_of(identity_directory, role), access_control(keys, n_agents, pools, router))
 

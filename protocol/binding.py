@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import re
 
-from protocol.errors import KeyMismatchError
+from hammer.protocol.errors import KeyMismatchError
 
 _POOL_RANGE = re.compile(r"^locals-(\d+)-(\d+)$")
 _POOL_LIST = re.compile(r"^locals-(\d+(?:_\d+)*)$")

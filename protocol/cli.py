@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path | None, typer.Option("--out", help="write to this file instead of stdout")] = None,
     ) -> None:
         """Print (or write) the JSON Schema of every message type, keyed by type tag."""
-        from protocol.schemas import json_schemas
+        from hammer.protocol.schemas import json_schemas
 
         text = json.dumps(json_schemas(), indent=2)
         if out is None:

@@ -17,9 +17,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from pydantic import BaseModel, ValidationError
-
-from protocol.errors import (
+from hammer.protocol.errors import (
     REASON_TO_ERROR,
     DecodeError,
     FieldError,
@@ -30,7 +28,7 @@ from protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from protocol.schemas import (
+from hammer.protocol.schemas import (
     _NAME_OF,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
@@ -39,6 +37,7 @@ from protocol.schemas import (
     array_to_wire,
     fast_from_wire,
 )
+from pydantic import BaseModel, ValidationError
 
 Expected = type[Message] | tuple[type[Message], ...] | None
 

@@ -23,8 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from protocol.errors import DTypeError, FieldError, ShapeError
+from hammer.protocol.errors import DTypeError, FieldError, ShapeError
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-
-from protocol.schemas import (
+from hammer.protocol.schemas import (
     Action,
     CentralMsg,
     Control,

@@ -1,7 +1,8 @@
 """Pydantic models of every message the hammer roles exchange.
 
-Why batched: encoding plus decoding one small message costs ~15 us in Python, so one message
-carries all K env copies of one vector step (arrays have a leading K axis), never one per copy.
+Why batched: encoding and decoding a message has a fixed Python cost far above that of its bytes
+(`hammer bench codec` prints it), so one message carries all K env copies of one vector step
+(arrays have a leading K axis), never one per copy.
 
 numpy arrays are plain `np.ndarray` fields: code builds and reads messages with numpy directly.
 The same validators run when a message is built in Python and when it is decoded from the wire,
@@ -27,6 +28,8 @@ from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
+from hammer.protocol.errors import RangeError, ShapeError
+from hammer.protocol.rollout_layout import RolloutLayout
 from pydantic import (
     AllowInfNan,
     BaseModel,
@@ -42,9 +45,6 @@ from pydantic import (
     model_validator,
 )
 from pydantic_core import PydanticCustomError, core_schema
-
-from protocol.errors import RangeError, ShapeError
-from protocol.rollout_layout import RolloutLayout
 
 SCHEMA_VERSION = 3
 
@@ -226,11 +226,6 @@ class Dims:
     rollout_steps: int | None = None
 
     @classmethod
-    def from_spec(cls, spec: Any, num_envs: int | None = None, msg_dim: int | None = None) -> Dims:
-        """From an `envs.base.EnvSpec` (duck-typed so this module stays import-light)."""
-        return cls(num_envs, spec.n_agents, spec.obs_dim, msg_dim, spec.action_dim, spec.discrete)
-
-    @classmethod
     def from_layout(cls, layout: RolloutLayout) -> Dims:
         """What a learner declares: every size of the rollout layout."""
         return cls(layout.k, layout.n, layout.obs_dim, layout.msg_dim, layout.action_dim, layout.discrete, layout.t)
@@ -246,7 +241,8 @@ class Dims:
 
 def _min_max(a: np.ndarray) -> tuple[int, int]:
     """Min and max of a non-empty int array. Small arrays go through a list: a process that just
-    woke up runs numpy's reduction machinery cache-cold, ~60 us for min+max at K=32 vs ~35 us."""
+    woke up runs numpy's reduction machinery cache-cold, slower than a list's min and max at K=32
+    (`hammer bench codec --cold`)."""
     if a.size <= 1024:
         values = a.ravel().tolist()
         return min(values), max(values)
@@ -316,7 +312,7 @@ class Message(BaseModel):
     @classmethod
     def _check_env_idx(cls, a: np.ndarray) -> np.ndarray:
         if a.size:
-            idx = a.tolist()  # a Python set beats np.unique ~5x at K <= a few thousand
+            idx = a.tolist()  # a Python set beats np.unique at K up to a few thousand
             if min(idx) < 0:
                 raise _err("range", "env_idx", "env indices must be >= 0")
             if len(set(idx)) != len(idx):
@@ -643,9 +639,9 @@ def json_schemas() -> dict[str, Any]:
 # Fast path
 # --------------------------------------------------------------------------------------------
 #
-# Why: pydantic costs 40-150 us to validate one K=32 message of the control loop (core schema
-# walk, one Python validator call per array, np.unique, model validators), and every vector step
-# builds and decodes a dozen of them. The hot types below get a second, hand-written validator
+# Why: pydantic validating one K=32 message of the control loop costs several times what the
+# bytes do (core schema walk, one Python validator call per array, np.unique, model validators;
+# `hammer bench codec` prints both paths), and every vector step builds and decodes a dozen of them. The hot types below get a second, hand-written validator
 # that accepts a message only when every check of the pydantic model passes (dtypes, ranks,
 # shapes, byte counts, bool bytes, finiteness, ranges, unique env indices, strict ints and
 # strings, no unknown or missing fields). It never raises its own errors: whenever it declines,
@@ -665,7 +661,7 @@ class _Decline(Exception):
 
 _setattr = object.__setattr__
 _FAST_OK = sys.byteorder == "little"  # wire arrays are little-endian: decode them without a swap
-try:  # the C function behind np.count_nonzero, without its ~1 us dispatch wrapper (numpy >= 2)
+try:  # the C function behind np.count_nonzero, without its Python dispatch wrapper (numpy >= 2)
     from numpy._core.multiarray import count_nonzero as _count_nonzero
 except ImportError:  # pragma: no cover - numpy 1.x
     _count_nonzero = np.count_nonzero

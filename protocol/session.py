@@ -33,15 +33,14 @@ from pathlib import Path
 from typing import Any, Literal, Self
 
 import zenoh
+from hammer.protocol.access import SecureLink
+from hammer.protocol.binding import check_key, sender_of
+from hammer.protocol.codec import Expected, _expected_types, decode, encode
+from hammer.protocol.errors import ProtocolError, RunMismatchError
+from hammer.protocol.fault_injection import FaultInjector, FaultSpec
+from hammer.protocol.keys import Keys
+from hammer.protocol.schemas import Dims, Message
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
-from protocol.access import SecureLink
-from protocol.binding import check_key, sender_of
-from protocol.codec import Expected, _expected_types, decode, encode
-from protocol.errors import ProtocolError, RunMismatchError
-from protocol.fault_injection import FaultInjector, FaultSpec
-from protocol.keys import Keys
-from protocol.schemas import Dims, Message
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +50,8 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 # A burst of at least this many puts in a row (the env host's N observations, the central agent's N
 # messages, a pool's actions) goes out batched: every put but the last is not express, so Zenoh may
 # coalesce the puts to one peer into one batch and wake that peer once; the last put is express and
-# flushes. The loop floor (`hammer bench loop-floor`, pools, 2 cores, load ~25): N=50 p50 16-18 ->
-# 10-11 ms, N=20 6.6-7.1 -> 5.4-6.1 ms; N=3 unchanged (docs/scale.md). Shorter bursts stay express.
+# flushes: the loop floor of many agents falls, that of three does not (`hammer bench loop-floor`,
+# figures in docs/scale.md). Shorter bursts stay express.
 BATCH_MIN = 5
 
 

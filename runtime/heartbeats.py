@@ -21,7 +21,7 @@ import collections
 import logging
 from collections.abc import Callable
 
-from protocol.schemas import Heartbeat
+from hammer.protocol.schemas import Heartbeat
 
 log = logging.getLogger("hammer.launcher")
 

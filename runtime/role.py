@@ -31,11 +31,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from faults.links import flat_fault_counters
-from faults.steplog import StepLog
-from protocol.access import LAUNCHER
-from protocol.schemas import Control, Heartbeat, HeartbeatStatus
-from protocol.session import HammerSession, Subscription
+from hammer.faults.links import flat_fault_counters
+from hammer.faults.steplog import StepLog
+from hammer.protocol.access import LAUNCHER
+from hammer.protocol.schemas import Control, Heartbeat, HeartbeatStatus
+from hammer.protocol.session import HammerSession, Subscription
 
 STOP_COMMANDS = ("stop",)
 STOP_SENDERS = (LAUNCHER, "env")  # the senders (stamped by their sessions) whose stop ends a role

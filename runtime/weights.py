@@ -17,10 +17,10 @@ import logging
 import time
 from collections.abc import Callable
 
-from learning.policy_versions import WeightsInbox
-from protocol.schemas import Weights
-from protocol.session import HammerSession
-from runtime.bounds import DEFAULT_RESYNC_S, FIRST_VERSION_SLACK, StepWindow, version_ahead
+from hammer.learning.policy_versions import WeightsInbox
+from hammer.protocol.schemas import Weights
+from hammer.protocol.session import HammerSession
+from hammer.runtime.bounds import DEFAULT_RESYNC_S, FIRST_VERSION_SLACK, StepWindow, version_ahead
 
 log = logging.getLogger("hammer.weights")
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.schemas import SCHEMA_VERSION
+from hammer.protocol.schemas import SCHEMA_VERSION
 
 BUNDLE_FORMAT = 1
 MANIFEST = "manifest.json"
@@ -106,7 +106,7 @@ class Bundle:
         RunConfig is built (the edge agent never imports the training config)."""
         from types import SimpleNamespace
 
-        from learning.variant import Wiring
+        from hammer.learning.variant import Wiring
 
         c = self.config_data
         return Wiring.from_config(SimpleNamespace(**{k: c[k] for k in ("variant", "central_mode", "n_agents", "msg_dim")},
@@ -115,12 +115,12 @@ class Bundle:
 
     def config(self, **update: Any):
         """The team's RunConfig (pydantic, no torch), with fields replaced (e.g. episodes, seed)."""
-        from learning.config import build_config
+        from hammer.learning.config import build_config
 
         return build_config({**self.config_data, **update})
 
     def env_spec(self):
-        from envs.base import EnvSpec
+        from hammer.envs.base import EnvSpec
 
         d = self.env_spec_data
         return EnvSpec(**{**d, "agent_ids": tuple(d["agent_ids"])})
@@ -138,7 +138,7 @@ class Bundle:
 
 def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
     """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded back."""
-    from learning.config import build_config
+    from hammer.learning.config import build_config
 
     run_dir, out = Path(run_dir), Path(out)
     cfg_file, final = run_dir / "config.json", run_dir / "final"
@@ -198,7 +198,7 @@ def _env_spec(run_dir: Path, cfg) -> dict:
 
     d = _read_json(run_dir / "env_spec.json")
     if not d:
-        from envs.registry import make_vec_env
+        from hammer.envs.registry import make_vec_env
 
         env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
         d = asdict(env.spec)

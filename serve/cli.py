@@ -37,7 +37,7 @@ def export_command(
     variant, message length, fallback, source run and its final metric, sha256 of every file).
 
     `hammer serve BUNDLE` runs it; `hammer local --bundle BUNDLE` joins a run with it on an edge machine."""
-    from serve.bundle import BundleError, export_bundle
+    from hammer.serve.bundle import BundleError, export_bundle
 
     try:
         b = export_bundle(run, out, force=force)
@@ -55,10 +55,9 @@ def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_se
     """RuntimeSettings of a served bundle: eval mode, its policy, its fallback, faults, chaos, --runtime items.
     Raises ValueError with a one-line reason."""
     import yaml
-
-    from deploy.settings import RuntimeSettings
-    from faults.chaos import parse_chaos
-    from faults.spec import build_plan
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.faults.chaos import parse_chaos
+    from hammer.faults.spec import build_plan
 
     plan = build_plan(fault, fault_seed)
     for c in chaos or []:
@@ -107,10 +106,9 @@ def serve_command(
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`."""
+    from hammer.deploy.cli import _run_up
+    from hammer.serve.bundle import BundleError, load_bundle
     from rich.console import Console
-
-    from deploy.cli import _run_up
-    from serve.bundle import BundleError, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -126,7 +124,7 @@ def serve_command(
         if roles:
             settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
         if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
-            from protocol.session import free_loopback_port
+            from hammer.protocol.session import free_loopback_port
 
             settings = settings.model_copy(update={"hub_port": free_loopback_port()})
     except (BundleError, ValueError) as e:
@@ -153,7 +151,7 @@ def serve_command(
 def _check_env(bundle, cfg) -> None:
     """The env this machine builds from the manifest must have the dims the weights were trained on
     (an env library of another version may not)."""
-    from envs.registry import make_vec_env
+    from hammer.envs.registry import make_vec_env
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     try:
@@ -183,8 +181,8 @@ def push_command(
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
     same step boundary (the first step that names it). The dashboard shows the version per role."""
-    from serve.bundle import BundleError
-    from serve.push import push
+    from hammer.serve.bundle import BundleError
+    from hammer.serve.push import push
 
     try:
         e = push(bundle, to)
@@ -198,8 +196,8 @@ def rollback_command(
     run: Annotated[Path, typer.Argument(help="The run directory of a running `hammer serve`.")],
 ) -> None:
     """Return a served team to the policy in effect before its latest push (served as a new version)."""
-    from serve.bundle import BundleError
-    from serve.push import rollback
+    from hammer.serve.bundle import BundleError
+    from hammer.serve.push import rollback
 
     try:
         e = rollback(run)
@@ -225,8 +223,8 @@ def play_command(
     Needs the training install."""
     import os
 
-    from serve.bundle import BundleError, load_bundle
-    from serve.play import PlayError, play
+    from hammer.serve.bundle import BundleError, load_bundle
+    from hammer.serve.play import PlayError, play
 
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
     try:

@@ -29,7 +29,7 @@ def render_env(env_id: str, n_agents: int, env_kwargs: dict):
     """The PettingZoo parallel env of `env_id`, rendering rgb_array frames, and how many leading
     observation entries the team sees (None: all). cn's observe_others=false is mpe2's observation
     without its tail (other agents, communication): [v_i, p_i, landmarks - p_i] comes first in both."""
-    from envs.catalog import _PETTINGZOO
+    from hammer.envs.catalog import _PETTINGZOO
 
     if env_id not in RENDERED:
         raise PlayError(f"env {env_id!r}: play renders {', '.join((*RENDERED, 'rware'))}; fix: export a team of "
@@ -38,7 +38,7 @@ def render_env(env_id: str, n_agents: int, env_kwargs: dict):
     kwargs = dict(env_kwargs)
     keep = None
     if rename is not None and kwargs.get("observe_others", True) is False:
-        from envs.spread import spread_obs_dim
+        from hammer.envs.spread import spread_obs_dim
 
         kwargs.pop("observe_others")
         keep = spread_obs_dim(n_agents, observe_others=False)
@@ -139,9 +139,9 @@ def _warehouse_episodes(cfg, spec, episodes: int, max_steps: int, act):
     """(frame, messages (N, M), mean step reward, episode, step from 1) per step of `episodes` episodes of
     hammer's own rware env (one copy, reset with seed + episode like the PettingZoo path), acting with
     `act(obs, prev)`."""
-    from envs.registry import make_vec_env
-    from learning.central_acting import zero_prev_actions
-    from learning.rollout import next_prev_actions
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.central_acting import zero_prev_actions
+    from hammer.learning.rollout import next_prev_actions
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     sr = env.settings.sensor_range
@@ -163,14 +163,13 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
          fps: float = 8.0, stills: int = 4) -> dict:
     """Render `episodes` episodes of the bundle's team into the GIF `out` (a *.png: a sheet of `stills`
     frames spread over them); returns what was played."""
+    from hammer.envs.rware_vec import is_rware
+    from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
+    from hammer.learning.numpy_policy import numpy_central
+    from hammer.learning.sampling import ActingStreams
+    from hammer.local_agent.client import AgentSpec, LocalAgent
     from PIL import Image
     from safetensors.numpy import load as load_safetensors
-
-    from envs.rware_vec import is_rware
-    from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
-    from learning.numpy_policy import numpy_central
-    from learning.sampling import ActingStreams
-    from local_agent.client import AgentSpec, LocalAgent
 
     kind = Path(out).suffix.lower()
     if kind not in (".gif", ".png"):
@@ -192,7 +191,7 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
 
     frames: list[np.ndarray] = []
     if is_rware(cfg.env):
-        from envs.local_view import local_view_from_config
+        from hammer.envs.local_view import local_view_from_config
 
         view = local_view_from_config(cfg, spec)
 

@@ -5,9 +5,9 @@ policy, so the learner role is taken by this server: it publishes the exported
 `local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0. It republishes them
 for late joiners, with a back-off: after `republish_s`, then twice as long each time up to
 `republish_max_s`, and at once (the back-off starting over) whenever a role of the run declares its
-liveliness, i.e. a started or restarted agent is subscribed. Why: the weights (~39 kB local, ~53 kB
-central for cn3) go over every agent's link; republished every second they alone take ~314 kbit/s,
-more than a constrained radio link carries (docs/deploy.md, "Real links"). The files are sent as
+liveliness, i.e. a started or restarted agent is subscribed. Why: the weights go over every agent's
+link; republished every second they alone would take more than a constrained radio link carries
+(figures in docs/deploy.md, "Real links"). The files are sent as
 they are (safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
 
 Given the run directory, it also follows the run's update history (serve/push.py: `hammer push`,
@@ -20,9 +20,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from protocol.schemas import Weights
-from protocol.session import HammerSession
-from runtime.role import Role
+from hammer.protocol.schemas import Weights
+from hammer.protocol.session import HammerSession
+from hammer.runtime.role import Role
 
 
 class PolicyDirError(FileNotFoundError):
@@ -96,8 +96,8 @@ class PolicyServer(Role):
 
     def follow_history(self) -> None:
         """A new entry in RUN/pushes.json: load its weights (hash-checked) and publish them as its version."""
-        from serve.bundle import BundleError, sha256
-        from serve.push import read_history
+        from hammer.serve.bundle import BundleError, sha256
+        from hammer.serve.push import read_history
 
         try:
             entries = read_history(self.run_dir)

@@ -19,7 +19,7 @@ import shutil
 import time
 from pathlib import Path
 
-from serve.bundle import BundleError, load_bundle, sha256
+from hammer.serve.bundle import BundleError, load_bundle, sha256
 
 PUSHES = "pushes.json"
 POLICIES = "policies"
@@ -61,7 +61,7 @@ def _write_history(run_dir: Path, entries: list[dict]) -> None:
 
 def push(bundle_path: Path, run_dir: Path) -> dict:
     """Record `bundle_path` as the next policy version of the served run; returns the history entry."""
-    from learning.config import build_config
+    from hammer.learning.config import build_config
 
     run_dir = Path(run_dir)
     _, cfg_data = _served(run_dir)

@@ -9,7 +9,7 @@ import pytest
 def edge_venv(tmp_path_factory):
     """The python of a fresh venv with only the edge install of this checkout (benchmarks.edge_venv),
     built once per session; skipped only when the package index is unreachable."""
-    from benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+    from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
 
     try:
         return build_edge_venv(tmp_path_factory.mktemp("edge") / "venv", compile_pyc=False)  # quicker to build

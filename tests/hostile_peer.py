@@ -14,10 +14,10 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from hammer.protocol.codec import encode
+from hammer.protocol.schemas import Action, Control, LocalObs, Weights
+from hammer.protocol.session import HammerSession, TransportConfig
 
-from protocol.codec import encode
-from protocol.schemas import Action, Control, LocalObs, Weights
-from protocol.session import HammerSession, TransportConfig
 from tests.peer_thread import PeerThread
 
 FORGED_STOP_SENDERS = ("launcher", "env")  # the senders every role obeys (runtime.role.STOP_SENDERS)

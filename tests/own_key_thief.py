@@ -19,10 +19,10 @@ import time
 
 import msgpack
 import numpy as np
+from hammer.protocol.codec import encode
+from hammer.protocol.schemas import SCHEMA_VERSION, Action, LocalObs
+from hammer.protocol.session import HammerSession, TransportConfig
 
-from protocol.codec import encode
-from protocol.schemas import SCHEMA_VERSION, Action, LocalObs
-from protocol.session import HammerSession, TransportConfig
 from tests.peer_thread import PeerThread
 
 FLOOD_BYTES = 4 << 20

@@ -8,9 +8,9 @@ is well formed and passes validation: only the roles' bounds (runtime/bounds.py)
 from __future__ import annotations
 
 import numpy as np
+from hammer.protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
+from hammer.protocol.session import HammerSession, TransportConfig
 
-from protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
-from protocol.session import HammerSession, TransportConfig
 from tests.peer_thread import PeerThread
 
 HUGE_OBS_STEP = 2**64 - 1
@@ -79,9 +79,9 @@ class EarlyStallPeer(PeerThread):
         import json
         import time
 
-        from deploy.roles import read_env_spec
-        from deploy.settings import RuntimeSettings
-        from learning.config import build_config
+        from hammer.deploy.roles import read_env_spec
+        from hammer.deploy.settings import RuntimeSettings
+        from hammer.learning.config import build_config
 
         deadline = time.monotonic() + self.timeout_s
         while not (self.run_dir / "env_spec.json").is_file():  # written after runtime.json and config.json
@@ -91,9 +91,9 @@ class EarlyStallPeer(PeerThread):
                 read_env_spec(self.run_dir))
 
     def _forgeries(self, keys, cfg, spec) -> list[tuple[str, str, object]]:
-        from local_agent.client import AgentSpec
-        from protocol.rollout_layout import CHUNK, RolloutLayout
-        from protocol.schemas import ExperienceChunk
+        from hammer.local_agent.client import AgentSpec
+        from hammer.protocol.rollout_layout import CHUNK, RolloutLayout
+        from hammer.protocol.schemas import ExperienceChunk
 
         k, n = cfg.num_envs, cfg.n_agents
         idx = np.arange(k, dtype=np.int64)

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import pytest
-
-from benchmarks.loop_floor import measure
+from hammer.benchmarks.loop_floor import measure
 
 
 @pytest.mark.parametrize(("topology", "typed"), [("split", False), ("grouped", True)])

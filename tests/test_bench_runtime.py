@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmarks.runtime import _same_metrics, same_label
+from hammer.benchmarks.runtime import _same_metrics, same_label
 
 
 def _metrics(d: Path, values: list[float]) -> Path:

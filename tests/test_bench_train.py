@@ -2,9 +2,8 @@
 
 import math
 
+from hammer.benchmarks.train import print_table, run_bench
 from typer.testing import CliRunner
-
-from benchmarks.train import print_table, run_bench
 
 
 def test_bench_train_figures(capsys):

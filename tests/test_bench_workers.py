@@ -26,7 +26,7 @@ def test_every_design_steps_and_reports_a_speed():
 
 
 def test_slices_match_the_worker_split():
-    from envs.workers import slice_counts
+    from hammer.envs.workers import slice_counts
 
     assert slice_counts(8, 2) == [(0, 4), (4, 4)]
     assert slice_counts(7, 3) == [(0, 3), (3, 2), (5, 2)]

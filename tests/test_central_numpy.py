@@ -15,16 +15,16 @@ import time
 
 import numpy as np
 import pytest
+from hammer.envs.registry import make_vec_env
+from hammer.learner.worker import weights_blob
+from hammer.learning.config import merge_config
+from hammer.learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
+from hammer.learning.sampling import ActingStreams
+from hammer.learning.team import Team
+from hammer.protocol.schemas import CentralMsg, Control, ExperienceChunk, GlobalState, Weights
+from hammer.protocol.session import HammerSession, TransportConfig
 from safetensors.numpy import load as load_safetensors
 
-from envs.registry import make_vec_env
-from learner.worker import weights_blob
-from learning.config import merge_config
-from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
-from learning.sampling import ActingStreams
-from learning.team import Team
-from protocol.schemas import CentralMsg, Control, ExperienceChunk, GlobalState, Weights
-from protocol.session import HammerSession, TransportConfig
 from tests.runtime_helpers import ROOT
 
 STEPS = 6
@@ -118,10 +118,10 @@ def _check_acting(cfg) -> None:
 
 _SERVER = """
 import json, sys
-from envs.base import EnvSpec
-from learning.config import build_config
-from protocol.session import HammerSession, TransportConfig
-from central_agent.server import CentralServer
+from hammer.envs.base import EnvSpec
+from hammer.learning.config import build_config
+from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.central_agent.server import CentralServer
 
 args = json.loads(sys.argv[1])
 cfg = build_config(args["cfg"])

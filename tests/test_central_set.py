@@ -12,15 +12,14 @@ import csv
 import numpy as np
 import pytest
 import torch
+from hammer.envs.registry import make_vec_env
+from hammer.learner.worker import weights_blob
+from hammer.learning.config import ConfigError, merge_config
+from hammer.learning.networks import SetCentralAgent, make_central
+from hammer.learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import Trainer, train
 from safetensors.numpy import load as load_safetensors
-
-from envs.registry import make_vec_env
-from learner.worker import weights_blob
-from learning.config import ConfigError, merge_config
-from learning.networks import SetCentralAgent, make_central
-from learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
-from learning.rundir import RunDir
-from learning.trainer import Trainer, train
 
 
 def _net(n: int, obs_dim: int, act_dim: int, rl: bool) -> SetCentralAgent:

@@ -2,12 +2,12 @@
 
 import time
 
+from hammer.learning.baselines import PAPER_PRESETS, baselines, in_context, preset_of
+from hammer.learning.cli import eta
+from hammer.learning.config import PRESETS, merge_config
 from typer.testing import CliRunner
 
 from hammer.cli import app
-from learning.baselines import PAPER_PRESETS, baselines, in_context, preset_of
-from learning.cli import eta
-from learning.config import PRESETS, merge_config
 
 
 def test_every_preset_has_random_play_and_the_paper_presets_il_references():
@@ -25,6 +25,8 @@ def test_eta_is_the_time_left_at_this_session_rate():
     start = (time.monotonic() - 10.0, 100)  # 100 episodes in 10 s since the session started at episode 100
     assert eta(start, 200, 1200) in ("00:01:40", "00:01:39", "00:01:41")
     assert eta((time.monotonic(), 5), 5, 10) == "-"
+    slow = (time.monotonic() - 100.0, 0)  # one episode per 100 s, 1000 left: ~27.8 h, not a clock's 03:46
+    assert eta(slow, 1, 1001) in ("27:46:40", "27:46:39", "27:46:41")
 
 
 def test_train_says_what_will_run_and_what_to_do_next(tmp_path):

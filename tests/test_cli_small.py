@@ -1,11 +1,11 @@
 """Small things a newcomer sees: --version, the report's wording for one seed and short runs."""
 
 import numpy as np
+from hammer.experiments.plot import plot_runs, plotted_curve, seed_curves
+from hammer.experiments.report import Row, to_markdown
+from hammer.experiments.runs import Run
 from typer.testing import CliRunner
 
-from experiments.plot import plot_runs, plotted_curve, seed_curves
-from experiments.report import Row, to_markdown
-from experiments.runs import Run
 from hammer.cli import app
 
 

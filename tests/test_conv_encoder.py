@@ -4,12 +4,12 @@ twin (what a local agent runs, without torch) agree; a run on real images (pisto
 import numpy as np
 import pytest
 import torch
+from hammer.learning.config import ConfigError, merge_config
+from hammer.learning.networks import LocalPolicy
+from hammer.learning.numpy_policy import NumpyLocalPolicy
 from typer.testing import CliRunner
 
 from hammer.cli import app
-from learning.config import ConfigError, merge_config
-from learning.networks import LocalPolicy
-from learning.numpy_policy import NumpyLocalPolicy
 
 PISTONBALL = "pettingzoo.butterfly.pistonball_v6:parallel_env"
 

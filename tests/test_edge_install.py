@@ -9,15 +9,14 @@ from __future__ import annotations
 import subprocess
 
 import pytest
-
-from benchmarks.edge_venv import clean_env
-from deploy.up import launch
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
-from protocol.session import free_loopback_port
-from serve.bundle import export_bundle
-from serve.cli import serve_settings
+from hammer.benchmarks.edge_venv import clean_env
+from hammer.deploy.up import launch
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
+from hammer.protocol.session import free_loopback_port
+from hammer.serve.bundle import export_bundle
+from hammer.serve.cli import serve_settings
 
 pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
 
@@ -32,12 +31,15 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
     hammer = str(edge_venv.parent / "hammer")
     assert subprocess.run([hammer, "--help"], check=False, capture_output=True, env=env, cwd=tmp_path).returncode == 0
     r = subprocess.run([hammer, "train", "--episodes", "1"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
-    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer[train]'" in r.stderr
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
 
     run = tmp_path / "run"
     cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=24", "seed=2"])
     train(cfg, RunDir.create(run, cfg), tensorboard=False)
     bundle = export_bundle(run, tmp_path / "bundle")
+    r = subprocess.run([hammer, "play", str(bundle.path), "--out", "team.gif"], check=False, capture_output=True,
+                       text=True, env=env, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
     port = free_loopback_port()
     settings, _ = serve_settings(bundle, "edge-venv", runtime=[f"hub_port={port}"])
     edge = subprocess.Popen([hammer, "local", "--bundle", str(bundle.path), "--agent", "2", "--run-id", "edge-venv",
@@ -53,3 +55,48 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
     assert edge.returncode == 0, out
     assert "'steps': 50," in out and "'weights_loaded': 1" in out  # 16 episodes on 8 copies: 2 x 25 steps
     assert res.links["local->env"]["defaults"] == 0  # every action of agent 2 came from the edge venv in time
+
+
+def test_the_edge_install_runs_on_python_3_13(tmp_path):
+    """Debian 13's Python: the base install and an edge agent from it in a served run (skipped where
+    no python3.13 is on PATH)."""
+    import os
+    import shutil
+    from pathlib import Path
+
+    from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+
+    pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
+    found = [shutil.which("python3.13"), *map(str, sorted(pyenv.glob("3.13*/bin/python3.13")))]
+    works = [p for p in found if p and subprocess.run(
+        [p, "-c", "import sys; assert sys.version_info[:2] == (3, 13)"], check=False, capture_output=True,
+        env=clean_env()).returncode == 0]
+    if not works:
+        pytest.skip("no python3.13 interpreter (PATH, pyenv)")
+    py313 = works[0]
+    try:
+        py = build_edge_venv(tmp_path / "venv313", compile_pyc=False, python=py313)
+    except EdgeVenvError as e:
+        if e.offline:
+            pytest.skip(f"the package index is unreachable: {e}")
+        raise
+    env = clean_env()
+    assert subprocess.run([str(py), "-c", "import sys; assert sys.version_info[:2] == (3, 13)"], check=False,
+                          env=env).returncode == 0
+    run = tmp_path / "run"
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=8", "seed=2"])
+    train(cfg, RunDir.create(run, cfg), tensorboard=False)
+    bundle = export_bundle(run, tmp_path / "bundle")
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "edge-313", runtime=[f"hub_port={port}"])
+    edge = subprocess.Popen([str(py.parent / "hammer"), "local", "--bundle", str(bundle.path), "--agent", "0",
+                             "--run-id", "edge-313", "--connect", f"tcp/127.0.0.1:{port}"], env=env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        res = launch(bundle.config(episodes=8, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(0,))
+        out, _ = edge.communicate(timeout=30)
+    finally:
+        if edge.poll() is None:
+            edge.kill()
+    assert res.summary["completed"] and edge.returncode == 0, out
+    assert res.links["local->env"]["defaults"] == 0

@@ -6,10 +6,10 @@ import sys
 
 import numpy as np
 import pytest
+from hammer.envs.description import EnvConfigError
+from hammer.envs.registry import make_vec_env
 from typer.testing import CliRunner
 
-from envs.description import EnvConfigError
-from envs.registry import make_vec_env
 from hammer.cli import app
 
 PISTONBALL = "pettingzoo.butterfly.pistonball_v6:parallel_env"

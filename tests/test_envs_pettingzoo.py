@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hammer.envs.registry import make_vec_env
 from mpe2 import simple_spread_v3
 from pettingzoo.sisl import multiwalker_v9
-
-from envs.registry import make_vec_env
 
 MW_PAPER = {"position_noise": 1e-3, "angle_noise": 1e-3, "forward_reward": 1.0, "terminate_reward": -100.0,
             "fall_reward": -10.0, "terminate_on_fall": True, "remove_on_fall": True, "terrain_length": 200,
@@ -232,7 +231,7 @@ def test_step_before_reset_and_wrong_action_shape_are_clear_errors():
 def test_multiwalker_time_limit_is_a_truncation_not_a_termination():
     """multiwalker marks its max_cycles limit as a termination; the wrapper turns it into a
     truncation so learners bootstrap there (a fall before the limit stays a termination)."""
-    from envs.registry import make_vec_env
+    from hammer.envs.registry import make_vec_env
 
     env = make_vec_env("mw", 3, 1, env_kwargs={"max_cycles": 8, "terminate_on_fall": False})
     env.reset(0)

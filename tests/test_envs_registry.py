@@ -6,13 +6,12 @@ import inspect
 
 import numpy as np
 import pytest
+from hammer.envs.base import VecEnv
+from hammer.envs.catalog import _PETTINGZOO, env_descriptions, env_names
+from hammer.envs.description import EnvConfigError
+from hammer.envs.pettingzoo_vec import EnvSpaceError, PettingZooVecEnv
+from hammer.envs.registry import make_vec_env
 from pettingzoo.sisl.multiwalker import multiwalker_base
-
-from envs.base import VecEnv
-from envs.catalog import _PETTINGZOO, env_descriptions, env_names
-from envs.description import EnvConfigError
-from envs.pettingzoo_vec import EnvSpaceError, PettingZooVecEnv
-from envs.registry import make_vec_env
 
 
 def test_names_and_descriptions():
@@ -98,9 +97,8 @@ def test_errors_name_the_field_and_the_fix(call, exc, pattern):
 
 def test_cli_envs_list_shows_dims():
     import typer
+    from hammer.envs import cli
     from typer.testing import CliRunner
-
-    from envs import cli
 
     app = typer.Typer()
     cli.register(app)

@@ -14,9 +14,8 @@ import time
 import numpy as np
 import psutil
 import pytest
-
-from envs.registry import make_vec_env
-from envs.workers import SubprocVecEnv, WorkerError
+from hammer.envs.registry import make_vec_env
+from hammer.envs.workers import SubprocVecEnv, WorkerError
 
 FIELDS = ("obs", "final_obs", "reward", "terminated", "truncated", "active", "next_active", "done")
 
@@ -101,7 +100,7 @@ def test_no_stray_processes_after_close_and_gc():
 def test_workers_exit_when_the_parent_is_killed():
     code = textwrap.dedent("""
         import sys, time
-        from envs.registry import make_vec_env
+        from hammer.envs.registry import make_vec_env
         if __name__ == "__main__":
             v = make_vec_env("cn-mpe2", 3, 2, workers=2)
             v.reset(seed=0)

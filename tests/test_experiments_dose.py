@@ -4,10 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hammer.experiments.dose import cells, dose_levels, dose_slope, plot_dose, to_markdown
+from hammer.experiments.runs import find_runs, load_run
+from hammer.experiments.stats import iqm
 
-from experiments.dose import cells, dose_levels, dose_slope, plot_dose, to_markdown
-from experiments.runs import find_runs, load_run
-from experiments.stats import iqm
 from tests.runtime_helpers import hammer
 from tests.test_experiments_report import write_run
 
@@ -57,9 +57,9 @@ def test_trained_teams_hide_less_than_random_play_and_the_ends_are_exact():
     """The exploratory h under a trained team (its archived final/ weights, the runtime's acting): 1
     when nothing is visible, and below the random-play h at r = 0.6 (trained agents sit nearer their
     landmarks and each other), above 0."""
-    from envs.local_view import spread_hidden_fraction
-    from experiments.dose import learned_hidden
-    from experiments.runs import load_run
+    from hammer.envs.local_view import spread_hidden_fraction
+    from hammer.experiments.dose import learned_hidden
+    from hammer.experiments.runs import load_run
 
     archive = Path(__file__).resolve().parents[1] / "docs/results/runs/cn3-dose"
     blind = load_run(archive / "cn3-il-compile=true-env_kwargs_obs_radius=0.0-s0")

@@ -5,11 +5,10 @@ import json
 
 import numpy as np
 import pytest
+from hammer.experiments.plot import plot_runs
+from hammer.experiments.report import build_rows, to_markdown
+from hammer.experiments.runs import find_runs, load_run, rolling_mean
 from scipy import stats
-
-from experiments.plot import plot_runs
-from experiments.report import build_rows, to_markdown
-from experiments.runs import find_runs, load_run, rolling_mean
 
 
 def write_run(root, name, cfg, metric):
@@ -108,7 +107,7 @@ def test_missing_run_path_is_a_clear_error(tmp_path):
 
 
 def test_archived_runs_read_like_run_directories(runs_dir, tmp_path):
-    from experiments.archive import archive_run, is_archived
+    from hammer.experiments.archive import archive_run, is_archived
 
     archive = tmp_path / "archive"
     for p in find_runs([runs_dir]):
@@ -128,7 +127,7 @@ def test_archived_runs_read_like_run_directories(runs_dir, tmp_path):
 
 
 def test_only_finished_runs_are_archived(runs_dir, tmp_path):
-    from experiments.archive import archive_run
+    from hammer.experiments.archive import archive_run
 
     (runs_dir / "il-s0" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="only finished runs"):

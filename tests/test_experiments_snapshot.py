@@ -13,10 +13,9 @@ import sys
 import time
 
 import pytest
-
-from experiments.archive import PARTIAL, check_partial, is_archived, partial_dir
-from experiments.runs import find_runs
-from experiments.sweep import LOCK, expand, run_sweep, snapshot_sweep, state_of, sweep_status
+from hammer.experiments.archive import PARTIAL, check_partial, is_archived, partial_dir
+from hammer.experiments.runs import find_runs
+from hammer.experiments.sweep import LOCK, expand, run_sweep, snapshot_sweep, state_of, sweep_status
 
 EPISODES = 120  # 30 updates of 4 episodes; checkpoints every 2 updates
 

@@ -2,17 +2,15 @@
 
 import numpy as np
 import pytest
-from scipy import stats
-
-from experiments.report import (
+from hammer.experiments.report import (
     build_comparisons,
     build_rows,
     comparisons_from_plan,
     parse_comparisons,
     to_markdown,
 )
-from experiments.runs import find_runs, load_run
-from experiments.stats import (
+from hammer.experiments.runs import find_runs, load_run
+from hammer.experiments.stats import (
     holm,
     iqm,
     iqm_band,
@@ -21,6 +19,8 @@ from experiments.stats import (
     poi_ci,
     probability_of_improvement,
 )
+from scipy import stats
+
 from tests.test_experiments_report import runs_dir  # noqa: F401  (the fixture)
 
 
@@ -78,8 +78,8 @@ def test_report_lists_declared_comparisons_with_holm(runs_dir, tmp_path):  # noq
 
 
 def test_iqm_band_plot_centres_on_the_seed_iqm(runs_dir, tmp_path):  # noqa: F811
-    from experiments.plot import plot_runs, seed_band
-    from experiments.runs import rolling_mean
+    from hammer.experiments.plot import plot_runs, seed_band
+    from hammer.experiments.runs import rolling_mean
 
     runs = [load_run(p) for p in find_runs([runs_dir]) if "il-" in p.name]
     _x, centre, lo, hi = seed_band(runs, 100, "iqm")
@@ -107,7 +107,7 @@ def test_auc_is_the_mean_over_the_first_episodes(runs_dir):  # noqa: F811
 
 def test_report_digits_for_small_metrics():
     """--digits: the warehouse's deliveries per robot (~0.1) need more than two decimals."""
-    from experiments.report import Row, to_markdown
+    from hammer.experiments.report import Row, to_markdown
 
     rows = [Row("rware N=2", "il", 2, 2000, 0.1234, 0.0111, None, [0.1123, 0.1345])]
     assert "| 0.12 ± 0.01 |" in to_markdown(rows, 200)

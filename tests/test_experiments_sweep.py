@@ -4,8 +4,7 @@ import csv
 import json
 
 import pytest
-
-from experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, state_of
+from hammer.experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, state_of
 
 
 def _rows(run_dir):
@@ -47,7 +46,7 @@ def test_sweep_skips_finished_and_resumes_interrupted(tmp_path):
 
 def test_archived_runs_survive_a_fresh_sweep_directory(tmp_path):
     """A sweep archived into the repository continues from a clean clone (no run directories)."""
-    from experiments.archive import is_archived
+    from hammer.experiments.archive import is_archived
 
     pts = expand(["cn3"], ["il"], [0], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
     archive = tmp_path / "archive"
@@ -68,7 +67,7 @@ def test_a_point_held_by_a_live_sweep_is_not_run_twice(tmp_path):
     import subprocess
     import sys
 
-    from experiments.sweep import LOCK
+    from hammer.experiments.sweep import LOCK
 
     pts = expand(["cn3"], ["il"], [0], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
     run_dir = tmp_path / pts[0].name
@@ -87,10 +86,45 @@ def test_a_point_held_by_a_live_sweep_is_not_run_twice(tmp_path):
 
 def test_points_that_differ_only_in_a_field_their_variant_ignores_are_named():
     """The centralised wiring never reads the local view's radius: its runs at two radii are one run."""
-    from experiments.sweep import duplicate_points, expand
+    from hammer.experiments.sweep import duplicate_points, expand
 
     pts = expand(["cn3"], ["centralized", "il"], [0, 1], [("env_kwargs.obs_radius", ["0.3", "0.6"])])
     assert [(p.name, f) for p, f in duplicate_points(pts)] == [
         ("cn3-centralized-env_kwargs_obs_radius=0.6-s0", "env_kwargs.obs_radius"),
         ("cn3-centralized-env_kwargs_obs_radius=0.6-s1", "env_kwargs.obs_radius")]
     assert duplicate_points(expand(["cn3"], ["il", "hammer-rl"], [0], [("env_kwargs.obs_radius", ["0.3", "0.6"])])) == []
+
+
+def _contend(root: str, rounds: int, start_at: float, out) -> None:
+    """One competing sweep: try every round's fresh directory once; report the rounds it won."""
+    import time as t
+    from pathlib import Path as P
+
+    from hammer.experiments.sweep import _lock
+
+    while t.time() < start_at:
+        pass
+    out.put([r for r in range(rounds) if _lock(P(root) / f"r{r}")])
+
+
+def test_competing_sweeps_never_both_take_a_point(tmp_path):
+    """Four sweep processes race for the lock of each of 300 fresh points at once: each point is taken
+    exactly once (a lock used to appear empty for a moment, and a competitor read that as stale and
+    took it over)."""
+    import multiprocessing as mp
+    import time
+
+    rounds = 300
+    for r in range(rounds):
+        (tmp_path / f"r{r}").mkdir()
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    start_at = time.time() + 3.0  # every process imported and spinning before the first round
+    procs = [ctx.Process(target=_contend, args=(str(tmp_path), rounds, start_at, out)) for _ in range(4)]
+    for p in procs:
+        p.start()
+    won = [out.get(timeout=120) for _ in procs]
+    for p in procs:
+        p.join(30)
+    taken = sorted(r for w in won for r in w)
+    assert taken == list(range(rounds)), f"{len(taken) - len(set(taken))} points taken twice"

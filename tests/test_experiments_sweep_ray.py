@@ -21,11 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-from experiments.sweep import expand, run_sweep, state_of
+from hammer.experiments.sweep import expand, run_sweep, state_of
 
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
-                               reason="ray is not installed (pip install 'hammer[cluster]'; make test installs it)")
+                               reason="ray is not installed (pip install 'hammer-marl[cluster]'; make test installs it)")
 
 GRID = [("num_envs", ["4"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["2"])]
 GRID_ARGS = ["--grid", "num_envs=4", "--grid", "rollout_steps=25", "--grid", "checkpoint_every=2"]
@@ -158,7 +157,7 @@ def _trainers(out: Path) -> list:
     found = []
     for p in psutil.process_iter(["cmdline"]):
         cmd = p.info["cmdline"] or []
-        if any(a.startswith(str(out)) for a in cmd) and ("hammer.cli" in cmd or "learning.seeds_cli" in cmd):
+        if any(a.startswith(str(out)) for a in cmd) and ("hammer.cli" in cmd or "hammer.learning.seeds_cli" in cmd):
             found.append(p)
     return found
 
@@ -210,7 +209,7 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
 
 @needs_ray
 def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head, tmp_path):
-    from experiments.ray_backend import RayLauncher
+    from hammer.experiments.ray_backend import RayLauncher
 
     # Every point alone (--seed-batch 1): a seed batch is not bit-identical to solo runs over 100 updates,
     # and an interrupted batch resumes as solo runs.
@@ -245,7 +244,7 @@ def test_a_node_that_cannot_see_out_fails_the_run_saying_so(ray_head, tmp_path):
     run fails, and both the sweep's report and the run's train.log say why and what to do."""
     if ray_head.hidden is None:
         pytest.skip("needs `unshare --mount` (root) to give the Ray node a view of the disk without OUT")
-    from experiments.ray_backend import RayLauncher
+    from hammer.experiments.ray_backend import RayLauncher
 
     pts = expand(["cn3"], ["il"], [0], GRID, episodes=8)
     out = ray_head.hidden / "out"
@@ -277,7 +276,7 @@ def test_backend_flags_fail_in_one_line_naming_the_fix(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # what an install without the extra looks like to Python
     res = CliRunner().invoke(app, [*args, "--backend", "ray"])
     assert res.exit_code == 2, res.output
-    assert res.output.strip().count("\n") == 0 and "pip install 'hammer[cluster]'" in res.output
+    assert res.output.strip().count("\n") == 0 and "pip install 'hammer-marl[cluster]'" in res.output
     assert not (tmp_path / "o").exists()  # nothing started
 
 
@@ -286,8 +285,7 @@ def test_default_ray_is_a_private_instance_on_loopback(tmp_path):
     """No --ray-address: Ray starts on this machine for the sweep alone, every socket on 127.0.0.1,
     and stops with it."""
     import psutil
-
-    from experiments.ray_backend import RayLauncher
+    from hammer.experiments.ray_backend import RayLauncher
 
     pts = expand(["cn3"], ["il"], [0], GRID, episodes=8)
     before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. this module's Ray head
@@ -313,9 +311,8 @@ def test_stopping_a_ray_job_ends_its_command_while_connected(ray_head, tmp_path)
     only Ray's clean-up when the sweep disconnects: the command is gone while the sweep is still
     connected, and the job reports that it ended."""
     import psutil
-
-    from experiments.ray_backend import RayLauncher
-    from experiments.sweep import LOCK
+    from hammer.experiments.ray_backend import RayLauncher
+    from hammer.experiments.sweep import LOCK
 
     run_dir = tmp_path / "run"
     run_dir.mkdir()

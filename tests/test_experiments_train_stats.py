@@ -3,15 +3,14 @@ trainer runs with real TensorBoard event files."""
 
 import numpy as np
 import pytest
+from hammer.experiments.archive import archive_run
+from hammer.experiments.diagnose import DIAG_STATS, diagnose
+from hammer.experiments.runs import best_rolling, load_run, rolling_mean
+from hammer.experiments.train_stats import TRAIN_STATS_NPZ, load_train_stats, read_tensorboard
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
 from typer.testing import CliRunner
-
-from experiments.archive import archive_run
-from experiments.diagnose import DIAG_STATS, diagnose
-from experiments.runs import best_rolling, load_run, rolling_mean
-from experiments.train_stats import TRAIN_STATS_NPZ, load_train_stats, read_tensorboard
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
 
 SETS = ["num_envs=8", "rollout_steps=25", "epochs=2", "minibatches=2", "variant=hammer", "central_mode=rl",
         "checkpoint_every=3", "seed=2"]

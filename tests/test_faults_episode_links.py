@@ -10,8 +10,7 @@ import csv
 import time
 
 import numpy as np
-
-from faults.episode_links import (
+from hammer.faults.episode_links import (
     BASE_COLUMNS,
     EPISODE_EVENTS,
     episode_columns,
@@ -19,11 +18,11 @@ from faults.episode_links import (
     step_totals,
     write_episode_links,
 )
-from faults.links import flat_fault_counters
-from faults.spec import build_plan
-from faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
-from protocol.schemas import LocalObs
-from protocol.session import HammerSession, TransportConfig
+from hammer.faults.links import flat_fault_counters
+from hammer.faults.spec import build_plan
+from hammer.faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
+from hammer.protocol.schemas import LocalObs
+from hammer.protocol.session import HammerSession, TransportConfig
 
 LINKS = ["env->central", "env->local", "central->local", "local->env"]
 

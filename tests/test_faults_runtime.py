@@ -12,14 +12,13 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.up import launch
+from hammer.envs.registry import make_vec_env
+from hammer.faults.spec import build_plan
+from hammer.learning.config import merge_config
+from hammer.local_agent.client import AgentSpec, LocalAgent
 from safetensors.numpy import save_file
-
-from deploy.settings import RuntimeSettings
-from deploy.up import launch
-from envs.registry import make_vec_env
-from faults.spec import build_plan
-from learning.config import merge_config
-from local_agent.client import AgentSpec, LocalAgent
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -28,7 +27,7 @@ pytestmark = pytest.mark.timeout(120)
 def team_policy(tmp_path_factory) -> tuple[Path, object, object]:
     """An exported cn3 HAMMER policy whose actions clearly depend on the message (untrained
     weights, message inputs and central head scaled up), so "acted on zeros" is a real claim."""
-    from learning.team import Team
+    from hammer.learning.team import Team
 
     cfg = merge_config("cn3", overrides=["variant=hammer", "central_mode=backprop", "seed=3", "num_envs=16"])
     env = make_vec_env(cfg.env, cfg.n_agents, 1)
@@ -142,8 +141,8 @@ def test_killed_central_agents_fall_back_and_restart_resumes_messages(tmp_path, 
 
 
 def _episode_counts(run_dir: Path) -> tuple[list[dict], dict[str, np.ndarray]]:
-    from faults.episode_links import read_episodes, read_step_logs
-    from faults.steplog import STEP_LOG_DIR
+    from hammer.faults.episode_links import read_episodes, read_step_logs
+    from hammer.faults.steplog import STEP_LOG_DIR
 
     return read_episodes(run_dir / "episode_links.csv"), read_step_logs(run_dir / STEP_LOG_DIR)
 
@@ -154,8 +153,8 @@ def test_per_episode_link_counters_add_up_to_the_run_and_repeat_with_the_seed(tm
     each step, they agree with the env host's own per-copy counts, and repeat with the fault seed."""
     import json
 
-    from faults.episode_links import EPISODE_EVENTS, step_totals
-    from faults.links import LINK_IDS
+    from hammer.faults.episode_links import EPISODE_EVENTS, step_totals
+    from hammer.faults.links import LINK_IDS
 
     policy, cfg, _ = team_policy
     faults = ["central->local:drop=0.3", "local->env:drop=0.1"]

@@ -6,11 +6,10 @@ import signal
 from types import SimpleNamespace
 
 import pytest
-
-from faults.chaos import ChaosScheduler, ChaosSpecError, parse_chaos
-from faults.links import degraded_reasons, flat_fault_counters, link_of_pattern, link_table, rejections
-from faults.spec import FaultSpecError, build_plan, parse_link_fault
-from protocol.fault_injection import FaultInjector, key_matches
+from hammer.faults.chaos import ChaosScheduler, ChaosSpecError, parse_chaos
+from hammer.faults.links import degraded_reasons, flat_fault_counters, link_of_pattern, link_table, rejections
+from hammer.faults.spec import FaultSpecError, build_plan, parse_link_fault
+from hammer.protocol.fault_injection import FaultInjector, key_matches
 
 
 def test_link_fault_maps_to_the_link_keys_with_optional_agent():
@@ -127,7 +126,7 @@ def test_chaos_parse_and_schedule():
 def test_sweep_results_read_back_typed_and_aggregate(tmp_path):
     """sweep.csv round-trips to the same PointResults, so analyses of a finished sweep (e.g.
     docs/results/faults_ownobs.py) reuse `aggregate` instead of parsing the CSV again."""
-    from faults.sweep import PointResult, aggregate, read_results, write_outputs
+    from hammer.faults.sweep import PointResult, aggregate, read_results, write_outputs
 
     results = [PointResult(team=f"hammer-s{s}", variant="hammer", train_msg_dropout=0.0, drop=d, delay_ms=0.0,
                            seed=e, episodes=500, paper_metric=-19.0 - d - 0.1 * e - 0.01 * s, msgs_sent=100,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from learning.host_info import cpu_info, host_info
+from hammer.learning.host_info import cpu_info, host_info
 
 CPUINFO = """processor\t: 0
 vendor_id\t: GenuineIntel

@@ -18,18 +18,31 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def package_dirs() -> dict[str, Path]:
+    """Each import package pyproject installs (`hammer.protocol`, ...) and the folder it comes from."""
+    mapping = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    return {name: ROOT / folder for name, folder in mapping.items()}
+
+
 def first_party_packages() -> list[str]:
-    """The top-level packages pyproject installs (its packages.find include patterns)."""
-    include = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
-    return sorted(p.rstrip("*") for p in include)
+    """The installed packages: `hammer` and its sub-packages, by import name."""
+    return sorted(package_dirs())
+
+
+def package_of(module: str) -> str:
+    """The installed package a module belongs to (`hammer.protocol.session` -> `hammer.protocol`;
+    the modules of `hammer` itself, e.g. `hammer.cli`, -> `hammer`)."""
+    parts = module.split(".")
+    sub = ".".join(parts[:2])
+    return sub if sub in package_dirs() else "hammer"
 
 
 def module_files() -> dict[str, Path]:
     files = {}
-    for pkg in first_party_packages():
-        for path in (ROOT / pkg).rglob("*.py"):
-            parts = path.relative_to(ROOT).with_suffix("").parts
-            files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    for pkg, folder in package_dirs().items():
+        for path in folder.glob("*.py"):  # no package has sub-packages of its own
+            name = pkg if path.stem == "__init__" else f"{pkg}.{path.stem}"
+            files[name] = path
     return files
 
 
@@ -140,8 +153,21 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_covers_every_first_party_package():
     graph = import_graph()
-    assert {m.split(".")[0] for m in graph} == set(first_party_packages())
-    assert "learning.config" in graph["learning.trainer"]  # the reader sees real edges
+    assert {package_of(m) for m in graph} == set(first_party_packages())
+    assert "hammer.learning.config" in graph["hammer.learning.trainer"]  # the reader sees real edges
+
+
+def test_the_source_imports_only_through_the_one_package():
+    """Every first-party import names `hammer.`: a bare `protocol` or `learning` would load a second
+    copy of the module in a checkout, and nothing at all from the wheel."""
+    bare = set()
+    folders = {path.name for path in package_dirs().values()} - {"hammer"}
+    for mod, path in module_files().items():
+        for node in _every_import(ast.parse(path.read_text(), str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            bare |= {f"{mod}: {n}" for n in names if node.__class__ is ast.Import or not node.level
+                     if n.split(".")[0] in folders}
+    assert bare == set()
 
 
 def test_no_import_cycles_among_first_party_modules():
@@ -159,6 +185,6 @@ def test_a_cycle_is_found():
 def test_the_library_does_not_import_the_benchmarks():
     """Benchmarks measure the library from outside; only the CLI wires `hammer bench` to them."""
     graph = import_graph(inside_functions=True)
-    importers = {m for m, edges in graph.items() if not m.startswith("benchmarks")
-                 and any(e.startswith("benchmarks") for e in edges)}
+    importers = {m for m, edges in graph.items() if not m.startswith("hammer.benchmarks")
+                 and any(e.startswith("hammer.benchmarks") for e in edges)}
     assert importers == {"hammer.cli"}

@@ -12,12 +12,11 @@ import time
 
 import numpy as np
 import pytest
-
-from protocol.binding import check_key, pool_agents
-from protocol.codec import decode, encode
-from protocol.errors import KeyMismatchError, ProtocolError
-from protocol.samples import sample_messages
-from protocol.schemas import (
+from hammer.protocol.binding import check_key, pool_agents
+from hammer.protocol.codec import decode, encode
+from hammer.protocol.errors import KeyMismatchError, ProtocolError
+from hammer.protocol.samples import sample_messages
+from hammer.protocol.schemas import (
     Action,
     CentralMsg,
     Dims,
@@ -27,8 +26,8 @@ from protocol.schemas import (
     LocalObs,
     Weights,
 )
-from protocol.session import HammerSession, TransportConfig
-from runtime.heartbeats import HeartbeatLedger
+from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.runtime.heartbeats import HeartbeatLedger
 
 K = 4
 

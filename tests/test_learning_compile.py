@@ -8,10 +8,9 @@ Adam state after several optimiser steps, on the same rollout buffer from the sa
 import numpy as np
 import pytest
 import torch
-
-from envs.registry import make_vec_env
-from learning.config import merge_config
-from learning.learner import TeamLearner
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.learning.learner import TeamLearner
 
 
 def _fill(learner: TeamLearner, rng: np.random.Generator, spec) -> tuple[np.ndarray, np.ndarray]:

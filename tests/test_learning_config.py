@@ -1,9 +1,8 @@
 """Config: strict fields, one-line errors naming the field, merge order, presets."""
 
 import pytest
-
-from learning.config import ConfigError, RunConfig, config_changes, merge_config
-from learning.presets import PRESETS
+from hammer.learning.config import ConfigError, RunConfig, config_changes, merge_config
+from hammer.learning.presets import PRESETS
 
 
 @pytest.mark.parametrize(("overrides", "field"), [
@@ -36,6 +35,16 @@ def test_merge_order_preset_file_flags_overrides(tmp_path):
     assert (cfg.gamma, cfg.msg_dim, cfg.seed, cfg.n_agents) == (0.9, 2, 7, 5)
     assert cfg.env_kwargs == {"local_ratio": 0.25, "max_steps": 30}
     assert cfg.variant == "hammer"  # None flags do not override
+
+
+def test_a_yaml_mapping_merges_into_the_presets_mapping(tmp_path):
+    """`env_kwargs: {n_walkers: 3}` in a --config file over mw3 keeps the preset's other env_kwargs,
+    exactly as `--set env_kwargs.n_walkers=3` does (it used to replace them all)."""
+    f = tmp_path / "c.yaml"
+    f.write_text("env_kwargs: {n_walkers: 3}\n")
+    preset = merge_config("mw3").env_kwargs
+    from_file, from_set = merge_config("mw3", f).env_kwargs, merge_config("mw3", overrides=["env_kwargs.n_walkers=3"]).env_kwargs
+    assert len(preset) > 1 and from_file == from_set == {**preset, "n_walkers": 3}
 
 
 def test_bad_yaml_file_names_the_file(tmp_path):

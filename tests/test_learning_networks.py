@@ -5,14 +5,13 @@ import sys
 
 import numpy as np
 import torch
-
-from envs.registry import make_vec_env
-from learning.config import merge_config
-from learning.networks import CentralAgent, LocalPolicy, gaussian_logp
-from learning.numpy_policy import NumpyCentralAgent, NumpyLocalPolicy, gaussian_logp_of_draw, softmax
-from learning.rundir import RunDir
-from learning.sampling import ActingStreams, categorical_inverse_cdf
-from learning.trainer import Trainer
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.learning.networks import CentralAgent, LocalPolicy, gaussian_logp
+from hammer.learning.numpy_policy import NumpyCentralAgent, NumpyLocalPolicy, gaussian_logp_of_draw, softmax
+from hammer.learning.rundir import RunDir
+from hammer.learning.sampling import ActingStreams, categorical_inverse_cdf
+from hammer.learning.trainer import Trainer
 
 
 def test_numpy_forward_matches_torch():
@@ -142,7 +141,7 @@ def test_message_dropout_zeroes_messages(tmp_path):
 
 
 def test_fast_tanh_matches_tanh_and_its_gradient():
-    from learning.networks import tanh
+    from hammer.learning.networks import tanh
 
     x = torch.linspace(-12, 12, 64 * 400).reshape(400, 64).requires_grad_(True)  # above the fast-path size
     y = tanh(x)

@@ -1,6 +1,6 @@
 """Actors load exactly the policy version a step asks for, even when newer weights are already in."""
 
-from learning.policy_versions import WeightsInbox
+from hammer.learning.policy_versions import WeightsInbox
 
 
 def test_inbox_loads_the_newest_version_not_above_the_need():
@@ -32,11 +32,10 @@ def test_learner_evaluates_lagged_experience_with_the_behaviour_version():
     import numpy as np
     import pytest
     import torch
-
-    from envs.registry import make_vec_env
-    from learner.remote_rollout import BehaviourSnapshots
-    from learning.config import merge_config
-    from learning.learner import TeamLearner
+    from hammer.envs.registry import make_vec_env
+    from hammer.learner.remote_rollout import BehaviourSnapshots
+    from hammer.learning.config import merge_config
+    from hammer.learning.learner import TeamLearner
 
     cfg = merge_config("cn3", overrides=["num_envs=4", "variant=hammer"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)

@@ -3,8 +3,7 @@
 import numpy as np
 import pytest
 import torch
-
-from learning.ppo import (
+from hammer.learning.ppo import (
     PPOUpdater,
     clipped_surrogate,
     gae,

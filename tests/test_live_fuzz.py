@@ -24,17 +24,14 @@ from dataclasses import dataclass
 
 import msgpack
 import numpy as np
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
-from envs.registry import make_vec_env
-from learning.config import merge_config
-from protocol import codec
-from protocol.binding import check_key
-from protocol.errors import ProtocolError
-from protocol.keys import Keys
-from protocol.rollout_layout import CHUNK, RECORD, RolloutLayout
-from protocol.schemas import (
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.protocol import codec
+from hammer.protocol.binding import check_key
+from hammer.protocol.errors import ProtocolError
+from hammer.protocol.keys import Keys
+from hammer.protocol.rollout_layout import CHUNK, RECORD, RolloutLayout
+from hammer.protocol.schemas import (
     Action,
     CentralMsg,
     Control,
@@ -46,7 +43,10 @@ from protocol.schemas import (
     Message,
     Weights,
 )
-from protocol.session import HammerSession, TransportConfig, free_loopback_port
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from tests.runtime_helpers import ENV, ROOT, processes_mentioning
 
 EXAMPLES = 200

@@ -9,11 +9,10 @@ import threading
 import time
 
 import numpy as np
+from hammer.local_agent.client import AgentSpec, LocalAgentClient
+from hammer.protocol.schemas import Heartbeat, Weights
+from hammer.protocol.session import HammerSession, TransportConfig
 from safetensors.numpy import save
-
-from local_agent.client import AgentSpec, LocalAgentClient
-from protocol.schemas import Heartbeat, Weights
-from protocol.session import HammerSession, TransportConfig
 
 
 def _policy_blob(in_dim: int, act_dim: int) -> bytes:

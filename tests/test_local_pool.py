@@ -12,16 +12,16 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hammer.deploy.settings import RuntimeSettings, auto_agents_per_process
+from hammer.deploy.up import launch, role_specs
+from hammer.learning.config import merge_config
+from hammer.learning.numpy_policy import NumpyLocalPolicy
+from hammer.local_agent.pool import LocalAgentPool, parse_agents
+from hammer.protocol.access import grants, pool_name, role_names, secure_link
+from hammer.protocol.identity import create_identities
+from hammer.protocol.keys import Keys
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
 
-from deploy.settings import RuntimeSettings, auto_agents_per_process
-from deploy.up import launch, role_specs
-from learning.config import merge_config
-from learning.numpy_policy import NumpyLocalPolicy
-from local_agent.pool import LocalAgentPool, parse_agents
-from protocol.access import grants, pool_name, role_names, secure_link
-from protocol.identity import create_identities
-from protocol.keys import Keys
-from protocol.session import HammerSession, TransportConfig, free_loopback_port
 from tests.runtime_helpers import processes_mentioning
 
 
@@ -158,7 +158,7 @@ def test_stacked_forward_equals_one_forward_per_agent_bit_for_bit():
 
 def test_agent_ranges_pools_and_the_default_per_machine(tmp_path):
     assert parse_agents("0-3,7", 10) == [0, 1, 2, 3, 7]
-    for bad, what in (("3-1", "FIRST-LAST"), ("x", "not an index"), ("0-12", "agents 0..9")):
+    for bad, what in (("3-1", "FIRST-LAST"), ("x", "not an agent"), ("0-12", "agent 0..9")):
         with pytest.raises(ValueError, match=what):
             parse_agents(bad, 10)
     assert pool_name([0, 1, 2]) == "locals-0-2" and pool_name([0, 2]) == "locals-0_2"
@@ -181,7 +181,7 @@ def test_killing_a_pool_takes_down_its_agents_and_the_supervisor_restarts_it(tmp
     import os
     import signal
 
-    from faults.chaos import ChaosScheduler
+    from hammer.faults.chaos import ChaosScheduler
 
     cfg = merge_config("cn3", overrides=["episodes=960", "variant=il"])
     settings = RuntimeSettings(run_id="poolkill", act_deadline_ms=100, agents_per_process=2)

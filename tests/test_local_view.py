@@ -8,13 +8,13 @@ import json
 
 import numpy as np
 import pytest
+from hammer.envs.local_view import LocalView, SpreadRadiusView, local_view_for
+from hammer.envs.registry import make_vec_env
+from hammer.envs.spread import VecSimpleSpread
+from hammer.learning.config import merge_config
+from hammer.learning.sampling import ActingStreams
+from hammer.learning.team import Team
 
-from envs.local_view import LocalView, SpreadRadiusView, local_view_for
-from envs.registry import make_vec_env
-from envs.spread import VecSimpleSpread
-from learning.config import merge_config
-from learning.sampling import ActingStreams
-from learning.team import Team
 from tests.runtime_helpers import hammer
 
 
@@ -136,7 +136,7 @@ def test_up_with_a_local_view_completes_and_matches_the_trainer(tmp_path):
 
 
 def test_hidden_fraction_is_the_fixed_x_axis_of_the_plan():
-    from envs.local_view import spread_hidden_fraction
+    from hammer.envs.local_view import spread_hidden_fraction
 
     h = [spread_hidden_fraction(r, copies=64, steps=25) for r in (100.0, 1.5, 1.0, 0.6, 0.3, 0.0)]
     assert h[0] == 0.0 and h[-1] == 1.0

@@ -17,12 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from safetensors.numpy import load_file, save_file
-from typer.testing import CliRunner
-
-from envs.local_view import SpreadRadiusView
-from envs.spread import VecSimpleSpread
-from experiments.messages import (
+from hammer.envs.local_view import SpreadRadiusView
+from hammer.envs.spread import VecSimpleSpread
+from hammer.experiments.messages import (
     TeamActor,
     analyse_team,
     hidden_targets,
@@ -30,11 +27,14 @@ from experiments.messages import (
     probe_recording,
     recording_targets,
 )
-from experiments.probes import Moments, cv_r2, episode_folds, r2_of, ridge
+from hammer.experiments.probes import Moments, cv_r2, episode_folds, r2_of, ridge
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
+from safetensors.numpy import load_file, save_file
+from typer.testing import CliRunner
+
 from hammer.cli import app
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
 
 ROOT = Path(__file__).resolve().parents[1]
 OWNOBS = ROOT / "docs/results/runs/cn3-ownobs"
@@ -228,7 +228,7 @@ def test_a_dose_grid_team_is_probed_only_where_the_radius_hides(tmp_path):
 def test_the_plans_comparisons_and_holm_family_over_settings_and_targets():
     """hammer-rl vs random per setting and tested target (never backprop, never the control V), Holm
     across all of them: a second setting doubles the family, so the smallest p is multiplied by 4."""
-    from experiments.messages_report import comparisons
+    from hammer.experiments.messages_report import comparisons
 
     results = json.loads((ROOT / "docs/results/messages-cn3-ownobs.json").read_text())["results"]
     one = comparisons(results)
@@ -243,7 +243,7 @@ def test_the_plans_comparisons_and_holm_family_over_settings_and_targets():
 def test_the_cut_table_says_which_way_a_cut_matters():
     """A CI below 0 (the team does better without the message, as random-message teams do at full
     view) is not reported as "the cut costs"; the archived full-view and r=0 teams give one of each."""
-    from experiments.messages_report import cut_table
+    from hammer.experiments.messages_report import cut_table
 
     results = json.loads((ROOT / "docs/results/messages.json").read_text())["results"]
     rows = {(r.split("|")[1].strip(), r.split("|")[2].strip(), r.split("|")[3].strip()): r.split("|")[7].strip()
@@ -253,7 +253,7 @@ def test_the_cut_table_says_which_way_a_cut_matters():
 
 
 def test_analyse_saves_each_finished_team_so_a_cut_short_analysis_resumes(runs):
-    from experiments.messages_report import analyse
+    from hammer.experiments.messages_report import analyse
 
     saved: list[list[str]] = []
     results = analyse([runs["backprop"], runs["random"]], [0], 10, save=lambda done: saved.append(

@@ -15,10 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hammer.envs.registry import make_vec_env
+from hammer.experiments.messages import (
+    TeamActor,
+    WarehouseLayout,
+    analyse_team,
+    probe_recording,
+    warehouse_targets,
+)
 from safetensors.numpy import save_file
-
-from envs.registry import make_vec_env
-from experiments.messages import TeamActor, WarehouseLayout, analyse_team, probe_recording, warehouse_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 TEAM = ROOT / "docs/results/runs/rware-cmp/rware-tiny-2ag-hammer-rl-ep2000-s0"

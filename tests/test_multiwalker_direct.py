@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hammer.envs.catalog import parallel_env_factory
+from hammer.envs.description import EnvDescription
+from hammer.envs.multiwalker_direct import DirectMultiwalker
+from hammer.envs.registry import make_vec_env
 from pettingzoo.sisl import multiwalker_v9
-
-from envs.catalog import parallel_env_factory
-from envs.description import EnvDescription
-from envs.multiwalker_direct import DirectMultiwalker
-from envs.registry import make_vec_env
 
 PAPER = {"position_noise": 1e-3, "angle_noise": 1e-3, "forward_reward": 1.0, "terminate_reward": -100.0,
          "fall_reward": -10.0, "terminate_on_fall": True, "remove_on_fall": True, "terrain_length": 200,

@@ -13,10 +13,9 @@ import subprocess
 
 import numpy as np
 import pytest
+from hammer.benchmarks.edge_chain import chain, replay_check, train_team
+from hammer.benchmarks.netns import NetnsUnavailable
 from safetensors.numpy import load_file, save_file
-
-from benchmarks.edge_chain import chain, replay_check, train_team
-from benchmarks.netns import NetnsUnavailable
 
 pytestmark = pytest.mark.timeout(300)
 

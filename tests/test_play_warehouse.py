@@ -6,11 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from hammer.envs.registry import make_vec_env
+from hammer.serve.play import _ROBOT_COLOURS, CELL, warehouse_frame
 from typer.testing import CliRunner
 
-from envs.registry import make_vec_env
 from hammer.cli import app
-from serve.play import _ROBOT_COLOURS, CELL, warehouse_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 TEAM = ROOT / "docs/results/runs/rware-cmp/rware-tiny-2ag-hammer-rl-ep2000-s0"

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import json
 
+from hammer.protocol.schemas import MESSAGE_TYPES
 from typer.testing import CliRunner
 
 from hammer.cli import app
-from protocol.schemas import MESSAGE_TYPES
 
 
 def test_schema_command_writes_every_message(tmp_path):

@@ -7,11 +7,8 @@ import json
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
-from protocol import codec
-from protocol.errors import (
+from hammer.protocol import codec
+from hammer.protocol.errors import (
     ChecksumError,
     DecodeError,
     DTypeError,
@@ -25,9 +22,9 @@ from protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from protocol.keys import Keys, validate_run_id
-from protocol.samples import assert_same, sample_messages
-from protocol.schemas import (
+from hammer.protocol.keys import Keys, validate_run_id
+from hammer.protocol.samples import assert_same, sample_messages
+from hammer.protocol.schemas import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     Action,
@@ -38,6 +35,8 @@ from protocol.schemas import (
     Weights,
     json_schemas,
 )
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 MSGS = sample_messages()
 GOOD = codec.encode(MSGS[1])  # a GlobalState K=4 N=3 D=18

@@ -6,14 +6,13 @@ import time
 
 import numpy as np
 import pytest
-
-from envs.base import EnvSpec
-from learning.config import RunConfig
-from protocol import codec
-from protocol.errors import DTypeError, FieldError, NonFiniteError, ShapeError, SizeError
-from protocol.rollout_layout import BUFFER, CHUNK, RECORD, RolloutLayout
-from protocol.schemas import Dims, ExperienceChunk
-from protocol.session import HammerSession, TransportConfig
+from hammer.envs.base import EnvSpec
+from hammer.learning.config import RunConfig
+from hammer.protocol import codec
+from hammer.protocol.errors import DTypeError, FieldError, NonFiniteError, ShapeError, SizeError
+from hammer.protocol.rollout_layout import BUFFER, CHUNK, RECORD, RolloutLayout
+from hammer.protocol.schemas import Dims, ExperienceChunk
+from hammer.protocol.session import HammerSession, TransportConfig
 
 DISCRETE = RolloutLayout(t=4, k=3, n=2, obs_dim=5, action_dim=6, msg_dim=3, discrete=True)
 CONTINUOUS = RolloutLayout(t=4, k=3, n=2, obs_dim=5, action_dim=2, msg_dim=0, discrete=False)

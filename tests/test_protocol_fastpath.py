@@ -15,15 +15,11 @@ import threading
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from pydantic import ValidationError
-
-from benchmarks.transport import loop_messages
-from protocol import codec
-from protocol.errors import ProtocolError
-from protocol.samples import sample_messages
-from protocol.schemas import (
+from hammer.benchmarks.transport import loop_messages
+from hammer.protocol import codec
+from hammer.protocol.errors import ProtocolError
+from hammer.protocol.samples import sample_messages
+from hammer.protocol.schemas import (
     FAST_TYPES,
     SCHEMA_VERSION,
     WIRE_DTYPES,
@@ -34,6 +30,9 @@ from protocol.schemas import (
     _fast_state,
     fast_from_wire,
 )
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
 
 STAMP = {"run": "run1", "ts": 5, "seq": 3, "sender": "env"}
 

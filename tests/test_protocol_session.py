@@ -9,13 +9,12 @@ import time
 import msgpack
 import numpy as np
 import pytest
-
-from benchmarks.transport import echo_main
-from protocol.codec import encode
-from protocol.errors import RunMismatchError
-from protocol.samples import sample_messages
-from protocol.schemas import SCHEMA_VERSION, Control, Dims, GlobalState, LocalObs, Message
-from protocol.session import HammerSession, TransportConfig
+from hammer.benchmarks.transport import echo_main
+from hammer.protocol.codec import encode
+from hammer.protocol.errors import RunMismatchError
+from hammer.protocol.samples import sample_messages
+from hammer.protocol.schemas import SCHEMA_VERSION, Control, Dims, GlobalState, LocalObs, Message
+from hammer.protocol.session import HammerSession, TransportConfig
 
 HEADER_STAMPS = {"run", "ts", "seq", "sender"}
 

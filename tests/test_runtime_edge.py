@@ -5,10 +5,9 @@ also shows the check can see torch in a process that has it)."""
 from __future__ import annotations
 
 import psutil
-
-from deploy.settings import RuntimeSettings
-from deploy.up import launch
-from learning.config import merge_config
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.up import launch
+from hammer.learning.config import merge_config
 
 
 def _maps_torch(pid: int) -> bool:

@@ -5,8 +5,8 @@ import subprocess
 import sys
 import time
 
-from protocol.schemas import Heartbeat
-from protocol.session import HammerSession, TransportConfig, free_loopback_port
+from hammer.protocol.schemas import Heartbeat
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
 
 
 def test_hub_router_relays_between_clients():

@@ -12,9 +12,10 @@ import sys
 import time
 from pathlib import Path
 
-from deploy.settings import RuntimeSettings
-from deploy.up import prepare_run_dir
-from learning.config import merge_config
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.up import prepare_run_dir
+from hammer.learning.config import merge_config
+
 from tests.runtime_helpers import ENV, ROOT, hammer, processes_mentioning
 
 BUDGET = 256  # 8 updates of 32 cn3 episodes: the kill lands after update 2, well before the end

@@ -8,11 +8,10 @@ import threading
 import time
 
 import pytest
-
-from protocol.schemas import Control, Heartbeat, Weights
-from protocol.session import HammerSession, TransportConfig
-from runtime.role import Role
-from runtime.weights import WeightsIntake
+from hammer.protocol.schemas import Control, Heartbeat, Weights
+from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 
 
 @pytest.fixture
@@ -190,7 +189,7 @@ def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
 
 def _stop_from(session: HammerSession, sender: str) -> None:
     """A stop command whose header names `sender` (plain profile: the header is whatever the peer writes)."""
-    from protocol.codec import encode
+    from hammer.protocol.codec import encode
 
     data = encode(Control(command="stop"), stamp={"run": session.run_id, "ts": time.time_ns(), "seq": 0,
                                                   "sender": sender})
@@ -261,7 +260,7 @@ def test_a_forged_first_weights_version_is_refused_when_the_run_version_is_known
     refused: list[str] = []
     intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=1.0,
                            reject=lambda reason, what: refused.append(reason), start_version=0)
-    from runtime.bounds import FIRST_VERSION_SLACK
+    from hammer.runtime.bounds import FIRST_VERSION_SLACK
 
     assert intake.ahead(2**62) and not intake.ahead(1)  # a step naming a version, before any weights
     assert intake.ahead(FIRST_VERSION_SLACK + 2) and not intake.ahead(FIRST_VERSION_SLACK + 1)
@@ -305,7 +304,7 @@ def test_weights_intake_follows_a_real_versions_stream_beyond_its_bound(hub_and_
 
 
 def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on():
-    from runtime.bounds import StepWindow
+    from hammer.runtime.bounds import StepWindow
 
     w = StepWindow(width=100, resync_s=0.2)
     assert not w.ahead(5, -1)  # nothing acted on yet: the first step anchors
@@ -319,7 +318,7 @@ def test_step_window_rejects_a_far_step_once_and_follows_a_stream_that_moved_on(
 
 
 def test_step_window_refuses_a_forged_first_step_beyond_the_runs_known_step():
-    from runtime.bounds import StepWindow
+    from hammer.runtime.bounds import StepWindow
 
     w = StepWindow(width=100, resync_s=0.2, start=40)
     assert w.ahead(2**64 - 1, -1)  # before the role's first real step: refused, not adopted
@@ -328,7 +327,7 @@ def test_step_window_refuses_a_forged_first_step_beyond_the_runs_known_step():
 
 
 def test_step_window_follows_a_steady_stream_below_an_anchor_it_never_followed():
-    from runtime.bounds import MIN_STREAM, StepWindow
+    from hammer.runtime.bounds import MIN_STREAM, StepWindow
 
     assert MIN_STREAM == 3
     w = StepWindow(width=100, resync_s=0.2, start=0)
@@ -347,8 +346,8 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, m
     """The launcher hands every role it (re)starts the env host's last reported step; the role's
     first-step bound starts there (not at 0, where a restart after step_window would refuse the
     real stream) and never below the run's own start."""
-    from deploy.up import Launcher
-    from runtime.bounds import RUN_STEP_ENV, known_step
+    from hammer.deploy.up import Launcher
+    from hammer.runtime.bounds import RUN_STEP_ENV, known_step
 
     launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
     launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 12_345}))
@@ -364,8 +363,8 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, m
 def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_path, monkeypatch):
     """The same for weights: the env host's last reported policy version bounds a (re)started role's
     first weights; never below the run's resume update."""
-    from deploy.up import Launcher
-    from runtime.bounds import RUN_VERSION_ENV, known_version
+    from hammer.deploy.up import Launcher
+    from hammer.runtime.bounds import RUN_VERSION_ENV, known_version
 
     launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
     launcher.on_heartbeat(Heartbeat(role="env", pid=1, status="running", counters={"step": 5}, gauges={"policy_version": 17}))

@@ -14,11 +14,11 @@ import json
 from pathlib import Path
 
 import pytest
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.up import launch
+from hammer.learning.config import merge_config
+from hammer.protocol.session import TransportConfig
 
-from deploy.settings import RuntimeSettings
-from deploy.up import launch
-from learning.config import merge_config
-from protocol.session import TransportConfig
 from tests.runtime_helpers import hammer
 from tests.stall_peer import EarlyStallPeer, StallPeer
 
@@ -120,8 +120,7 @@ def test_a_learner_that_dies_names_its_last_log_lines_and_the_resume_command(tmp
     import signal
 
     import pytest
-
-    from deploy.up import UpError
+    from hammer.deploy.up import UpError
 
     cfg = merge_config("cn3", overrides=["episodes=2000", "variant=il"])
     killed: list[int] = []

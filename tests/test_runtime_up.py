@@ -10,11 +10,11 @@ from pathlib import Path
 
 import psutil
 import pytest
+from hammer.deploy.settings import RuntimeSettings
+from hammer.deploy.up import launch
+from hammer.experiments.train_stats import load_train_stats
+from hammer.learning.config import merge_config
 
-from deploy.settings import RuntimeSettings
-from deploy.up import launch
-from experiments.train_stats import load_train_stats
-from learning.config import merge_config
 from tests.runtime_helpers import hammer, processes_mentioning
 
 

@@ -12,12 +12,12 @@ import json
 
 import numpy as np
 import pytest
+from hammer.envs.description import EnvConfigError
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.learning.team import Team
 from rware.warehouse import RewardType, Warehouse
 
-from envs.description import EnvConfigError
-from envs.registry import make_vec_env
-from learning.config import merge_config
-from learning.team import Team
 from tests.runtime_helpers import hammer, processes_mentioning
 
 LOCAL = 71  # rware's flattened view at sensor_range 1: 8 own values + 9 cells x 7
@@ -205,7 +205,7 @@ def test_up_equals_train(tmp_path):
 
 def test_pilot_rule_judges_only_finished_seeds():
     """The plan's rule (experiments.rware_pilot): all 3 finished seeds above floor mean + 3 s.e."""
-    from experiments.rware_pilot import verdicts
+    from hammer.experiments.rware_pilot import verdicts
 
     floor = {2: {"threshold": 0.064}}
 

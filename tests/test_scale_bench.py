@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from benchmarks.scale import markdown, plot, pooled_size, scale_config, shares
-from protocol.codec import decode, encode
-from protocol.errors import SizeError
-from protocol.rollout_layout import RolloutLayout
-from protocol.schemas import Dims, ExperienceChunk, MiB
+from hammer.benchmarks.scale import markdown, plot, pooled_size, scale_config, shares
+from hammer.protocol.codec import decode, encode
+from hammer.protocol.errors import SizeError
+from hammer.protocol.rollout_layout import RolloutLayout
+from hammer.protocol.schemas import Dims, ExperienceChunk, MiB
 
 
 def test_the_rollout_chunk_cap_grows_with_the_run_and_still_refuses_more():
@@ -30,7 +29,7 @@ def test_the_rollout_chunk_cap_grows_with_the_run_and_still_refuses_more():
 
 def _chunk(layout: RolloutLayout) -> dict[str, np.ndarray]:
     arrays = layout.chunk_steps()
-    from protocol.rollout_layout import CHUNK
+    from hammer.protocol.rollout_layout import CHUNK
 
     return {**arrays, **layout.allocate(tuple(s for s in CHUNK if not s.shape.startswith("T")))}
 

@@ -10,11 +10,10 @@ import time
 from pathlib import Path
 
 import pytest
-
-from protocol.access import access_control, grants, role_names, secure_link
-from protocol.identity import create_identities, identity_of
-from protocol.keys import Keys
-from protocol.session import HammerSession, TransportConfig, free_loopback_port
+from hammer.protocol.access import access_control, grants, role_names, secure_link
+from hammer.protocol.identity import create_identities, identity_of
+from hammer.protocol.keys import Keys
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
 
 RUN = "sec1"
 N = 2
@@ -277,9 +276,9 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
 
 def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
     """Blobs of the run's own architecture: what an attacker who read the public code can build."""
-    from deploy.roles import read_env_spec
-    from learner.worker import weights_blob
-    from learning.team import Team
+    from hammer.deploy.roles import read_env_spec
+    from hammer.learner.worker import weights_blob
+    from hammer.learning.team import Team
 
     team = Team(cfg, read_env_spec(run_dir))
     return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}
@@ -294,9 +293,9 @@ def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
     """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
     joins it with local-1's identity once the run is up and is appended to the list."""
-    from deploy.settings import RuntimeSettings
-    from deploy.up import launch
-    from learning.config import merge_config
+    from hammer.deploy.settings import RuntimeSettings
+    from hammer.deploy.up import launch
+    from hammer.learning.config import merge_config
 
     cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
@@ -389,7 +388,7 @@ def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
 
 def test_the_same_peer_ends_a_plain_run_early(tmp_path):
     """The plain profile trusts the sender header: the forged `stop` of `launcher` is obeyed."""
-    from deploy.up import UpError
+    from hammer.deploy.up import UpError
 
     hostile: list = []
     with pytest.raises(UpError, match="env host stopped before the budget"):
@@ -415,7 +414,7 @@ def test_hammer_up_secure_flag_makes_a_secure_run(tmp_path):
     assert {"ca.pem", "launcher.pem", "env.key", "local-0.pem", "learner.key"} <= names
     assert not any(n.startswith("hub.") for n in names)
     # the rules every process applies, for a client in another language (docs/wire-format.md)
-    from protocol.access import access_control
+    from hammer.protocol.access import access_control
 
     rt = json.loads((run / "runtime.json").read_text())
     assert json.loads((run / "access_control.json").read_text()) == access_control(Keys(rt["run_id"]), 3)
@@ -456,9 +455,9 @@ def test_hammer_hub_relays_only_a_run_made_for_a_router(tmp_path):
     refuses it in one line instead of starting a router nobody may use."""
     import json
 
+    from hammer.deploy.settings import RuntimeSettings
     from typer.testing import CliRunner
 
-    from deploy.settings import RuntimeSettings
     from hammer.cli import app
 
     RuntimeSettings(run_id="peers", secure=True).save(tmp_path)

@@ -17,12 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hammer.learning.config import ConfigError, merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.seed_batch import parse_seeds, train_seeds
+from hammer.learning.trainer import train
 from scipy import stats
-
-from learning.config import ConfigError, merge_config
-from learning.rundir import RunDir
-from learning.seed_batch import parse_seeds, train_seeds
-from learning.trainer import train
 
 VARIANTS = [("hammer", "rl"), ("hammer", "backprop"), ("il", "rl"), ("random", "rl"), ("centralized", "rl")]
 SMALL = ["num_envs=8", "checkpoint_every=1", "epochs=4", "minibatches=2"]
@@ -139,7 +138,7 @@ def test_batched_and_solo_final_metrics_are_indistinguishable(tmp_path: Path) ->
 def test_sweep_batches_points_that_differ_only_in_seed(tmp_path: Path) -> None:
     """Two seeds of one setting: one seed-batched process, two ordinary run directories; a second
     sweep skips them; a seed whose summary is lost resumes alone."""
-    from experiments.sweep import expand, run_sweep, state_of
+    from hammer.experiments.sweep import expand, run_sweep, state_of
 
     pts = expand(["cn3"], ["il"], [0, 1], [("num_envs", ["4"]), ("rollout_steps", ["25"])])
     events: list[tuple[str, str]] = []
@@ -186,7 +185,7 @@ def test_batched_mw_seed_matches_solo_run(tmp_path: Path, monkeypatch, mode: str
 
 
 def test_bench_seeds_measures_solo_and_batched() -> None:
-    from benchmarks.seeds import grid_estimate, run_bench
+    from hammer.benchmarks.seeds import grid_estimate, run_bench
 
     rows = run_bench(("cn3",), (4,), updates=1)
     assert [(r["mode"], r["seeds"]) for r in rows] == [("solo", 1), ("batched", 4)]

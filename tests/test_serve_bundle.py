@@ -11,17 +11,17 @@ import sys
 
 import numpy as np
 import pytest
+from hammer.deploy.up import launch
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
+from hammer.protocol.session import free_loopback_port
+from hammer.serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle
+from hammer.serve.cli import serve_settings
 from typer.testing import CliRunner
 
-from deploy.up import launch
-from envs.registry import make_vec_env
 from hammer.cli import app
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
-from protocol.session import free_loopback_port
-from serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle
-from serve.cli import serve_settings
 from tests.runtime_helpers import ENV, ROOT
 
 pytestmark = pytest.mark.timeout(180)
@@ -62,10 +62,9 @@ def test_a_set_central_net_travels_in_the_bundle(tmp_path):
     """central_net=set: the manifest says so, the bundle's central file loads into the numpy set net that
     equals the trained torch net, and a manifest that names the other network fails on load."""
     import torch
+    from hammer.learning.numpy_policy import numpy_central
+    from hammer.learning.team import Team
     from safetensors.numpy import load as load_safetensors
-
-    from learning.numpy_policy import numpy_central
-    from learning.team import Team
 
     run = tmp_path / "set"
     cfg = merge_config("cn3", overrides=["num_envs=8", "epochs=1", "minibatches=2", "episodes=16", "central_net=set"])
@@ -200,9 +199,8 @@ def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
 def test_play_renders_multiwalker_and_own_observation_teams(tmp_path, monkeypatch, preset, overrides, steps):
     """Smoke test of the other renderers: SISL multiwalker (continuous actions), and cn whose local agents
     see only their own position and the landmarks (mpe2's observation without its tail)."""
+    from hammer.benchmarks.edge import make_team
     from PIL import Image, ImageSequence
-
-    from benchmarks.edge import make_team
 
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     bundle, *_ = make_team(tmp_path / "team", preset, overrides)
@@ -216,7 +214,7 @@ def test_play_renders_multiwalker_and_own_observation_teams(tmp_path, monkeypatc
 def test_faults_eval_and_sweep_serve_a_bundle_with_its_fallback(trained, tmp_path):
     """`hammer faults eval/sweep` given a bundle run it as `hammer serve` does (serve_settings), so the
     fallback in its manifest applies; a run directory keeps the default."""
-    from faults.sweep import Point, point_settings
+    from hammer.faults.sweep import Point, point_settings
 
     b = tmp_path / "b"
     export_bundle(trained, b)

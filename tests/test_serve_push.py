@@ -8,21 +8,21 @@ import shutil
 
 import numpy as np
 import pytest
+from hammer.deploy.up import launch
+from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
+from hammer.learning.config import merge_config
+from hammer.learning.numpy_policy import NumpyCentralAgent
+from hammer.learning.rundir import RunDir
+from hammer.learning.sampling import ActingStreams
+from hammer.learning.trainer import train
+from hammer.local_agent.client import AgentSpec, LocalAgent
+from hammer.serve.bundle import BundleError, export_bundle
+from hammer.serve.cli import serve_settings
+from hammer.serve.push import push, read_history, rollback
 from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 
-from deploy.up import launch
 from hammer.cli import app
-from learning.central_acting import CentralActing, encode_actions, zero_prev_actions
-from learning.config import merge_config
-from learning.numpy_policy import NumpyCentralAgent
-from learning.rundir import RunDir
-from learning.sampling import ActingStreams
-from learning.trainer import train
-from local_agent.client import AgentSpec, LocalAgent
-from serve.bundle import BundleError, export_bundle
-from serve.cli import serve_settings
-from serve.push import push, read_history, rollback
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -156,9 +156,9 @@ def test_the_policy_server_backs_off_and_republishes_when_a_role_joins(bundles):
     import threading
     import time
 
-    from protocol.schemas import Control, Weights
-    from protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
-    from serve.policy_server import PolicyServer
+    from hammer.protocol.schemas import Control, Weights
+    from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+    from hammer.serve.policy_server import PolicyServer
 
     a, _ = bundles
     port = free_loopback_port()

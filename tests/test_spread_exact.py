@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hammer.envs.spread import VecSimpleSpread, spread_obs_dim
 from mpe2 import simple_spread_v3
 from scipy import stats
-
-from envs.spread import VecSimpleSpread, spread_obs_dim
 
 TOL = 1e-5
 MAX_CYCLES = 25

@@ -3,11 +3,10 @@
 import csv
 
 import numpy as np
-
-from envs.registry import make_vec_env
-from learning.config import merge_config
-from learning.rundir import RunDir
-from learning.trainer import train
+from hammer.envs.registry import make_vec_env
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
 
 
 def _metric(path):

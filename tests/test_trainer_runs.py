@@ -5,13 +5,12 @@ import json
 
 import numpy as np
 import pytest
+from hammer.learning.config import merge_config
+from hammer.learning.numpy_policy import NumpyLocalPolicy
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
 from safetensors.numpy import load_file
 from typer.testing import CliRunner
-
-from learning.config import merge_config
-from learning.numpy_policy import NumpyLocalPolicy
-from learning.rundir import RunDir
-from learning.trainer import train
 
 SMALL = ["num_envs=8", "rollout_steps=25", "epochs=2", "minibatches=2"]
 
@@ -102,9 +101,8 @@ def test_a_resumed_learner_trains_with_the_configured_learning_rate():
     """The checkpoint restores Adam's moments, but the learning rate comes from the config: a branch
     resumed with another lr (config.json edited) must not silently keep the old one."""
     import torch
-
-    from envs.registry import make_vec_env
-    from learning.learner import TeamLearner
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.learner import TeamLearner
 
     cfg = merge_config("cn3", overrides=SMALL + ["variant=hammer", "central_mode=rl"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)

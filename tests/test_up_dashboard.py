@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import time
 
+from hammer.deploy.cli import _dashboard_table
+from hammer.deploy.up import Board
+from hammer.learning.config import merge_config
+from hammer.protocol.schemas import Heartbeat
 from rich.console import Console
-
-from deploy.cli import _dashboard_table
-from deploy.up import Board
-from learning.config import merge_config
-from protocol.schemas import Heartbeat
 
 
 def _render(board: Board) -> dict[str, str]:

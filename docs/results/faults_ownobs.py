@@ -10,10 +10,9 @@ How the sweeps were made is in docs/results/faults-ownobs/README.md.
 from pathlib import Path
 
 import numpy as np
+from hammer.experiments.report import sem
+from hammer.faults.sweep import aggregate, read_results
 from scipy import stats
-
-from experiments.report import sem
-from faults.sweep import aggregate, read_results
 
 HERE = Path(__file__).parent / "faults-ownobs"
 

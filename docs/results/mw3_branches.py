@@ -6,10 +6,9 @@ How the branches were made is in docs/results/README.md ("Branching one run at i
 """
 
 import numpy as np
-
-from experiments.plot import save_figure
-from experiments.runs import load_run, rolling_mean
-from experiments.train_stats import load_train_stats
+from hammer.experiments.plot import save_figure
+from hammer.experiments.runs import load_run, rolling_mean
+from hammer.experiments.train_stats import load_train_stats
 
 BRANCH_AT = 2102
 RUNS = [("control: the archived run", "docs/results/runs/mw3/mw3-il-s1"),
