@@ -82,9 +82,9 @@ def central_rss(episodes: int) -> dict:
     """Peak RSS (MiB) per role of a real `hammer up` run of the cn3 preset (RssSampler of benchmarks.runtime),
     with its env-steps/s and control-loop latency (env host publishes -> every action back)."""
     from hammer.benchmarks.runtime import RssSampler
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import launch
     from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
 
     cfg = merge_config("cn3", overrides=[f"episodes={episodes}"])
     rss = RssSampler()

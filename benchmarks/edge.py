@@ -32,12 +32,12 @@ class EdgeFigures:
 
 def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
     """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import prepare_run_dir
     from hammer.envs.registry import make_vec_env
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir
     from hammer.learning.team import Team
+    from hammer.runtime.settings import RuntimeSettings
     from hammer.serve.bundle import export_bundle
 
     cfg = merge_config(preset, overrides=["variant=hammer", "central_mode=rl", "seed=0", *overrides])
@@ -116,8 +116,8 @@ def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | 
     """Both entries, alternated `repeats` times; the median of each figure per entry. python: the agents'
     interpreter (e.g. a torch-free edge venv: its own install, so PYTHONPATH is dropped)."""
     from hammer.benchmarks.edge_venv import clean_env
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.protocol.session import free_loopback_port
+    from hammer.runtime.settings import RuntimeSettings
 
     bundle, run, cfg, spec = make_team(work)
     blob = (bundle.path / "local.safetensors").read_bytes()

@@ -30,9 +30,9 @@ def _cli(*args: str) -> str:
 
 def drive(run_dir: Path, bundle: Path, transport, push_at: int, rollback_after: int, timeout_s: float = 300) -> dict:
     """Push, then roll back, at the env host's steps; returns what happened when."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.protocol.schemas import Heartbeat
     from hammer.protocol.session import HammerSession
+    from hammer.runtime.settings import RuntimeSettings
 
     deadline = time.monotonic() + timeout_s
     while not (run_dir / "runtime.json").is_file():

@@ -90,9 +90,9 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
                   out: Path | None = None, raw: bool = True, lagged: bool = True) -> list[dict]:
     """One row per preset. `lagged`: also run `hammer up` with max_policy_lag=1 (the env host
     collects the next rollout while the learner updates), reported as up_lag1_*."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import launch
     from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="hammer-bench-") as tmp:

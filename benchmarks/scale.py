@@ -45,7 +45,7 @@ def scale_config(n: int, episodes: int):
 def pooled_size(n: int) -> int:
     """Agents per process of the `up-pools` runner: the machine's default, or all N in one pool
     where the default is one agent per process (so every N has a pooled figure)."""
-    from hammer.deploy.settings import auto_agents_per_process
+    from hammer.runtime.settings import auto_agents_per_process
 
     k = auto_agents_per_process(n)
     return k if k > 1 else n
@@ -80,8 +80,8 @@ def run_train(n: int, episodes: int, path: Path) -> dict:
 def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
     """`hammer up` (launch in this process): its summary figures plus traffic, CPU and RSS per role
     from the roles' final counters (links.json `roles`)."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import launch
+    from hammer.runtime.settings import RuntimeSettings
 
     settings = RuntimeSettings(run_id=f"scale{n}-{per_process}-{os.getpid()}", agents_per_process=per_process,
                                startup_timeout_s=60.0 + 3.0 * n)

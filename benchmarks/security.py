@@ -58,8 +58,8 @@ class FloodPeer(threading.Thread):
 
 def _flood_hook(run_dir: Path, n_agents: int, peers: list):
     """A launcher chaos hook that starts the flood once every role is up (the identity files exist)."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.protocol.session import TransportConfig
+    from hammer.runtime.settings import RuntimeSettings
 
     def hook(sup, board) -> None:
         if not peers:
@@ -75,9 +75,9 @@ def _flood_hook(run_dir: Path, n_agents: int, peers: list):
 def bench_security(preset: str = "cn3", episodes: int = 100, repeats: int = 2) -> dict:
     """{"runs": [one dict per run], "median": {profile: {figure: value}}, "same_metrics": bool,
     "secure_over_plain": {figure: ratio}, "flood_over_secure": {figure: ratio}}."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import launch
     from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
 
     cfg = merge_config(preset, overrides=[f"episodes={episodes}", "variant=hammer"])
     runs, same, load0 = [], True, os.getloadavg()[0]

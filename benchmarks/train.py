@@ -153,39 +153,3 @@ def run_bench(variant: str = "hammer", central_mode: str = "rl", cn_episodes: in
     out["mw3"] = mw
     out["load_end"] = _load()
     return out
-
-
-def print_table(r: dict[str, Any]) -> None:
-    from rich.table import Table
-
-    from hammer.console import table_console
-
-    mode = f"/{r['central_mode']}" if r["variant"] == "hammer" else ""
-    t = Table(title=f"hammer train speed ({r['variant']}{mode}; env-steps/s include PPO updates; "
-                    f"{r['cores']} cores)")
-    for col in ("preset", "setting", "env-steps/s", "note", "load 1-min (before/after)"):
-        t.add_column(col, justify="right" if col == "env-steps/s" else "left")
-
-    def ld(x: dict[str, Any]) -> str:
-        return f"{x['load_before']:.2f} / {x['load_after']:.2f}"
-
-    cn, ref = r["cn3"]["cn"], r["cn3"]["cn-mpe2"]
-    t.add_row("cn3", "env cn (vectorised)", f"{cn['env_steps_per_s']:,.0f}", f"{cn['episodes']} episodes", ld(cn))
-    t.add_row("cn3", "env cn-mpe2 (reference)", f"{ref['env_steps_per_s']:,.0f}",
-              f"{ref['episodes']} episodes; cn / cn-mpe2 = {r['cn3']['ratio']:.2f}x", ld(ref))
-    f = r["full"]
-    how = ("measured" if not f["extrapolated"] else
-           f"EXTRAPOLATED from {f['episodes']:,} episodes ({f['wall_s']:.1f} s, startup {f['startup_s']:.1f} s)")
-    t.add_row("cn3", "one full 30,000-episode run", f"{f['env_steps_per_s']:,.0f}",
-              f"wall {f['full_wall_s']:.0f} s = {f['full_wall_s'] / 60:.1f} min, {how}", ld(f))
-    for key in ("workers=0", "workers=2"):
-        m = r["mw3"][key]
-        name = "in-process" if key == "workers=0" else "env_workers=2"
-        note = f"{m['updates']} updates after {m['warmup']} warm-up"
-        if key == "workers=2":
-            note += f"; speed-up {r['mw3']['speedup']:.2f}x over in-process"
-        t.add_row("mw3", name, f"{m['env_steps_per_s']:,.0f}", note, ld(m))
-    console = table_console()
-    console.print(t)
-    console.print("The machine is shared: compare figures only with the load average beside them.")
-

@@ -13,14 +13,14 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hammer.runtime.process import PARENT_ENV
+
 log = logging.getLogger("hammer.deploy")
 
-PARENT_ENV = "HAMMER_PARENT_PID"
 
 
 @dataclass
@@ -132,21 +132,3 @@ class Supervisor:
             if rp.proc is not None:
                 rp.exit_codes.append(rp.proc.returncode)
                 rp.proc = None
-
-
-def parent_watchdog(interval: float = 0.5) -> None:
-    """In a role process: exit when the launcher that started us is gone (no stray processes)."""
-    raw = os.environ.get(PARENT_ENV)
-    if not raw:
-        return
-    parent = int(raw)
-
-    def watch() -> None:
-        while True:
-            time.sleep(interval)
-            # Re-parenting (to init or a subreaper) is the reliable sign: a pid can be reused.
-            if os.getppid() != parent:
-                log.error("launcher (pid %d) is gone; exiting", parent)
-                os._exit(3)
-
-    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()

@@ -25,14 +25,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hammer.deploy.roles import write_env_spec
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.supervisor import RoleSpec, Supervisor
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, free_loopback_port
 from hammer.runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
 from hammer.runtime.heartbeats import HeartbeatLedger
+from hammer.runtime.settings import RuntimeSettings, write_env_spec
 
 log = logging.getLogger("hammer.up")
 
@@ -97,7 +96,7 @@ def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> l
 def resolve_agents_per_process(cfg, settings: RuntimeSettings) -> RuntimeSettings:
     """`agents_per_process=0` (the default) becomes the machine's choice (auto_agents_per_process),
     written into runtime.json so every role of the run (and its access rules) agrees on the pools."""
-    from hammer.deploy.settings import auto_agents_per_process
+    from hammer.runtime.settings import auto_agents_per_process
 
     if settings.agents_per_process:
         return settings

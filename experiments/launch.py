@@ -2,7 +2,7 @@
 
 `experiments.sweep.run_sweep` decides what to run, what to skip, what to resume, what to batch and
 what to archive; a `Launcher` only runs the command it is handed (`python -m hammer.cli train ...`
-or `python -m hammer.learning.seeds_cli ...`) somewhere and reports its exit status. Keeping that seam
+or `python -m hammer.commands.seeds ...`) somewhere and reports its exit status. Keeping that seam
 this narrow is what lets a cluster backend (`experiments.ray_backend`) keep every semantic of the
 local one: the same points, the same run directories, the same locks, archive and snapshots.
 """

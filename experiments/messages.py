@@ -85,7 +85,7 @@ class TeamActor:
 
     def __init__(self, run: Path, need_messages: bool = True) -> None:
         """need_messages=False: also a team without messages (IL), for what it sees, not what it is told."""
-        from hammer.faults.sweep import team_source
+        from hammer.experiments.fault_sweep import team_source
 
         self.run = Path(run)
         self.data, self.policy_dir = team_source(self.run)
@@ -100,7 +100,7 @@ class TeamActor:
                              if cfg.wiring.has_central_network else None)
 
     def config(self, seed: int, episodes: int):
-        from hammer.faults.sweep import eval_config
+        from hammer.experiments.fault_sweep import eval_config
 
         return eval_config(self.run, episodes, seed)
 

@@ -344,7 +344,7 @@ def _command(group: list[tuple[SweepPoint, Path]], st: str, budget: int | None) 
         RunDir.create(d, build_config(q.expected_config(budget)))
     for _, d in group[1:]:
         _note(d / "train.log", f"seed batch: log in {run_dir / 'train.log'}")
-    return ["-P", "-m", "hammer.learning.seeds_cli", *(str(d) for _, d in group)]
+    return ["-P", "-m", "hammer.commands.seeds", *(str(d) for _, d in group)]
 
 
 def _note(log: Path, line: str) -> None:

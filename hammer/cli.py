@@ -1,8 +1,9 @@
 """The `hammer` command line.
 
-Each area of the project owns its own commands in a `cli.py` of its package and adds them here
-through a `register(app)` function, so this file stays a table of contents. The `hammer bench`
-group is `benchmarks/cli.py`: the measuring code lives in `benchmarks/`, outside the library.
+Every command lives in `hammer/commands/`, the top floor (docs/architecture.md, "Floors"): one
+module per area adds its commands here through a `register(app)` function, so this file stays a
+table of contents, and no library module imports a command. The `hammer bench` group is
+`hammer/commands/bench.py`: the measuring code lives in `benchmarks/`, outside the library.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ def _version(value: bool) -> None:
         from hammer import __version__
 
         try:
-            typer.echo(f"hammer {version('hammer')}")
+            typer.echo(f"hammer {version('hammer-marl')}")
         except PackageNotFoundError:  # run from a checkout without installing
             typer.echo(f"hammer {__version__}")
         raise typer.Exit()
@@ -43,19 +44,11 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
 
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
-    from hammer.benchmarks import cli as benchmarks_cli
-    from hammer.deploy import cli as deploy_cli
-    from hammer.deploy.hub import hub_command
-    from hammer.envs import cli as envs_cli
-    from hammer.experiments import cli as experiments_cli
-    from hammer.faults import cli as faults_cli
-    from hammer.learning import cli as learning_cli
-    from hammer.protocol import cli as protocol_cli
-    from hammer.serve import cli as serve_cli
+    from hammer.commands import bench, envs, experiments, faults, protocol, serve, train, up
+    from hammer.commands.hub import hub_command
 
     app.command("hub")(hub_command)
-    for area in (benchmarks_cli, protocol_cli, envs_cli, learning_cli, deploy_cli, experiments_cli, faults_cli,
-                 serve_cli):
+    for area in (bench, protocol, envs, train, up, experiments, faults, serve):
         area.register(app)
 
 

@@ -1,8 +1,8 @@
 """The `hammer` console script: the edge agent starts without the CLI framework.
 
 `hammer local --bundle ...` runs on edge devices, where every import costs memory and start-up
-time; it goes straight to `local_agent.edge` (argparse, no typer/rich, none of the other commands'
-modules). Every other command is the typer app of hammer/cli.py.
+time; it goes straight to `hammer.commands.edge` (argparse, no typer/rich, none of the other
+commands' modules). Every other command is the typer app of hammer/cli.py.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ def is_edge(argv: list[str]) -> bool:
 def main() -> None:
     argv = sys.argv[1:]
     if is_edge(argv):
-        from hammer.local_agent.edge import main as edge
+        from hammer.commands.edge import main as edge
 
         sys.exit(edge(argv[1:]))
     from hammer.cli import main as cli

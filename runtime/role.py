@@ -18,7 +18,7 @@ none for `stall_warn_s` says so: a WARNING in its log and `stalled: ...` in its 
 A role that drives the loop itself instead of reacting to input (the env host) does not call
 `run`; it calls `stop_requested` and `heartbeat` from its own loop.
 
-The process shell (session, run directory, exit status) stays in `deploy/roles.py`, the
+The process shell (session, run directory, exit status) stays in `hammer/commands/roles.py`, the
 algorithm (acting, learning) in `learning/` and the acting cores; this module is only the loop.
 """
 

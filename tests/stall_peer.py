@@ -79,9 +79,8 @@ class EarlyStallPeer(PeerThread):
         import json
         import time
 
-        from hammer.deploy.roles import read_env_spec
-        from hammer.deploy.settings import RuntimeSettings
         from hammer.learning.config import build_config
+        from hammer.runtime.settings import RuntimeSettings, read_env_spec
 
         deadline = time.monotonic() + self.timeout_s
         while not (self.run_dir / "env_spec.json").is_file():  # written after runtime.json and config.json

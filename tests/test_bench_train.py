@@ -2,8 +2,10 @@
 
 import math
 
-from hammer.benchmarks.train import print_table, run_bench
+from hammer.benchmarks.train import run_bench
 from typer.testing import CliRunner
+
+from hammer.commands.bench import print_train_table
 
 
 def test_bench_train_figures(capsys):
@@ -24,7 +26,7 @@ def test_bench_train_figures(capsys):
     assert math.isclose(mw["speedup"], mw["workers=2"]["env_steps_per_s"] / mw["workers=0"]["env_steps_per_s"])
     for x in (cn, ref, full, mw["workers=0"], mw["workers=2"]):
         assert x["env_steps_per_s"] > 0 and math.isfinite(x["env_steps_per_s"]) and x["load_before"] >= 0
-    print_table(r)
+    print_train_table(r)
     out = capsys.readouterr().out
     assert "EXTRAPOLATED" in out and "cn-mpe2" in out and "speed-up" in out
 

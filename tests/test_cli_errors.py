@@ -15,9 +15,9 @@ def _err(res) -> str:
 
 
 def test_train_resume_of_an_up_run_refuses_before_touching_it(tmp_path):
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import prepare_run_dir
     from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
 
     run = tmp_path / "up-run"
     prepare_run_dir(merge_config("cn3", overrides=["episodes=10"]), RuntimeSettings(run_id="t"), run)

@@ -3,11 +3,11 @@
 import time
 
 from hammer.learning.baselines import PAPER_PRESETS, baselines, in_context, preset_of
-from hammer.learning.cli import eta
 from hammer.learning.config import PRESETS, merge_config
 from typer.testing import CliRunner
 
 from hammer.cli import app
+from hammer.commands.train import eta
 
 
 def test_every_preset_has_random_play_and_the_paper_presets_il_references():

@@ -12,11 +12,11 @@ import time
 
 import pytest
 from hammer.benchmarks.edge import make_team
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.up import launch
-from hammer.local_agent.edge import edge_inputs
 from hammer.protocol.session import free_loopback_port
-from hammer.serve.cli import serve_settings
+from hammer.runtime.settings import RuntimeSettings
+from hammer.serve.edge import edge_inputs
+from hammer.serve.settings import serve_settings
 
 from tests.runtime_helpers import ENV, ROOT
 
@@ -37,7 +37,7 @@ def test_the_edge_entry_loads_neither_the_cli_framework_nor_the_training_config(
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and lines[-1] == "error: --agent 7: this team has agents 0..2", lines[-1]
     loaded = {ln.split("|")[-1].strip() for ln in lines if ln.startswith("import time:")}
-    assert "hammer.local_agent.edge" in loaded and "hammer.protocol.session" in loaded
+    assert "hammer.serve.edge" in loaded and "hammer.protocol.session" in loaded
     assert not loaded & {"typer", "rich", "hammer.learning.config", "torch", "hammer.cli", "yaml"}, loaded & {
         "typer", "rich", "hammer.learning.config", "torch", "hammer.cli", "yaml"}
 
@@ -106,8 +106,8 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, t
     """Issue 28 in the served profile: the real agent 1 on the edge entry with its three files, and a
     thief holding the same three files attacking through agent 1's own keys (tests/own_key_thief.py).
     The run completes with no default action, every attempt refused and named in the summary."""
-    from hammer.deploy.settings import RuntimeSettings as RS
     from hammer.protocol.session import TransportConfig
+    from hammer.runtime.settings import RuntimeSettings as RS
 
     from tests.own_key_thief import OwnKeyThief
 

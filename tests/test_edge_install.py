@@ -16,7 +16,7 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
 from hammer.serve.bundle import export_bundle
-from hammer.serve.cli import serve_settings
+from hammer.serve.settings import serve_settings
 
 pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
 

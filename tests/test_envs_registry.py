@@ -97,8 +97,9 @@ def test_errors_name_the_field_and_the_fix(call, exc, pattern):
 
 def test_cli_envs_list_shows_dims():
     import typer
-    from hammer.envs import cli
     from typer.testing import CliRunner
+
+    from hammer.commands import envs as cli
 
     app = typer.Typer()
     cli.register(app)

@@ -157,7 +157,7 @@ def _trainers(out: Path) -> list:
     found = []
     for p in psutil.process_iter(["cmdline"]):
         cmd = p.info["cmdline"] or []
-        if any(a.startswith(str(out)) for a in cmd) and ("hammer.cli" in cmd or "hammer.learning.seeds_cli" in cmd):
+        if any(a.startswith(str(out)) for a in cmd) and ("hammer.cli" in cmd or "hammer.commands.seeds" in cmd):
             found.append(p)
     return found
 

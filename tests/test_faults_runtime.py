@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.up import launch
 from hammer.envs.registry import make_vec_env
 from hammer.faults.spec import build_plan
 from hammer.learning.config import merge_config
 from hammer.local_agent.client import AgentSpec, LocalAgent
+from hammer.runtime.settings import RuntimeSettings
 from safetensors.numpy import save_file
 
 pytestmark = pytest.mark.timeout(120)

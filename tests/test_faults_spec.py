@@ -126,7 +126,7 @@ def test_chaos_parse_and_schedule():
 def test_sweep_results_read_back_typed_and_aggregate(tmp_path):
     """sweep.csv round-trips to the same PointResults, so analyses of a finished sweep (e.g.
     docs/results/faults_ownobs.py) reuse `aggregate` instead of parsing the CSV again."""
-    from hammer.faults.sweep import PointResult, aggregate, read_results, write_outputs
+    from hammer.experiments.fault_sweep import PointResult, aggregate, read_results, write_outputs
 
     results = [PointResult(team=f"hammer-s{s}", variant="hammer", train_msg_dropout=0.0, drop=d, delay_ms=0.0,
                            seed=e, episodes=500, paper_metric=-19.0 - d - 0.1 * e - 0.01 * s, msgs_sent=100,

@@ -45,7 +45,7 @@ def test_foreign_client_imports_only_zenoh_msgpack_numpy_and_the_stdlib():
 
 
 def test_runtime_json_names_external_roles_only_when_there_are_some(tmp_path):
-    from hammer.deploy.settings import RuntimeSettings
+    from hammer.runtime.settings import RuntimeSettings
 
     RuntimeSettings(run_id="a").save(tmp_path)
     assert "external" not in json.loads((tmp_path / "runtime.json").read_text())  # a plain run's file is unchanged
@@ -131,11 +131,10 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
 def test_roles_started_by_hand_without_the_launcher_write_metrics_with_their_header(tmp_path):
     """Only config.json, env_spec.json and runtime.json, a `hammer hub` and each role by hand (the
     docs' two-machine recipe on one host): metrics.csv starts with its header like hammer up's."""
-    from hammer.deploy.roles import write_env_spec
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.envs.registry import make_vec_env
     from hammer.learning.config import merge_config
     from hammer.protocol.session import free_loopback_port
+    from hammer.runtime.settings import RuntimeSettings, write_env_spec
 
     run, port = tmp_path / "hand", free_loopback_port()
     run.mkdir()

@@ -1,4 +1,9 @@
-"""No import cycles among first-party modules.
+"""The house in floors, and no import cycles among first-party modules.
+
+Every package has a rank (`FLOORS`, the table of docs/architecture.md); a module imports only from
+its own package or from packages of a lower rank, imports inside functions included, so a
+newcomer knows from a file's folder what it may touch, and no library module reaches up into a
+command.
 
 A cycle among top-level imports makes the order modules happen to be imported in decide whether a
 name exists yet; the usual way out, hiding one edge inside a function, keeps the tangle and only
@@ -16,6 +21,21 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# The floors, lowest first: each package may import only those below it (docs/architecture.md).
+FLOORS: list[tuple[str, ...]] = [
+    ("hammer.protocol",),  # the contract: messages, keys, the session, access rules
+    ("hammer.envs",),  # environments behind one VecEnv contract
+    ("hammer.learning", "hammer.faults"),  # the maths and networks; link faults, counters and step logs
+    ("hammer.runtime",),  # what every role process shares: the loop, weights intake, settings, process setup
+    ("hammer.central_agent", "hammer.env_host", "hammer.local_agent", "hammer.learner"),  # the roles
+    ("hammer.serve",),  # a trained team served: bundles, the policy server, the edge agent
+    ("hammer.deploy",),  # a whole run launched and supervised
+    ("hammer.experiments",),  # sweeps, reports, analyses
+    ("hammer.benchmarks",),  # measures everything below, from outside
+    ("hammer",),  # the commands (hammer.commands, hammer.cli) and the console entry
+]
+RANK = {pkg: rank for rank, floor in enumerate(FLOORS) for pkg in floor}
 
 
 def package_dirs() -> dict[str, Path]:
@@ -40,8 +60,9 @@ def package_of(module: str) -> str:
 def module_files() -> dict[str, Path]:
     files = {}
     for pkg, folder in package_dirs().items():
-        for path in folder.glob("*.py"):  # no package has sub-packages of its own
-            name = pkg if path.stem == "__init__" else f"{pkg}.{path.stem}"
+        for path in folder.rglob("*.py"):  # hammer/commands/ is the one sub-package of a folder
+            parts = path.relative_to(folder).with_suffix("").parts
+            name = ".".join([pkg, *(parts[:-1] if parts[-1] == "__init__" else parts)])
             files[name] = path
     return files
 
@@ -187,4 +208,23 @@ def test_the_library_does_not_import_the_benchmarks():
     graph = import_graph(inside_functions=True)
     importers = {m for m, edges in graph.items() if not m.startswith("hammer.benchmarks")
                  and any(e.startswith("hammer.benchmarks") for e in edges)}
-    assert importers == {"hammer.cli"}
+    assert importers == {"hammer.commands.bench"}
+
+
+def test_every_package_has_a_floor():
+    assert sorted(RANK) == first_party_packages()
+
+
+def test_each_package_imports_only_from_the_floors_below_it():
+    """Function-level imports counted: hiding an import in a function does not move a package's floor.
+    (Every module's import of the bare `hammer` package, which runs first for any `hammer.x`, is
+    no edge: hammer/__init__.py holds only the version.)"""
+    up = sorted(f"{m} -> {e}" for m, edges in import_graph(inside_functions=True).items() for e in edges
+                if e != "hammer" and package_of(m) != package_of(e) and RANK[package_of(e)] >= RANK[package_of(m)])
+    assert up == []
+
+
+def test_the_root_package_imports_nothing():
+    """Everything imports `hammer/__init__.py` first: it must stay empty of imports."""
+    tree = ast.parse((ROOT / "hammer" / "__init__.py").read_text())
+    assert not _every_import(tree)

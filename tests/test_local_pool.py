@@ -12,7 +12,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hammer.deploy.settings import RuntimeSettings, auto_agents_per_process
 from hammer.deploy.up import launch, role_specs
 from hammer.learning.config import merge_config
 from hammer.learning.numpy_policy import NumpyLocalPolicy
@@ -21,6 +20,7 @@ from hammer.protocol.access import grants, pool_name, role_names, secure_link
 from hammer.protocol.identity import create_identities
 from hammer.protocol.keys import Keys
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
+from hammer.runtime.settings import RuntimeSettings, auto_agents_per_process
 
 from tests.runtime_helpers import processes_mentioning
 

@@ -12,9 +12,9 @@ import sys
 import time
 from pathlib import Path
 
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.up import prepare_run_dir
 from hammer.learning.config import merge_config
+from hammer.runtime.settings import RuntimeSettings
 
 from tests.runtime_helpers import ENV, ROOT, hammer, processes_mentioning
 

@@ -14,10 +14,10 @@ import json
 from pathlib import Path
 
 import pytest
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.up import launch
 from hammer.learning.config import merge_config
 from hammer.protocol.session import TransportConfig
+from hammer.runtime.settings import RuntimeSettings
 
 from tests.runtime_helpers import hammer
 from tests.stall_peer import EarlyStallPeer, StallPeer

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import psutil
 import pytest
-from hammer.deploy.settings import RuntimeSettings
 from hammer.deploy.up import launch
 from hammer.experiments.train_stats import load_train_stats
 from hammer.learning.config import merge_config
+from hammer.runtime.settings import RuntimeSettings
 
 from tests.runtime_helpers import hammer, processes_mentioning
 

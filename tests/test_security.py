@@ -276,9 +276,9 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
 
 def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
     """Blobs of the run's own architecture: what an attacker who read the public code can build."""
-    from hammer.deploy.roles import read_env_spec
     from hammer.learner.worker import weights_blob
     from hammer.learning.team import Team
+    from hammer.runtime.settings import read_env_spec
 
     team = Team(cfg, read_env_spec(run_dir))
     return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}
@@ -293,9 +293,9 @@ def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
     """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
     joins it with local-1's identity once the run is up and is appended to the list."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.deploy.up import launch
     from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
 
     cfg = merge_config("cn3", overrides=["episodes=100", "variant=hammer"])
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
@@ -455,7 +455,7 @@ def test_hammer_hub_relays_only_a_run_made_for_a_router(tmp_path):
     refuses it in one line instead of starting a router nobody may use."""
     import json
 
-    from hammer.deploy.settings import RuntimeSettings
+    from hammer.runtime.settings import RuntimeSettings
     from typer.testing import CliRunner
 
     from hammer.cli import app

@@ -18,7 +18,7 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
 from hammer.serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle
-from hammer.serve.cli import serve_settings
+from hammer.serve.settings import serve_settings
 from typer.testing import CliRunner
 
 from hammer.cli import app
@@ -214,7 +214,7 @@ def test_play_renders_multiwalker_and_own_observation_teams(tmp_path, monkeypatc
 def test_faults_eval_and_sweep_serve_a_bundle_with_its_fallback(trained, tmp_path):
     """`hammer faults eval/sweep` given a bundle run it as `hammer serve` does (serve_settings), so the
     fallback in its manifest applies; a run directory keeps the default."""
-    from hammer.faults.sweep import Point, point_settings
+    from hammer.experiments.fault_sweep import Point, point_settings
 
     b = tmp_path / "b"
     export_bundle(trained, b)

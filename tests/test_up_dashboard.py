@@ -1,15 +1,16 @@
-"""The `hammer up` dashboard's rows for rejected messages and stalled roles (deploy/cli.py), from
+"""The `hammer up` dashboard's rows for rejected messages and stalled roles (hammer/commands/up.py), from
 heartbeats as the roles send them: a degraded run must be visible while it runs."""
 
 from __future__ import annotations
 
 import time
 
-from hammer.deploy.cli import _dashboard_table
 from hammer.deploy.up import Board
 from hammer.learning.config import merge_config
 from hammer.protocol.schemas import Heartbeat
 from rich.console import Console
+
+from hammer.commands.up import _dashboard_table
 
 
 def _render(board: Board) -> dict[str, str]:

@@ -10,8 +10,8 @@ How the sweeps were made is in docs/results/faults-ownobs/README.md.
 from pathlib import Path
 
 import numpy as np
+from hammer.experiments.fault_sweep import aggregate, read_results
 from hammer.experiments.report import sem
-from hammer.faults.sweep import aggregate, read_results
 from scipy import stats
 
 HERE = Path(__file__).parent / "faults-ownobs"

@@ -28,6 +28,8 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands.common import fail
+
 bench = typer.Typer(help="Benchmarks that print figures (ratios against a baseline measured in the same run). "
                          "Without a subcommand: the whole-system table (raw env, train, up, latency, RSS).",
                     invoke_without_command=True)
@@ -56,9 +58,9 @@ def bench_transport(
 ) -> None:
     """Messages/s and round-trip p50/p99 of typed messages vs raw bytes of the same size,
     over Zenoh on 127.0.0.1 to an echo peer in another (spawned) process."""
-    from hammer.benchmarks.transport import bench_meta, rows_as_dicts, run_bench
     from rich.table import Table
 
+    from hammer.benchmarks.transport import bench_meta, rows_as_dicts, run_bench
     from hammer.console import table_console
 
     rows = run_bench(rounds=rounds, flood=flood)
@@ -93,9 +95,9 @@ def bench_codec(
 ) -> None:
     """Microseconds to build (validate), encode and decode (validate) each message of the
     control loop, fast path vs the pydantic reference measured in the same run."""
-    from hammer.benchmarks.transport import codec_bench, codec_rows_as_dicts, role_costs
     from rich.table import Table
 
+    from hammer.benchmarks.transport import codec_bench, codec_rows_as_dicts, role_costs
     from hammer.console import table_console
 
     sizes = ((3, 18, 4), (5, 30, 8))
@@ -142,10 +144,10 @@ def bench_loop_floor(
     """Latency floor of the step loop: env -> central -> local agents -> env with every role's
     work removed (same keys, publishers and subscriptions as `hammer up`), typed messages vs raw
     bytes, one process per local agent vs one for all. Compare with `hammer bench runtime`."""
-    from hammer.benchmarks.loop_floor import rows_as_dicts as floor_dicts
-    from hammer.benchmarks.loop_floor import run_floor
     from rich.table import Table
 
+    from hammer.benchmarks.loop_floor import rows_as_dicts as floor_dicts
+    from hammer.benchmarks.loop_floor import run_floor
     from hammer.console import table_console
 
     rows = run_floor(k=k, steps=steps)
@@ -193,8 +195,9 @@ def bench_train(
     json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
 ) -> None:
     """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
-    from hammer.benchmarks.train import print_table, run_bench
     from rich.console import Console
+
+    from hammer.benchmarks.train import run_bench
 
     err = Console(stderr=True)
     if min(cn_episodes, mw_updates, extrapolate_from) < 1:
@@ -202,7 +205,7 @@ def bench_train(
         raise typer.Exit(2)
     r = run_bench(variant, central_mode, cn_episodes, mw_updates, full, extrapolate_from, seed=seed,
                   progress=lambda msg: err.print(f"[dim]bench train: {msg} (load {os.getloadavg()[0]:.2f})[/dim]"))
-    print_table(r)
+    print_train_table(r)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2))
@@ -220,9 +223,9 @@ def bench_seeds(
 ) -> None:
     """Aggregate env-steps/s of S seeds trained as one batch (`hammer train --seeds`) vs one solo run,
     and the cn3 grid's wall time (5 variants x 5 seeds x 30,000 episodes) with and without batching."""
-    from hammer.benchmarks.seeds import grid_estimate, run_bench
     from rich.table import Table
 
+    from hammer.benchmarks.seeds import grid_estimate, run_bench
     from hammer.console import table_console
 
     try:
@@ -261,9 +264,9 @@ def bench_runtime(
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the figures as JSON here.")] = None,
 ) -> None:
     """env-steps/s of `hammer up` vs `hammer train` (same config, same run) and step latency p50/p99."""
-    from hammer.benchmarks.runtime import bench_runtime, same_label
     from rich.table import Table
 
+    from hammer.benchmarks.runtime import bench_runtime, same_label
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -291,9 +294,9 @@ def bench_security(
 ) -> None:
     """What `hammer up --secure` costs, and what a 4 MB x 25/s flood on one agent's own key (with that agent's
     identity) costs: env-steps/s and step latency p50/p99, plain vs secure vs secure+flood, same run."""
-    from hammer.benchmarks.security import FIGURES, PROFILES, bench_security
     from rich.table import Table
 
+    from hammer.benchmarks.security import FIGURES, PROFILES, bench_security
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -333,9 +336,9 @@ def bench_edge_command(
     `hammer local --bundle` (no run directory) and today's `hammer local --run-dir`, in one run."""
     import tempfile
 
-    from hammer.benchmarks.edge import bench_edge
     from rich.table import Table
 
+    from hammer.benchmarks.edge import bench_edge
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -375,8 +378,7 @@ def bench_scale_command(
     try:
         n_values = tuple(int(x) for x in ns.split(","))
     except ValueError:
-        typer.secho(f"error: --n {ns!r}: expected comma-separated agent counts, e.g. --n 3,5,10", err=True)
-        raise typer.Exit(2) from None
+        fail(f"--n {ns!r}: expected comma-separated agent counts, e.g. --n 3,5,10")
     r = bench_scale(n_values, episodes, floor_steps, Path(json_dir) if json_dir else None,
                     progress=lambda line: typer.echo(line, err=True))
     typer.echo(f"hammer bench scale, {r['meta']['date']}, {r['meta']['cpu_count']} cores, {episodes} episodes per point")
@@ -388,3 +390,39 @@ def bench_scale_command(
 def register(app: typer.Typer) -> None:
     """Add the `bench` group to the top-level app."""
     app.add_typer(bench, name="bench")
+
+
+def print_train_table(r: dict) -> None:
+    """The table of `hammer bench train` (benchmarks.train.run_bench's figures)."""
+    from rich.table import Table
+
+    from hammer.console import table_console
+
+    mode = f"/{r['central_mode']}" if r["variant"] == "hammer" else ""
+    t = Table(title=f"hammer train speed ({r['variant']}{mode}; env-steps/s include PPO updates; "
+                    f"{r['cores']} cores)")
+    for col in ("preset", "setting", "env-steps/s", "note", "load 1-min (before/after)"):
+        t.add_column(col, justify="right" if col == "env-steps/s" else "left")
+
+    def ld(x: dict) -> str:
+        return f"{x['load_before']:.2f} / {x['load_after']:.2f}"
+
+    cn, ref = r["cn3"]["cn"], r["cn3"]["cn-mpe2"]
+    t.add_row("cn3", "env cn (vectorised)", f"{cn['env_steps_per_s']:,.0f}", f"{cn['episodes']} episodes", ld(cn))
+    t.add_row("cn3", "env cn-mpe2 (reference)", f"{ref['env_steps_per_s']:,.0f}",
+              f"{ref['episodes']} episodes; cn / cn-mpe2 = {r['cn3']['ratio']:.2f}x", ld(ref))
+    f = r["full"]
+    how = ("measured" if not f["extrapolated"] else
+           f"EXTRAPOLATED from {f['episodes']:,} episodes ({f['wall_s']:.1f} s, startup {f['startup_s']:.1f} s)")
+    t.add_row("cn3", "one full 30,000-episode run", f"{f['env_steps_per_s']:,.0f}",
+              f"wall {f['full_wall_s']:.0f} s = {f['full_wall_s'] / 60:.1f} min, {how}", ld(f))
+    for key in ("workers=0", "workers=2"):
+        m = r["mw3"][key]
+        name = "in-process" if key == "workers=0" else "env_workers=2"
+        note = f"{m['updates']} updates after {m['warmup']} warm-up"
+        if key == "workers=2":
+            note += f"; speed-up {r['mw3']['speedup']:.2f}x over in-process"
+        t.add_row("mw3", name, f"{m['env_steps_per_s']:,.0f}", note, ld(m))
+    console = table_console()
+    console.print(t)
+    console.print("The machine is shared: compare figures only with the load average beside them.")

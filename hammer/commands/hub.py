@@ -18,6 +18,8 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands import common
+
 
 def hub_command(
     listen: Annotated[list[str], typer.Option(help="Endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447 "
@@ -34,19 +36,17 @@ def hub_command(
     try:
         transport = TransportConfig(mode="router", listen=listen)
     except ValueError as e:
-        typer.secho(f"error: --listen: {' '.join(str(e).split())}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(2) from None
+        common.fail(f"--listen: {' '.join(str(e).split())}")
     run_id = "hub"
     if run_dir is not None:
         transport, run_id = _secure_hub(transport, run_dir)
     else:
-        from hammer.deploy.settings import refuse_plain_beyond_loopback
+        from hammer.runtime.settings import refuse_plain_beyond_loopback
 
         try:
             refuse_plain_beyond_loopback(transport, secure=False, insecure=insecure)
         except ValueError as e:
-            typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-            raise typer.Exit(2) from None
+            common.fail(str(e))
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with HammerSession(run_id, transport, sender="hub"):
@@ -64,12 +64,11 @@ def _secure_hub(transport, run_dir: Path):
     """The router as identity `hub` of the secure run in `run_dir`: (transport, run id)."""
     import json
 
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.protocol.access import HUB
+    from hammer.runtime.settings import RuntimeSettings
 
     def fail(msg: str):
-        typer.secho(f"error: --run-dir {run_dir}: {msg}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(2)
+        common.fail(f"--run-dir {run_dir}: {msg}")
 
     try:
         settings = RuntimeSettings.load(run_dir)

@@ -10,14 +10,13 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands.common import fail
+
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
                 "msg_dim", "use_prev_actions", "obs_conv", "actor_hidden", "critic_hidden", "central_hidden")
 
 
-def _fail(msg: str) -> None:
-    typer.secho(f"error: {msg}", fg="red", err=True)
-    raise typer.Exit(2)
 
 
 def train_command(
@@ -51,10 +50,10 @@ def train_command(
     if variant in ("hammer-rl", "hammer-backprop"):  # as `hammer sweep --variants` spells them
         mode = variant.split("-")[1]
         if central_mode not in (None, mode):
-            _fail(f"--variant {variant} with --central-mode {central_mode}: they disagree; fix: drop --central-mode")
+            fail(f"--variant {variant} with --central-mode {central_mode}: they disagree; fix: drop --central-mode")
         variant, central_mode = "hammer", mode
     if seeds is not None:
-        from hammer.learning.seeds_cli import train_seeds_command
+        from hammer.commands.seeds import train_seeds_command
 
         train_seeds_command(seeds, preset, variant, central_mode, episodes, config, set_ or [], out, name,
                             conflicts={"--seed": seed, "--run-dir": run_dir, "--resume": resume, "--branch": branch},
@@ -112,11 +111,10 @@ def train_command(
                 raise
         _run(cfg, rd, env, resume is not None or branch is not None, quiet)
     except ConfigError as e:
-        _fail(str(e))
+        fail(str(e))
 
 
 def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
-    from hammer.learning.trainer import train
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -126,6 +124,8 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
         TimeElapsedColumn,
         TimeRemainingColumn,
     )
+
+    from hammer.learning.trainer import train
 
     console = Console(stderr=True)
     console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")

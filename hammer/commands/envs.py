@@ -11,6 +11,8 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands.common import fail
+
 DEFAULT_N = 3  # the paper's smaller team size; every name also works at N=5
 
 
@@ -22,11 +24,11 @@ def register(app: typer.Typer) -> None:
     @envs.command("list")
     def list_envs(n_agents: int = typer.Option(DEFAULT_N, "--n-agents", "-n", help="team size N to describe")) -> None:
         """List env names with N, observation size and action space (builds one copy of each)."""
-        from hammer.envs.catalog import env_descriptions
-        from hammer.envs.registry import make_vec_env
         from rich.table import Table
 
         from hammer.console import table_console
+        from hammer.envs.catalog import env_descriptions
+        from hammer.envs.registry import make_vec_env
 
         table = Table("name", "N", "obs dim", "actions", "max steps", "description")
         for name, about in env_descriptions().items():
@@ -50,13 +52,13 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Build the env, print its agents, spaces, episode length and speed, and say which env_adapters it
         needs or why it cannot run."""
-        from hammer.envs.check import check_env
-        from hammer.envs.description import EnvConfigError
-        from hammer.learning.config import ConfigError, parse_override
         from rich.markup import escape
         from rich.table import Table
 
         from hammer.console import table_console
+        from hammer.envs.check import check_env
+        from hammer.envs.description import EnvConfigError
+        from hammer.learning.config import ConfigError, parse_override
 
         kwargs, adapters, n = {}, None, DEFAULT_N
         try:
@@ -73,8 +75,7 @@ def register(app: typer.Typer) -> None:
                                       "n_agents=N")
             rep = check_env(env, kwargs, adapters, n, seconds)
         except (ConfigError, EnvConfigError) as e:
-            typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-            raise typer.Exit(2) from None
+            fail(str(e))
         out = table_console()
         if rep.spaces:
             t = Table("agents", "observation space", "action space", title=f"{env}: {len(rep.agents)} agents")

@@ -12,70 +12,21 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
-import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from hammer.commands.common import ConnectOpt, RunDirOpt, ZenohCfgOpt, fail
 from hammer.runtime.bounds import known_step, known_version
-
-RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
-ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
-ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
-
-
-def _setup(role: str, run_dir: Path | None = None) -> None:
-    """Logging of a role process: line by line to stderr (the launcher's RUN/logs/<role>.log), so a
-    killed role's log ends at its last line; Python warnings too; first a line of what it runs."""
-    sys.stderr.reconfigure(line_buffering=True)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
-    logging.captureWarnings(True)
-    log = logging.getLogger("hammer.deploy")
-    try:
-        cfg = json.loads((Path(run_dir) / "config.json").read_text()) if run_dir is not None else None
-        rt = json.loads((Path(run_dir) / "runtime.json").read_text()) if run_dir is not None else None
-    except (OSError, ValueError):
-        cfg = rt = None
-    if cfg and rt:
-        log.info("%s: run dir %s; %s N=%s %s/%s seed %s, %s episodes; mode %s, msg deadline %s ms, act deadline "
-                 "%s ms, max policy lag %s, fallback %s%s", role, run_dir, cfg.get("env"), cfg.get("n_agents"),
-                 cfg.get("variant"), cfg.get("central_mode"), cfg.get("seed"), cfg.get("episodes"), rt.get("mode"),
-                 rt.get("msg_deadline_ms"), rt.get("act_deadline_ms"), rt.get("max_policy_lag"), rt.get("fallback"),
-                 f", resume from update {rt['resume_from']}" if rt.get("resume_from") is not None else "")
-    from hammer.deploy.supervisor import parent_watchdog
-
-    parent_watchdog()
-
-    def on_term(signum, frame):  # turn SIGTERM (and Ctrl-C) into a clean exit so the Zenoh session closes
-        log.warning("%s: %s, stopping", role, signal.Signals(signum).name)
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
-
-
-def write_env_spec(run_dir: Path, spec) -> None:
-    (Path(run_dir) / "env_spec.json").write_text(json.dumps(asdict(spec), indent=1))
-
-
-def read_env_spec(run_dir: Path):
-    from hammer.envs.base import EnvSpec
-
-    path = Path(run_dir) / "env_spec.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: pass the --run-dir that `hammer up` created")
-    d = json.loads(path.read_text())
-    d["agent_ids"] = tuple(d["agent_ids"])
-    return EnvSpec(**d)
+from hammer.runtime.process import setup_process
+from hammer.runtime.settings import read_env_spec
 
 
 def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, role: str):
     """Runtime settings and this role's transport; a secure run adds the role's identity from
     RUN/identity/ (protocol.identity) and the run's access rules."""
-    from hammer.deploy.settings import RuntimeSettings
+    from hammer.runtime.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
     if zenoh_config is not None:
@@ -129,9 +80,6 @@ def _step_log_dir(run_dir: Path) -> Path | None:
     return d
 
 
-def _fail(msg: str) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(2)
 
 
 def local_command(agent: Annotated[int | None, typer.Option(help="Local agent index i (0-based): one agent, "
@@ -163,28 +111,28 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 
     With --bundle (one agent) the console script starts it without this CLI framework (local_agent/edge.py)."""
     if (agent is None) == (agents is None):
-        _fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
+        fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
         _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
                     identity, insecure)
         return
-    _setup(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
+    setup_process(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
-        _fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
+        fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
     try:
         settings, cfg, spec = _read_settings(run_dir, zenoh_config), _read_config(run_dir), read_env_spec(run_dir)
         members = [agent] if agents is None else _pool_agents(agents, cfg.n_agents)
         transport = _local_transport(settings, run_dir, connect, zenoh_config, members, cfg.n_agents)
         settings.refuse_plain_beyond_loopback(transport, insecure)
     except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     if agents is not None:
         _serve_pool(settings, transport, cfg, spec, members, run_dir)
         return
     if not 0 <= agent < cfg.n_agents:
-        _fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
+        fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
     from hammer.local_agent.client import AgentSpec
-    from hammer.local_agent.edge import run_agent
+    from hammer.serve.edge import run_agent
 
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
@@ -194,7 +142,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
                 identity, insecure: bool = False) -> None:
     """One agent from a bundle, no run directory (local_agent/edge.py; the console script's fast path)."""
-    from hammer.local_agent.edge import edge_inputs, run_agent
+    from hammer.serve.edge import edge_inputs, run_agent
 
     try:
         if agents is not None:
@@ -204,8 +152,8 @@ def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, s
         inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity,
                              insecure)
     except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
-    _setup(f"local-{agent}")
+        fail(str(e))
+    setup_process(f"local-{agent}")
     run_agent(*inputs)
 
 
@@ -216,7 +164,7 @@ def _pool_agents(text: str, n_agents: int) -> list[int]:
 
 
 def _read_settings(run_dir: Path, zenoh_config: Path | None):
-    from hammer.deploy.settings import RuntimeSettings
+    from hammer.runtime.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
     return s if zenoh_config is None else s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
@@ -276,7 +224,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
 
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
-    _setup("central", run_dir)
+    setup_process("central", run_dir)
     from hammer.central_agent.server import CentralServer
     from hammer.protocol.session import HammerSession
 
@@ -284,7 +232,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         settings, transport = _settings(run_dir, connect, zenoh_config, "central")
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
@@ -301,7 +249,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
 
 def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The env host: steps the K env copies and drives the step loop; writes metrics and the summary."""
-    _setup("env", run_dir)
+    setup_process("env", run_dir)
     from hammer.env_host.host import EnvHost
     from hammer.learning.run_env import make_env
     from hammer.learning.rundir import RunDir
@@ -312,7 +260,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
         settings, transport = _settings(run_dir, connect, zenoh_config, "env")
         cfg = _read_config(run_dir)
     except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     env = make_env(cfg)
     rd = RunDir(run_dir)
     try:
@@ -350,17 +298,17 @@ def learner_command(run_dir: RunDirOpt,
                                                           "(needed for backprop mode; the default).")] = "team",
                     connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
-    _setup(f"learner-{role}", run_dir)
+    setup_process(f"learner-{role}", run_dir)
     from hammer.protocol.session import HammerSession
 
     if role != "team":
-        _fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
+        fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
               "requires); see docs/runtime.md")
     try:
         settings, transport = _settings(run_dir, connect, zenoh_config, "learner")
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     if settings.mode == "eval":  # serve the frozen policy; no torch, no learning
         from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
@@ -369,7 +317,7 @@ def learner_command(run_dir: RunDirOpt,
                 PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network,
                              settings.weights_republish_s, run_dir, settings.weights_republish_max_s).run()
         except PolicyDirError as e:
-            _fail(str(e))
+            fail(str(e))
         except KeyboardInterrupt:
             pass
         return

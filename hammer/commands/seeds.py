@@ -6,16 +6,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-import typer
+from hammer.commands.common import fail
 
 
 def train_seeds_command(seeds: str, preset: str | None, variant: str | None, central_mode: str | None,
                         episodes: int | None, config: Path | None, overrides: list[str], out: str | None,
                         name: str | None, conflicts: dict[str, Any], quiet: bool) -> None:
+    from rich.console import Console
+
     from hammer.learning.config import ConfigError, merge_config
     from hammer.learning.rundir import RunDir
     from hammer.learning.seed_batch import parse_seeds, train_seeds
-    from rich.console import Console
 
     try:
         used = [flag for flag, value in conflicts.items() if value is not None]
@@ -30,8 +31,7 @@ def train_seeds_command(seeds: str, preset: str | None, variant: str | None, cen
         _check_env(cfgs[0])  # the seeds share everything but the seed: one env tells for all, before any write
         dirs = [RunDir.create(p, c) for p, c in zip(paths, cfgs, strict=True)]
     except ConfigError as e:
-        typer.secho(f"error: {e}", fg="red", err=True)
-        raise typer.Exit(2) from None
+        fail(str(e))
     console = Console(stderr=True)
     console.print(f"{len(cfgs)} seeds as one batch ({cfgs[0].env} N={cfgs[0].n_agents}, {cfgs[0].wiring.label}): "
                   f"{', '.join(str(p) for p in paths)}")
@@ -73,14 +73,14 @@ def _check_env(cfg) -> None:
 
 
 def main(argv: list[str]) -> int:
-    """`python -m hammer.learning.seeds_cli RUN_DIR...`: train run directories that hold only their config
+    """`python -m hammer.commands.seeds RUN_DIR...`: train run directories that hold only their config
     (as `hammer sweep` creates them) as one seed batch. Exit status 0 when every seed finished."""
     from hammer.learning.config import ConfigError
     from hammer.learning.rundir import RunDir
     from hammer.learning.seed_batch import train_seeds
 
     if not argv:
-        print("error: usage: python -m hammer.learning.seeds_cli RUN_DIR... (fresh run directories with a config.json)")
+        print("error: usage: python -m hammer.commands.seeds RUN_DIR... (fresh run directories with a config.json)")
         return 2
     try:
         opened = [RunDir.open(p) for p in argv]

@@ -1,11 +1,10 @@
-"""The edge agent: `hammer local --bundle BUNDLE --agent I ...` with nothing but the bundle.
+"""The edge agent: one local agent of a served team with nothing but the bundle (the library side
+of `hammer local --bundle BUNDLE --agent I ...`, whose entry is hammer/commands/edge.py).
 
-Why its own entry: an edge device pays for every import. `hammer local --bundle` is dispatched here
-by the console script (hammer/entry.py) before the CLI framework (typer, rich) and the other
-commands' modules load, and the team's RunConfig (pydantic) is never built: the bundle's manifest
-holds what the agent needs (spaces, variant wiring, message length, seed, fallback), read with
-json, numpy and safetensors. What stays is the runtime itself: the protocol (pydantic message
-models, their fast path), the Zenoh session, `LocalAgentClient`.
+Why apart: an edge device pays for every import. The team's RunConfig (pydantic) is never built:
+the bundle's manifest holds what the agent needs (spaces, variant wiring, message length, seed,
+fallback), read with json, numpy and safetensors. What stays is the runtime itself: the protocol
+(pydantic message models, their fast path), the Zenoh session, `LocalAgentClient`.
 
 The run's settings come from the bundle (fallback) and the run id, or from a copy of the served
 run's runtime.json (`--settings`), overridden by `--runtime FIELD=VALUE`. A secure run needs the
@@ -15,34 +14,10 @@ docs/security.md), no run directory.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
-import signal
-import sys
 from pathlib import Path
-
-
-def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="hammer local", description="An edge local agent joining a run with only "
-                                 "a bundle (made by `hammer export`): acts on its observation + central message.")
-    ap.add_argument("--agent", type=int, required=True, help="Local agent index i (0-based).")
-    ap.add_argument("--bundle", type=Path, required=True, help="A bundle made by `hammer export`.")
-    ap.add_argument("--run-id", help="The run id of the run to join (`hammer serve` prints it; or --settings).")
-    ap.add_argument("--connect", help="Zenoh endpoint of the run's hub, e.g. tcp/<hub-host>:7447.")
-    ap.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 config (router/client/TLS deployments).")
-    ap.add_argument("--seed", type=int, help="The run's seed (the agent's sampling stream); default the bundle's.")
-    ap.add_argument("--settings", type=Path, help="A copy of the served run's runtime.json: its deadlines, "
-                                                  "fallback, bounds (and run id).")
-    ap.add_argument("--runtime", action="append", default=[], metavar="FIELD=VALUE",
-                    help="RuntimeSettings field, repeatable, e.g. msg_deadline_ms=20.")
-    ap.add_argument("--identity", type=Path, help="A secure run: the directory with ca.pem, local-<i>.pem and "
-                                                  "local-<i>.key (copied from the launcher's RUN/identity/).")
-    ap.add_argument("--insecure", action="store_true", help="Run plain (no TLS) although the hub is beyond "
-                                                            "loopback: only on a network you trust (docs/security.md).")
-    ap.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)  # refused with a bundle, in one line
-    return ap
 
 
 def agent_spec(bundle, agent: int, seed: int | None):
@@ -61,7 +36,7 @@ def agent_spec(bundle, agent: int, seed: int | None):
 def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtime: list[str]):
     """RuntimeSettings of the run to join: the served run's runtime.json if given, else the bundle's
     fallback; then the --runtime items. Raises ValueError with a one-line reason."""
-    from hammer.deploy.settings import RuntimeSettings
+    from hammer.runtime.settings import RuntimeSettings
 
     if settings_file is not None:
         try:
@@ -162,38 +137,3 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
                     logging.getLogger("hammer.deploy").warning("could not write counters: %s", e)
     except KeyboardInterrupt:
         pass
-
-
-def setup_process(role: str) -> None:
-    """Line-by-line logging to stderr, the launcher watchdog, SIGTERM/SIGINT as a clean exit (the Zenoh
-    session closes)."""
-    sys.stderr.reconfigure(line_buffering=True)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
-    logging.captureWarnings(True)
-    from hammer.deploy.supervisor import parent_watchdog
-
-    parent_watchdog()
-
-    def on_term(signum, frame):
-        logging.getLogger("hammer.deploy").warning("%s: %s, stopping", role, signal.Signals(signum).name)
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`hammer local --bundle ...` without the CLI framework; returns the exit code (2: a usage error)."""
-    a = parser().parse_args(argv)
-    try:
-        if a.run_dir is not None:
-            raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
-        inputs = edge_inputs(a.bundle, a.agent, a.run_id, a.connect, a.zenoh_config, a.seed, a.settings, a.runtime,
-                             a.identity, a.insecure)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    setup_process(f"local-{a.agent}")
-    run_agent(*inputs)
-    return 0

@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands.common import fail
+
 faults_app = typer.Typer(help="Communication faults as an experiment: evaluate trained teams under drops, "
                               "delays and process chaos.", no_args_is_help=True)
 
@@ -16,16 +18,13 @@ def register(app: typer.Typer) -> None:
     app.add_typer(faults_app, name="faults")
 
 
-def _fail(msg: str, code: int = 2) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(code)
 
 
 def _floats(text: str, what: str) -> list[float]:
     try:
         return [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        _fail(f"--{what} {text!r}: expected comma-separated numbers, e.g. 0,0.1,0.25")
+        fail(f"--{what} {text!r}: expected comma-separated numbers, e.g. 0,0.1,0.25")
     return []
 
 
@@ -51,7 +50,7 @@ def sweep_command(
 ) -> None:
     """Evaluate trained teams (real runtime, frozen weights) under a grid of message drop rates and
     delays, several seeds each; writes a CSV, a markdown table and a plot with the IL reference line."""
-    from hammer.faults.sweep import grid, run_sweep
+    from hammer.experiments.fault_sweep import grid, run_sweep
     from hammer.serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -61,9 +60,9 @@ def sweep_command(
             try:
                 load_bundle(path)
             except BundleError as e:
-                _fail(f"{label}: {e}")
+                fail(f"{label}: {e}")
         elif not (path / "final" / "local.safetensors").is_file():
-            _fail(f"{label}: {path}/final/local.safetensors is missing; fix: pass a bundle or a finished run directory")
+            fail(f"{label}: {path}/final/local.safetensors is missing; fix: pass a bundle or a finished run directory")
     points = grid(teams, il, _floats(drops, "drops"), _floats(delays_ms, "delays-ms"), list(range(seeds)))
     typer.echo(f"{len(points)} evaluation runs ({episodes} episodes each, {parallel} at a time) -> {out}")
 
@@ -96,9 +95,9 @@ def eval_command(
     import time
 
     from hammer.deploy.up import UpError, launch
+    from hammer.experiments.fault_sweep import eval_config, team_source
     from hammer.faults.chaos import ChaosSpecError, parse_chaos
     from hammer.faults.spec import FaultSpecError, build_plan
-    from hammer.faults.sweep import eval_config, team_source
     from hammer.serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -109,15 +108,15 @@ def eval_command(
         cfg = eval_config(run, episodes, seed)
         policy_dir = team_source(run)[1]
     except (FaultSpecError, ChaosSpecError, FileNotFoundError, BundleError) as e:
-        _fail(str(e))
+        fail(str(e))
     path = run_dir or run.parent / f"{run.name}-eval-{time.strftime('%Y%m%d-%H%M%S')}"
     if is_bundle(run):  # served as `hammer serve` serves it: the bundle's fallback applies
-        from hammer.serve.cli import serve_settings
+        from hammer.serve.settings import serve_settings
 
         try:
             settings, _ = serve_settings(load_bundle(run), path.name, fault, fault_seed, chaos, runtime)
         except ValueError as e:
-            _fail(str(e))
+            fail(str(e))
     else:
         settings = _run_dir_settings(path, policy_dir, plan, chaos, runtime)
     for lf in plan.links:
@@ -125,7 +124,7 @@ def eval_command(
     try:
         res = launch(cfg, settings, path)
     except UpError as e:
-        _fail(str(e), code=1)
+        fail(str(e), code=1)
     s = res.summary
     typer.echo(f"{s['episodes']} episodes, mean paper metric {s['final_paper_metric_last500']:.3f} -> {path}")
     for ev in res.chaos_log:
@@ -136,18 +135,19 @@ def eval_command(
 def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | None, runtime: list[str] | None):
     """RuntimeSettings of the evaluation of a run directory's final/ policy (default fallback)."""
     import yaml
-    from hammer.deploy.settings import RuntimeSettings
+
+    from hammer.runtime.settings import RuntimeSettings
 
     rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
           "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
-            _fail(f"--runtime {item!r}: expected FIELD=VALUE")
+            fail(f"--runtime {item!r}: expected FIELD=VALUE")
         rt[key.strip()] = yaml.safe_load(val)
     try:
         return RuntimeSettings.model_validate(rt)
     except ValueError as e:
-        from hammer.deploy.cli import settings_error
+        from hammer.commands.up import settings_error
 
-        _fail(settings_error(e))
+        fail(settings_error(e))

@@ -14,10 +14,7 @@ from typing import Annotated
 
 import typer
 
-
-def _fail(msg: str, code: int = 2) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(code)
+from hammer.commands.common import fail
 
 
 def register(app: typer.Typer) -> None:
@@ -42,40 +39,12 @@ def export_command(
     try:
         b = export_bundle(run, out, force=force)
     except (BundleError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     m = b.manifest
     metric = m["source"]["final_paper_metric_last500"]
     typer.echo(f"bundle {out}: {m['env']['id']} N={m['env_spec']['n_agents']} {m['variant']}"
                f"{'/' + m['central_mode'] if m['central_mode'] else ''}, message length {m['msg_dim']}, "
                f"final metric {'-' if metric is None else f'{metric:.3f}'}, files {', '.join(m['files'])}")
-
-
-def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_seed: int = 0,
-                   chaos: list[str] | None = None, runtime: list[str] | None = None):
-    """RuntimeSettings of a served bundle: eval mode, its policy, its fallback, faults, chaos, --runtime items.
-    Raises ValueError with a one-line reason."""
-    import yaml
-    from hammer.deploy.settings import RuntimeSettings
-    from hammer.faults.chaos import parse_chaos
-    from hammer.faults.spec import build_plan
-
-    plan = build_plan(fault, fault_seed)
-    for c in chaos or []:
-        parse_chaos(c)
-    fb = bundle.manifest.get("fallback", {})
-    rt = {"run_id": run_id.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(bundle.policy_dir),
-          "fallback": fb.get("mode", "zeros"), "fallback_k": fb.get("k", 3), "chaos": chaos or []}
-    if plan.links:
-        rt.update(faults=plan.to_spec(), fault_links=[lf.model_dump() for lf in plan.links])
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
-        rt[key.strip()] = yaml.safe_load(val)
-    try:
-        return RuntimeSettings.model_validate(rt), plan
-    except Exception as e:  # noqa: BLE001 - pydantic's multi-line report, in one line
-        raise ValueError(f"--runtime: {' '.join(str(e).split())}") from None
 
 
 def serve_command(
@@ -106,9 +75,11 @@ def serve_command(
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`."""
-    from hammer.deploy.cli import _run_up
-    from hammer.serve.bundle import BundleError, load_bundle
     from rich.console import Console
+
+    from hammer.commands.up import run_up
+    from hammer.serve.bundle import BundleError, load_bundle
+    from hammer.serve.settings import serve_settings
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -128,7 +99,7 @@ def serve_command(
 
             settings = settings.model_copy(update={"hub_port": free_loopback_port()})
     except (BundleError, ValueError) as e:
-        _fail(str(e))
+        fail(str(e))
     console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}) -> {path}")
     for lf in plan.links:
         console.print(f"fault: {lf.describe()} (seed {plan.seed})")
@@ -145,7 +116,7 @@ def serve_command(
     if roles:
         console.print(f"waiting for the external central agent: hammer central --run-dir {path} --connect {where} "
                       "(the run directory's config.json, runtime.json and env_spec.json are all it needs)", soft_wrap=True)
-    _run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
+    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
 
 
 def _check_env(bundle, cfg) -> None:
@@ -187,7 +158,7 @@ def push_command(
     try:
         e = push(bundle, to)
     except (BundleError, ValueError, OSError) as err:
-        _fail(str(err))
+        fail(str(err))
     typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
                "previous one)")
 
@@ -202,7 +173,7 @@ def rollback_command(
     try:
         e = rollback(run)
     except (BundleError, ValueError, OSError) as err:
-        _fail(str(err))
+        fail(str(err))
     typer.echo(f"rolled back {run}: version {e['version']} serves the policy of version {e['restores_version']} "
                f"({e['policy_dir']})")
 
@@ -230,6 +201,6 @@ def play_command(
     try:
         r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps, stills)
     except (BundleError, PlayError) as e:
-        _fail(str(e))
+        fail(str(e))
     typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "
                f"paper metric per episode {', '.join(f'{x:.2f}' for x in r['paper_metric'])}")

@@ -14,6 +14,7 @@ import json
 import math
 import os
 import re
+from dataclasses import asdict
 from pathlib import Path
 from typing import Literal
 
@@ -214,3 +215,19 @@ class RuntimeSettings(BaseModel):
         if not path.is_file():
             raise FileNotFoundError(f"{path} is missing: start roles with `hammer up`, or pass --run-dir of a run it made")
         return cls.model_validate(json.loads(path.read_text()))
+
+
+# env_spec.json: the task's dimensions, written by `hammer up` next to runtime.json; every role reads it.
+def write_env_spec(run_dir: Path, spec) -> None:
+    (Path(run_dir) / "env_spec.json").write_text(json.dumps(asdict(spec), indent=1))
+
+
+def read_env_spec(run_dir: Path):
+    from hammer.envs.base import EnvSpec
+
+    path = Path(run_dir) / "env_spec.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: pass the --run-dir that `hammer up` created")
+    d = json.loads(path.read_text())
+    d["agent_ids"] = tuple(d["agent_ids"])
+    return EnvSpec(**d)

@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-log = logging.getLogger("hammer.faults.sweep")
+log = logging.getLogger("hammer.experiments.fault_sweep")
 
 
 @dataclass(frozen=True)
@@ -88,8 +88,8 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
     """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
     served as `hammer serve` serves it (serve.cli.serve_settings: its fallback applies); a run directory
     with the default fallback."""
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.faults.spec import FaultPlan, LinkFault
+    from hammer.runtime.settings import RuntimeSettings
     from hammer.serve.bundle import is_bundle, load_bundle
 
     run = Path(p.run)
@@ -98,7 +98,7 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
     faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
     run_id = p.name.replace(".", "_")[:64]
     if is_bundle(run):
-        from hammer.serve.cli import serve_settings
+        from hammer.serve.settings import serve_settings
 
         base, _ = serve_settings(load_bundle(run), run_id, runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
         return base.model_copy(update=faults)

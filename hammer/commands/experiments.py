@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from hammer.commands.common import fail
+
 
 def register(app: typer.Typer) -> None:
     app.command("sweep")(sweep)
@@ -17,9 +19,6 @@ def register(app: typer.Typer) -> None:
     app.command("messages")(messages)
 
 
-def _fail(msg: str) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(2)
 
 
 def _load(paths: list[Path]) -> list:
@@ -29,9 +28,9 @@ def _load(paths: list[Path]) -> list:
     try:
         loaded = [load_run(p) for p in find_runs(paths)]
     except FileNotFoundError as e:
-        _fail(str(e))
+        fail(str(e))
     if not loaded:
-        _fail("no run directories (metrics.csv) or archived runs (metrics.npz) found under the given paths")
+        fail("no run directories (metrics.csv) or archived runs (metrics.npz) found under the given paths")
     return loaded
 
 
@@ -78,6 +77,7 @@ def sweep(
     Re-running the same command skips finished runs, resumes interrupted ones from their last
     checkpoint and starts the rest. Each run is its own run directory under OUT.
     """
+    from hammer.console import table_console
     from hammer.experiments.sweep import (
         duplicate_points,
         expand,
@@ -87,14 +87,12 @@ def sweep(
         snapshot_sweep,
     )
 
-    from hammer.console import table_console
-
     console = table_console()
     try:
         points = expand(presets.split(","), variants.split(","), parse_seeds(seeds),
                         parse_grid_overrides(grid or []), episodes=episodes)
     except ValueError as e:
-        _fail(str(e))
+        fail(str(e))
 
     def event(kind: str, name: str) -> None:
         style = {"done": "green", "fail": "red", "skip": "dim", "broken": "yellow", "same": "dim"}.get(kind, "cyan")
@@ -105,7 +103,7 @@ def sweep(
         return
     if snapshot:
         if archive is None:
-            _fail("--snapshot writes into the archive; fix: pass --archive DIR too")
+            fail("--snapshot writes into the archive; fix: pass --archive DIR too")
         if not out.is_dir():  # not an error: `make snapshot` covers grids this machine never ran
             console.print(f"snapshot: {out} does not exist here, nothing to snapshot")
             return
@@ -128,32 +126,33 @@ def sweep(
     console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "
                   f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
-        _fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
+        fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
 
 
 def _launcher(backend: str, ray_address: str | None, ray_cpus: float):
     """The sweep's backend (`experiments.launch`), or a one-line error."""
     if backend == "local":
         if ray_address is not None:
-            _fail("--ray-address joins a Ray cluster; fix: add --backend ray")
+            fail("--ray-address joins a Ray cluster; fix: add --backend ray")
         from hammer.experiments.launch import LocalLauncher
 
         return LocalLauncher()
     if backend != "ray":
-        _fail(f"--backend {backend!r}: expected local or ray")
+        fail(f"--backend {backend!r}: expected local or ray")
     from hammer.experiments.ray_backend import RayLauncher, RayUnavailable
 
     try:
         return RayLauncher(ray_address, ray_cpus)
     except RayUnavailable as e:
-        _fail(str(e))
+        fail(str(e))
 
 
 def _print_status(console, points, out: Path, archive: Path | None) -> None:
     from collections import Counter
 
-    from hammer.experiments.sweep import sweep_status
     from rich.table import Table
+
+    from hammer.experiments.sweep import sweep_status
 
     rows = sweep_status(points, out, archive)
     table = Table(title=f"{out}" + (f" (archive {archive})" if archive else ""), title_justify="left")
@@ -185,7 +184,7 @@ def plot(
     from hammer.experiments.plot import BANDS, plot_runs
 
     if band not in BANDS:
-        _fail(f"--band must be one of {', '.join(BANDS)}, got {band!r}")
+        fail(f"--band must be one of {', '.join(BANDS)}, got {band!r}")
     for p in plot_runs(_load(runs), out, window=window, band=band):
         typer.echo(f"wrote {p}")
 
@@ -230,7 +229,7 @@ def report(
     )
 
     if plan is not None and comparisons is not None:
-        _fail("--plan and --comparisons both declare the comparisons: give one")
+        fail("--plan and --comparisons both declare the comparisons: give one")
     loaded = _load(runs)
     try:
         rows = build_rows(loaded, last, best_window, auc)
@@ -243,7 +242,7 @@ def report(
         comps = build_comparisons(rows, pairs) if pairs else []
         md = to_markdown(rows, last, best_window, comps, auc, digits)
     except ValueError as e:
-        _fail(str(e))
+        fail(str(e))
     typer.echo(md)
     if out:
         out.write_text(md)
@@ -282,11 +281,11 @@ def dose(
     try:
         values = cells(loaded, measure, last=last, auc=auc or 0)
     except ValueError as e:
-        _fail(str(e))
+        fail(str(e))
     names = [v for v in variants.split(",") if v]
     levels = [lv for v in names for lv in dose_levels(values, v)]
     if not levels:
-        _fail(f"no level has runs of both il and one of {', '.join(names)}")
+        fail(f"no level has runs of both il and one of {', '.join(names)}")
     slopes = [s for v in names if (s := dose_slope(values, v)) is not None]
     md = to_markdown(levels, slopes, measure if auc is None else f"AUC {auc}")
     typer.echo(md)
@@ -327,7 +326,7 @@ def diagnose(
         stats = {r.path: load_train_stats(r.path) for r in loaded}  # read once: the table and the figure
         diags = [diagnose_run(r, window, last, stats[r.path]) for r in loaded]
     except ValueError as e:
-        _fail(str(e))
+        fail(str(e))
     md = to_markdown(diags, window, last)
     typer.echo(md)
     if table:
@@ -376,14 +375,14 @@ def messages(
         seeds = parse_seeds(eval_seeds)
         found = select_teams(runs, teams.split(",") if teams else None)
     except (ValueError, FileNotFoundError) as e:
-        _fail(str(e))
+        fail(str(e))
     for what, skipped in (("no messages (il, centralized)", found.no_messages),
                           ("no final/ weights in the archive", found.no_weights)):
         if skipped:
             typer.echo(f"skipped {len(skipped)} runs with {what}: {', '.join(p.name for p in skipped[:4])}"
                        + (" ..." if len(skipped) > 4 else ""))
     if not found.teams:
-        _fail("no team with messages and final/ weights under the given paths")
+        fail("no team with messages and final/ weights under the given paths")
     js, part = out.with_suffix(".json"), out.with_suffix(".partial.json")
     previous = [] if fresh else [r for f in (js, part) if f.is_file() for r in json.loads(f.read_text())["results"]]
 
@@ -400,7 +399,7 @@ def messages(
     try:
         results = analyse(found.teams, seeds, episodes, previous, progress, jobs=jobs, save=save)
     except MessagesError as e:
-        _fail(str(e))
+        fail(str(e))
     md = to_markdown(results, method_header(len(results), seeds, episodes))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".md").write_text(md)

@@ -10,18 +10,16 @@ from typing import Annotated
 
 import typer
 
-
-def _fail(msg: str, code: int = 2) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(code)
+from hammer.commands.common import fail
 
 
 def settings_error(err: Exception, flag: str = "--runtime") -> str:
     """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
     import difflib
 
-    from hammer.deploy.settings import RuntimeSettings
     from pydantic import ValidationError
+
+    from hammer.runtime.settings import RuntimeSettings
 
     if not isinstance(err, ValidationError):
         return f"{flag}: {' '.join(str(err).split())}"
@@ -39,7 +37,7 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
 
 
 def register(app: typer.Typer) -> None:
-    from hammer.deploy import roles
+    from hammer.commands import roles
 
     app.command("up")(up_command)
     app.command("env-host")(roles.env_host_command)
@@ -50,9 +48,10 @@ def register(app: typer.Typer) -> None:
 
 def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
+    from rich.table import Table
+
     from hammer.faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
     from hammer.faults.spec import LinkFault
-    from rich.table import Table
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
     title = "faults: " + ("; ".join(lf.describe() for lf in plan) if plan else
@@ -79,7 +78,7 @@ def _links_table(board, cfg, settings):
 
 def _eta(board, cfg, rate: dict) -> str:
     """Time left at the episode rate seen since the first finished episode of this session."""
-    from hammer.learning.cli import eta
+    from hammer.commands.train import eta
 
     env = board.heartbeats.get("env")
     episodes = int(env.counters.get("episodes", 0)) if env else 0
@@ -172,17 +171,18 @@ def up_command(
     update with both a learner checkpoint and the env host's state (every checkpoint_every updates).
     """
     import yaml
-    from hammer.deploy.settings import RuntimeSettings
+    from rich.console import Console
+
     from hammer.faults.chaos import ChaosSpecError, parse_chaos
     from hammer.faults.spec import FaultSpecError, build_plan
     from hammer.learning.config import ConfigError, load_yaml, merge_config
     from hammer.protocol.fault_injection import FaultSpec
-    from rich.console import Console
+    from hammer.runtime.settings import RuntimeSettings
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
     if config_arg is not None and config is not None:
-        _fail("a config file twice (CONFIG and --config); fix: pass one of them")
+        fail("a config file twice (CONFIG and --config); fix: pass one of them")
     config = config if config is not None else config_arg
     if resume is not None:
         given = {"--config": config, "--preset": preset, "--variant": variant, "--central-mode": central_mode,
@@ -191,10 +191,10 @@ def up_command(
                  "--external": external, "--secure": secure or None, "--insecure": insecure or None}
         bad = [k for k, v in given.items() if v is not None]
         if bad:
-            _fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
+            fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
                   "fix: drop the other options")
         cfg, settings = _resume_inputs(resume, episodes)
-        _run_up(cfg, settings, resume, dashboard, console, resume=True)
+        run_up(cfg, settings, resume, dashboard, console, resume=True)
         return
     try:
         data = load_yaml(config) if config is not None else {}
@@ -206,21 +206,21 @@ def up_command(
         extra.setdefault("out", "runs")
         cfg = merge_config(preset or "cn3", None, set_ or [], extra)
     except ConfigError as e:
-        _fail(str(e))
+        fail(str(e))
     try:
         plan = build_plan(fault, fault_seed, fault_section)
         chaos_items = [*chaos_section, *(chaos or [])]
         for c in chaos_items:
             parse_chaos(c)
     except (FaultSpecError, ChaosSpecError) as e:
-        _fail(str(e))
+        fail(str(e))
     if not isinstance(runtime_section, dict):
-        _fail(f"{config}: runtime: must be a mapping of RuntimeSettings fields")
+        fail(f"{config}: runtime: must be a mapping of RuntimeSettings fields")
     path = run_dir or Path(cfg.out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
     rt: dict = {"run_id": path.name.replace("_", "-")[:64], **runtime_section}
     if plan.links:
         if faults is not None:
-            _fail("--faults FILE and --fault/faults: link rules cannot be combined; fix: use one of them")
+            fail("--faults FILE and --fault/faults: link rules cannot be combined; fix: use one of them")
         rt["faults"] = plan.to_spec()
         rt["fault_links"] = [lf.model_dump() for lf in plan.links]
     if chaos_items:
@@ -234,17 +234,17 @@ def up_command(
     for item in runtime or []:
         key, eq, val = item.partition("=")
         if not eq:
-            _fail(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
+            fail(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
         rt[key.strip()] = yaml.safe_load(val)
     if faults is not None:
         try:
             rt["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
         except Exception as e:  # noqa: BLE001 - report any parse/validation problem in one line
-            _fail(f"--faults {faults}: {str(e).splitlines()[0]}")
+            fail(f"--faults {faults}: {str(e).splitlines()[0]}")
     try:
         settings = RuntimeSettings.model_validate(rt)
     except Exception as e:  # noqa: BLE001
-        _fail(settings_error(e))
+        fail(settings_error(e))
     console.print(f"run dir: {path}")
     if plan.links:
         for lf in plan.links:
@@ -254,19 +254,19 @@ def up_command(
             console.print(f"fault rule: {r.model_dump()}")
     for c in settings.chaos:
         console.print(f"chaos: {c}")
-    _run_up(cfg, settings, path, dashboard, console)
+    run_up(cfg, settings, path, dashboard, console)
 
 
 def _resume_inputs(run_dir: Path, episodes: int | None):
     """config.json and runtime.json of a `hammer up` run directory (episodes possibly changed)."""
     import json
 
-    from hammer.deploy.settings import RuntimeSettings
     from hammer.learning.config import ConfigError, build_config
+    from hammer.runtime.settings import RuntimeSettings
 
     missing = [f for f in ("config.json", "runtime.json", "env_spec.json") if not (run_dir / f).is_file()]
     if missing:
-        _fail(f"--resume '{run_dir}': no {', '.join(missing)} there; fix: pass a run directory made by `hammer up` "
+        fail(f"--resume '{run_dir}': no {', '.join(missing)} there; fix: pass a run directory made by `hammer up` "
               "(a `hammer train` run continues with `hammer train --resume`)")
     try:
         cfg = build_config(json.loads((run_dir / "config.json").read_text()))
@@ -274,9 +274,9 @@ def _resume_inputs(run_dir: Path, episodes: int | None):
             cfg = build_config({**cfg.model_dump(), "episodes": episodes})
         settings = RuntimeSettings.load(run_dir)
     except ConfigError as e:
-        _fail(str(e))
+        fail(str(e))
     except Exception as e:  # noqa: BLE001 - a hand-edited runtime.json: say what is wrong in one line
-        _fail(f"--resume '{run_dir}': runtime.json: {' '.join(str(e).split())}")
+        fail(f"--resume '{run_dir}': runtime.json: {' '.join(str(e).split())}")
     return cfg, settings
 
 
@@ -295,11 +295,12 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
             "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"))
 
 
-def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
+def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
             external_agents: tuple[int, ...] = ()) -> None:
+    from rich.live import Live
+
     from hammer.deploy.up import UpError, launch
     from hammer.envs.registry import EnvConfigError
-    from rich.live import Live
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
@@ -335,11 +336,11 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
     except EnvConfigError as e:  # a bad or refused env: a config mistake, found before any file is written
         if live is not None:
             live.stop()
-        _fail(str(e))
+        fail(str(e))
     except UpError as e:
         if live is not None:
             live.stop()
-        _fail(str(e), code=1)
+        fail(str(e), code=1)
     except KeyboardInterrupt:
         if live is not None:
             live.stop()
@@ -367,6 +368,6 @@ def _run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = 
         console.print(f"({COUNTERS_NOTE})", soft_wrap=True)
     if served:  # a frozen team: nothing to resume or to train further
         return
-    from hammer.learning.cli import print_next_steps
+    from hammer.commands.train import print_next_steps
 
     print_next_steps(console, cfg, s["final_paper_metric_last500"], path, "hammer up")

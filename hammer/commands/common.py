@@ -1,0 +1,19 @@
+"""What every command shares, defined once: the one-line error and the options several commands take
+(as zenoh-python's examples share `add_config_arguments`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, NoReturn
+
+import typer
+
+RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
+ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
+ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
+
+
+def fail(msg: str, code: int = 2) -> NoReturn:
+    """End the command with `error: msg` on stderr, in red, and exit status `code` (2: a usage error)."""
+    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code)
