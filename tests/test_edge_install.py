@@ -21,6 +21,32 @@ from hammer.serve.settings import serve_settings
 pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
 
 
+def _bundle(tmp_path, episodes: int):
+    """A briefly trained cn3 team (8 copies) exported as a bundle."""
+    run = tmp_path / "run"
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", f"episodes={episodes}", "seed=2"])
+    train(cfg, RunDir.create(run, cfg), tensorboard=False)
+    return export_bundle(run, tmp_path / "bundle")
+
+
+def _served_with_edge_agent(hammer: str, bundle, tmp_path, agent: int, episodes: int):
+    """The bundle served on 127.0.0.1 with agent `agent` from `hammer local --bundle` of that install:
+    (the run's result, the agent's output, its exit status)."""
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, f"edge-{agent}", runtime=[f"hub_port={port}"])
+    edge = subprocess.Popen([hammer, "local", "--bundle", str(bundle.path), "--agent", str(agent), "--run-id",
+                             f"edge-{agent}", "--connect", f"tcp/127.0.0.1:{port}"], env=clean_env(), cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        res = launch(bundle.config(episodes=episodes, msg_dropout=0.0), settings, tmp_path / "served",
+                     external_agents=(agent,))
+        out, _ = edge.communicate(timeout=30)
+    finally:
+        if edge.poll() is None:
+            edge.kill()
+    return res, out, edge.returncode
+
+
 def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
     py = str(edge_venv)
     env = clean_env()  # the venv's install, not this checkout
@@ -33,26 +59,13 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
     r = subprocess.run([hammer, "train", "--episodes", "1"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
 
-    run = tmp_path / "run"
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=24", "seed=2"])
-    train(cfg, RunDir.create(run, cfg), tensorboard=False)
-    bundle = export_bundle(run, tmp_path / "bundle")
+    bundle = _bundle(tmp_path, episodes=24)
     r = subprocess.run([hammer, "play", str(bundle.path), "--out", "team.gif"], check=False, capture_output=True,
                        text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
-    port = free_loopback_port()
-    settings, _ = serve_settings(bundle, "edge-venv", runtime=[f"hub_port={port}"])
-    edge = subprocess.Popen([hammer, "local", "--bundle", str(bundle.path), "--agent", "2", "--run-id", "edge-venv",
-                             "--connect", f"tcp/127.0.0.1:{port}"], env=env, cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        res = launch(bundle.config(episodes=16, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(2,))
-        out, _ = edge.communicate(timeout=30)
-    finally:
-        if edge.poll() is None:
-            edge.kill()
+    res, out, code = _served_with_edge_agent(hammer, bundle, tmp_path, agent=2, episodes=16)
     assert res.summary["completed"] and res.summary["episodes"] == 16
-    assert edge.returncode == 0, out
+    assert code == 0, out
     assert "'steps': 50," in out and "'weights_loaded': 1" in out  # 16 episodes on 8 copies: 2 x 25 steps
     assert res.links["local->env"]["defaults"] == 0  # every action of agent 2 came from the edge venv in time
 
@@ -83,20 +96,7 @@ def test_the_edge_install_runs_on_python_3_13(tmp_path):
     env = clean_env()
     assert subprocess.run([str(py), "-c", "import sys; assert sys.version_info[:2] == (3, 13)"], check=False,
                           env=env).returncode == 0
-    run = tmp_path / "run"
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "episodes=8", "seed=2"])
-    train(cfg, RunDir.create(run, cfg), tensorboard=False)
-    bundle = export_bundle(run, tmp_path / "bundle")
-    port = free_loopback_port()
-    settings, _ = serve_settings(bundle, "edge-313", runtime=[f"hub_port={port}"])
-    edge = subprocess.Popen([str(py.parent / "hammer"), "local", "--bundle", str(bundle.path), "--agent", "0",
-                             "--run-id", "edge-313", "--connect", f"tcp/127.0.0.1:{port}"], env=env, cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        res = launch(bundle.config(episodes=8, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(0,))
-        out, _ = edge.communicate(timeout=30)
-    finally:
-        if edge.poll() is None:
-            edge.kill()
-    assert res.summary["completed"] and edge.returncode == 0, out
+    bundle = _bundle(tmp_path, episodes=8)
+    res, out, code = _served_with_edge_agent(str(py.parent / "hammer"), bundle, tmp_path, agent=0, episodes=8)
+    assert res.summary["completed"] and code == 0, out
     assert res.links["local->env"]["defaults"] == 0
