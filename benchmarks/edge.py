@@ -121,7 +121,7 @@ def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | 
 
     bundle, run, cfg, spec = make_team(work)
     blob = (bundle.path / "local.safetensors").read_bytes()
-    hammer = [str(python or sys.executable), "-m", "hammer", "local", "--agent", "0"]  # the edge entry with --bundle
+    hammer = [str(python or sys.executable), "-P", "-m", "hammer", "local", "--agent", "0"]  # the edge entry with --bundle
     runs: dict[str, list[EdgeFigures]] = {"run dir (hammer local --run-dir)": [], "edge (hammer local --bundle)": []}
     for r in range(repeats):
         for entry, done in runs.items():

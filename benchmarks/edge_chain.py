@@ -35,7 +35,7 @@ ARCHIVED_TEAM = "cn3-hammer-rl-env_kwargs_observe_others=false-s{seed}"
 
 def hammer(*args: str, timeout: float = 900) -> str:
     """`hammer ARGS` as a fresh process; its stdout, or a RuntimeError with its last error line."""
-    r = subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
                        timeout=timeout)
     if r.returncode != 0:
         tail = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["(no output)"]

@@ -157,8 +157,8 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
     work.mkdir(parents=True, exist_ok=True)
     run = work / f"served-{rate_kbit}"
     shutil.rmtree(run, ignore_errors=True)  # a stale runtime.json would start the central agent too early
-    py = [sys.executable, "-m", "hammer.cli"]
-    edge_py = [str(edge_python) if edge_python else sys.executable, "-m", "hammer"]  # the edge entry (hammer/entry.py)
+    py = [sys.executable, "-P", "-m", "hammer.cli"]
+    edge_py = [str(edge_python) if edge_python else sys.executable, "-P", "-m", "hammer"]  # the edge entry (hammer/entry.py)
     procs = Procs(work)
     with topology(n, tag, rate_kbit, central) as top:
         try:
@@ -212,7 +212,7 @@ def _start_central_and_driver(procs: Procs, top: Topology, run: Path, py: list[s
         out.append(procs.start(top.central, [*py, "central", "--run-dir", str(run), "--zenoh-config", str(cfg)],
                                f"central-{rate_kbit}.log"))
     if push is not None:
-        out.append(procs.start(top.hub, [sys.executable, "-m", "hammer.benchmarks.push_driver", str(run), *push,
+        out.append(procs.start(top.hub, [sys.executable, "-P", "-m", "hammer.benchmarks.push_driver", str(run), *push,
                                          "--zenoh-config", str(inside)], f"push-{rate_kbit}.log"))
     return out
 

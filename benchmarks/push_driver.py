@@ -21,7 +21,7 @@ from pathlib import Path
 
 
 def _cli(*args: str) -> str:
-    r = subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
                        timeout=60)
     if r.returncode != 0:
         raise RuntimeError(f"hammer {' '.join(args[:1])} failed: {(r.stderr or r.stdout).strip()}")

@@ -53,7 +53,7 @@ def pooled_size(n: int) -> int:
 
 def run_train(n: int, episodes: int, path: Path) -> dict:
     """`hammer train` as a subprocess: its env-steps/s, CPU seconds and peak RSS."""
-    cmd = [sys.executable, "-m", "hammer.cli", "train", "--preset", "cn3" if n <= 3 else "cn5", "--set",
+    cmd = [sys.executable, "-P", "-m", "hammer.cli", "train", "--preset", "cn3" if n <= 3 else "cn5", "--set",
            f"n_agents={n}", "--episodes", str(episodes), "--run-dir", str(path), "--quiet"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
