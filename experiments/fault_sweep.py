@@ -86,7 +86,7 @@ def eval_config(run: Path, episodes: int, seed: int):
 
 def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
     """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
-    served as `hammer serve` serves it (serve.cli.serve_settings: its fallback applies); a run directory
+    served as `hammer serve` serves it (serve.settings.serve_settings: its fallback applies); a run directory
     with the default fallback."""
     from hammer.faults.spec import FaultPlan, LinkFault
     from hammer.runtime.settings import RuntimeSettings

@@ -1,4 +1,4 @@
-"""The edge entry (hammer/entry.py -> local_agent/edge.py): `hammer local --bundle` starts without the CLI
+"""The edge entry (hammer/entry.py -> hammer/commands/edge.py -> serve/edge.py): `hammer local --bundle` starts without the CLI
 framework or the training config, takes the served run's runtime settings, and joins a secure run with
 only its three identity files (no run directory). Real processes, real Zenoh on 127.0.0.1."""
 

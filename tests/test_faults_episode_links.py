@@ -111,7 +111,7 @@ def test_logged_publisher_attributes_each_drop_and_duplicate_to_its_message_step
     plan = build_plan(["env->local:drop=0.3,duplicate=0.2", "local->env:drop=0.5"], seed=4)
     with HammerSession("steplog", t, faults=plan.to_spec()) as pub_s, \
          HammerSession("steplog", TransportConfig.connector(port)) as sub_s:
-        sub = sub_s.subscribe(sub_s.keys.obs("*"), LocalObs)
+        sub = sub_s.subscribe(sub_s.keys.obs("*"), LocalObs, maxsize=0)  # read after the whole burst
         time.sleep(0.3)
         log = StepLog(tmp_path, "env", [column("env->local", e) for e in ("sent", "dropped", "duplicated")])
         pub = LoggedPublisher(pub_s.publisher(pub_s.keys.obs(1)), pub_s, log, "env->local")

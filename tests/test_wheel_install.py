@@ -14,6 +14,7 @@ import site
 import subprocess
 import sys
 import venv
+from pathlib import Path
 
 import pytest
 from hammer.benchmarks.edge_venv import clean_env, source_copy
@@ -37,7 +38,9 @@ def wheel_venv(tmp_path_factory):
     venv.EnvBuilder(with_pip=True).create(d / "venv")
     py = d / "venv" / "bin" / "python"
     sp = d / "venv" / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
-    (sp / "hammer-deps.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    # every site-packages this interpreter reads (a venv's own, or the ones a path file of it adds)
+    deps = [p for p in sys.path if p.endswith("site-packages") and Path(p).is_dir()] or site.getsitepackages()
+    (sp / "hammer-deps.pth").write_text("\n".join(deps) + "\n")
     subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True,
                    capture_output=True, timeout=300)
     return py, sp

@@ -109,7 +109,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
                   ) -> None:
     """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
-    With --bundle (one agent) the console script starts it without this CLI framework (local_agent/edge.py)."""
+    With --bundle (one agent) the console script starts it without this CLI framework (hammer/commands/edge.py)."""
     if (agent is None) == (agents is None):
         fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
@@ -141,7 +141,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
                 identity, insecure: bool = False) -> None:
-    """One agent from a bundle, no run directory (local_agent/edge.py; the console script's fast path)."""
+    """One agent from a bundle, no run directory (serve/edge.py; the console script's fast path)."""
     from hammer.serve.edge import edge_inputs, run_agent
 
     try:
