@@ -40,16 +40,21 @@ def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
     return max(1, math.ceil(n_agents / max(1, 2 * cores - 1)))
 
 
-def refuse_plain_beyond_loopback(transport: TransportConfig, secure: bool, insecure: bool) -> None:
+PLAIN_FIX = ("add --secure (mutual TLS and per-role access rules, docs/security.md), or --insecure to accept that "
+             "on a network you trust")
+
+
+def refuse_plain_beyond_loopback(transport: TransportConfig, secure: bool, insecure: bool,
+                                 fix: str = PLAIN_FIX) -> None:
     """A plain run trusts every process that reaches its Zenoh port (docs/security.md): fine on
-    loopback, not on a network. Raise ValueError naming what reaches out and the two fixes."""
+    loopback, not on a network. Raise ValueError naming what reaches out and the fixes (`fix`: this
+    command's way to go secure, or to accept the plain profile)."""
     if secure or insecure or transport.security is not None:
         return
     out = transport.beyond_loopback()
     if out:
         raise ValueError(f"refusing to run plain on {', '.join(out)} (beyond loopback): whoever reaches it could act "
-                         "for any agent, publish weights or stop the run; fix: add --secure (mutual TLS and per-role "
-                         "access rules, docs/security.md), or --insecure to accept that on a network you trust")
+                         f"for any agent, publish weights or stop the run; fix: {fix}")
 
 
 class RuntimeSettings(BaseModel):
@@ -135,10 +140,11 @@ class RuntimeSettings(BaseModel):
             raise ValueError("secure=true and insecure=true contradict each other: pass one of --secure, --insecure")
         return self
 
-    def refuse_plain_beyond_loopback(self, transport: TransportConfig, insecure: bool = False) -> None:
+    def refuse_plain_beyond_loopback(self, transport: TransportConfig, insecure: bool = False,
+                                     fix: str = PLAIN_FIX) -> None:
         """Raise ValueError (one line) when `transport` reaches past this machine in the plain profile
         and neither this run nor the command (`insecure`) accepted that (CockroachDB's convention)."""
-        refuse_plain_beyond_loopback(transport, self.secure, self.insecure or insecure)
+        refuse_plain_beyond_loopback(transport, self.secure, self.insecure or insecure, fix)
 
     @model_validator(mode="after")
     def _hub_is_secure(self) -> RuntimeSettings:

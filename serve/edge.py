@@ -82,7 +82,9 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")
     if identity is None:
-        settings.refuse_plain_beyond_loopback(transport, insecure)
+        settings.refuse_plain_beyond_loopback(
+            transport, insecure, "join a secure run with --settings runtime.json --identity DIR (docs/security.md), or "
+                                 "--insecure to accept a plain one on a network you trust")
         return transport
     from hammer.protocol.identity import identity_of
 

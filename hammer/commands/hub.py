@@ -44,7 +44,9 @@ def hub_command(
         from hammer.runtime.settings import refuse_plain_beyond_loopback
 
         try:
-            refuse_plain_beyond_loopback(transport, secure=False, insecure=insecure)
+            refuse_plain_beyond_loopback(transport, secure=False, insecure=insecure,
+                                         fix="relay a secure run with --run-dir RUN (docs/security.md), or "
+                                             "--insecure to accept plain traffic on a network you trust")
         except ValueError as e:
             common.fail(str(e))
     stop = threading.Event()

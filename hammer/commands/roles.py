@@ -36,7 +36,9 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
         transport = transport.model_copy(update={"connect": [connect]})
     if s.secure:
         transport = s.secured(transport, role, run_dir, _read_config(run_dir).n_agents)
-    s.refuse_plain_beyond_loopback(transport)  # runtime.json's insecure=true is the run's consent
+    # runtime.json's insecure=true (`hammer up --insecure`) is the run's consent
+    s.refuse_plain_beyond_loopback(transport, fix="start the run with --secure (docs/security.md), or with "
+                                                  "--insecure to accept plain traffic on a network you trust")
     return s, transport
 
 
@@ -123,7 +125,8 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         settings, cfg, spec = _read_settings(run_dir, zenoh_config), _read_config(run_dir), read_env_spec(run_dir)
         members = [agent] if agents is None else _pool_agents(agents, cfg.n_agents)
         transport = _local_transport(settings, run_dir, connect, zenoh_config, members, cfg.n_agents)
-        settings.refuse_plain_beyond_loopback(transport, insecure)
+        settings.refuse_plain_beyond_loopback(transport, insecure, "join a run started with --secure (docs/security.md), "
+                                              "or --insecure to accept a plain one on a network you trust")
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     if agents is not None:
