@@ -7,11 +7,11 @@ from __future__ import annotations
 import json
 
 import pytest
+from hammer.protocol.session import TransportConfig
+from hammer.runtime.settings import RuntimeSettings, refuse_plain_beyond_loopback
 from typer.testing import CliRunner
 
 from hammer.cli import app
-from hammer.protocol.session import TransportConfig
-from hammer.runtime.settings import RuntimeSettings, refuse_plain_beyond_loopback
 
 
 @pytest.mark.parametrize(("transport", "out"), [
