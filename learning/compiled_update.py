@@ -12,7 +12,8 @@ rounding differs (tests/test_learning_compile.py). The eager path never reads th
 from __future__ import annotations
 
 import contextlib
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,7 +22,11 @@ from torch import nn
 from torch.optim.adam import adam as functional_adam
 
 if TYPE_CHECKING:
-    from hammer.learning.learner import TeamLearner
+    from hammer.learning.learner import Masks
+    from hammer.learning.team import Team
+
+Losses = Callable[..., tuple[torch.Tensor, "torch.Tensor | None", dict[str, torch.Tensor]]]
+Minibatches = Callable[[dict[str, torch.Tensor], np.random.Generator], Iterator[dict[str, torch.Tensor]]]
 
 # cpp_wrapper: the graph's glue code (buffer allocation, size asserts, kernel calls) in C++ instead
 # of Python, which is a large part of a call at these sizes.
@@ -30,79 +35,82 @@ SKIP_GUARDS = True
 
 
 class CompiledUpdate:
-    """`TeamLearner.learn`'s epochs and minibatches, each minibatch step one call of a compiled
-    `_train_step`. Shapes are static, so there is one graph per minibatch size and mask flags
-    (`TeamLearner.full`, `TeamLearner.c_full`): one for cn."""
+    """An update's epochs and minibatches, each minibatch step one call of a compiled `_train_step`.
+    Built from what a step needs: the team's networks, the one losses function, the networks'
+    optimisers (`PPOUpdater`s), the epochs and minibatches of an update. Shapes are static, so there
+    is one graph per minibatch size, batch fields and `Masks`: one for cn."""
 
-    def __init__(self, learner: TeamLearner) -> None:
-        self.learner = learner
-        self.nets = _Nets(learner)
+    def __init__(self, team: Team, losses: Losses, updaters: list[PPOUpdater], epochs: int,
+                 minibatches: int) -> None:
+        self.nets = _Nets(team, losses)
+        self.updaters, self.epochs, self.minibatches = updaters, epochs, minibatches
         self.step = torch.compile(self._train_step, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
         self.compiled: set[tuple] = set()
 
-    def learn(self, b: dict[str, torch.Tensor], rng: np.random.Generator) -> dict[str, float]:
-        """The update on the batch `b` with the minibatch stream `rng`: the same rows in the same
-        order as the eager loop, the same statistics."""
-        learner = self.learner
-        cfg, buf, updaters = learner.cfg, learner.buf, learner.updaters
-        params = [p for opt in updaters for p in opt.params]
-        states = [adam_state(opt) for opt in updaters]
+    def learn(self, minibatches: Minibatches, b: dict[str, torch.Tensor], masks: Masks,
+              rng: np.random.Generator) -> dict[str, float]:
+        """The update on the batch `b` (losses masked as `masks`), its minibatches from
+        `minibatches(b, rng)` every epoch: the same rows in the same order as the eager loop, the
+        same statistics."""
+        from hammer.learning.learner import UpdateStats
+
+        params = [p for opt in self.updaters for p in opt.params]
+        states = [adam_state(opt) for opt in self.updaters]
         exp_avgs, exp_avg_sqs, steps = ([t for s in states for t in s[i]] for i in range(3))
         keys = tuple(b)
-        graphs = {(len(part), learner.full, learner.c_full, keys)
-                  for part in np.array_split(np.arange(buf.t * buf.k), cfg.minibatches)}
-        total: torch.Tensor | None = None
+        rows = len(b[keys[0]])
+        graphs = {(len(part), masks, keys) for part in np.array_split(np.arange(rows), self.minibatches)}
+        total = UpdateStats()
         with _skip_guards(graphs <= self.compiled):
-            for epoch in range(cfg.epochs):
-                last = epoch == cfg.epochs - 1
-                for mb in learner.epoch_minibatches(b, rng):
-                    st = self.step(params, exp_avgs, exp_avg_sqs, steps, keys, [mb[k] for k in keys])
+            for epoch in range(self.epochs):
+                last = epoch == self.epochs - 1
+                for mb in minibatches(b, rng):
+                    stats = self.step(params, exp_avgs, exp_avg_sqs, steps, keys, [mb[k] for k in keys], masks)
                     if last:
-                        total = st if total is None else total + st
+                        total.add(stats)
         self.compiled |= graphs
-        assert total is not None
-        return dict(zip(learner.log_keys(), (total / cfg.minibatches).tolist(), strict=True))
+        return total.means()
 
     def _train_step(self, params: list[torch.Tensor], exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
-                    steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor]) -> torch.Tensor:
+                    steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor],
+                    masks: Masks) -> dict[str, torch.Tensor]:
         """One whole minibatch step, written to be traced into one graph: the losses, their
-        gradients, then per network `traced_clip_and_step`. Returns the statistics stacked in
-        `TeamLearner.log_keys` order, on every step: one graph instead of one with and one without
-        them (half the compile time) for a few reductions per step."""
+        gradients, then per network `traced_clip_and_step`. Returns the statistics by name on every
+        step: one graph instead of one with and one without them (half the compile time) for a few
+        reductions per step."""
         r = dict(zip(keys, fields, strict=True))
         names = self.nets.names
 
-        def total_loss(ps: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        def total_loss(ps: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
             local, central, stats = torch.func.functional_call(self.nets, dict(zip(names, ps, strict=True)),
-                                                               (r, True))
+                                                               (r, masks, True))
             return (local if central is None else local + central), stats
 
         grads, stats = torch.func.grad(total_loss, has_aux=True)(tuple(p.detach() for p in params))
-        norms, lo = [], 0
+        lo = 0
         with torch.no_grad():
-            for opt in self.learner.updaters:
+            for opt in self.updaters:
                 part = slice(lo, lo + len(opt.params))
-                norms.append(traced_clip_and_step(opt, params[part], list(grads[part]), exp_avgs[part],
-                                                  exp_avg_sqs[part], steps[part]))
+                stats[f"{opt.name}/grad_norm"] = traced_clip_and_step(opt, params[part], list(grads[part]),
+                                                                      exp_avgs[part], exp_avg_sqs[part], steps[part])
                 lo = part.stop
-        return torch.stack(stats + norms)
+        return stats
 
 
 class _Nets(nn.Module):
     """The team's networks as one module whose forward is the PPO losses, so that
     `torch.func.functional_call` can swap in the tensors `torch.func.grad` differentiates."""
 
-    def __init__(self, learner: TeamLearner) -> None:
+    def __init__(self, team: Team, losses: Losses) -> None:
         super().__init__()
-        self.local = learner.team.local
-        if learner.team.central is not None:
-            self.central = learner.team.central
-        self.losses = learner.losses
+        self.local = team.local
+        if team.central is not None:
+            self.central = team.central
+        self.losses = losses
         self.names = [n for n, _ in self.named_parameters()]
 
-    def forward(self, r: dict[str, torch.Tensor], with_stats: bool
-                ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
-        return self.losses(r, with_stats)
+    def forward(self, *args: Any) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
+        return self.losses(*args)
 
 
 def adam_state(opt: PPOUpdater) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
@@ -156,9 +164,8 @@ def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
     """Once every step graph an update needs exists, dynamo need not re-check their guards (every
     tensor argument and the config) on every call, a noticeable part of a compiled update. Under
     this stance dynamo would run a stale graph if a Python value the trace read had changed, so
-    the key holds every such value that can change between calls (minibatch size, `full`,
-    `c_full`, the batch fields); the rest (config, learning rates, network shapes) is fixed for a
-    learner's life."""
+    the key holds every such value that can change between calls (minibatch size, `Masks`, the
+    batch fields); the rest (config, learning rates, network shapes) is fixed for a learner's life."""
     if seen and SKIP_GUARDS:
         return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
     return contextlib.nullcontext()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -24,6 +24,7 @@ from hammer.learning.ppo import (
     gae,
     masked_mean,
     minibatch_indices,
+    minibatch_slices,
     next_values,
     normalize_advantages,
     value_loss,
@@ -34,20 +35,32 @@ from hammer.learning.sampling import MINIBATCH_STREAM, stream
 from hammer.learning.team import Team
 
 
+class Masks(NamedTuple):
+    """Which masking ops a batch's losses need: `full`, every agent present in every row (no agent
+    mask); `c_full`, also no message dropped (no central mask). Decided per batch by `batch()` and
+    passed to `losses`; a compiled step is one graph per value."""
+
+    full: bool = False
+    c_full: bool = False
+
+
+MASKED = Masks()  # every masking op: right for any batch, the default where none was decided
+
+
 class TeamLearner:
     def __init__(self, cfg: RunConfig, spec: EnvSpec) -> None:
         torch.set_num_threads(cfg.torch_threads)
         self.cfg = cfg
         self.team = Team(cfg, spec)
-        self.local_opt = PPOUpdater(self.team.local.parameters(), cfg.lr_local, cfg.max_grad_norm)
-        self.central_opt = (PPOUpdater(self.team.central.parameters(), cfg.lr_central, cfg.max_grad_norm)
+        self.local_opt = PPOUpdater(self.team.local.parameters(), cfg.lr_local, cfg.max_grad_norm, "local")
+        self.central_opt = (PPOUpdater(self.team.central.parameters(), cfg.lr_central, cfg.max_grad_norm, "central")
                             if self.team.central is not None else None)
         self.buf = RolloutBuffer(cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim,
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
-        self.full = self.c_full = False  # set by batch(): every agent present / no message dropped
         self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
         self.updaters = [opt for opt in (self.local_opt, self.central_opt) if opt is not None]
-        self.compiled_update = CompiledUpdate(self) if cfg.compile else None
+        self.compiled_update = (CompiledUpdate(self.team, self.losses, self.updaters, cfg.epochs, cfg.minibatches)
+                                if cfg.compile else None)
 
     # ----- state (checkpoints) -------------------------------------------------------------------
     def state_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -75,8 +88,9 @@ class TeamLearner:
                 for group in opt.optimizer.param_groups:
                     group.update(fused=True, foreach=None, lr=lr)
 
-    def batch(self, obs: np.ndarray, prev: np.ndarray) -> dict[str, torch.Tensor]:
-        """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors."""
+    def batch(self, obs: np.ndarray, prev: np.ndarray) -> tuple[dict[str, torch.Tensor], Masks]:
+        """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors, and the
+        masking the losses need for them."""
         cfg, team, buf = self.cfg, self.team, self.buf
         last_state = team.global_state(obs, prev)
         last_v = team.local_values(obs, team.bootstrap_messages(last_state))
@@ -91,20 +105,20 @@ class TeamLearner:
              "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
              "mask": flat(buf.active.astype(np.float32))}
         # All agents present (and no message dropped): the losses skip their masking ops.
-        self.full = bool(buf.active.all())
-        self.c_full = self.full and bool(buf.keep.all())
+        full = bool(buf.active.all())
+        masks = Masks(full, full and bool(buf.keep.all()))
         if team.central_rl:
             c_nv = next_values(buf.c_values, team.central_values(last_state), buf.c_final_values, buf.reset)
             c_adv, c_ret = gae(buf.rewards, buf.c_values, c_nv, buf.terminated, dones, cfg.gamma,
                                cfg.gae_lambda, buf.active)
             b.update(raw=flat(buf.msg_raw), c_logp=flat(buf.c_logp), c_adv=flat(c_adv), c_ret=flat(c_ret),
                      c_mask=b["mask"] * b["keep"])
-        return b
+        return b, masks
 
-    def losses(self, r: dict[str, torch.Tensor], with_stats: bool = True
-               ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
-        """(local PPO loss, central PPO loss or None, statistics) on the minibatch `r`; the
-        statistics are 0-d tensors named by `log_keys` (an empty list unless `with_stats`).
+    def losses(self, r: dict[str, torch.Tensor], masks: Masks = MASKED, with_stats: bool = True
+               ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
+        """(local PPO loss, central PPO loss or None, statistics) on the minibatch `r` of a batch
+        whose masking is `masks`; the statistics are 0-d tensors by name (none unless `with_stats`).
 
         backprop: the messages are recomputed from the stored global states with grad, so the
         local actor loss flows through u_i into the central heads and encoder (DIAL-style); the
@@ -112,7 +126,7 @@ class TeamLearner:
         the central loss is its own PPO on the Gaussian messages; the two graphs never meet.
         """
         cfg, team = self.cfg, self.team
-        m = None if self.full else r["mask"]
+        m = None if masks.full else r["mask"]
         backprop = team.wiring.central_backprop
         if backprop:
             msg = team.central.message_mean(r["state"])
@@ -128,10 +142,11 @@ class TeamLearner:
         vl = value_loss(new_v, r["ret"], m)
         ent = masked_mean(entropy, m)
         local_loss = pg - cfg.ent_coef * ent + cfg.vf_coef * vl
-        stats = [pg.detach(), vl.detach(), ent.detach(), kl, clipfrac] if with_stats else []
+        stats = ({"local/policy_loss": pg.detach(), "local/value_loss": vl.detach(), "local/entropy": ent.detach(),
+                  "local/approx_kl": kl, "local/clipfrac": clipfrac} if with_stats else {})
         central_loss = None
         if team.central_rl:
-            cm = None if self.c_full else r["c_mask"]
+            cm = None if masks.c_full else r["c_mask"]
             mean = team.central.message_mean(r["state"])
             c_logp = gaussian_logp(r["raw"], mean, self._msg_log_std)
             ca = normalize_advantages(r["c_adv"], cm) if cfg.norm_adv else r["c_adv"]
@@ -139,18 +154,9 @@ class TeamLearner:
             cvl = value_loss(team.central.values(r["state"]), r["c_ret"], cm)
             central_loss = cpg + cfg.vf_coef * cvl
             if with_stats:
-                stats += [cpg.detach(), cvl.detach(), ckl]
+                stats.update({"central/policy_loss": cpg.detach(), "central/value_loss": cvl.detach(),
+                              "central/approx_kl": ckl})
         return local_loss, central_loss, stats
-
-    def log_keys(self) -> list[str]:
-        """Names of the statistics `losses` returns, then of the grad norms `learn` adds."""
-        keys = ["local/policy_loss", "local/value_loss", "local/entropy", "local/approx_kl", "local/clipfrac"]
-        if self.team.central_rl:
-            keys += ["central/policy_loss", "central/value_loss", "central/approx_kl"]
-        keys.append("local/grad_norm")
-        if self.central_opt is not None:
-            keys.append("central/grad_norm")
-        return keys
 
     def epoch_minibatches(self, b: dict[str, torch.Tensor], rng: np.random.Generator
                           ) -> Iterator[dict[str, torch.Tensor]]:
@@ -159,12 +165,7 @@ class TeamLearner:
         contiguous slice (a view) instead of one gather per field per minibatch."""
         parts = minibatch_indices(self.buf.t * self.buf.k, self.cfg.minibatches, rng)
         perm = torch.from_numpy(np.concatenate(parts))
-        shuffled = {k: v.index_select(0, perm) for k, v in b.items()}
-        start = 0
-        for part in parts:
-            end = start + len(part)
-            yield {k: v[start:end] for k, v in shuffled.items()}
-            start = end
+        yield from minibatch_slices({k: v.index_select(0, perm) for k, v in b.items()}, [len(p) for p in parts])
 
     def learn(self, obs: np.ndarray, prev: np.ndarray, update: int) -> dict[str, float]:
         """PPO epochs over shuffled minibatches of rows; one backward over the summed losses,
@@ -176,22 +177,43 @@ class TeamLearner:
         (`learning.compiled_update`).
         """
         cfg = self.cfg
-        b = self.batch(obs, prev)
+        b, masks = self.batch(obs, prev)
         rng = stream(cfg.seed, MINIBATCH_STREAM, update)
         if self.compiled_update is not None:
-            return self.compiled_update.learn(b, rng)
-        total: torch.Tensor | None = None
+            return self.compiled_update.learn(self.epoch_minibatches, b, masks, rng)
+        total = UpdateStats()
         for epoch in range(cfg.epochs):
             last = epoch == cfg.epochs - 1
             for mb in self.epoch_minibatches(b, rng):
-                local_loss, central_loss, stats = self.losses(mb, with_stats=last)
+                local_loss, central_loss, stats = self.losses(mb, masks, with_stats=last)
                 loss = local_loss if central_loss is None else local_loss + central_loss
                 for opt in self.updaters:
                     opt.zero_grad()
                 loss.backward()
-                norms = [opt.clip_and_step() for opt in self.updaters]
+                norms = {f"{opt.name}/grad_norm": opt.clip_and_step() for opt in self.updaters}
                 if last:
-                    st = torch.stack(stats + norms)
-                    total = st if total is None else total + st
-        assert total is not None
-        return dict(zip(self.log_keys(), (total / cfg.minibatches).tolist(), strict=True))
+                    total.add({**stats, **norms})
+        return total.means()
+
+
+class UpdateStats:
+    """The statistics of an update's last epoch by name, summed over its minibatches as tensors
+    (no host sync per minibatch) and turned into floats once: their means (a statistic that is a
+    vector, one value per seed of a seed batch, gives a list)."""
+
+    def __init__(self) -> None:
+        self.names: list[str] = []
+        self.total: torch.Tensor | None = None
+        self.n = 0
+
+    def add(self, stats: dict[str, torch.Tensor]) -> None:
+        st = torch.stack(list(stats.values()))
+        if self.total is None:
+            self.names, self.total = list(stats), st
+        else:
+            self.total = self.total + st
+        self.n += 1
+
+    def means(self) -> dict[str, float]:
+        assert self.total is not None, "an update with no minibatch"
+        return dict(zip(self.names, (self.total / self.n).tolist(), strict=True))

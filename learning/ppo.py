@@ -10,7 +10,7 @@ take mask=None for "all present" (cooperative navigation), which saves the maski
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 import torch
@@ -100,6 +100,17 @@ def minibatch_indices(n_rows: int, minibatches: int, rng: np.random.Generator) -
     return np.array_split(rng.permutation(n_rows), minibatches)
 
 
+def minibatch_slices(shuffled: dict[str, torch.Tensor], sizes: list[int], dim: int = 0
+                     ) -> Iterator[dict[str, torch.Tensor]]:
+    """The minibatches of one epoch whose rows are already in the epoch's shuffled order along `dim`:
+    consecutive slices of `sizes` rows (views, no gather per minibatch). The one minibatch iterator
+    of the eager, compiled (dim 0) and seed-batched (dim 1: the seeds lead) updates."""
+    start = 0
+    for n in sizes:
+        yield {k: v.narrow(dim, start, n) for k, v in shuffled.items()}
+        start += n
+
+
 def clip_grad_norm(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
     """Scale `grads` in place by min(1, max_norm / (norm + 1e-6)), where norm is their total L2
     norm; returns the norm before clipping as a 0-d tensor. `torch.nn.utils.clip_grad_norm_`'s
@@ -129,7 +140,9 @@ class PPOUpdater:
     per-call overhead, which is what an update of these small networks spends its time on.
     """
 
-    def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, max_grad_norm: float) -> None:
+    def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, max_grad_norm: float,
+                 name: str = "local") -> None:
+        self.name = name  # the network: its statistics are `<name>/...` (local, central)
         self.params = list(params)
         self.optimizer = torch.optim.Adam(self.params, lr=lr, eps=1e-5, fused=True)
         self.max_grad_norm = max_grad_norm

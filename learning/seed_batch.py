@@ -29,7 +29,8 @@ import numpy as np
 import torch
 from hammer.learning.config import ConfigError, RunConfig, config_changes
 from hammer.learning.fused_adam import fused_adam_step
-from hammer.learning.ppo import clip_grad_norm_per_slice, minibatch_indices
+from hammer.learning.learner import Masks, UpdateStats
+from hammer.learning.ppo import clip_grad_norm_per_slice, minibatch_indices, minibatch_slices
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
 from hammer.learning.trainer import Progress, Trainer
@@ -215,59 +216,55 @@ class SeedBatch:
     def _learn(self, obs: list[np.ndarray], prev: list[np.ndarray], update: int) -> list[dict[str, float]]:
         """Every seed's PPO update as one batched computation (see the module docstring)."""
         cfg, lead = self.cfg, self.trainers[0].learner
-        bs = [tr.learner.batch(obs[s], prev[s]) for s, tr in enumerate(self.trainers)]
-        lead.full = all(tr.learner.full for tr in self.trainers)
-        lead.c_full = all(tr.learner.c_full for tr in self.trainers)
+        batches = [tr.learner.batch(obs[s], prev[s]) for s, tr in enumerate(self.trainers)]
+        bs = [b for b, _ in batches]
+        # one graph for every seed: a masking op is skipped only where no seed needs it
+        masks = Masks(all(m.full for _, m in batches), all(m.c_full for _, m in batches))
         rows = lead.buf.t * lead.buf.k
         big = {k: torch.cat([b[k] for b in bs]) for k in bs[0]}  # (S*R, ...)
         rngs = [stream(tr.cfg.seed, MINIBATCH_STREAM, update) for tr in self.trainers]
         offsets = np.arange(self.n_seeds)[:, None] * rows
-        total: torch.Tensor | None = None
+        total = UpdateStats()
         for epoch in range(cfg.epochs):
             last = epoch == cfg.epochs - 1
             parts = [minibatch_indices(rows, cfg.minibatches, rng) for rng in rngs]
             perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
             shuffled = {k: v.index_select(0, perm).reshape(self.n_seeds, rows, *v.shape[1:]) for k, v in big.items()}
-            start = 0
-            for part in parts[0]:
-                end = start + len(part)
-                mb = {k: v[:, start:end] for k, v in shuffled.items()}
-                start = end
-                st = self._step(mb, last)
+            for mb in minibatch_slices(shuffled, [len(p) for p in parts[0]], dim=1):
+                stats = self._step(mb, masks, last)
                 if last:
-                    total = st if total is None else total + st
-        assert total is not None
-        keys = lead.log_keys()
-        per_seed = (total / cfg.minibatches).T.tolist()
-        return [dict(zip(keys, row, strict=True)) for row in per_seed]
+                    total.add(stats)
+        means = total.means()  # each statistic (S,): one value per seed
+        return [{k: v[s] for k, v in means.items()} for s in range(self.n_seeds)]
 
-    def _grads(self, params: dict[str, torch.Tensor], mb: dict[str, torch.Tensor], with_stats: bool
-               ) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    def _grads(self, params: dict[str, torch.Tensor], mb: dict[str, torch.Tensor], masks: Masks, with_stats: bool
+               ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """Every seed's gradient of `TeamLearner.losses` on its slice of the minibatch, and the
         statistics (each (S,))."""
         learner = self.trainers[0].learner
 
-        def loss(p: dict[str, torch.Tensor], r: dict[str, torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
-            local, central, stats = functional_call(self.call, p, (learner.losses, r, with_stats))
+        def loss(p: dict[str, torch.Tensor], r: dict[str, torch.Tensor]
+                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+            local, central, stats = functional_call(self.call, p, (learner.losses, r, masks, with_stats))
             return (local if central is None else local + central), stats
 
         return vmap(grad(loss, has_aux=True))(params, mb)
 
-    def _step(self, mb: dict[str, torch.Tensor], with_stats: bool) -> torch.Tensor:
-        """One minibatch step for every seed; returns (n_stats, S) statistics and grad norms."""
-        grads, stats = self._grad(self.params, mb, with_stats)
-        norms = []
+    def _step(self, mb: dict[str, torch.Tensor], masks: Masks, with_stats: bool) -> dict[str, torch.Tensor]:
+        """One minibatch step for every seed; returns the statistics and grad norms by name, each (S,)."""
+        grads, stats = self._grad(self.params, mb, masks, with_stats)
+        norms = {}
         with torch.no_grad():
             for names, opt, max_norm in self.groups:
                 # the fused Adam kernel reads a gradient in its parameter's memory layout: vmap can
                 # return a permuted one (the central heads), so lay every gradient out densely
                 gs = [grads[n].contiguous() for n in names]
-                norms.append(clip_grad_norm_per_slice(gs, max_norm))
+                norms[f"{names[0].split('.', 1)[0]}/grad_norm"] = clip_grad_norm_per_slice(gs, max_norm)
                 ps = [self.params[n] for n in names]
                 for p, g in zip(ps, gs, strict=True):
                     p.grad = g
                 fused_adam_step(opt, ps, gs)
-        return torch.stack(list(stats) + norms) if with_stats else torch.stack(norms)
+        return {**stats, **norms}
 
     # ----- the loop -----------------------------------------------------------------------------
     def run(self) -> list[dict[str, Any]]:
@@ -295,7 +292,7 @@ class SeedBatch:
                 for s in live:
                     tr = self.trainers[s]
                     if not resumed:
-                        tr._checkpoint()
+                        tr.checkpoint()
                     obs[s], _ = tr.env.reset(env_reset_seed(tr.cfg.seed, update))
                     prev[s] = tr.team.zero_prev_actions(cfg.num_envs)
                 resumed = False

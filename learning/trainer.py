@@ -64,7 +64,7 @@ class Trainer:
         self.tensorboard = tensorboard
 
     # ----- checkpoints --------------------------------------------------------------------------
-    def _checkpoint(self) -> None:
+    def checkpoint(self) -> None:
         tensors, meta = self.learner.state_tensors()
         meta.update(update=self.update, episodes=self.episodes, env_steps=self.env_steps,
                     wall_time=self._wall(), streams=self.streams.state(), recent=list(self.recent),
@@ -98,7 +98,7 @@ class Trainer:
         while not done_training:
             if self.update % cfg.checkpoint_every == 0:
                 if not resumed:
-                    self._checkpoint()
+                    self.checkpoint()
                 resumed = False
                 obs, _ = env.reset(env_reset_seed(cfg.seed, self.update))
                 prev = team.zero_prev_actions(k)
