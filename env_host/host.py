@@ -33,6 +33,7 @@ from hammer.envs.local_view import local_view_from_config
 from hammer.faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
 from hammer.learning.central_acting import zero_prev_actions
 from hammer.learning.config import RunConfig
+from hammer.learning.episodes import episode_rows
 from hammer.learning.rollout import RolloutWriter, next_prev_actions
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import env_reset_seed
@@ -100,7 +101,9 @@ class EnvHost(Role):
                 "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99))}
 
     # ----- training -----------------------------------------------------------------------------
-    def run(self) -> dict:
+    def run_training(self) -> dict:
+        """Drive the training loop to the budget (the env host drives its loop itself instead of
+        `Role.run`'s reactive one); returns the summary."""
         cfg, st = self.cfg, self.state
         t_start = st.wall_start = time.perf_counter()
         self.cpu_at_start = process_cpu_s()
@@ -290,15 +293,10 @@ class EnvHost(Role):
     def _record_episodes(self, finished: list) -> bool:
         """Append finished episodes to metrics.csv; True once the budget is spent."""
         st, budget = self.state, self.cfg.episodes
-        wall = round(st.wall_time(), 3)
-        rows = []
-        for e in finished:
-            if st.episodes >= budget:
-                break
-            st.episodes += 1
-            st.recent.append(e.paper_metric)
-            rows.append((st.episodes, st.env_steps, repr(e.paper_metric), repr(e.team_return), e.length, wall))
-            self.episodes.add(st.episodes, e, st.step)
+        rows = episode_rows(finished, st.episodes, budget, st.recent, st.env_steps, round(st.wall_time(), 3))
+        for row, e in zip(rows, finished):  # the episodes that fit the budget: their link columns
+            self.episodes.add(row[0], e, st.step)
+        st.episodes += len(rows)
         self.episodes.end(finished)
         self.rd.append_episodes(rows)
         return st.episodes >= budget

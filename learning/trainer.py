@@ -24,6 +24,7 @@ import torch
 from hammer.envs.base import VecEnv, VecStep
 from hammer.learning.central_acting import CentralOut
 from hammer.learning.config import RunConfig
+from hammer.learning.episodes import episode_rows
 from hammer.learning.learner import TeamLearner
 from hammer.learning.rollout import RolloutWriter
 from hammer.learning.run_env import make_env
@@ -202,15 +203,9 @@ class Trainer:
         obs = st.obs
         self.env_steps += cfg.num_envs
         if st.episodes:
-            wall = round(self._wall(), 3)
-            rows = []
-            for e in st.episodes:
-                if self.episodes >= cfg.episodes:
-                    break
-                self.episodes += 1
-                self.recent.append(e.paper_metric)
-                rows.append((self.episodes, self.env_steps, repr(e.paper_metric), repr(e.team_return),
-                             e.length, wall))
+            rows = episode_rows(st.episodes, self.episodes, cfg.episodes, self.recent, self.env_steps,
+                                round(self._wall(), 3))
+            self.episodes += len(rows)
             self.rd.append_episodes(rows)
             if self.episodes >= cfg.episodes:
                 return obs, prev, True

@@ -273,7 +273,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
                            resume_from=settings.resume_from, resume_step=settings.resume_step)
             host.stall_warn_s = settings.stall_warn_s
-            summary = host.run_eval() if settings.mode == "eval" else host.run()
+            summary = host.run_eval() if settings.mode == "eval" else host.run_training()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
                           else host.stop_reason or "ended before the budget", host.state.step, host.state.episodes)
             summary["faults"] = s.fault_report()
