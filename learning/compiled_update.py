@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from hammer.learning.ppo import PPOUpdater
+from hammer.learning.ppo import PPOUpdater, UpdateStats
 from torch import nn
 from torch.optim.adam import adam as functional_adam
 
@@ -52,8 +52,6 @@ class CompiledUpdate:
         """The update on the batch `b` (losses masked as `masks`), its minibatches from
         `minibatches(b, rng)` every epoch: the same rows in the same order as the eager loop, the
         same statistics."""
-        from hammer.learning.learner import UpdateStats
-
         params = [p for opt in self.updaters for p in opt.params]
         states = [adam_state(opt) for opt in self.updaters]
         exp_avgs, exp_avg_sqs, steps = ([t for s in states for t in s[i]] for i in range(3))

@@ -20,6 +20,7 @@ from hammer.learning.config import RunConfig
 from hammer.learning.networks import gaussian_logp
 from hammer.learning.ppo import (
     PPOUpdater,
+    UpdateStats,
     clipped_surrogate,
     gae,
     masked_mean,
@@ -194,26 +195,3 @@ class TeamLearner:
                 if last:
                     total.add({**stats, **norms})
         return total.means()
-
-
-class UpdateStats:
-    """The statistics of an update's last epoch by name, summed over its minibatches as tensors
-    (no host sync per minibatch) and turned into floats once: their means (a statistic that is a
-    vector, one value per seed of a seed batch, gives a list)."""
-
-    def __init__(self) -> None:
-        self.names: list[str] = []
-        self.total: torch.Tensor | None = None
-        self.n = 0
-
-    def add(self, stats: dict[str, torch.Tensor]) -> None:
-        st = torch.stack(list(stats.values()))
-        if self.total is None:
-            self.names, self.total = list(stats), st
-        else:
-            self.total = self.total + st
-        self.n += 1
-
-    def means(self) -> dict[str, float]:
-        assert self.total is not None, "an update with no minibatch"
-        return dict(zip(self.names, (self.total / self.n).tolist(), strict=True))

@@ -161,3 +161,26 @@ class PPOUpdater:
         norm = clip_grad_norm(grads, self.max_grad_norm)
         fused_adam_step(self.optimizer, params, grads)
         return norm
+
+
+class UpdateStats:
+    """The statistics of an update's last epoch by name, summed over its minibatches as tensors
+    (no host sync per minibatch) and turned into floats once: their means (a statistic that is a
+    vector, one value per seed of a seed batch, gives a list)."""
+
+    def __init__(self) -> None:
+        self.names: list[str] = []
+        self.total: torch.Tensor | None = None
+        self.n = 0
+
+    def add(self, stats: dict[str, torch.Tensor]) -> None:
+        st = torch.stack(list(stats.values()))
+        if self.total is None:
+            self.names, self.total = list(stats), st
+        else:
+            self.total = self.total + st
+        self.n += 1
+
+    def means(self) -> dict[str, float]:
+        assert self.total is not None, "an update with no minibatch"
+        return dict(zip(self.names, (self.total / self.n).tolist(), strict=True))

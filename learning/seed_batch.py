@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from hammer.learning.config import ConfigError, RunConfig, config_changes
 from hammer.learning.fused_adam import fused_adam_step
-from hammer.learning.learner import Masks, UpdateStats
-from hammer.learning.ppo import clip_grad_norm_per_slice, minibatch_indices, minibatch_slices
+from hammer.learning.learner import Masks
+from hammer.learning.ppo import UpdateStats, clip_grad_norm_per_slice, minibatch_indices, minibatch_slices
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
 from hammer.learning.trainer import Progress, Trainer
