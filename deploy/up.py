@@ -15,7 +15,6 @@ see `prepare_resume` and docs/runtime.md ("Resuming a run").
 
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import re
@@ -31,6 +30,7 @@ from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, free_loopback_port
 from hammer.runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
 from hammer.runtime.heartbeats import HeartbeatLedger
+from hammer.runtime.role import rejection_counters
 from hammer.runtime.settings import RuntimeSettings, write_env_spec
 
 log = logging.getLogger("hammer.up")
@@ -395,9 +395,7 @@ class Launcher:
     def rejection_counters(self, hub: HammerSession) -> dict[str, int]:
         """What the launcher itself refused: malformed or mismatched heartbeats (its subscriptions)
         and heartbeats it could not believe (the ledger)."""
-        total = collections.Counter(hub.rejection_counts())
-        total.update({k.removeprefix("rejected."): v for k, v in self.ledger.rejection_counters().items()})
-        return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
+        return rejection_counters(hub.rejection_counts(), self.ledger.rejected)
 
     def stop_all(self, hub: HammerSession) -> None:
         """Tell every role to stop, give them 10 s to exit cleanly, then end the rest."""

@@ -83,9 +83,10 @@ def train(preset: str | RunConfig | None = "cn3", *, run_dir: str | Path | None 
             rd.write_config(cfg)
     else:
         cfg = _config(preset, set, file, fields)
-        rd = RunDir.create(Path(run_dir) if run_dir is not None else Path(cfg.out) / cfg.run_name(), cfg)
-    env = make_env(cfg)
+    env = make_env(cfg)  # a bad env fails before any file is written, as with `hammer train`
     check_env_fits(cfg, env.spec)
+    if not resume:
+        rd = RunDir.create(Path(run_dir) if run_dir is not None else Path(cfg.out) / cfg.run_name(), cfg)
     try:
         summary = run_training(cfg, rd, resume=resume, env=env, tensorboard=tensorboard)
     finally:
@@ -128,16 +129,11 @@ def serve_bundle(bundle: Bundle | str | Path, *, episodes: int = 100, run_dir: s
     """Run a trained team as processes with frozen weights and no learner (`hammer serve`);
     `runtime`: RuntimeSettings items as on the command line (`"msg_deadline_ms=20"`)."""
     from hammer.deploy.up import launch
-    from hammer.envs.registry import make_vec_env
     from hammer.serve.settings import serve_settings
 
     b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
     cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
-    try:  # the env this machine builds must have the dims the weights were trained on
-        b.check_env(env.spec)
-    finally:
-        env.close()
+    b.check_env_here(cfg)
     path = Path(run_dir) if run_dir is not None else Path("runs") / f"serve-{b.path.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     settings, _ = serve_settings(b, path.name, runtime=list(runtime))
     return launch(cfg, settings, path)

@@ -30,34 +30,24 @@ refuses a payload whose `run` differs. Keys outside this layout (`bench/...`) ca
 
 from __future__ import annotations
 
+import functools
 import re
+from typing import NamedTuple
 
 from hammer.protocol.errors import KeyMismatchError
 
 _POOL_RANGE = re.compile(r"^locals-(\d+)-(\d+)$")
 _POOL_LIST = re.compile(r"^locals-(\d+(?:_\d+)*)$")
 
-# Who publishes on each key family (a key's first two chunks), and which message type it carries.
-_SENDER = {("env", "obs"): "env", ("env", "state"): "env", ("central", "msg"): "central"}
-_TYPE = {("env", "obs"): "local_obs", ("env", "state"): "global_state", ("central", "msg"): "central_msg",
-         ("agent", "act"): "action"}
-_EXP_SENDER = {"team": "env", "central": "central"}
 
+class Rule(NamedTuple):
+    """What a key says about the payloads on it (None: nothing, any is fine)."""
 
-def sender_of(rel: str) -> str | None:
-    """The sender a key implies (what a publisher stamps on it), or None where the key names none
-    (`ctl/all`, `bench/...`): then the session's own name is stamped."""
-    parts = rel.split("/")
-    head = tuple(parts[:2])
-    if head in _SENDER:
-        return _SENDER[head]
-    if head == ("agent", "act") and len(parts) == 3:
-        return f"local-{parts[2]}"
-    if parts[0] == "learn" and len(parts) == 3:
-        return _EXP_SENDER.get(parts[1]) if parts[2] == "exp" else "learner" if parts[2] == "weights" else None
-    if head == ("ctl", "hb") and len(parts) == 3:
-        return parts[2]
-    return None
+    type: str | None = None
+    agent: int | None = None  # the payload's `agent`
+    role: str | None = None  # the payload's `role`
+    sender: str | None = None  # the sender a publisher stamps; also the only one accepted ...
+    agent_pool: int | None = None  # ... or a pool serving this agent
 
 
 def pool_agents(name: str) -> frozenset[int]:
@@ -69,8 +59,42 @@ def pool_agents(name: str) -> frozenset[int]:
     return frozenset()
 
 
-def _agent_sender(sender: str, agent: int) -> bool:
-    return sender == f"local-{agent}" or agent in pool_agents(sender)
+@functools.lru_cache(maxsize=4096)
+def rule_for(rel: str) -> Rule:
+    """The rule of a key relative to its run's prefix (`agent/act/1`), parsed once per key: a
+    subscription meets the same few keys every step."""
+    parts = rel.split("/")
+    head = tuple(parts[:2])
+    if head in (("env", "obs"), ("central", "msg"), ("agent", "act")) and len(parts) == 3:
+        if not parts[2].isdigit():
+            return Rule(type=_AGENT_TYPES[head], agent=-1)  # names no one agent: nothing may come on it
+        i = int(parts[2])
+        if head == ("agent", "act"):
+            return Rule("action", agent=i, sender=f"local-{i}", agent_pool=i)
+        return Rule(_AGENT_TYPES[head], agent=i, sender=head[0] if head[0] == "central" else "env")
+    if parts == ["env", "state"]:
+        return Rule("global_state", sender="env")
+    if parts[0] == "learn" and len(parts) == 3 and parts[2] in ("exp", "weights"):
+        if parts[2] == "exp":
+            return Rule("experience", role=parts[1], sender=_EXP_SENDER.get(parts[1], "env"))
+        return Rule("weights", role=parts[1], sender="learner")
+    if head == ("ctl", "hb") and len(parts) == 3:
+        agent = parts[2].removeprefix("local-")
+        return Rule("heartbeat", role=parts[2], sender=parts[2],
+                    agent_pool=int(agent) if parts[2].startswith("local-") and agent.isdigit() else None)
+    if parts == ["ctl", "all"]:
+        return Rule("control")
+    return Rule()  # bench/... and anything else: no identity
+
+
+_AGENT_TYPES = {("env", "obs"): "local_obs", ("central", "msg"): "central_msg", ("agent", "act"): "action"}
+_EXP_SENDER = {"team": "env", "central": "central"}
+
+
+def sender_of(rel: str) -> str | None:
+    """The sender a key implies (what a publisher stamps on it), or None where the key names none
+    (`ctl/all`, `bench/...`): then the session's own name is stamped."""
+    return rule_for(rel).sender
 
 
 def _mismatch(what: str, claimed: object, key: str) -> KeyMismatchError:
@@ -80,51 +104,13 @@ def _mismatch(what: str, claimed: object, key: str) -> KeyMismatchError:
 def check_key(msg, rel: str) -> None:
     """Raise KeyMismatchError when `msg` claims an identity its key `rel` (relative to the run
     prefix, e.g. `agent/act/1`) does not give it. `msg` is a decoded protocol message."""
-    parts = rel.split("/")
-    head = tuple(parts[:2])
-    tag = msg.type
-    if head in _TYPE:
-        if tag != _TYPE[head]:
-            raise _mismatch("type", tag, rel)
-        if len(parts) == 3:  # a per-agent key
-            agent = _int(parts[2], rel)
-            if msg.agent != agent:
-                raise _mismatch("agent", msg.agent, rel)
-            if head == ("agent", "act"):
-                if not _agent_sender(msg.sender, agent):
-                    raise _mismatch("sender", msg.sender, rel)
-                return
-        if msg.sender != _SENDER[head]:
-            raise _mismatch("sender", msg.sender, rel)
-        return
-    if parts[0] == "learn" and len(parts) == 3:
-        role, kind = parts[1], parts[2]
-        want = {"exp": "experience", "weights": "weights"}.get(kind)
-        if want is None:
-            return
-        if tag != want:
-            raise _mismatch("type", tag, rel)
-        if msg.role != role:
-            raise _mismatch("role", msg.role, rel)
-        sender = _EXP_SENDER.get(role) if kind == "exp" else "learner"
-        if msg.sender != sender:
-            raise _mismatch("sender", msg.sender, rel)
-        return
-    if head == ("ctl", "hb") and len(parts) == 3:
-        role = parts[2]
-        if tag != "heartbeat":
-            raise _mismatch("type", tag, rel)
-        if msg.role != role:
-            raise _mismatch("role", msg.role, rel)
-        agent = role.removeprefix("local-")
-        if msg.sender != role and not (agent.isdigit() and int(agent) in pool_agents(msg.sender)):
-            raise _mismatch("sender", msg.sender, rel)
-        return
-    if parts == ["ctl", "all"] and tag != "control":
-        raise _mismatch("type", tag, rel)
-
-
-def _int(chunk: str, rel: str) -> int:
-    if not chunk.isdigit():
-        raise KeyMismatchError(f"key {rel} does not name one agent", "agent")
-    return int(chunk)
+    rule = rule_for(rel)
+    if rule.type is not None and msg.type != rule.type:
+        raise _mismatch("type", msg.type, rel)
+    if rule.agent is not None and msg.agent != rule.agent:
+        raise _mismatch("agent", msg.agent, rel)
+    if rule.role is not None and msg.role != rule.role:
+        raise _mismatch("role", msg.role, rel)
+    if rule.sender is not None and msg.sender != rule.sender and not (
+            rule.agent_pool is not None and rule.agent_pool in pool_agents(msg.sender)):
+        raise _mismatch("sender", msg.sender, rel)

@@ -59,6 +59,3 @@ class HeartbeatLedger:
         if prev is not None and any(v < prev.get(k, 0) for k, v in h.counters.items()):
             return "counters_fell"
         return None
-
-    def rejection_counters(self) -> dict[str, int]:
-        return {f"rejected.{r}": n for r, n in sorted(self.rejected.items()) if n}

@@ -133,9 +133,7 @@ class Role:
 
     def rejection_counters(self) -> dict[str, int]:
         """Every rejection of this process by reason: the role's own and its subscriptions'."""
-        total = collections.Counter(self.session.rejection_counts())
-        total.update(self.rejected)
-        return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
+        return rejection_counters(self.session.rejection_counts(), self.rejected)
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         """What the fault layer did to this role's publishes (an agent pool: each agent's own)."""
@@ -226,6 +224,14 @@ class Role:
             self.step_log.flush()
         self.on_stop()
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
+
+
+def rejection_counters(*counts: dict[str, int]) -> dict[str, int]:
+    """Refusals by reason, summed over `counts`, as the counters a process reports: `rejected.<reason>`."""
+    total: collections.Counter[str] = collections.Counter()
+    for c in counts:
+        total.update(c)
+    return {f"rejected.{r}": int(n) for r, n in sorted(total.items()) if n}
 
 
 def process_cpu_s() -> float:

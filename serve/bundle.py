@@ -135,6 +135,17 @@ class Bundle:
             raise BundleError(f"{self.path}: the bundle was trained on {', '.join(bad)}; fix: serve it with "
                               "the env id and env_kwargs in its manifest")
 
+    def check_env_here(self, cfg) -> None:
+        """The env this machine builds from the served config (`cfg`) must have the dims the weights
+        were trained on: an env library of another version may not."""
+        from hammer.envs.registry import make_vec_env
+
+        env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
+        try:
+            self.check_env(env.spec)
+        finally:
+            env.close()
+
 
 def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
     """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded back."""

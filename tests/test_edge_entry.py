@@ -58,9 +58,9 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
     with pytest.raises(ValueError, match="msg_deadline_ms"):
         edge_inputs(bundle.path, 0, "x", "tcp/127.0.0.1:7447", None, None, runtime=["msg_deadline_ms=-1"])
     with pytest.raises(ValueError, match="refusing to run plain on .*--identity DIR.*--insecure"):  # a LAN hub, plain
-        edge_inputs(bundle.path, 0, "plain", "tcp/10.1.2.3:7447", None, None)
-    _, t, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/10.1.2.3:7447", None, None, insecure=True)
-    assert t.connect == ["tcp/10.1.2.3:7447"] and t.listen == ["tcp/0.0.0.0:0"]
+        edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None)
+    _, t, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None, insecure=True)
+    assert t.connect == ["tcp/192.0.2.1:7447"] and t.listen == ["tcp/0.0.0.0:0"]
     RuntimeSettings(run_id="sec", secure=True).save(tmp_path)
     with pytest.raises(ValueError, match="--identity"):  # a secure run without the agent's identity files
         edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=tmp_path / "runtime.json")

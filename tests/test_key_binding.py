@@ -180,5 +180,4 @@ def test_the_ledger_refuses_counters_that_fall_and_pids_it_did_not_start():
     assert ledger.offer(_hb("local-1", 1, steps=5)) and ledger.offer(_hb("local-1", 2, steps=5))
     assert not ledger.offer(_hb("local-1", 3, steps=5))
     assert ledger.offer(_hb("local-1", 1, steps=6))
-    assert ledger.rejection_counters() == {"rejected.counters_fell": 1, "rejected.heartbeat_pid": 1,
-                                           "rejected.heartbeat_processes": 1}
+    assert ledger.rejected == {"counters_fell": 1, "heartbeat_pid": 1, "heartbeat_processes": 1}

@@ -16,7 +16,8 @@ from hammer.cli import app
 
 @pytest.mark.parametrize(("transport", "out"), [
     (TransportConfig(listen=["tcp/127.0.0.1:7447"], connect=["tcp/localhost:7448", "tls/[::1]:7449"]), []),
-    (TransportConfig(connect=["tcp/10.1.2.3:7447"]), ["tcp/10.1.2.3:7447"]),
+    # 192.0.2.1: TEST-NET-1 (RFC 5737), reserved for examples and never routed; nothing here connects
+    (TransportConfig(connect=["tcp/192.0.2.1:7447"]), ["tcp/192.0.2.1:7447"]),
     (TransportConfig(listen=["tcp/0.0.0.0:0"]), ["tcp/0.0.0.0:0"]),
     (TransportConfig(connect=["tcp/robot-7.local:7447"]), ["tcp/robot-7.local:7447"]),  # a name may resolve anywhere
 ])
@@ -39,11 +40,11 @@ def test_a_zenoh_config_is_read_for_its_endpoints_and_scouting(tmp_path):
 
 
 def test_the_refusal_is_one_line_with_both_fixes_and_insecure_or_secure_pass():
-    t = TransportConfig(connect=["tcp/10.1.2.3:7447"])
+    t = TransportConfig(connect=["tcp/192.0.2.1:7447"])
     with pytest.raises(ValueError) as e:
         refuse_plain_beyond_loopback(t, secure=False, insecure=False)
     msg = str(e.value)
-    assert "\n" not in msg and "tcp/10.1.2.3:7447" in msg and "--secure" in msg and "--insecure" in msg
+    assert "\n" not in msg and "tcp/192.0.2.1:7447" in msg and "--secure" in msg and "--insecure" in msg
     refuse_plain_beyond_loopback(t, secure=False, insecure=True)
     refuse_plain_beyond_loopback(t, secure=True, insecure=False)
     RuntimeSettings(run_id="r", insecure=True).refuse_plain_beyond_loopback(t)  # the run's recorded consent

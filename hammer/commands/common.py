@@ -11,6 +11,12 @@ import typer
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
 ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
+SecureOpt = Annotated[bool, typer.Option(
+    help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md); "
+         "the same as --runtime secure=true.")]
+InsecureOpt = Annotated[bool, typer.Option(
+    help="Accept the plain profile beyond loopback (a Zenoh config reaching other machines): only on a "
+         "network you trust; the same as --runtime insecure=true.")]
 
 
 def fail(msg: str, code: int = 2) -> NoReturn:

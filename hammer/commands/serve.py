@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import fail
+from hammer.commands.common import InsecureOpt, SecureOpt, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -66,12 +66,8 @@ def serve_command(
     out: Annotated[Path, typer.Option(help="Root directory for run directories.")] = Path("runs"),
     run_dir: Annotated[Path | None, typer.Option(help="Exact run directory (default: OUT/serve-<bundle>-<time>).")] = None,
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
-    secure: Annotated[bool, typer.Option(
-        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules, as `hammer up --secure` "
-             "(docs/security.md).")] = False,
-    insecure: Annotated[bool, typer.Option(
-        help="Accept the plain profile beyond loopback (a Zenoh config reaching other machines): only on a "
-             "network you trust.")] = False,
+    secure: SecureOpt = False,
+    insecure: InsecureOpt = False,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`."""
@@ -86,7 +82,7 @@ def serve_command(
     try:
         b = load_bundle(bundle)
         cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
-        _check_env(b, cfg)
+        b.check_env_here(cfg)
         skip, roles = _external(external, cfg)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
         settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
@@ -117,18 +113,6 @@ def serve_command(
         console.print(f"waiting for the external central agent: hammer central --run-dir {path} --connect {where} "
                       "(the run directory's config.json, runtime.json and env_spec.json are all it needs)", soft_wrap=True)
     run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
-
-
-def _check_env(bundle, cfg) -> None:
-    """The env this machine builds from the manifest must have the dims the weights were trained on
-    (an env library of another version may not)."""
-    from hammer.envs.registry import make_vec_env
-
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
-    try:
-        bundle.check_env(env.spec)
-    finally:
-        env.close()
 
 
 def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:

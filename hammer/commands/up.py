@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import fail
+from hammer.commands.common import InsecureOpt, SecureOpt, fail
 
 
 def settings_error(err: Exception, flag: str = "--runtime") -> str:
@@ -150,12 +150,8 @@ def up_command(
     external: Annotated[list[str] | None, typer.Option(
         "--external", help="Role started by hand instead (repeatable, e.g. local-2): the launcher prints its "
                            "command, waits for its liveliness and never restarts it; docs/wire-format.md.")] = None,
-    secure: Annotated[bool, typer.Option(
-        help="Mutual TLS with per-run identities (RUN/identity/) and per-role access rules (docs/security.md); "
-             "the same as --runtime secure=true.")] = False,
-    insecure: Annotated[bool, typer.Option(
-        help="Accept the plain profile beyond loopback (a Zenoh config reaching other machines): only on a "
-             "network you trust; the same as --runtime insecure=true.")] = False,
+    secure: SecureOpt = False,
+    insecure: InsecureOpt = False,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
