@@ -56,7 +56,8 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
             env: dict | None = None) -> EdgeFigures:
     """Start `cmd` (a `hammer local` joining run `run_id` at the hub on `port`) and play the run to it."""
     import psutil
-    from hammer.protocol.schemas import Action, CentralMsg, Dims, LocalObs, Weights
+    from hammer.protocol.dims import Dims
+    from hammer.protocol.schemas import Action, CentralMsg, LocalObs, Weights
     from hammer.protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
     k, agent = cfg.num_envs, 0

@@ -26,15 +26,8 @@ from dataclasses import asdict, dataclass
 import msgpack
 import numpy as np
 from hammer.protocol.codec import decode, encode
-from hammer.protocol.schemas import (
-    Action,
-    CentralMsg,
-    Control,
-    Dims,
-    GlobalState,
-    LocalObs,
-    Message,
-)
+from hammer.protocol.dims import Dims
+from hammer.protocol.schemas import Action, CentralMsg, Control, GlobalState, LocalObs, Message
 from hammer.protocol.session import HammerSession, TransportConfig, loopback_endpoint
 
 _STOP = "stop"

@@ -34,7 +34,8 @@ from hammer.learning.central_acting import CentralActing, CentralOut
 from hammer.learning.config import RunConfig
 from hammer.learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
 from hammer.learning.sampling import ActingStreams
-from hammer.protocol.schemas import CentralMsg, Dims, ExperienceChunk, GlobalState
+from hammer.protocol.dims import Dims
+from hammer.protocol.schemas import CentralMsg, ExperienceChunk, GlobalState
 from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from hammer.runtime.role import Role

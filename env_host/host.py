@@ -37,8 +37,9 @@ from hammer.learning.episodes import episode_rows
 from hammer.learning.rollout import RolloutWriter, next_prev_actions
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import env_reset_seed
+from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
-from hammer.protocol.schemas import Action, Dims, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
+from hammer.protocol.schemas import Action, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
 from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.role import Role, process_cpu_s
 

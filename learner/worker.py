@@ -36,8 +36,9 @@ from hammer.learning.config import RunConfig
 from hammer.learning.host_info import host_info
 from hammer.learning.learner import TeamLearner
 from hammer.learning.rundir import RunDir
+from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
-from hammer.protocol.schemas import Dims, ExperienceChunk, Weights
+from hammer.protocol.schemas import ExperienceChunk, Weights
 from hammer.protocol.session import QUEUE_DEPTH, HammerSession
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from hammer.runtime.role import Role

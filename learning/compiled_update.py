@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from hammer.learning.ppo import PPOUpdater, UpdateStats
+from hammer.learning.ppo import PPOUpdater, UpdateStats, clip_coefficient
 from torch import nn
 from torch.optim.adam import adam as functional_adam
 
@@ -131,10 +131,12 @@ def adam_state(opt: PPOUpdater) -> tuple[list[torch.Tensor], list[torch.Tensor],
 def traced_clip_and_step(opt: PPOUpdater, params: list[torch.Tensor], grads: list[torch.Tensor],
                          exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
                          steps: list[torch.Tensor]) -> torch.Tensor:
-    """`PPOUpdater.clip_and_step` written to be traced: the clip as `clip_by_total_norm`, then
+    """`ppo.clip_and_step` written to be traced: the same clip rule (`clip_by_total_norm`), then
     torch's own Adam maths in its foreach/capturable form (what torch traces when it compiles an
     Adam optimiser), stepping the state from `adam_state` in place. Returns the norm before
-    clipping."""
+    clipping. Not the fused kernel `ppo.clip_and_step` calls: it mutates the Adam state in a way
+    torch.compile cannot functionalize (an internal assert in torch 2.13), so a graph holds torch's
+    reference maths of the same step."""
     group = opt.optimizer.param_groups[0]
     grads, norm = clip_by_total_norm(grads, opt.max_grad_norm)
     beta1, beta2 = group["betas"]
@@ -154,7 +156,7 @@ def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list
     kernels, while `_foreach_norm` stays a loop of one library call per tensor inside the graph.
     """
     norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
-    coef = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+    coef = clip_coefficient(norm, max_norm)
     return [g * coef for g in grads], norm
 
 

@@ -111,24 +111,39 @@ def minibatch_slices(shuffled: dict[str, torch.Tensor], sizes: list[int], dim: i
         start += n
 
 
-def clip_grad_norm(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
-    """Scale `grads` in place by min(1, max_norm / (norm + 1e-6)), where norm is their total L2
-    norm; returns the norm before clipping as a 0-d tensor. `torch.nn.utils.clip_grad_norm_`'s
-    rule and result, as three foreach ops without its per-call grouping of the tensors."""
-    norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
-    torch._foreach_mul_(grads, (max_norm / (norm + 1e-6)).clamp_(max=1.0))
-    return norm
+def clip_coefficient(norm: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """The grad-norm clip rule of every update (eager, compiled, seed-batched):
+    `torch.nn.utils.clip_grad_norm_`'s scale min(1, max_norm / (norm + 1e-6))."""
+    return (max_norm / (norm + 1e-6)).clamp(max=1.0)
 
 
-def clip_grad_norm_per_slice(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
-    """`clip_grad_norm` for S stacked networks: every tensor is (S, ...) and slice s is network s's
-    gradient, clipped by its own total norm. Returns the (S,) norms before clipping."""
+def clip_grad_norm(grads: list[torch.Tensor], max_norm: float, stacked: bool = False) -> torch.Tensor:
+    """Scale `grads` in place by `clip_coefficient` of their total L2 norm; returns the norm before
+    clipping (0-d). `stacked`: every tensor is (S, ...), slice s being network s's gradient (a seed
+    batch), and each slice is clipped by its own norm; returns the (S,) norms."""
+    if not stacked:
+        # three foreach ops, without clip_grad_norm_'s per-call grouping of the tensors
+        norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
+        torch._foreach_mul_(grads, clip_coefficient(norm, max_norm))
+        return norm
     s = grads[0].shape[0]
     per_tensor = torch.stack([torch.linalg.vector_norm(g.reshape(s, -1), dim=1) for g in grads], dim=1)
     norm = torch.linalg.vector_norm(per_tensor, dim=1)
-    scale = (max_norm / (norm + 1e-6)).clamp_(max=1.0)
+    scale = clip_coefficient(norm, max_norm)
     for g in grads:
         g.mul_(scale.reshape(s, *([1] * (g.dim() - 1))))
+    return norm
+
+
+def clip_and_step(optimizer: torch.optim.Adam, params: list[torch.Tensor], grads: list[torch.Tensor],
+                  max_norm: float, stacked: bool = False) -> torch.Tensor:
+    """The optimiser step of the eager and the seed-batched updates: clip `grads` (`clip_grad_norm`),
+    then one Adam step of `params` through torch's fused kernel (`fused_adam_step`). Returns the
+    norm(s) before clipping. The compiled update traces the same rule and torch's own Adam maths
+    instead (`compiled_update.traced_clip_and_step`): the fused kernel mutates its state in a way
+    torch.compile cannot functionalize."""
+    norm = clip_grad_norm(grads, max_norm, stacked)
+    fused_adam_step(optimizer, params, grads)
     return norm
 
 
@@ -157,10 +172,7 @@ class PPOUpdater:
         params = [p for p in self.params if p.grad is not None]
         if not params:
             return torch.zeros(())
-        grads = [p.grad for p in params]
-        norm = clip_grad_norm(grads, self.max_grad_norm)
-        fused_adam_step(self.optimizer, params, grads)
-        return norm
+        return clip_and_step(self.optimizer, params, [p.grad for p in params], self.max_grad_norm)
 
 
 class UpdateStats:

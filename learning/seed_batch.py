@@ -11,7 +11,7 @@ checkpoints), and its networks' parameters are views into stacked (S, ...) tenso
   update     each seed's own GAE batch (`TeamLearner.batch`) and minibatch order (its stream),
              then per minibatch one `vmap(grad(TeamLearner.losses))` (the one loss definition,
              through `functional_call`), each seed's grad norm clipped on its own
-             (`ppo.clip_grad_norm_per_slice`), and one fused Adam step over the stacked tensors,
+             (`ppo.clip_grad_norm`, stacked), and one fused Adam step over the stacked tensors,
              which is per-slice the same elementwise maths as each seed's own Adam
 
 Advantage normalisation and every loss mean are per seed because the losses run per slice under
@@ -28,9 +28,8 @@ from typing import Any
 import numpy as np
 import torch
 from hammer.learning.config import ConfigError, RunConfig, config_changes
-from hammer.learning.fused_adam import fused_adam_step
 from hammer.learning.learner import Masks
-from hammer.learning.ppo import UpdateStats, clip_grad_norm_per_slice, minibatch_indices, minibatch_slices
+from hammer.learning.ppo import UpdateStats, clip_and_step, minibatch_indices, minibatch_slices
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
 from hammer.learning.trainer import Progress, Trainer
@@ -259,11 +258,10 @@ class SeedBatch:
                 # the fused Adam kernel reads a gradient in its parameter's memory layout: vmap can
                 # return a permuted one (the central heads), so lay every gradient out densely
                 gs = [grads[n].contiguous() for n in names]
-                norms[f"{names[0].split('.', 1)[0]}/grad_norm"] = clip_grad_norm_per_slice(gs, max_norm)
                 ps = [self.params[n] for n in names]
                 for p, g in zip(ps, gs, strict=True):
                     p.grad = g
-                fused_adam_step(opt, ps, gs)
+                norms[f"{names[0].split('.', 1)[0]}/grad_norm"] = clip_and_step(opt, ps, gs, max_norm, stacked=True)
         return {**stats, **norms}
 
     # ----- the loop -----------------------------------------------------------------------------

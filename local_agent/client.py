@@ -28,7 +28,8 @@ import numpy as np
 from hammer.faults.steplog import LoggedPublisher, StepLog, column
 from hammer.learning.numpy_policy import NumpyLocalPolicy, softmax
 from hammer.learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
-from hammer.protocol.schemas import Action, CentralMsg, Dims, LocalObs
+from hammer.protocol.dims import Dims
+from hammer.protocol.schemas import Action, CentralMsg, LocalObs
 from hammer.protocol.session import HammerSession
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from hammer.runtime.role import Role

@@ -39,9 +39,10 @@ from hammer.faults.steplog import LoggedPublisher, StepLog
 from hammer.learning.numpy_policy import NumpyLocalPolicy
 from hammer.local_agent.client import AgentSpec, AgentSteps, step_log_columns
 from hammer.protocol.access import pool_name
+from hammer.protocol.dims import Dims
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.ranges import parse_indices
-from hammer.protocol.schemas import CentralMsg, Dims, Heartbeat, LocalObs
+from hammer.protocol.schemas import CentralMsg, Heartbeat, LocalObs
 from hammer.protocol.session import HammerSession, Inbox, burst_express, io_counters
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
 from hammer.runtime.role import Role

@@ -17,6 +17,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import (
     REASON_TO_ERROR,
     DecodeError,
@@ -28,15 +29,9 @@ from hammer.protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from hammer.protocol.schemas import (
-    _NAME_OF,
-    MESSAGE_TYPES,
-    SCHEMA_VERSION,
-    Dims,
-    Message,
-    array_to_wire,
-    fast_from_wire,
-)
+from hammer.protocol.fast_path import fast_from_wire
+from hammer.protocol.fields import NAME_OF, array_to_wire
+from hammer.protocol.schemas import MESSAGE_TYPES, SCHEMA_VERSION, Message
 from pydantic import BaseModel, ValidationError
 
 Expected = type[Message] | tuple[type[Message], ...] | None
@@ -72,7 +67,7 @@ def _wire_value(v: Any) -> Any:
     t = type(v)
     if t in _PLAIN:
         return v
-    if t is np.ndarray and (dtype := _NAME_OF.get(v.dtype)) is not None:
+    if t is np.ndarray and (dtype := NAME_OF.get(v.dtype)) is not None:
         # A whitelisted little-endian dtype: array_to_wire without its checks and lookups.
         return {"dtype": dtype, "shape": list(v.shape), "data": v.tobytes()}
     if t is list:

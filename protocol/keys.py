@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from hammer.protocol.schemas import check_name
+from hammer.protocol.fields import check_name
 
 ROOT = "hammer"
 

@@ -4,9 +4,9 @@ Why batched: encoding and decoding a message has a fixed Python cost far above t
 (`hammer bench codec` prints it), so one message carries all K env copies of one vector step
 (arrays have a leading K axis), never one per copy.
 
-numpy arrays are plain `np.ndarray` fields: code builds and reads messages with numpy directly.
-The same validators run when a message is built in Python and when it is decoded from the wire,
-so a NaN or a wrong dtype is caught at the sender as well as at the receiver.
+numpy arrays are plain `np.ndarray` fields (protocol/fields.py): code builds and reads messages
+with numpy directly. The hot types have a second, hand-written validator (protocol/fast_path.py)
+that accepts exactly what the models accept; their shape rules are registered at the end here.
 
 Array conventions (K = env copies in this message, N = agents, D = obs dim, M = message length,
 A = action vector length):
@@ -20,23 +20,31 @@ A = action vector length):
 from __future__ import annotations
 
 import hashlib
-import re
-import sys
-import typing
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
+from hammer.protocol.dims import Dims, expect, min_max
 from hammer.protocol.errors import RangeError, ShapeError
+from hammer.protocol.fast_path import Decline, count_nonzero, fast_state, register, set_state
+from hammer.protocol.fields import (
+    DEFAULT_MAX_BYTES,
+    HEADER_BYTES,
+    NAME_RE,
+    WIRE_DTYPES,
+    FiniteFloat,
+    MiB,
+    Name,
+    NDArray,
+    NonNegFloat,
+    NonNegInt,
+    empty_idx,
+    field_error,
+)
 from hammer.protocol.rollout_layout import RolloutLayout
 from pydantic import (
-    AllowInfNan,
     BaseModel,
     ConfigDict,
     Field,
-    GetCoreSchemaHandler,
-    GetJsonSchemaHandler,
     Strict,
     StrictBool,
     StrictInt,
@@ -44,217 +52,10 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError, core_schema
 
 SCHEMA_VERSION = 3
 
-# dtype names on the wire -> numpy dtype (always little-endian on the wire).
-WIRE_DTYPES: dict[str, np.dtype] = {
-    "float32": np.dtype("<f4"),
-    "float64": np.dtype("<f8"),
-    "int64": np.dtype("<i8"),
-    "int32": np.dtype("<i4"),
-    "uint8": np.dtype("u1"),
-    "bool": np.dtype("?"),
-}
-FLOAT_DTYPES = frozenset({"float32", "float64"})
-_NATIVE: dict[str, np.dtype] = {name: dt.newbyteorder("=") for name, dt in WIRE_DTYPES.items()}
-# dtype -> wire name, looked up by dtype object because `dtype.name` is slow Python code.
-_NAME_OF: dict[np.dtype, str] = {dt: name for name, dt in WIRE_DTYPES.items()}
 
-
-def dtype_name(dt: np.dtype) -> str:
-    """Wire name of a numpy dtype, or its numpy name when it is not on the whitelist."""
-    name = _NAME_OF.get(dt)
-    if name is None:
-        name = _NAME_OF.get(dt.newbyteorder("<"), dt.name) if dt.byteorder == ">" else dt.name
-    return name
-MAX_NDIM = 8
-
-MiB = 1 << 20
-DEFAULT_MAX_BYTES = 4 * MiB
-# Everything of a message but its array bytes, bounded: field names, ints, the type tag, run id
-# (<= 64 chars), sender (<= 128) and up to four array maps ({"dtype", "shape" (<= 8 ints), "data"}).
-HEADER_BYTES = 2048
-
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-NAME_RULE = "1-64 chars of letters, digits, '_', '-', '.', starting with a letter or digit"
-
-
-def _err(reason: str, field: str | None, msg: str) -> PydanticCustomError:
-    """A pydantic error whose type is a protocol `reason`; the codec maps it to a ProtocolError."""
-    # The field name is in the text too: model-level errors have no `loc` in pydantic's message.
-    return PydanticCustomError(reason, "{field}: {msg}" if field else "{msg}", {"msg": msg, "field": field or ""})
-
-
-def check_name(value: str, what: str) -> str:
-    """Validate a run id / role name used inside key expressions (raises ValueError)."""
-    if not isinstance(value, str) or not NAME_RE.match(value):
-        raise ValueError(f"invalid {what} {value!r}: use {NAME_RULE}")
-    return value
-
-
-# --------------------------------------------------------------------------------------------
-# numpy array fields
-# --------------------------------------------------------------------------------------------
-
-
-def array_to_wire(a: np.ndarray) -> dict[str, Any]:
-    """The wire map of an array: {"dtype": name, "shape": [..], "data": raw little-endian bytes}."""
-    name = dtype_name(a.dtype)
-    wire = WIRE_DTYPES.get(name)
-    if wire is None:
-        raise _err("dtype", None, f"dtype {name} is not allowed on the wire ({', '.join(WIRE_DTYPES)})")
-    if a.dtype.byteorder == ">":
-        a = a.astype(wire)
-    # tobytes() always writes C order, whatever the memory layout of `a`.
-    return {"dtype": name, "shape": list(a.shape), "data": a.tobytes()}
-
-
-def _array_from_wire(d: dict, field: str | None) -> np.ndarray:
-    if len(d) != 3 or "dtype" not in d or "shape" not in d or "data" not in d:
-        raise _err("field", field, f"array map must have exactly keys dtype, shape, data; got {sorted(d)}")
-    name, shape, data = d["dtype"], d["shape"], d["data"]
-    if not isinstance(name, str) or name not in WIRE_DTYPES:
-        raise _err("dtype", field, f"dtype {name!r} is not allowed ({', '.join(WIRE_DTYPES)})")
-    if (
-        not isinstance(shape, list)
-        or len(shape) > MAX_NDIM
-        or not all(type(n) is int and n >= 0 for n in shape)
-    ):
-        raise _err("shape", field, f"shape must be a list of at most {MAX_NDIM} non-negative ints, got {shape!r}")
-    if not isinstance(data, bytes):
-        raise _err("field", field, f"array data must be msgpack bin, got {type(data).__name__}")
-    dtype = WIRE_DTYPES[name]
-    count = 1
-    for n in shape:
-        count *= n
-    if count * dtype.itemsize != len(data):
-        raise _err("shape", field, f"shape {shape} of {name} needs {count * dtype.itemsize} bytes, got {len(data)}")
-    if name == "bool" and data and max(data) > 1:
-        raise _err("field", field, "bool array bytes must be 0 or 1")
-    # astype(native, copy=True): decoded arrays are native-endian, writable and do not pin the buffer.
-    return np.frombuffer(data, dtype=dtype).reshape(shape).astype(_NATIVE[name], copy=True)
-
-
-@dataclass(frozen=True)
-class _ArrayField:
-    """Pydantic annotation for an np.ndarray field with allowed dtypes and ranks."""
-
-    dtypes: tuple[str, ...]
-    ndims: tuple[int, ...] | None
-
-    def validate(self, value: Any, info: core_schema.ValidationInfo) -> np.ndarray:
-        field = info.field_name
-        if isinstance(value, dict):
-            a = _array_from_wire(value, field)
-        elif isinstance(value, np.ndarray):
-            a = value
-        else:
-            raise _err("field", field, f"expected a numpy array (or wire array map), got {type(value).__name__}")
-        name = dtype_name(a.dtype)
-        if name not in self.dtypes:
-            hint = f"; cast with .astype(np.{self.dtypes[0]})" if self.dtypes[0] != "bool" else ""
-            raise _err("dtype", field, f"dtype {name} not allowed here, need one of {list(self.dtypes)}{hint}")
-        if self.ndims is not None and a.ndim not in self.ndims:
-            raise _err("shape", field, f"needs {' or '.join(map(str, self.ndims))} dims, got shape {a.shape}")
-        if a.ndim > MAX_NDIM:
-            raise _err("shape", field, f"at most {MAX_NDIM} dims, got {a.ndim}")
-        if name in FLOAT_DTYPES and not np.isfinite(a).all():
-            raise _err("nonfinite", field, "holds NaN or inf")
-        return a
-
-    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
-        return core_schema.with_info_plain_validator_function(self.validate)
-
-    def __get_pydantic_json_schema__(self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler) -> dict:
-        desc = f"numpy array, dtype {' or '.join(self.dtypes)}"
-        if self.ndims is not None:
-            desc += f", {' or '.join(map(str, self.ndims))} dims"
-        return {
-            "type": "object",
-            "description": desc + "; raw bytes are little-endian, C order",
-            "properties": {
-                "dtype": {"type": "string", "enum": list(self.dtypes)},
-                "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "maxItems": MAX_NDIM},
-                "data": {"type": "string", "format": "binary"},
-            },
-            "required": ["dtype", "shape", "data"],
-            "additionalProperties": False,
-        }
-
-
-def NDArray(dtypes: str | tuple[str, ...], ndims: int | tuple[int, ...] | None = None) -> Any:
-    """An np.ndarray field type: `NDArray("float32", 2)` is a float32 matrix."""
-    dts = (dtypes,) if isinstance(dtypes, str) else tuple(dtypes)
-    nds = (ndims,) if isinstance(ndims, int) else ndims
-    return Annotated[np.ndarray, _ArrayField(dts, nds)]
-
-
-NonNegInt = Annotated[int, Strict(), Field(ge=0)]
-FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
-NonNegFloat = Annotated[float, Strict(), AllowInfNan(False), Field(ge=0)]
-Name = Annotated[str, Strict(), Field(pattern=NAME_RE.pattern)]
-
-
-def _empty_idx() -> np.ndarray:
-    return np.zeros(0, dtype=np.int64)
-
-
-# --------------------------------------------------------------------------------------------
-# Declared dimensions a receiver can check messages against
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Dims:
-    """Dimensions a receiver expects; None means "do not check".
-
-    num_envs: total env copies (env_idx < num_envs, K <= num_envs); n_agents: N; obs_dim: D;
-    msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
-    discrete: whether actions are discrete ids (int64) or continuous vectors (float32);
-    rollout_steps: T of an experience chunk. With all seven declared, experience chunks are
-    checked array by array against the rollout layout (`rollout_layout`).
-    """
-
-    num_envs: int | None = None
-    n_agents: int | None = None
-    obs_dim: int | None = None
-    msg_dim: int | None = None
-    action_dim: int | None = None
-    discrete: bool | None = None
-    rollout_steps: int | None = None
-
-    @classmethod
-    def from_layout(cls, layout: RolloutLayout) -> Dims:
-        """What a learner declares: every size of the rollout layout."""
-        return cls(layout.k, layout.n, layout.obs_dim, layout.msg_dim, layout.action_dim, layout.discrete, layout.t)
-
-    def rollout_layout(self) -> RolloutLayout | None:
-        """The rollout layout these dims declare, or None when a size of it is not declared."""
-        sizes = (self.rollout_steps, self.num_envs, self.n_agents, self.obs_dim, self.action_dim, self.msg_dim,
-                 self.discrete)
-        if any(x is None for x in sizes):
-            return None
-        return RolloutLayout(*sizes)
-
-
-def _min_max(a: np.ndarray) -> tuple[int, int]:
-    """Min and max of a non-empty int array. Small arrays go through a list: a process that just
-    woke up runs numpy's reduction machinery cache-cold, slower than a list's min and max at K=32
-    (`hammer bench codec --cold`)."""
-    if a.size <= 1024:
-        values = a.ravel().tolist()
-        return min(values), max(values)
-    return int(a.min()), int(a.max())
-
-
-def _expect(field: str, what: str, actual: int, expected: int | None) -> None:
-    if expected is not None and actual != expected:
-        raise ShapeError(f"{what} is {actual}, expected {expected} (declared Dims)", field)
-
-
-# --------------------------------------------------------------------------------------------
 # Messages
 # --------------------------------------------------------------------------------------------
 
@@ -281,7 +82,7 @@ class Message(BaseModel):
     )
     step: NonNegInt = Field(0, description="vector step")
     env_idx: NDArray("int64", 1) = Field(
-        default_factory=_empty_idx, description="(K,) indices of the env copies this message carries"
+        default_factory=empty_idx, description="(K,) indices of the env copies this message carries"
     )
     ts: NonNegInt = Field(0, description="send time, ns since the Unix epoch (stamped at publish)")
     seq: NonNegInt = Field(0, description="sequence number of this sender on this key, from 0")
@@ -291,11 +92,11 @@ class Message(BaseModel):
         # Hot types first try their hand-written validator (see "Fast path" at the end of this
         # module); whatever it declines goes to pydantic, which accepts it or raises the reference
         # error, so building a message behaves exactly as with pydantic alone, only faster.
-        state = _fast_state(type(self), data)
+        state = fast_state(type(self), data)
         if state is None:
             super().__init__(**data)
         else:
-            _set_state(self, *state)
+            set_state(self, *state)
 
     # Mark this __init__ as pydantic's base one, otherwise pydantic would route `model_validate`
     # through it: `model_validate` must stay the pure pydantic reference the fast path is tested against.
@@ -305,7 +106,7 @@ class Message(BaseModel):
     @classmethod
     def _check_version(cls, v: int) -> int:
         if v != SCHEMA_VERSION:
-            raise _err("version", "v", f"schema version {v}, this code speaks {SCHEMA_VERSION}")
+            raise field_error("version", "v", f"schema version {v}, this code speaks {SCHEMA_VERSION}")
         return v
 
     @field_validator("env_idx")
@@ -314,9 +115,9 @@ class Message(BaseModel):
         if a.size:
             idx = a.tolist()  # a Python set beats np.unique at K up to a few thousand
             if min(idx) < 0:
-                raise _err("range", "env_idx", "env indices must be >= 0")
+                raise field_error("range", "env_idx", "env indices must be >= 0")
             if len(set(idx)) != len(idx):
-                raise _err("shape", "env_idx", "env indices must be unique")
+                raise field_error("shape", "env_idx", "env indices must be unique")
         return a
 
     @classmethod
@@ -346,7 +147,7 @@ class Message(BaseModel):
         actual = a.shape
         if len(actual) != len(shape) or any(s is not None and s != n for s, n in zip(shape, actual)):
             want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + (",)" if len(shape) == 1 else ")")
-            raise _err("shape", field, f"shape {a.shape} disagrees with the message, expected {want} "
+            raise field_error("shape", field, f"shape {a.shape} disagrees with the message, expected {want} "
                                        f"(K={self.k} from env_idx)")
 
     def check_dims(self, dims: Dims) -> None:
@@ -354,7 +155,7 @@ class Message(BaseModel):
         if dims.num_envs is not None:
             if self.k > dims.num_envs:
                 raise ShapeError(f"{self.k} env copies but num_envs is {dims.num_envs}", "env_idx")
-            if self.k and (hi := _min_max(self.env_idx)[1]) >= dims.num_envs:
+            if self.k and (hi := min_max(self.env_idx)[1]) >= dims.num_envs:
                 raise RangeError(f"env index {hi} >= num_envs {dims.num_envs}", "env_idx")
         self._check_dims(dims)
 
@@ -391,7 +192,7 @@ class LocalObs(Message):
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
-        _expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
+        expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
 
 
 class GlobalState(Message):
@@ -423,8 +224,8 @@ class GlobalState(Message):
         return self
 
     def _check_dims(self, dims: Dims) -> None:
-        _expect("obs", "n_agents", self.obs.shape[1], dims.n_agents)
-        _expect("obs", "obs_dim", self.obs.shape[2], dims.obs_dim)
+        expect("obs", "n_agents", self.obs.shape[1], dims.n_agents)
+        expect("obs", "obs_dim", self.obs.shape[2], dims.obs_dim)
         a = self.prev_actions.shape[2]
         if dims.action_dim is not None and dims.discrete is not None:
             ok = a in (1, dims.action_dim) if dims.discrete else a == dims.action_dim
@@ -451,12 +252,12 @@ class CentralMsg(Message):
     def _shapes(self) -> CentralMsg:
         self._need("msg", self.msg, (self.k, None))
         if self.msg.size and (self.msg.min() < -1.0 or self.msg.max() > 1.0):
-            raise _err("range", "msg", "message values must lie in [-1, 1]")
+            raise field_error("range", "msg", "message values must lie in [-1, 1]")
         return self
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
-        _expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
+        expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
 
 
 class Action(Message):
@@ -503,7 +304,7 @@ class Action(Message):
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
         if self.msg is not None:
-            _expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
+            expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
         if dims.discrete is not None and dims.discrete != self.discrete:
             want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
             raise ShapeError(f"actions must be {want}, got {self.action.dtype} {self.action.shape}", "action")
@@ -511,11 +312,11 @@ class Action(Message):
             return
         if self.discrete:
             if self.action.size:
-                lo, hi = _min_max(self.action)
+                lo, hi = min_max(self.action)
                 if lo < 0 or hi >= dims.action_dim:
                     raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
         else:
-            _expect("action", "action vector length", self.action.shape[1], dims.action_dim)
+            expect("action", "action vector length", self.action.shape[1], dims.action_dim)
 
 
 ArrayName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$")]
@@ -575,7 +376,7 @@ class Weights(Message):
     @model_validator(mode="after")
     def _digest(self) -> Weights:
         if hashlib.sha256(self.blob).hexdigest() != self.sha256:
-            raise _err("checksum", "sha256", "sha256 of blob does not match (corrupted or truncated weights)")
+            raise field_error("checksum", "sha256", "sha256 of blob does not match (corrupted or truncated weights)")
         return self
 
     @classmethod
@@ -635,241 +436,37 @@ def json_schemas() -> dict[str, Any]:
     }
 
 
-# --------------------------------------------------------------------------------------------
-# Fast path
-# --------------------------------------------------------------------------------------------
-#
-# Why: pydantic validating one K=32 message of the control loop costs several times what the
-# bytes do (core schema walk, one Python validator call per array, np.unique, model validators;
-# `hammer bench codec` prints both paths), and every vector step builds and decodes a dozen of them. The hot types below get a second, hand-written validator
-# that accepts a message only when every check of the pydantic model passes (dtypes, ranks,
-# shapes, byte counts, bool bytes, finiteness, ranges, unique env indices, strict ints and
-# strings, no unknown or missing fields). It never raises its own errors: whenever it declines,
-# the caller runs the pydantic model, which either accepts (then its result is used) or raises
-# the reference error. So errors are exactly pydantic's by construction, and the only way the
-# two can differ is the fast path accepting what pydantic rejects; tests/test_protocol_fastpath.py
-# checks they agree on a corpus of good and deliberately broken messages plus fuzzing.
-#
-# It takes the same inputs as the models: wire maps straight from msgpack (decode) and numpy
-# arrays / Python values (building a message), and it reads dtypes, ranks and defaults from the
-# model fields, so the schema itself is still declared once, above.
-
-
-class _Decline(Exception):
-    """The fast path does not vouch for this input; pydantic decides."""
-
-
-_setattr = object.__setattr__
-_FAST_OK = sys.byteorder == "little"  # wire arrays are little-endian: decode them without a swap
-try:  # the C function behind np.count_nonzero, without its Python dispatch wrapper (numpy >= 2)
-    from numpy._core.multiarray import count_nonzero as _count_nonzero
-except ImportError:  # pragma: no cover - numpy 1.x
-    _count_nonzero = np.count_nonzero
-# env_idx is almost always 0..K-1: comparing its bytes with these proves "unique and >= 0" at once.
-_ARANGE_BYTES = np.arange(4096, dtype="<i8").tobytes()
-_RUN_MATCH = re.compile(NAME_RE.pattern.removeprefix("^").removesuffix("$")).fullmatch
-
-
-def _set_state(obj: BaseModel, values: dict[str, Any], fields_set: set[str]) -> None:
-    """What pydantic's `model_construct` sets on a model (extra="forbid", no private attributes)."""
-    _setattr(obj, "__dict__", values)
-    _setattr(obj, "__pydantic_fields_set__", fields_set)
-    _setattr(obj, "__pydantic_extra__", None)
-    _setattr(obj, "__pydantic_private__", None)
-
-
-def _nonneg_int(v: Any) -> int:
-    if type(v) is not int or v < 0:
-        raise _Decline
-    return v
-
-
-def _version(v: Any) -> int:
-    if type(v) is not int or v != SCHEMA_VERSION:
-        raise _Decline
-    return v
-
-
-def _run(v: Any) -> str:
-    if type(v) is not str or (v and _RUN_MATCH(v) is None):
-        raise _Decline
-    return v
-
-
-def _sender(v: Any) -> str:
-    if type(v) is not str or len(v) > 128:
-        raise _Decline
-    return v
-
-
-def _array_check(spec: _ArrayField, optional: bool) -> Callable[[Any], np.ndarray | None]:
-    """The checks of `_ArrayField.validate` (plus _array_from_wire) for one field."""
-    names = frozenset(spec.dtypes)
-    by_dtype = {WIRE_DTYPES[n]: n for n in spec.dtypes}  # little-endian = native here
-    ndims = frozenset(spec.ndims if spec.ndims is not None else range(MAX_NDIM + 1))
-
-    def check(v: Any) -> np.ndarray | None:
-        if type(v) is np.ndarray:
-            if v.dtype not in by_dtype or v.ndim not in ndims:
-                raise _Decline
-            a = v
-        elif type(v) is dict:
-            name, shape, data = v.get("dtype"), v.get("shape"), v.get("data")
-            if (len(v) != 3 or type(name) is not str or name not in names or type(shape) is not list
-                    or len(shape) not in ndims or type(data) is not bytes):
-                raise _Decline
-            count = 1
-            for n in shape:
-                if type(n) is not int or n < 0:
-                    raise _Decline
-                count *= n
-            dtype = WIRE_DTYPES[name]
-            if count * dtype.itemsize != len(data):
-                raise _Decline
-            if name == "bool" and data.translate(None, b"\x00\x01"):  # any byte other than 0 / 1 left
-                raise _Decline
-            # A copy into a bytearray: writable, native (little-endian) and does not pin the payload.
-            a = np.frombuffer(bytearray(data), dtype).reshape(shape)
-        elif v is None and optional:
-            return None
-        else:
-            raise _Decline
-        if a.dtype.kind == "f" and _count_nonzero(np.isfinite(a)) != a.size:
-            raise _Decline
-        return a
-
-    return check
-
-
-def _env_idx(check: Callable[[Any], np.ndarray | None]) -> Callable[[Any], np.ndarray]:
-    def env_idx(v: Any) -> np.ndarray:
-        a = check(v)
-        if a.size and not _ARANGE_BYTES.startswith(a.tobytes()):  # int64 native = little-endian here
-            idx = a.tolist()
-            if min(idx) < 0 or len(set(idx)) != len(idx):
-                raise _Decline
-        return a
-
-    return env_idx
-
-
-def _field_check(cls: type[Message], name: str, info: Any) -> Callable[[Any], Any]:
-    """The fast check of one model field, from its declaration where it is an array."""
-    if name == "type":
-        tag = cls.TYPE
-
-        def type_tag(v: Any) -> str:
-            if type(v) is not str or v != tag:
-                raise _Decline
-            return v
-
-        return type_tag
-    scalar = {"v": _version, "run": _run, "sender": _sender, "step": _nonneg_int, "ts": _nonneg_int,
-              "seq": _nonneg_int, "agent": _nonneg_int, "policy_version": _nonneg_int}
-    if name in scalar:
-        return scalar[name]
-    for meta in info.metadata:
-        if isinstance(meta, _ArrayField):
-            check = _array_check(meta, optional=False)
-            return _env_idx(check) if name == "env_idx" else check
-    args = typing.get_args(info.annotation)
-    if type(None) in args:
-        for arg in args:
-            for meta in getattr(arg, "__metadata__", ()):
-                if isinstance(meta, _ArrayField):
-                    return _array_check(meta, optional=True)
-    raise TypeError(f"{cls.__name__}.{name}: no fast-path check for this field; add one in protocol/schemas.py")
-
-
 def _local_obs_shapes(v: dict, k: int) -> None:
     if v["obs"].shape[0] != k or v["active"].shape[0] != k:
-        raise _Decline
+        raise Decline
 
 
 def _global_state_shapes(v: dict, k: int) -> None:
     obs, prev = v["obs"].shape, v["prev_actions"].shape
     if obs[0] != k or prev[0] != k or prev[1] != obs[1] or v["active"].shape != obs[:2]:
-        raise _Decline
+        raise Decline
 
 
 def _central_msg_shapes(v: dict, k: int) -> None:
     m = v["msg"]
-    if m.shape[0] != k or _count_nonzero(np.abs(m) <= 1.0) != m.size:
-        raise _Decline
+    if m.shape[0] != k or count_nonzero(np.abs(m) <= 1.0) != m.size:
+        raise Decline
 
 
 def _action_shapes(v: dict, k: int) -> str | None:
     a = v["action"]
     if a.shape[0] != k or a.ndim != (1 if a.dtype == np.int64 else 2):
-        raise _Decline
+        raise Decline
     for name in ("fallback", "msg"):
         x = v[name]
         if x is not None and x.shape[0] != k:
-            raise _Decline
+            raise Decline
     if v["fallback"] is None:
         v["fallback"] = np.zeros(k, dtype=bool)
         return "fallback"
     return None
 
 
-def _fast_validator(cls: type[Message], shapes: Callable[[dict, int], str | None]) -> Callable:
-    """validate(data) -> (field values, fields set) exactly as pydantic would produce them, or raise."""
-    fields = []
-    for name, info in cls.model_fields.items():
-        if info.default_factory is not None:
-            default, factory = None, info.default_factory
-        else:
-            default, factory = (_Decline if info.is_required() else info.default), None
-        fields.append((name, _field_check(cls, name, info), default, factory))
-    known = frozenset(cls.model_fields)
-
-    def validate(data: dict) -> tuple[dict[str, Any], set[str]]:
-        if not _FAST_OK or not known.issuperset(data):  # unknown field (or a non-str key)
-            raise _Decline
-        values = {}
-        for name, check, default, factory in fields:
-            if name in data:
-                values[name] = check(data[name])
-            elif factory is not None:
-                values[name] = factory()
-            elif default is _Decline:  # required and missing
-                raise _Decline
-            else:
-                values[name] = default
-        fields_set = set(data)
-        added = shapes(values, values["env_idx"].shape[0])
-        if added is not None:  # the pydantic model validator assigned it, which marks it set
-            fields_set.add(added)
-        return values, fields_set
-
-    return validate
-
-
-_FAST: dict[type[Message], Callable[[dict], tuple[dict[str, Any], set[str]]]] = {
-    cls: _fast_validator(cls, shapes)
-    for cls, shapes in ((LocalObs, _local_obs_shapes), (GlobalState, _global_state_shapes),
-                        (CentralMsg, _central_msg_shapes), (Action, _action_shapes))
-}
-FAST_TYPES = frozenset(_FAST)
-
-
-def _fast_state(cls: type[Message], data: dict) -> tuple[dict[str, Any], set[str]] | None:
-    """(field values, fields set) of `data` by the fast path, or None when it declines or `cls`
-    has none: then pydantic must validate `data`."""
-    fast = _FAST.get(cls)
-    if fast is None:
-        return None
-    try:
-        return fast(data)
-    except Exception:  # noqa: BLE001 - any failure of the fast path means "let pydantic decide"
-        return None
-
-
-def fast_from_wire(cls: type[Message], d: dict) -> Message | None:
-    """The message of wire map `d` built by the fast path, or None (then validate with pydantic)."""
-    state = _fast_state(cls, d)
-    if state is None:
-        return None
-    msg = cls.__new__(cls)
-    _set_state(msg, *state)
-    return msg
+for _cls, _shapes in ((LocalObs, _local_obs_shapes), (GlobalState, _global_state_shapes),
+                      (CentralMsg, _central_msg_shapes), (Action, _action_shapes)):
+    register(_cls, _shapes)

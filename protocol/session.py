@@ -36,10 +36,11 @@ import zenoh
 from hammer.protocol.access import SecureLink
 from hammer.protocol.binding import check_key, sender_of
 from hammer.protocol.codec import Expected, _expected_types, decode, encode
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import ProtocolError, RunMismatchError
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.keys import Keys
-from hammer.protocol.schemas import Dims, Message
+from hammer.protocol.schemas import Message
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 log = logging.getLogger(__name__)

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from hammer.protocol.binding import check_key, pool_agents
 from hammer.protocol.codec import decode, encode
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import KeyMismatchError, ProtocolError
 from hammer.protocol.samples import sample_messages
 from hammer.protocol.schemas import (
     Action,
     CentralMsg,
-    Dims,
     ExperienceChunk,
     GlobalState,
     Heartbeat,

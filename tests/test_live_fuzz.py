@@ -28,6 +28,7 @@ from hammer.envs.registry import make_vec_env
 from hammer.learning.config import merge_config
 from hammer.protocol import codec
 from hammer.protocol.binding import check_key
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import ProtocolError
 from hammer.protocol.keys import Keys
 from hammer.protocol.rollout_layout import CHUNK, RECORD, RolloutLayout
@@ -35,7 +36,6 @@ from hammer.protocol.schemas import (
     Action,
     CentralMsg,
     Control,
-    Dims,
     ExperienceChunk,
     GlobalState,
     Heartbeat,

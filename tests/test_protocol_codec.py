@@ -8,6 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 from hammer.protocol import codec
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import (
     ChecksumError,
     DecodeError,
@@ -29,7 +30,6 @@ from hammer.protocol.schemas import (
     SCHEMA_VERSION,
     Action,
     CentralMsg,
-    Dims,
     GlobalState,
     LocalObs,
     Weights,

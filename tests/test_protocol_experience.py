@@ -9,9 +9,10 @@ import pytest
 from hammer.envs.base import EnvSpec
 from hammer.learning.config import RunConfig
 from hammer.protocol import codec
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import DTypeError, FieldError, NonFiniteError, ShapeError, SizeError
 from hammer.protocol.rollout_layout import BUFFER, CHUNK, RECORD, RolloutLayout
-from hammer.protocol.schemas import Dims, ExperienceChunk
+from hammer.protocol.schemas import ExperienceChunk
 from hammer.protocol.session import HammerSession, TransportConfig
 
 DISCRETE = RolloutLayout(t=4, k=3, n=2, obs_dim=5, action_dim=6, msg_dim=3, discrete=True)

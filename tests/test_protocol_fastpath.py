@@ -18,18 +18,10 @@ import pytest
 from hammer.benchmarks.transport import loop_messages
 from hammer.protocol import codec
 from hammer.protocol.errors import ProtocolError
+from hammer.protocol.fast_path import fast_from_wire, fast_state, fast_types
+from hammer.protocol.fields import WIRE_DTYPES
 from hammer.protocol.samples import sample_messages
-from hammer.protocol.schemas import (
-    FAST_TYPES,
-    SCHEMA_VERSION,
-    WIRE_DTYPES,
-    Action,
-    Control,
-    GlobalState,
-    Message,
-    _fast_state,
-    fast_from_wire,
-)
+from hammer.protocol.schemas import SCHEMA_VERSION, Action, Control, GlobalState, Message
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
@@ -39,7 +31,7 @@ STAMP = {"run": "run1", "ts": 5, "seq": 3, "sender": "env"}
 
 def _hot_messages() -> list[Message]:
     """Hot-type messages of several shapes: the K=4 samples and real control-loop sizes."""
-    msgs = [m for m in sample_messages() if type(m) in FAST_TYPES]
+    msgs = [m for m in sample_messages() if type(m) in fast_types()]
     for k, n, d, m in ((1, 3, 18, 4), (32, 3, 18, 4), (32, 5, 30, 8)):
         msgs += [cls(**kw) for _, cls, kw, _ in loop_messages(k, n, d, m)]
     rng = np.random.default_rng(1)
@@ -103,7 +95,7 @@ def check_build_agreement(cls: type[Message], kw: dict) -> bool:
         with pytest.raises(ValidationError) as ei:
             cls(**kw)
         assert ei.value.errors(include_url=False) == e.errors(include_url=False)
-        assert _fast_state(cls, kw) is None
+        assert fast_state(cls, kw) is None
         return False
     assert_equal_models(cls(**kw), ref, given=kw)
     return True
@@ -113,7 +105,7 @@ def check_build_agreement(cls: type[Message], kw: dict) -> bool:
 
 
 def test_model_validate_is_pure_pydantic():
-    for cls in FAST_TYPES:
+    for cls in fast_types():
         assert cls.__pydantic_custom_init__ is False  # model_validate never routes through __init__
 
 
@@ -125,7 +117,7 @@ def test_hot_messages_take_the_fast_path_and_equal_pydantic(i):
     data = codec.encode(msg, stamp=STAMP)
     assert_equal_models(codec.decode(data), codec.decode(data, fast=False))
     kw = {name: getattr(msg, name) for name in msg.model_fields_set}
-    assert _fast_state(type(msg), kw) is not None
+    assert fast_state(type(msg), kw) is not None
     assert check_build_agreement(type(msg), kw)
 
 

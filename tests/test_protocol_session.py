@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from hammer.benchmarks.transport import echo_main
 from hammer.protocol.codec import encode
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import RunMismatchError
 from hammer.protocol.samples import sample_messages
-from hammer.protocol.schemas import SCHEMA_VERSION, Control, Dims, GlobalState, LocalObs, Message
+from hammer.protocol.schemas import SCHEMA_VERSION, Control, GlobalState, LocalObs, Message
 from hammer.protocol.session import HammerSession, TransportConfig
 
 HEADER_STAMPS = {"run", "ts", "seq", "sender"}

@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 from hammer.benchmarks.scale import markdown, plot, pooled_size, scale_config, shares
 from hammer.protocol.codec import decode, encode
+from hammer.protocol.dims import Dims
 from hammer.protocol.errors import SizeError
+from hammer.protocol.fields import MiB
 from hammer.protocol.rollout_layout import RolloutLayout
-from hammer.protocol.schemas import Dims, ExperienceChunk, MiB
+from hammer.protocol.schemas import ExperienceChunk
 
 
 def test_the_rollout_chunk_cap_grows_with_the_run_and_still_refuses_more():
