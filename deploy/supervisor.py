@@ -71,7 +71,8 @@ class Supervisor:
         logf = open(rp.log_path, "ab")  # noqa: SIM115 - owned by the child for its lifetime
         # -P: the current folder is not put first on sys.path, so no folder of the user's project (an
         # `experiments/` of their own) can shadow a part of hammer in a role process.
-        cmd = [sys.executable, "-P", "-m", "hammer.cli", *spec.args]
+        # hammer.entry, as the console script: `local --bundle` (an edge robot) loads no CLI framework
+        cmd = [sys.executable, "-P", "-m", "hammer.entry", *spec.args]
         log.info("starting %s: %s", spec.name, " ".join(cmd))
         rp.proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                    env=self._env, close_fds=True)

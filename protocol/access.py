@@ -85,7 +85,7 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
             liveliness=(keys.alive("env"),)),
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
-            subscribe=(keys.state(), keys.weights("central"), keys.ctl("all")),
+            subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all")),
             liveliness=(keys.alive("central"),)),
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
@@ -97,7 +97,7 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
         g[HUB] = Grant(relay=True)
     for i in range(n_agents):
         g[f"local-{i}"] = Grant(
-            publish=(keys.act(i), keys.heartbeat(f"local-{i}")),
+            publish=(keys.act(i), keys.up(i), keys.heartbeat(f"local-{i}")),
             subscribe=(keys.obs(i), keys.msg(i), keys.weights("local"), keys.ctl("all")),
             liveliness=(keys.alive(f"local-{i}"),))
     for name, agents in pools:

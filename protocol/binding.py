@@ -18,6 +18,7 @@ What each key says (keys under `hammer/<run>/`; `<pool>` is an agent pool `local
 | `env/state` | global_state | | env |
 | `central/msg/<i>` | central_msg | agent = i | central |
 | `agent/act/<i>` | action | agent = i | local-i or its pool |
+| `agent/up/<i>` | uplink | agent = i | local-i or its pool |
 | `learn/team/exp` | experience | role = team | env |
 | `learn/central/exp` | experience | role = central | central |
 | `learn/<net>/weights` | weights | role = net | learner |
@@ -65,12 +66,12 @@ def rule_for(rel: str) -> Rule:
     subscription meets the same few keys every step."""
     parts = rel.split("/")
     head = tuple(parts[:2])
-    if head in (("env", "obs"), ("central", "msg"), ("agent", "act")) and len(parts) == 3:
+    if head in _AGENT_TYPES and len(parts) == 3:
         if not parts[2].isdigit():
             return Rule(type=_AGENT_TYPES[head], agent=-1)  # names no one agent: nothing may come on it
         i = int(parts[2])
-        if head == ("agent", "act"):
-            return Rule("action", agent=i, sender=f"local-{i}", agent_pool=i)
+        if head[0] == "agent":
+            return Rule(_AGENT_TYPES[head], agent=i, sender=f"local-{i}", agent_pool=i)
         return Rule(_AGENT_TYPES[head], agent=i, sender=head[0] if head[0] == "central" else "env")
     if parts == ["env", "state"]:
         return Rule("global_state", sender="env")
@@ -87,7 +88,8 @@ def rule_for(rel: str) -> Rule:
     return Rule()  # bench/... and anything else: no identity
 
 
-_AGENT_TYPES = {("env", "obs"): "local_obs", ("central", "msg"): "central_msg", ("agent", "act"): "action"}
+_AGENT_TYPES = {("env", "obs"): "local_obs", ("central", "msg"): "central_msg", ("agent", "act"): "action",
+                ("agent", "up"): "uplink"}
 _EXP_SENDER = {"team": "env", "central": "central"}
 
 

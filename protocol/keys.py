@@ -83,6 +83,10 @@ class Keys:
     def act(self, agent: int | str) -> str:
         return f"{self.prefix}/agent/act/{_agent(agent)}"
 
+    def up(self, agent: int | str) -> str:
+        """A robot's uplink to the central agent in a fleet (its observation and last action)."""
+        return f"{self.prefix}/agent/up/{_agent(agent)}"
+
     def exp(self, role: str) -> str:
         return f"{self.prefix}/learn/{_name(role, 'role')}/exp"
 

@@ -12,6 +12,7 @@ from hammer.protocol.schemas import (
     Heartbeat,
     LocalObs,
     Message,
+    Uplink,
     Weights,
 )
 
@@ -40,6 +41,8 @@ def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
                                 "v64": rng.standard_normal(3), "i32": np.arange(3, dtype=np.int32)},
                         meta={"lr": 3e-4, "note": "x", "n": 3, "flag": True, "none": None}),
         Weights.from_blob("central", 4, bytes(rng.integers(0, 256, 1000, dtype=np.uint8)), **h),
+        Uplink(**h, agent=1, obs=f32(K, D), action=rng.integers(0, A, K)),
+        Uplink(**h, agent=2, obs=f32(K, D)),
         Control(**h, command="stop", target="learner", args={"path": "runs/a", "every": 10}),
         Heartbeat(**h, role="env", pid=42, status="running", counters={"steps": 100, "busy_s": 950.5},
                   gauges={"policy_version": -1, "paper_metric_100": -15.2}),

@@ -422,9 +422,53 @@ class Heartbeat(Message):
     detail: Annotated[str, Strict(), Field(max_length=1024)] = ""
 
 
+class Uplink(Message):
+    """Robot `agent` -> central agent, in a fleet (docs/fleet.md): what the robot's own sensors saw
+    and the action it took last, so the central agent can build its state without a simulator.
+    `seq` and `ts` (stamped at publish) order and date it; the central agent dates it by arrival."""
+
+    TYPE: ClassVar[str] = "uplink"
+    type: Literal["uplink"] = "uplink"
+    agent: NonNegInt
+    obs: NDArray("float32", 2) = Field(description="(K, D) float32: the robot's observation")
+    action: NDArray(("int64", "float32"), (1, 2)) | None = Field(
+        None, description="(K,) int64 ids or (K, A) float32: the robot's previous action (None: none yet)"
+    )
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        k, d, a = dims.num_envs, dims.obs_dim, dims.action_dim
+        if k is None or d is None or a is None or dims.discrete is None:
+            return None
+        return k * (8 + 4 * d + (8 if dims.discrete else 4 * a))  # env_idx, obs, action
+
+    @model_validator(mode="after")
+    def _shapes(self) -> Uplink:
+        self._need("obs", self.obs, (self.k, None))
+        if self.action is not None:
+            self._need("action", self.action, (self.k,) if self.action.dtype == np.int64 else (self.k, None))
+        return self
+
+    def _check_dims(self, dims: Dims) -> None:
+        self._check_agent(self.agent, dims)
+        expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
+        if self.action is None:
+            return
+        if dims.discrete is not None and dims.discrete != (self.action.dtype == np.int64):
+            raise ShapeError(f"actions must be {'(K,) int64 ids' if dims.discrete else '(K, A) float32 vectors'}, "
+                             f"got {self.action.dtype} {self.action.shape}", "action")
+        if dims.action_dim is not None and self.action.size:
+            if self.action.dtype == np.int64:
+                lo, hi = min_max(self.action)
+                if lo < 0 or hi >= dims.action_dim:
+                    raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
+            else:
+                expect("action", "action vector length", self.action.shape[1], dims.action_dim)
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat)
+    for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat, Uplink)
 }
 
 

@@ -359,6 +359,55 @@ class Subscription(_QueueSub):
         return out
 
 
+class LatestSubscription(Subscription):
+    """The newest payload of each key only, with the time it arrived: for streams where only the
+    freshest message counts and its age is what a receiver decides on (a fleet's central messages,
+    uplinks and actions). A payload that arrives before the previous one of its key was taken
+    replaces it (counted as `superseded`), so a receiver that was busy or paused never works through
+    a backlog of old messages, and memory stays one payload per key."""
+
+    def __init__(self, key_expr: str, expected: Expected, dims: Dims | None, run: str,
+                 max_bytes: int | None) -> None:
+        super().__init__(key_expr, expected, dims, run, 0, max_bytes)
+        self._slots: dict[str, tuple[bytes, float]] = {}
+        self._slot_lock = threading.Lock()
+        self._arrived = threading.Event()
+        self.superseded = 0
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        if self.cap is not None and (n := len(sample.payload)) > self.cap:
+            self.stats.rejected["size"] += 1
+            if self.stats.rejected["size"] <= 10:
+                log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
+            return
+        item = (sample.payload.to_bytes(), time.monotonic())
+        key = str(sample.key_expr)
+        with self._slot_lock:
+            if key in self._slots:
+                self.superseded += 1
+            self._slots[key] = item
+        self._arrived.set()
+
+    def wait(self, timeout: float) -> bool:
+        """Block until a payload is waiting (True) or `timeout` s pass (False)."""
+        return self._arrived.wait(timeout)
+
+    def take(self) -> list[tuple[Message, float]]:
+        """(message, arrival time on time.monotonic()) of every key that has a new valid one."""
+        with self._slot_lock:
+            slots, self._slots = self._slots, {}
+            self._arrived.clear()
+        out = []
+        for key, (data, t) in slots.items():
+            msg = self._decode(key, data)
+            if msg is not None:
+                out.append((msg, t))
+        return out
+
+    def pending(self) -> int:
+        return len(self._slots)
+
+
 class Inbox:
     """One queue fed by many subscriptions: a process serving many agents (an agent pool) waits on
     all their inputs at once in one thread, instead of one thread or one poll per subscription.
@@ -552,20 +601,25 @@ class HammerSession:
 
     # ---- publish ---------------------------------------------------------------------------
 
-    def publisher(self, key: str, reliable: bool = True, express: bool = False) -> Publisher:
+    def publisher(self, key: str, reliable: bool = True, express: bool = False,
+                  block: bool | None = None) -> Publisher:
         """A (cached) publisher on `key`. reliable=True: RELIABLE + CongestionControl.BLOCK, for
-        everything that must arrive; reliable=False: BEST_EFFORT + DROP (telemetry only)."""
+        everything that must arrive; reliable=False: BEST_EFFORT + DROP (telemetry only).
+        block=False with reliable=True: RELIABLE + DROP, for a stream where the freshest message is
+        what counts and a dead link must never hold up the sender (a fleet's control streams:
+        with BLOCK, one robot's cut link backs up into the publisher and stalls everyone)."""
         self._own(key)
+        block = reliable if block is None else block
         with self._lock:
-            pub = self._publishers.get((key, reliable, express))
+            pub = self._publishers.get((key, reliable, express, block))
             if pub is None:
                 zpub = self.zenoh.declare_publisher(
                     key,
-                    congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
+                    congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
                     reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
                     express=express,
                 )
-                pub = self._publishers[(key, reliable, express)] = Publisher(self, key, zpub)
+                pub = self._publishers[(key, reliable, express, block)] = Publisher(self, key, zpub)
         return pub
 
     def publish(self, key: str, msg: Message) -> int:
@@ -585,6 +639,14 @@ class HammerSession:
         0: unbounded (only for a consumer that never falls behind by design).
         inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
         sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        self._subs.append(sub)
+        return sub
+
+    def subscribe_latest(self, key_expr: str, expected: Expected = None, dims: Dims | None = None, *,
+                         max_bytes: int | None = None) -> LatestSubscription:
+        """The newest valid message of each key on `key_expr` with its arrival time (`take()`)."""
+        sub = LatestSubscription(self._own(key_expr), expected, dims, self.run_id, max_bytes)
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub

@@ -91,7 +91,9 @@ def test_identity_files_are_private_and_named_by_role(idents):
 
 def test_role_table_follows_the_issue():
     g = grants(KEYS, N)
-    assert g["local-1"].publish == (KEYS.act(1), KEYS.heartbeat("local-1"))
+    assert g["local-1"].publish == (KEYS.act(1), KEYS.up(1), KEYS.heartbeat("local-1"))  # up: a fleet robot's uplink
+    assert KEYS.up("*") in g["central"].subscribe and not any(KEYS.up("*") in x.subscribe for r, x in g.items()
+                                                              if r != "central")
     assert set(g["local-1"].subscribe) == {KEYS.obs(1), KEYS.msg(1), KEYS.weights("local"), KEYS.ctl("all")}
     publishers = {k: {r for r, x in g.items() if k in x.publish} for k in
                   (KEYS.msg("*"), KEYS.weights("local"), KEYS.weights("central"), KEYS.ctl("all"))}

@@ -1,0 +1,109 @@
+"""The central agent of a fleet: its state built from the robots' own uplinks, messages on its own clock.
+
+Why apart from `server.CentralServer`: in training the central agent is one step of a lock-stepped
+loop, fed the simulator's global state. A fleet has no such state and no shared step: each robot
+uplinks what its sensors saw and the action it took (`agent/up/<i>`, serve/edge_agent.py), when it
+can. So this role keeps each robot's latest uplink with its arrival time, and at every tick of its
+clock builds the state the central network was trained on, o_1 ⊕ … ⊕ o_N ⊕ a_1 ⊕ … ⊕ a_N, from them.
+
+The missing rule (one, declared: `MISSING_RULE`): a robot silent for longer than `missing_after_s`
+is missing, and its part of the state is zeros (observation and action), as an agent that is not
+present is in training (`encode_actions` zeroes an absent agent's action). Each robot's joins,
+leaves (goes missing) and rejoins are log lines with its name and a counter, and heartbeat counters.
+
+Messages go out at every tick to every robot (`central/msg/<i>`) through reliable publishers with
+congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
+The message is stamped with the tick as its step, and the send time and sequence number as every
+message; the robot dates it by arrival.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from hammer.envs.base import EnvSpec
+from hammer.learning.central_acting import CentralActing, encode_actions
+from hammer.learning.config import RunConfig
+from hammer.learning.numpy_policy import numpy_central
+from hammer.learning.sampling import ActingStreams
+from hammer.protocol.dims import Dims
+from hammer.protocol.schemas import CentralMsg, Uplink
+from hammer.protocol.session import HammerSession
+from hammer.runtime.clock import Clock
+from hammer.runtime.presence import Presence
+from hammer.runtime.role import Role
+
+MISSING_RULE = "zeros"  # a missing robot's observation and action in the state
+
+
+class FleetCentral(Role):
+    """Uplinks in, one message per robot out at `hz`; `central_weights`: the bundle's central.safetensors."""
+
+    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, central_weights: bytes | None,
+                 hz: float, missing_after_s: float) -> None:
+        super().__init__(session, "central")
+        self.cfg, self.spec, self.n = cfg, spec, cfg.n_agents
+        self.acting = CentralActing.from_config(cfg)
+        self.streams = ActingStreams(cfg.seed, cfg.n_agents)
+        self.net = numpy_central(_safetensors(central_weights)) if self.acting.has_network else None
+        self.clock = Clock(hz)
+        self.poll_s = min(self.poll_s, self.clock.period)
+        self.obs = np.zeros((1, self.n, spec.obs_dim), np.float32)
+        self.actions = np.zeros((1, self.n, *spec.action_shape), np.int64 if spec.discrete else np.float32)
+        self.presence = Presence([f"local-{i}" for i in range(self.n)], missing_after_s, self.log)
+        self.uplinks = session.subscribe_latest(
+            self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
+                                            action_dim=spec.action_dim, discrete=spec.discrete))
+        self.pubs = [session.publisher(self.keys.msg(i), express=True, block=False) for i in range(self.n)]
+        self.env_idx = np.zeros(1, np.int64)
+        self.sent = 0
+        self.stall_what = "robot uplinks"
+
+    def counters(self) -> dict[str, int]:
+        return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "msgs_sent": self.sent,
+                "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
+                **self.presence.counters()}
+
+    def gauges(self) -> dict[str, int]:
+        return {"policy_version": 0, "robots_present": self.presence.present_count()}
+
+    def poll(self, timeout: float) -> bool:
+        """Serve a tick if one is due, on the uplinks that came until then."""
+        self.take_uplinks()
+        if not self.clock.due(timeout):
+            return False
+        self.take_uplinks()  # what arrived while the clock slept is the freshest
+        self.tick(time.monotonic())
+        return True
+
+    def take_uplinks(self) -> None:
+        for up, t in self.uplinks.take():
+            self.obs[0, up.agent] = up.obs[0]
+            if up.action is not None:
+                self.actions[0, up.agent] = up.action[0]
+            self.presence.seen(up.agent, t)
+
+    def tick(self, now: float) -> None:
+        """One message per robot from the state of the latest uplinks (missing robots as zeros)."""
+        present = self.presence.update(now)[None]  # (1, N)
+        obs = self.obs * present[..., None]
+        prev = encode_actions(self.spec, self.actions, present)
+        state = self.acting.global_state(obs, prev)
+        net = self.net
+        out = self.acting.messages(state, self.streams, 0.0, net.message_mean if net is not None else None,
+                                   net.values if self.acting.rl else None)
+        for i, pub in enumerate(self.pubs):
+            pub.publish(CentralMsg(step=self.clock.ticks, env_idx=self.env_idx, agent=i,
+                                   msg=np.ascontiguousarray(out.sent[:, i])))
+        self.sent += self.n
+        if present.any():
+            self.progressed()
+
+
+def _safetensors(blob: bytes | None) -> dict[str, np.ndarray]:
+    from safetensors.numpy import load
+
+    if blob is None:
+        raise ValueError("this team's central agent has a network: its central.safetensors is needed")
+    return load(blob)

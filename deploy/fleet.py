@@ -1,0 +1,162 @@
+"""`hammer serve --realtime HZ`: a trained team run as a fleet, every robot its own process.
+
+The processes (docs/fleet.md): the realtime world (env_host/world.py, the simulator stepping at HZ
+on the robots' latest actions), the fleet-fed central agent (central_agent/fleet.py, its state from
+the robots' uplinks, messages on its own clock at the same rate) and one robot per agent
+(`hammer local --bundle ... --fleet`: serve/edge_agent.py, torch-free). Nothing waits for anyone:
+a robot that is paused, killed or cut off costs the others nothing, which is what the summary
+shows (per robot: control rate, action and message ages, defaults, fallbacks; joins, leaves and
+rejoins by name). Training stays lock-stepped (`hammer up`); this is deployment.
+
+The launcher opens the hub, starts the roles, restarts a robot or the central agent that dies
+(not one that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires
+the `--chaos` events on time, and at the end (the world's episodes or seconds, Ctrl-C or SIGTERM)
+stops every role and writes summary.json.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+from hammer.deploy.supervisor import RoleSpec, Supervisor
+from hammer.protocol.access import LAUNCHER
+from hammer.protocol.schemas import Control, Heartbeat
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+
+log = logging.getLogger("hammer.fleet")
+
+
+@dataclass
+class FleetPlan:
+    """What a fleet run is: the bundle, its clock and its bounds (all times in seconds)."""
+
+    bundle: Path
+    hz: float = 20.0
+    seconds: float | None = 60.0
+    episodes: int | None = None
+    hold_s: float = 0.5  # the world holds a robot's last action this long, then applies the default
+    missing_after_s: float = 0.5  # the central agent counts a robot silent this long as missing (zeros)
+    max_msg_age_s: float = 0.5  # a robot acts on a central message no older than this, else its fallback
+    seed: int | None = None
+    chaos: list[str] = field(default_factory=list)
+    hub_port: int = 0
+
+    def check(self) -> None:
+        for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
+        if self.seconds is None and self.episodes is None:
+            raise ValueError("a fleet run needs an end: seconds or episodes")
+
+
+def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
+               run_dir: Path) -> list[RoleSpec]:
+    common = ["--bundle", str(plan.bundle), "--run-id", run_id, "--connect", connect,
+              *(["--seed", str(plan.seed)] if plan.seed is not None else [])]
+    specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
+                              "--run-dir", str(run_dir),
+                              *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
+                              *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])])]
+    if uses_central:
+        specs.append(RoleSpec("central", ["fleet-central", *common, "--hz", str(plan.hz),
+                                          "--missing-after-s", str(plan.missing_after_s)], restart=True))
+    for i in range(n_agents):
+        specs.append(RoleSpec(f"local-{i}", ["local", *common, "--agent", str(i), "--fleet",
+                                             "--max-msg-age-s", str(plan.max_msg_age_s)], restart=True))
+    return specs
+
+
+def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
+    """Run the fleet until the world is done; returns (and writes) RUN/summary.json."""
+    from hammer.faults.chaos import ChaosScheduler
+    from hammer.serve.bundle import load_bundle
+    from hammer.serve.edge_agent import fleet_check
+
+    plan.check()
+    b = load_bundle(plan.bundle)
+    fleet_check(b)
+    chaos = ChaosScheduler.from_strings(plan.chaos) if plan.chaos else None
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run_id = run_dir.name
+    port = plan.hub_port or free_loopback_port()
+    connect = loopback_endpoint(port)
+    n = int(b.env_spec_data["n_agents"])
+    specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
+    if chaos is not None:
+        chaos.validate_roles({s.name for s in specs})
+    (run_dir / "fleet.json").write_text(json.dumps({
+        "bundle": str(plan.bundle), "run_id": run_id, "hub": connect, "plan": {**plan.__dict__, "bundle": str(plan.bundle)},
+        "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs}}, indent=1))
+    board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs})
+    sup = Supervisor(run_dir / "logs")
+    stopped_by = None
+    t0 = time.monotonic()
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with HammerSession(run_id, TransportConfig(listen=[connect]), sender=LAUNCHER) as hub:
+            beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
+            for s in specs:
+                sup.start(s)
+            try:
+                while True:
+                    for h in beats.drain():
+                        board.heartbeats[h.role] = h
+                    done = False
+                    for rp in sup.poll():
+                        name = rp.spec.name
+                        if name == "env":
+                            done = True
+                            if rp.exit_codes[-1] != 0:
+                                stopped_by = f"the world exited with code {rp.exit_codes[-1]}"
+                        elif name not in board.held and rp.restarts < rp.spec.max_restarts:
+                            rp.restarts += 1
+                            board.restarts[name] += 1
+                            log.warning("%s exited (code %s): restarting (%d)", name, rp.exit_codes[-1], rp.restarts)
+                            sup.start(rp.spec)
+                    if done:
+                        break
+                    world = board.heartbeats.get("env")
+                    if chaos is not None and world is not None and world.counters.get("ticks", 0) > 0:
+                        chaos(sup, board)  # its clock (t=...) starts with the world's
+                    if on_tick is not None:
+                        on_tick(board, time.monotonic() - t0)
+                    time.sleep(0.1)
+            except KeyboardInterrupt:
+                stopped_by = "interrupted (Ctrl-C or SIGTERM)"
+            hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
+            time.sleep(0.2)
+            for h in beats.drain():
+                board.heartbeats[h.role] = h
+    finally:
+        sup.stop_all()
+        signal.signal(signal.SIGTERM, previous)
+    return _summary(run_dir, board, stopped_by, time.monotonic() - t0)
+
+
+def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float) -> dict:
+    world_file = run_dir / "world.json"
+    world = json.loads(world_file.read_text()) if world_file.is_file() else {}
+    roles = {name: {"counters": dict(h.counters), "gauges": dict(h.gauges)} for name, h in board.heartbeats.items()}
+    robots = world.get("robots", {})
+    for name, r in robots.items():
+        edge = roles.get(name, {})
+        r.update({k: edge.get("counters", {}).get(k) for k in ("acts", "msg_fresh", "msg_stale", "msg_none")})
+        r.update({k: edge.get("gauges", {}).get(k) for k in ("msg_age_p50_ms", "msg_age_p99_ms")})
+    summary = {"completed": stopped_by is None and bool(world), "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
+               "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
+               "central": roles.get("central", {}).get("counters", {}),
+               "restarts": board.restarts, "chaos": board.chaos_log}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary

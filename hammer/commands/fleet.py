@@ -1,0 +1,91 @@
+"""The role commands of a fleet (`hammer serve --realtime`): the realtime world and the fleet-fed
+central agent, one process each; the robots are `hammer local --bundle ... --fleet` (edge.py).
+
+Hidden from `--help`: the launcher (deploy/fleet.py) starts them, and RUN/fleet.json holds the
+exact command of each, for a role that runs on another machine.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from hammer.commands.common import fail
+from hammer.runtime.process import setup_process
+
+BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
+RunIdOpt = Annotated[str, typer.Option("--run-id", help="The fleet's run id.")]
+ConnectOpt = Annotated[str, typer.Option("--connect", help="Zenoh endpoint of the fleet's hub.")]
+HzOpt = Annotated[float, typer.Option("--hz", help="Ticks per second.")]
+SeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed (default: the team's training seed).")]
+
+
+def register(app: typer.Typer) -> None:
+    app.command("fleet-world", hidden=True)(world_command)
+    app.command("fleet-central", hidden=True)(central_command)
+
+
+def _open(bundle: Path, run_id: str, connect: str, seed: int | None):
+    from hammer.protocol.session import TransportConfig
+    from hammer.serve.bundle import load_bundle
+    from hammer.serve.edge_agent import fleet_check
+
+    b = load_bundle(bundle)
+    fleet_check(b)
+    cfg = b.config(num_envs=1, **({} if seed is None else {"seed": seed}))
+    transport = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[connect])
+    return b, cfg, transport, run_id
+
+
+def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: HzOpt = 20.0,
+                  hold_s: Annotated[float, typer.Option(help="Hold a robot's last action this long, then "
+                                                             "apply the default.")] = 0.5,
+                  seconds: Annotated[float | None, typer.Option(help="Run this long.")] = None,
+                  episodes: Annotated[int | None, typer.Option(help="Run this many episodes.")] = None,
+                  run_dir: Annotated[Path | None, typer.Option(help="Where world.json goes.")] = None,
+                  seed: SeedOpt = None) -> None:
+    """The realtime world: steps the env at --hz on the robots' latest actions."""
+    setup_process("env")
+    from hammer.env_host.world import RealtimeWorld
+    from hammer.learning.run_env import make_env
+    from hammer.protocol.session import HammerSession
+
+    try:
+        _, cfg, transport, run_id = _open(bundle, run_id, connect, seed)
+    except ValueError as e:
+        fail(str(e))
+    world = None
+    try:
+        with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
+            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds)
+            world.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if world is not None and run_dir is not None:
+            (Path(run_dir) / "world.json").write_text(json.dumps(world.report(), indent=1))
+
+
+def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: HzOpt = 20.0,
+                    missing_after_s: Annotated[float, typer.Option(help="A robot silent this long is missing "
+                                                                       "(zeros in the state).")] = 0.5,
+                    seed: SeedOpt = None) -> None:
+    """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
+    setup_process("central")
+    from hammer.central_agent.fleet import FleetCentral
+    from hammer.protocol.session import HammerSession
+    from hammer.serve.bundle import CENTRAL
+
+    try:
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, seed)
+        blob = (b.path / CENTRAL).read_bytes() if (b.path / CENTRAL).is_file() else None
+    except ValueError as e:
+        fail(str(e))
+    try:
+        with HammerSession(run_id, transport, sender="central") as s:
+            FleetCentral(s, cfg, b.env_spec(), blob, hz, missing_after_s).run()
+    except KeyboardInterrupt:
+        pass

@@ -1,0 +1,233 @@
+"""The robot-side SDK: one local agent of a trained team inside a robot's own control loop.
+
+    from hammer.edge import EdgeAgent
+    with EdgeAgent("bundles/cn3", agent=1, run_id="site-a", connect="tcp/10.0.0.1:7447") as robot:
+        while running:
+            action = robot.act(read_sensors())   # never waits on the network
+            drive(action)
+
+Why this shape (docs/fleet.md): a robot owns its sensors and its clock. `act(obs)` sends the
+observation up to the central agent (the robot's uplink, `agent/up/<i>`), then acts at once on the
+freshest central message it holds, if that is no older than `max_msg_age_s`, else on the team's
+fallback (counted). The only waiting is the policy's own forward (tens of µs): the uplink is a
+reliable publisher with congestion control DROP, so a dead link drops the uplink instead of
+holding up the robot, and a message that arrives late is simply used by a later call.
+
+A message's age is counted from its arrival here (no clock shared with the central agent is
+needed); only the newest message is held (`HammerSession.subscribe_latest`). Torch-free: the weights are the
+bundle's safetensors, run by numpy (`local_agent.client.LocalAgent`).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+
+log = logging.getLogger("hammer.edge")
+
+
+@dataclass
+class EdgeCounters:
+    """What a robot did, as totals (its heartbeat reports them in a served fleet)."""
+
+    acts: int = 0
+    msg_fresh: int = 0  # acted on a central message no older than max_msg_age_s
+    msg_stale: int = 0  # the newest message held was too old: acted on the team's fallback
+    msg_none: int = 0  # no message yet: the fallback
+    msgs_received: int = 0
+    uplinks_sent: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+class EdgeAgent:
+    """Agent `agent` of the team in `bundle`, joined to run `run_id` (`act`, `run`, `close`).
+
+    Transport as `hammer local --bundle`: `connect` (a peer reaching the run's hub), or
+    `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
+    run; `insecure` to accept plain traffic beyond loopback. `max_msg_age_s`: the oldest central
+    message acted on; `fallback`: the team's own (from the bundle) unless given (zeros, last, last_k).
+    """
+
+    def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
+                 zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
+                 max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None) -> None:
+        from hammer.local_agent.client import LocalAgent, MessageFallback
+        from hammer.protocol.dims import Dims
+        from hammer.protocol.schemas import CentralMsg
+        from hammer.protocol.session import HammerSession
+        from hammer.serve.bundle import LOCAL, load_bundle
+        from hammer.serve.edge import agent_spec, edge_settings, edge_transport
+
+        if not max_msg_age_s > 0:
+            raise ValueError(f"max_msg_age_s: must be > 0 s, got {max_msg_age_s}")
+        b = load_bundle(Path(bundle), check_config=False)
+        fleet_check(b)
+        self.spec, _ = agent_spec(b, agent, seed)
+        env = b.env_spec_data
+        self.settings = edge_settings(b, run_id, None, [f"fallback={fallback}"] if fallback else [])
+        self.transport = edge_transport(self.settings, f"local-{agent}", self.spec.n_agents, connect, zenoh_config,
+                                        identity, insecure)
+        self.agent, self.max_msg_age_s = agent, max_msg_age_s
+        self.name = f"local-{agent}"
+        self.obs_dim = int(env["obs_dim"])
+        self.low, self.high = env.get("action_low"), env.get("action_high")
+        self.core = LocalAgent(self.spec)
+        self.core.load_weights((b.path / LOCAL).read_bytes(), 0)
+        self.fallback = MessageFallback(self.settings.fallback, self.settings.fallback_k, 1, self.spec.msg_dim)
+        self.counts = EdgeCounters()
+        self._env_idx = np.zeros(1, np.int64)
+        self._prev: np.ndarray | None = None  # the last action taken, for the uplink
+        self._msg: np.ndarray | None = None  # the newest central message held ...
+        self._msg_t = 0.0  # ... and when it arrived (monotonic)
+        self.last_fresh = False
+        self.ages: collections.deque[float] = collections.deque(maxlen=1024)  # of the messages acted on, s
+        self.session = HammerSession(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
+        self.session.open()
+        try:
+            keys = self.session.keys
+            self._msgs = self.session.subscribe_latest(
+                keys.msg(agent), CentralMsg, Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
+            self._up = self.session.publisher(keys.up(agent), express=True, block=False)
+            self.session.declare_alive(self.name)
+        except BaseException:
+            self.session.close()
+            raise
+        log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
+                 ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
+
+    # ----- the control step -----------------------------------------------------------------------
+    def act(self, obs: Any) -> np.ndarray:
+        """The action for observation `obs` (the robot's D floats): an int64 id (discrete) or a
+        float32 vector clipped to the action box. Sends the uplink first; never waits on the network."""
+        o = np.asarray(obs, dtype=np.float32).reshape(-1)
+        if o.shape[0] != self.obs_dim or not np.isfinite(o).all():
+            raise ValueError(f"obs: expected {self.obs_dim} finite floats, got shape {np.shape(obs)}"
+                             f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
+        o = o[None]
+        self._uplink(o)
+        msg = self.message()
+        action = self.core.act(o, msg)[0]
+        if not self.spec.discrete and self.low is not None:
+            action = np.clip(action, self.low, self.high).astype(np.float32)
+        self._prev = np.asarray(action)
+        self.counts.acts += 1
+        return self._prev
+
+    def message(self) -> np.ndarray:
+        """(1, M) float32: the freshest central message if young enough, else the fallback (counted)."""
+        now = time.monotonic()
+        for got, t in self._msgs.take():  # one key: at most one, the newest that arrived
+            self._msg, self._msg_t = got.msg, t
+            self.counts.msgs_received += 1
+        self.last_fresh = self._msg is not None and now - self._msg_t <= self.max_msg_age_s
+        if self._msg is not None:
+            self.ages.append(now - self._msg_t)
+        if self.last_fresh:
+            self.counts.msg_fresh += 1
+            self.fallback.received(self._env_idx, self._msg)
+            return self._msg
+        if self._msg is None:
+            self.counts.msg_none += 1
+        else:
+            self.counts.msg_stale += 1
+        return self.fallback.fill(self._env_idx)
+
+    def _uplink(self, obs: np.ndarray) -> None:
+        from hammer.protocol.schemas import Uplink
+
+        prev = None if self._prev is None else (self._prev.reshape(1) if self.spec.discrete else self._prev[None])
+        self._up.publish(Uplink(step=self.counts.acts, env_idx=self._env_idx, agent=self.agent, obs=obs,
+                                action=prev))
+        self.counts.uplinks_sent += 1
+
+    def age_gauges(self) -> dict[str, float]:
+        """p50 / p99 age (ms) of the newest central message at the latest acts."""
+        if not self.ages:
+            return {}
+        p50, p99 = np.percentile(np.fromiter(self.ages, float), [50, 99]) * 1e3
+        return {"msg_age_p50_ms": round(float(p50), 2), "msg_age_p99_ms": round(float(p99), 2)}
+
+    # ----- a loop for callers that want one -------------------------------------------------------
+    def run(self, sense: Callable[[], Any], actuate: Callable[[np.ndarray], None], hz: float,
+            should_stop: Callable[[], bool] = lambda: False) -> None:
+        """The robot's control loop at `hz`: sense, act, actuate, until `should_stop()` (or Ctrl-C).
+        A tick that comes late is served at once and the ones it overran are skipped."""
+        from hammer.runtime.clock import Clock
+
+        clock = Clock(hz)
+        while not should_stop():
+            if clock.due(0.2):
+                actuate(self.act(sense()))
+
+    # ----- lifetime ---------------------------------------------------------------------------------
+    def close(self) -> None:
+        log.info("%s leaves run %s: %s", self.name, self.settings.run_id, self.counts.as_dict())
+        self.session.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def fleet_check(bundle) -> None:
+    """What a team needs to run as a fleet, in one line each: every robot sees its whole observation
+    row (no central-only columns: those need a site feed, not built yet) and acts on its own
+    observation (not the joint one of variant centralized)."""
+    env = bundle.env_spec_data
+    if env.get("local_obs_dim") not in (None, env["obs_dim"]):
+        raise ValueError(f"bundle {bundle.path}: {bundle.manifest['env']['id']} has central-only observation "
+                         "columns, which no robot observes; a fleet needs a site feed for them (not built yet)")
+    if bundle.wiring().joint_obs:
+        raise ValueError(f"bundle {bundle.path}: variant {bundle.manifest['variant']} acts on the joint "
+                         "observation of all agents, which no robot has; a fleet runs il or hammer teams")
+
+
+def robot_role(agent: EdgeAgent):
+    """The robot of a simulated fleet as a role process (`hammer local --bundle ... --fleet`): its
+    sensors are the realtime world's observation for it (`env/obs/<i>`), its actuator the world's
+    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters."""
+    from hammer.protocol.dims import Dims
+    from hammer.protocol.schemas import Action, LocalObs
+    from hammer.runtime.role import Role
+
+    class Robot(Role):
+        def __init__(self) -> None:
+            super().__init__(agent.session, agent.name)
+            keys = agent.session.keys
+            self.sensors = agent.session.subscribe_latest(keys.obs(agent.agent), LocalObs,
+                                                          Dims(num_envs=1, obs_dim=agent.obs_dim))
+            self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
+            self.stall_what = "observations from the world"
+
+        def alive_names(self) -> list[str]:
+            return []  # the EdgeAgent declared it
+
+        def counters(self) -> dict[str, int]:
+            return agent.counts.as_dict()
+
+        def gauges(self) -> dict[str, float]:
+            return {"policy_version": 0, **agent.age_gauges()}
+
+        def poll(self, timeout: float) -> bool:
+            if not self.sensors.wait(timeout):
+                return False
+            for obs, _ in self.sensors.take():
+                action = agent.act(obs.obs[0])
+                self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
+                                             action=action.reshape(1, *action.shape[0:]),
+                                             fallback=np.array([not agent.last_fresh])))
+                self.progressed()
+            return True
+
+    return Robot()
