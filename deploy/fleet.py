@@ -29,6 +29,7 @@ from hammer.deploy.supervisor import RoleSpec, Supervisor
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.runtime.settings import refuse_plain_beyond_loopback
 
 log = logging.getLogger("hammer.fleet")
 
@@ -47,6 +48,9 @@ class FleetPlan:
     seed: int | None = None
     chaos: list[str] = field(default_factory=list)
     hub_port: int = 0
+    listen: list[str] = field(default_factory=list)  # more endpoints for the hub (robots on other machines)
+    external: list[int] = field(default_factory=list)  # robots started elsewhere (the SDK, `hammer local --fleet`)
+    insecure: bool = False  # accept plain traffic beyond loopback (a fleet has no secure profile yet)
 
     def check(self) -> None:
         for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s"):
@@ -68,6 +72,8 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
         specs.append(RoleSpec("central", ["fleet-central", *common, "--hz", str(plan.hz),
                                           "--missing-after-s", str(plan.missing_after_s)], restart=True))
     for i in range(n_agents):
+        if i in plan.external:
+            continue
         specs.append(RoleSpec(f"local-{i}", ["local", *common, "--agent", str(i), "--fleet",
                                              "--max-msg-age-s", str(plan.max_msg_age_s)], restart=True))
     return specs
@@ -83,12 +89,16 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     b = load_bundle(plan.bundle)
     fleet_check(b)
     chaos = ChaosScheduler.from_strings(plan.chaos) if plan.chaos else None
+    n = int(b.env_spec_data["n_agents"])
+    if any(not 0 <= i < n for i in plan.external):
+        raise ValueError(f"external robots {plan.external}: this team has robots 0..{n - 1}")
+    connect = loopback_endpoint(plan.hub_port or free_loopback_port())
+    hub_transport = TransportConfig(listen=[connect, *plan.listen])
+    refuse_plain_beyond_loopback(hub_transport, False, plan.insecure,
+                                 fix="--insecure on a network you trust (a fleet has no secure profile yet)")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     run_id = run_dir.name
-    port = plan.hub_port or free_loopback_port()
-    connect = loopback_endpoint(port)
-    n = int(b.env_spec_data["n_agents"])
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
@@ -105,7 +115,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
 
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
-        with HammerSession(run_id, TransportConfig(listen=[connect]), sender=LAUNCHER) as hub:
+        with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
             beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
             for s in specs:
                 sup.start(s)

@@ -43,6 +43,7 @@ class EdgeCounters:
     msg_none: int = 0  # no message yet: the fallback
     msgs_received: int = 0
     uplinks_sent: int = 0
+    stale_periods: int = 0  # times the messages went stale (each a log line, as is their return)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -89,6 +90,7 @@ class EdgeAgent:
         self._msg: np.ndarray | None = None  # the newest central message held ...
         self._msg_t = 0.0  # ... and when it arrived (monotonic)
         self.last_fresh = False
+        self._stale_since: float | None = None  # when the messages went stale (None: fresh, or none yet)
         self.ages: collections.deque[float] = collections.deque(maxlen=1024)  # of the messages acted on, s
         self.session = HammerSession(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
         self.session.open()
@@ -131,6 +133,7 @@ class EdgeAgent:
         self.last_fresh = self._msg is not None and now - self._msg_t <= self.max_msg_age_s
         if self._msg is not None:
             self.ages.append(now - self._msg_t)
+            self._note_freshness(now)
         if self.last_fresh:
             self.counts.msg_fresh += 1
             self.fallback.received(self._env_idx, self._msg)
@@ -140,6 +143,17 @@ class EdgeAgent:
         else:
             self.counts.msg_stale += 1
         return self.fallback.fill(self._env_idx)
+
+    def _note_freshness(self, now: float) -> None:
+        """A log line when the central messages go stale and when fresh ones come back (with the gap)."""
+        if not self.last_fresh and self._stale_since is None:
+            self._stale_since = self._msg_t + self.max_msg_age_s
+            self.counts.stale_periods += 1
+            log.warning("%s: central messages stale (newest %.2f s old): acting on the fallback (stale %d)",
+                        self.name, now - self._msg_t, self.counts.stale_periods)
+        elif self.last_fresh and self._stale_since is not None:
+            log.warning("%s: fresh central messages again after %.2f s stale", self.name, now - self._stale_since)
+            self._stale_since = None
 
     def _uplink(self, obs: np.ndarray) -> None:
         from hammer.protocol.schemas import Uplink
@@ -209,6 +223,7 @@ def robot_role(agent: EdgeAgent):
                                                           Dims(num_envs=1, obs_dim=agent.obs_dim))
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"
+            self.last_act: float | None = None
 
         def alive_names(self) -> list[str]:
             return []  # the EdgeAgent declared it
@@ -222,8 +237,12 @@ def robot_role(agent: EdgeAgent):
         def poll(self, timeout: float) -> bool:
             if not self.sensors.wait(timeout):
                 return False
-            for obs, _ in self.sensors.take():
+            for obs, t in self.sensors.take():
                 action = agent.act(obs.obs[0])
+                if self.last_act is not None and t - self.last_act > 1.0:  # the world was out of reach
+                    self.log.warning("%s: observations again after %.2f s (central message %s)", agent.name,
+                                     t - self.last_act, "fresh" if agent.last_fresh else "stale")
+                self.last_act = t
                 self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
                                              action=action.reshape(1, *action.shape[0:]),
                                              fallback=np.array([not agent.last_fresh])))

@@ -13,12 +13,14 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import fail
+from hammer.commands.common import InsecureOpt, fail
 from hammer.runtime.process import setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
 RunIdOpt = Annotated[str, typer.Option("--run-id", help="The fleet's run id.")]
-ConnectOpt = Annotated[str, typer.Option("--connect", help="Zenoh endpoint of the fleet's hub.")]
+ConnectOpt = Annotated[str | None, typer.Option("--connect", help="Zenoh endpoint of the fleet's hub.")]
+ZenohOpt = Annotated[Path | None, typer.Option("--zenoh-config", help="A Zenoh JSON5 config instead of --connect "
+                                                                        "(client of a router, across machines).")]
 HzOpt = Annotated[float, typer.Option("--hz", help="Ticks per second.")]
 SeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed (default: the team's training seed).")]
 
@@ -28,25 +30,41 @@ def register(app: typer.Typer) -> None:
     app.command("fleet-central", hidden=True)(central_command)
 
 
-def _open(bundle: Path, run_id: str, connect: str, seed: int | None):
-    from hammer.protocol.session import TransportConfig
+def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
+          insecure: bool):
+    """The bundle, the team's config at K = 1, and this role's transport (a peer connecting to the
+    fleet's hub; plain beyond loopback only with --insecure: the secure profile is not built for
+    fleets yet)."""
+    from hammer.protocol.session import TransportConfig, is_loopback_endpoint
+    from hammer.runtime.settings import refuse_plain_beyond_loopback
     from hammer.serve.bundle import load_bundle
     from hammer.serve.edge_agent import fleet_check
 
     b = load_bundle(bundle)
     fleet_check(b)
     cfg = b.config(num_envs=1, **({} if seed is None else {"seed": seed}))
-    transport = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[connect])
+    if zenoh_config is not None:
+        transport = TransportConfig(zenoh_config_file=zenoh_config)
+    elif connect is None:
+        raise ValueError("--connect tcp/<hub>:<port> or --zenoh-config FILE: where the fleet's hub is")
+    else:
+        local = is_loopback_endpoint(connect)
+        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if local else "tcp/0.0.0.0:0"], connect=[connect])
+    refuse_plain_beyond_loopback(transport, False, insecure, fix="--insecure on a network you trust (a fleet "
+                                                                  "has no secure profile yet)")
     return b, cfg, transport, run_id
 
 
-def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: HzOpt = 20.0,
+def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = None, zenoh_config: ZenohOpt = None,
+                  hz: HzOpt = 20.0,
                   hold_s: Annotated[float, typer.Option(help="Hold a robot's last action this long, then "
                                                              "apply the default.")] = 0.5,
                   seconds: Annotated[float | None, typer.Option(help="Run this long.")] = None,
                   episodes: Annotated[int | None, typer.Option(help="Run this many episodes.")] = None,
                   run_dir: Annotated[Path | None, typer.Option(help="Where world.json goes.")] = None,
-                  seed: SeedOpt = None) -> None:
+                  timeline: Annotated[Path | None, typer.Option(help="Append a JSON line a second: per-robot "
+                                                                     "totals (for benches).")] = None,
+                  seed: SeedOpt = None, insecure: InsecureOpt = False) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     from hammer.env_host.world import RealtimeWorld
@@ -54,13 +72,13 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: 
     from hammer.protocol.session import HammerSession
 
     try:
-        _, cfg, transport, run_id = _open(bundle, run_id, connect, seed)
+        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure)
     except ValueError as e:
         fail(str(e))
     world = None
     try:
         with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
-            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds)
+            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline)
             world.run()
     except KeyboardInterrupt:
         pass
@@ -69,10 +87,11 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: 
             (Path(run_dir) / "world.json").write_text(json.dumps(world.report(), indent=1))
 
 
-def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz: HzOpt = 20.0,
+def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = None, zenoh_config: ZenohOpt = None,
+                    hz: HzOpt = 20.0,
                     missing_after_s: Annotated[float, typer.Option(help="A robot silent this long is missing "
                                                                        "(zeros in the state).")] = 0.5,
-                    seed: SeedOpt = None) -> None:
+                    seed: SeedOpt = None, insecure: InsecureOpt = False) -> None:
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
     from hammer.central_agent.fleet import FleetCentral
@@ -80,7 +99,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt, hz
     from hammer.serve.bundle import CENTRAL
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, seed)
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure)
         blob = (b.path / CENTRAL).read_bytes() if (b.path / CENTRAL).is_file() else None
     except ValueError as e:
         fail(str(e))

@@ -1,0 +1,187 @@
+"""`hammer bench fleet`: a trained team as a realtime fleet across network namespaces, links cut.
+
+    hammer bench fleet BUNDLE [--hz 20] [--outages local-0:5,local-0:30,central:5,central:30] (root)
+
+The hub namespace holds the Zenoh router (`hammer hub`) and the realtime world; the central agent
+and every robot (`hammer local --bundle ... --fleet`, the torch-free SDK path) run in namespaces of
+their own, joined to the hub by veth pairs (benchmarks/netns.py topology). First a run with no
+outage (the baseline), then one run in which each outage takes a link down with `ip link set
+... down` for its seconds and brings it back, 10 s apart.
+
+Reported per outage: the healthy robots' control rate during it (actions that reached the world
+per second, against the world's rate) and after it; the time from the link coming back to the cut
+robot (or, for the central agent's link, every robot) acting on fresh central messages again, and
+to the world hearing the cut robot again; defaults and fallbacks; and the team's paper metric
+against the baseline. A JSON result goes to docs/results/ with --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from hammer.benchmarks.netns import PORT, NetnsUnavailable, Procs, _wait_for, client_config, topology
+
+GAP_S = 10.0  # between outages, and before the first: the fleet settles
+LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
+
+
+def parse_outages(text: str) -> list[tuple[str, float]]:
+    """`local-0:5,central:30` -> [("local-0", 5.0), ("central", 30.0)]."""
+    out = []
+    for item in filter(None, (x.strip() for x in text.split(","))):
+        link, _, secs = item.partition(":")
+        if not re.fullmatch(r"local-\d+|central", link) or not secs:
+            raise ValueError(f"--outages {item!r}: expected LINK:SECONDS with LINK local-<i> or central")
+        out.append((link, float(secs)))
+    return out
+
+
+def _log_times(path: Path, pattern: str) -> list[float]:
+    """Wall times (s since the epoch) of the log lines of `path` that contain `pattern`."""
+    times = []
+    for line in path.read_text(errors="replace").splitlines():
+        m = LOG_TIME.match(line)
+        if m and pattern in line:
+            times.append(datetime.datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp())
+    return times
+
+
+def _rates(timeline: list[dict], t0: float, t1: float) -> list[float] | None:
+    """Per robot: fresh actions per second between wall times t0 and t1 (timeline lines inside)."""
+    inside = [x for x in timeline if t0 <= x["t"] <= t1]
+    if len(inside) < 2:
+        return None
+    a, b = inside[0], inside[-1]
+    dt = b["t"] - a["t"]
+    return [round((fb - fa) / dt, 2) for fa, fb in zip(a["fresh"], b["fresh"], strict=True)]
+
+
+def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float]], hz: float, tag: str,
+              edge_python: Path | None = None, seconds: float | None = None) -> dict:
+    """One fleet across namespaces with `outages` one after another; returns its figures."""
+    from hammer.serve.bundle import load_bundle
+
+    b = load_bundle(bundle)
+    n = int(b.env_spec_data["n_agents"])
+    total = seconds or GAP_S + sum(s + GAP_S for _, s in outages)
+    run = work / f"fleet-{tag}"
+    run.mkdir(parents=True, exist_ok=True)
+    py = [sys.executable, "-P", "-m", "hammer.cli"]
+    edge_py = [str(edge_python) if edge_python else sys.executable, "-P", "-m", "hammer"]
+    common = ["--bundle", str(bundle), "--run-id", run.name, "--insecure"]
+    procs = Procs(run)
+    events: list[dict] = []
+    with topology(n, tag, central=True) as top:
+        try:
+            hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}", "--insecure"], "hub.log")
+            _wait_for("the hub listening", lambda: b"listening" in (run / "hub.log").read_bytes(), 30, [hub])
+            # every role a client of the router, as in benchmarks/netns.py: peers would try to mesh
+            # directly, and the namespaces have no route to each other
+            def cfg(name: str, addr: str) -> str:
+                return str(client_config(run / f"{name}.json5", f"tcp/{addr}:{PORT}"))
+
+            world = procs.start(top.hub, [*py, "fleet-world", *common, "--zenoh-config", cfg("world", "127.0.0.1"),
+                                          "--hz", str(hz), "--seconds", str(total), "--run-dir", str(run),
+                                          "--timeline", str(run / "timeline.jsonl")], "env.log")
+            procs.start(top.central, [*py, "fleet-central", *common, "--hz", str(hz), "--zenoh-config",
+                                      cfg("central", top.links["central"][1])], "central.log")
+            for i, ns in enumerate(top.agents):
+                procs.start(ns, [*edge_py, "local", *common, "--agent", str(i), "--fleet", "--zenoh-config",
+                                 cfg(f"local-{i}", top.links[f"local-{i}"][1])], f"local-{i}.log")
+            _wait_for("the world's clock", lambda: b"world clock starts" in (run / "env.log").read_bytes(), 90,
+                      [world])
+            start = time.time()
+            for link, secs in outages:
+                time.sleep(max(0.0, start + GAP_S - time.time()))
+                dev = top.links[link][0]
+                down = time.time()
+                subprocess.run(["ip", "-n", top.hub, "link", "set", dev, "down"], check=True, timeout=10)
+                time.sleep(secs)
+                subprocess.run(["ip", "-n", top.hub, "link", "set", dev, "up"], check=True, timeout=10)
+                events.append({"link": link, "seconds": secs, "down": down, "up": time.time()})
+                start = time.time()
+            world.wait(timeout=total + 60)
+        finally:
+            procs.close()
+    return _figures(run, n, hz, events)
+
+
+def _figures(run: Path, n: int, hz: float, events: list[dict]) -> dict:
+    world = json.loads((run / "world.json").read_text())
+    timeline = [json.loads(x) for x in (run / "timeline.jsonl").read_text().splitlines() if x.strip()]
+    out = []
+    for e in events:
+        cut = [int(e["link"].split("-")[1])] if e["link"] != "central" else []
+        healthy = [i for i in range(n) if i not in cut]
+        during, after = _rates(timeline, e["down"], e["up"]), _rates(timeline, e["up"] + 2, e["up"] + GAP_S - 1)
+        robots = [f"local-{i}" for i in (cut or range(n))]
+        fresh_again = [min((t for pat in ("fresh central messages again", "(central message fresh)")
+                            for t in _log_times(run / f"{r}.log", pat) if t >= e["up"]), default=None) for r in robots]
+        heard = [min((t for t in _log_times(run / "env.log", f"{r} rejoined") if t >= e["up"]), default=None)
+                 for r in robots] if cut else []
+        out.append({
+            "link": e["link"], "seconds": e["seconds"],
+            "healthy_control_hz_during": None if during is None else [during[i] for i in healthy],
+            "healthy_control_fraction_during": None if during is None else round(min(during[i] for i in healthy) / hz, 3),
+            "control_hz_after": after,
+            "fresh_messages_s_after_return": [None if t is None else round(t - e["up"], 2) for t in fresh_again],
+            "world_hears_robot_s_after_return": [None if t is None else round(t - e["up"], 2) for t in heard]})
+    return {"hz": hz, "world": world, "outages": out}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hammer bench fleet", description=__doc__.split("\n\n")[0])
+    ap.add_argument("bundle", type=Path)
+    ap.add_argument("--hz", type=float, default=20.0)
+    ap.add_argument("--outages", default="local-0:5,local-0:30,central:5,central:30")
+    ap.add_argument("--baseline-s", type=float, default=30.0, help="Length of the run without outages.")
+    ap.add_argument("--edge-venv", type=Path, help="The robots' interpreter (a torch-free venv: benchmarks/edge_venv.py).")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-fleet"))
+    ap.add_argument("--out", type=Path, help="Write the JSON result here.")
+    a = ap.parse_args(argv)
+    try:
+        outages = parse_outages(a.outages)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if os.geteuid() != 0:
+        print("error: network namespaces need root", file=sys.stderr)
+        return 2
+    a.work.mkdir(parents=True, exist_ok=True)
+    tag = str(os.getpid() % 10000)
+    try:
+        base = fleet_run(a.bundle, a.work, [], a.hz, f"{tag}b", a.edge_venv, seconds=a.baseline_s)
+        cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv)
+    except NetnsUnavailable as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    result = {"bundle": str(a.bundle), "hz": a.hz, "baseline": base["world"], "with_outages": cut}
+    b_metric, c_metric = base["world"].get("paper_metric_mean"), cut["world"].get("paper_metric_mean")
+    print(f"fleet at {a.hz:g} Hz, {base['world']['seconds']:.0f} s without outages: paper metric "
+          f"{b_metric if b_metric is None else round(b_metric, 2)}, control Hz per robot "
+          f"{[r['control_hz'] for r in base['world']['robots'].values()]}")
+    for o in cut["outages"]:
+        print(f"  {o['link']} down {o['seconds']:g} s: healthy robots {o['healthy_control_hz_during']} Hz during "
+              f"({o['healthy_control_fraction_during']} of nominal), fresh messages "
+              f"{o['fresh_messages_s_after_return']} s after the link returned, world hears the robot "
+              f"{o['world_hears_robot_s_after_return']} s after")
+    w = cut["world"]
+    print(f"  with outages: paper metric {w.get('paper_metric_mean') if c_metric is None else round(c_metric, 2)}, "
+          f"defaults per robot {[r['defaults'] for r in w['robots'].values()]}, ticks skipped {w['ticks_skipped']}")
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(result, indent=1))
+        print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

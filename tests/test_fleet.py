@@ -1,0 +1,155 @@
+"""A trained team as a fleet (issue 30): the robot SDK (serve/edge_agent.py), the fleet-fed central
+agent (central_agent/fleet.py), the realtime world (env_host/world.py) and their launcher
+(deploy/fleet.py). Real Zenoh on 127.0.0.1, a real trained cn3 team, real processes for the fleet.
+Rates and ages are figures of `hammer bench fleet`, not asserted here; what is asserted is who acted
+on what (defaults, fallbacks, fresh messages) and that outages are named."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from hammer.central_agent.fleet import FleetCentral
+from hammer.deploy.fleet import FleetPlan, run_fleet
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
+from hammer.protocol.binding import rule_for
+from hammer.protocol.schemas import Uplink
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.runtime.presence import Presence
+from hammer.serve.bundle import CENTRAL, export_bundle, load_bundle
+from hammer.serve.edge_agent import EdgeAgent
+
+pytestmark = pytest.mark.timeout(240)
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
+                                         "episodes=48", "seed=4"])
+    train(cfg, RunDir.create(d / "run", cfg), tensorboard=False)
+    return export_bundle(d / "run", d / "bundle").path
+
+
+def _wait(cond, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_an_uplink_is_bound_to_its_robot():
+    r = rule_for("agent/up/2")
+    assert (r.type, r.agent, r.sender, r.agent_pool) == ("uplink", 2, "local-2", 2)
+    with pytest.raises(ValueError, match="obs"):
+        Uplink(agent=0, env_idx=np.zeros(1, np.int64), obs=np.zeros((2, 3), np.float32))
+
+
+def test_presence_names_leaves_and_rejoins_and_forgives_its_own_stall(caplog):
+    p = Presence(["local-0", "local-1"], 0.5, logging.getLogger("test.presence"))
+    with caplog.at_level(logging.INFO, "test.presence"):
+        p.seen(0, 10.0)
+        p.seen(1, 10.0)
+        assert p.update(10.2).all() and p.joins == 2
+        p.seen(0, 10.4)
+        assert list(p.update(10.7)) == [True, False] and p.leaves == 1  # local-1 silent 0.7 s
+        p.seen(1, 12.0)
+        assert p.present.all() and p.rejoins == 1 and p.longest_absence_s == pytest.approx(2.0)
+        # the observer itself stalled for 3 s: nobody is judged missing on that turn ...
+        assert p.update(15.0).all() and p.observer_stalls == 1 and p.leaves == 1
+        # ... but one who stays silent is, at the next turn
+        p.seen(0, 15.05)
+        assert list(p.update(15.1)) == [True, False]
+    text = caplog.text
+    assert "local-1 missing" in text and "local-1 rejoined after 2.0 s silent (rejoin 1)" in text
+
+
+def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
+    """A robot's act() before the central agent exists (fallback, counted), while it serves (fresh
+    messages, and the central agent's state holds the robot's uplinked observation), and after it
+    stopped (the last message grows stale: fallback)."""
+    port = free_loopback_port()
+    b = load_bundle(bundle)
+    cfg = b.config(num_envs=1)
+    with HammerSession("fleet-sdk", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
+        robot = EdgeAgent(bundle, 1, run_id="fleet-sdk", connect=loopback_endpoint(port), max_msg_age_s=0.3)
+        with robot:
+            obs = np.linspace(-1, 1, robot.obs_dim).astype(np.float32)
+            a = robot.act(obs)
+            assert a.dtype == np.int64 and 0 <= int(a) < b.env_spec_data["action_dim"]
+            assert robot.counts.msg_none == 1 and robot.counts.uplinks_sent == 1
+            with pytest.raises(ValueError, match="expected 18 finite floats"):
+                robot.act(np.zeros(5))
+            with pytest.raises(ValueError, match="NaN"):
+                robot.act(np.full(robot.obs_dim, np.nan))
+            s = HammerSession("fleet-sdk", TransportConfig(listen=["tcp/127.0.0.1:0"],
+                                                           connect=[loopback_endpoint(port)]), sender="central")
+            with s:
+                central = FleetCentral(s, cfg, b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
+                                       missing_after_s=0.5)
+                t = threading.Thread(target=central.run, daemon=True)
+                t.start()
+
+                def fresh():
+                    robot.act(obs)
+                    return robot.last_fresh
+
+                assert _wait(fresh), "no fresh central message reached the robot"
+                assert _wait(lambda: np.array_equal(central.obs[0, 1], obs))
+                assert central.presence.joins == 1 and central.uplinks.stats.rejected_total == 0
+                assert robot.counts.msg_fresh >= 1 and robot.counts.msgs_received >= 1
+                central.stop_reason = "test over"
+                t.join(5)
+                assert not t.is_alive()
+            time.sleep(0.4)
+            robot.act(obs)
+            assert not robot.last_fresh and robot.counts.msg_stale >= 1
+
+
+def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_away(bundle, tmp_path):
+    """Every robot its own process on the torch-free path; local-1 paused for 3 s, then the central
+    agent for 2 s. The world never waits: the paused robot gets the default action and is named
+    missing and back; the others never do; every robot acts on its fallback while the central agent
+    is away and on fresh messages otherwise."""
+    run = tmp_path / "fleet-run"
+    plan = FleetPlan(bundle=bundle, hz=20, seconds=10, hold_s=1.0, missing_after_s=1.0, max_msg_age_s=0.5,
+                     chaos=["pause:local-1@t=2,for=3", "pause:central@t=6,for=2"])
+    s = run_fleet(plan, run)
+    assert s["completed"], s
+    assert s == json.loads((run / "summary.json").read_text())
+    robots, world = s["robots"], s["world"]
+    assert world["ticks"] > 0 and world["presence"]["robot_leaves"] >= 1 and world["presence"]["robot_rejoins"] >= 1
+    assert robots["local-1"]["defaults"] > 0
+    assert robots["local-0"]["defaults"] == 0 and robots["local-2"]["defaults"] == 0
+    for name, r in robots.items():
+        assert r["msg_stale"] > 0, name  # the central agent's pause
+        assert r["msg_fresh"] > r["msg_stale"], name
+    env_log = (run / "logs" / "env.log").read_text()
+    assert "local-1 missing" in env_log and "local-1 rejoined" in env_log
+    assert "local-0 missing" not in env_log and "local-2 missing" not in env_log
+
+
+def test_the_sdk_loads_no_torch(bundle):
+    code = f"""
+import sys
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.serve.edge_agent import EdgeAgent
+port = free_loopback_port()
+with HammerSession("r", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
+    with EdgeAgent({str(bundle)!r}, 0, run_id="r", connect=loopback_endpoint(port)) as robot:
+        robot.act([0.0] * robot.obs_dim)
+print("torch" in sys.modules, "torch.nn" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-P", "-c", code], check=False, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "False"]
