@@ -104,7 +104,9 @@ def client_config(path: Path, endpoint: str) -> Path:
     """A Zenoh client config connecting to the router at `endpoint` only (no scouting), without shared
     memory: namespaces share /dev/shm, and Zenoh would pass every message over 3 kB (global states,
     weights) through it instead of the link, which no two machines can do."""
-    path.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [endpoint]},
+    from hammer.protocol.session import RECONNECT
+
+    path.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [endpoint], "retry": RECONNECT},
                                 "scouting": {"multicast": {"enabled": False}},
                                 "transport": {"shared_memory": {"enabled": False}}}))
     return path

@@ -69,6 +69,14 @@ def _quietly(undeclare: Any) -> None:
         log.debug("undeclare at close: %s", e)
 
 
+# How a session retries an endpoint it lost (or never reached): from 100 ms, doubling, at most every
+# 500 ms, so a robot is back within about half a second of its link returning, even after the lease
+# (Zenoh's 10 s default) expired and the session to the hub had to be made anew. Zenoh's own default
+# backs off to 4 s. A --zenoh-config file keeps whatever it says (benchmarks/netns.client_config
+# writes the same).
+RECONNECT = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
+
+
 def free_loopback_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (bind to port 0, read, release)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -174,6 +182,8 @@ class TransportConfig(BaseModel):
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         if self.connect or self.zenoh_config_file is None:
             cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        if self.zenoh_config_file is None:
+            cfg.insert_json5("connect/retry", json.dumps(RECONNECT))
         if self.security is not None:
             self.security.apply(cfg)
         return cfg
