@@ -20,10 +20,14 @@ import logging
 import re
 import secrets
 import shlex
+import signal
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hammer.deploy.attendance import Attendance
 from hammer.deploy.supervisor import RoleSpec, Supervisor
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
@@ -40,6 +44,17 @@ class UpError(RuntimeError):
     """The run could not complete; the message is the one-line reason."""
 
 
+class Stopped(KeyboardInterrupt):
+    """A stop asked from outside by a signal `launch` was told to take (`stop_signals`: SIGTERM, what
+    systemd and `docker stop` send; SIGINT for a served run). A KeyboardInterrupt, so every path that
+    already cleans up after Ctrl-C (the launcher's stop broadcast to every role, external ones
+    included) does the same for it; `launch` then writes what ran instead of failing."""
+
+    def __init__(self, signal_name: str) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+
+
 @dataclass
 class UpResult:
     run_dir: Path
@@ -48,6 +63,7 @@ class UpResult:
     wall_time: float
     links: dict[str, dict[str, int]] = field(default_factory=dict)  # per-link counters (faults.links)
     chaos_log: list[dict] = field(default_factory=list)
+    stopped_by: str | None = None  # the signal that stopped the run before its budget (launch's stop_signals)
 
 
 @dataclass
@@ -61,6 +77,7 @@ class Board:
     held: set[str] = field(default_factory=set)  # killed by chaos: not restarted automatically
     chaos_log: list[dict] = field(default_factory=list)
     last_by_pid: dict[tuple[str, int], dict] = field(default_factory=dict)  # last heartbeat counters per process
+    attendance: Attendance | None = None  # every role's token going and coming back (deploy.attendance)
 
     def env_rate(self) -> float:
         if len(self.steps_hist) < 2:
@@ -144,6 +161,37 @@ def prepare_run_dir(cfg, settings: RuntimeSettings, run_dir: Path) -> None:
     write_env_spec(run_dir, spec)
 
 
+# What one served session leaves as its results (the logs are appended to); a served run has nothing to
+# resume, so serving again in the same directory (a restarted service keeps its run id) starts afresh.
+SERVED_RESULTS = ("summary.json", "env_summary.json", "metrics.csv", "links.json", "episode_links.csv", "trace.npz",
+                  "pushes.json", "policies")
+
+
+def set_aside_served_session(run_dir: Path) -> Path | None:
+    """Move an earlier served session's results (its pushes included: a new session serves the bundle
+    given) to RUN/previous/<time>/, so `hammer serve --run-dir` of the same directory can start again
+    with the same run id (edge agents waiting with `--stay` join it). A training run's directory is
+    left alone (RunDir.create refuses it as before). `hammer serve` calls it; `launch` itself still
+    refuses a directory that holds a run, for every other caller. Returns where they went, or None."""
+    run_dir = Path(run_dir)
+    rt = run_dir / "runtime.json"
+    try:
+        served = json.loads(rt.read_text()).get("mode") == "eval"
+    except (OSError, ValueError):
+        return None
+    if not served or not (run_dir / "summary.json").exists():
+        return None
+    present = [run_dir / n for n in SERVED_RESULTS if (run_dir / n).exists()]
+    dest = run_dir / "previous" / time.strftime("%Y%m%d-%H%M%S")
+    while dest.exists():
+        dest = dest.with_name(dest.name + "x")
+    dest.mkdir(parents=True)
+    for p in present:
+        p.rename(dest / p.name)
+    log.info("the previous served session's results are in %s", dest)
+    return dest
+
+
 def resume_point(run_dir: Path) -> int:
     """The latest update with both a learner checkpoint and the env host's state. The two are
     written at the same points (every checkpoint_every updates) by different processes, so a kill
@@ -215,6 +263,19 @@ def prepare_resume(cfg, settings: RuntimeSettings, run_dir: Path) -> RuntimeSett
     return new
 
 
+def _launcher_log(run_dir: Path, max_mb: float) -> logging.Handler:
+    """RUN/logs/launcher.log: the launcher's warnings and every role's leaves and rejoins
+    (deploy.attendance), which otherwise only scroll past on a terminal; rotated as the roles' logs
+    are (runtime.process), so a run of days keeps at most three files of `max_mb`."""
+    from logging.handlers import RotatingFileHandler
+
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    h = RotatingFileHandler(run_dir / "logs" / "launcher.log", maxBytes=max(1, int(max_mb * 2**20)), backupCount=2)
+    h.setFormatter(logging.Formatter("%(asctime)s launcher %(levelname)s %(name)s: %(message)s"))
+    logging.getLogger("hammer.up").addHandler(h)
+    return h
+
+
 def _tail(path: Path, lines: int = 3) -> str:
     try:
         text = path.read_text(errors="replace").strip().splitlines()
@@ -224,14 +285,53 @@ def _tail(path: Path, lines: int = 3) -> str:
 
 
 def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False,
-           external_agents: tuple[int, ...] = ()) -> UpResult:
+           external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None,
+           stop_signals: tuple[int, ...] = ()) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
     `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
     `resume=True`: continue `run_dir` (its config.json / runtime.json as `cfg` / `settings`) from
     its latest checkpoint instead of starting a new run. `external_agents`: local agents joining from
-    elsewhere (`hammer serve --external-agent`; as `settings.external`: not launched, awaited)."""
+    elsewhere (`hammer serve --external-agent`; as `settings.external`: not launched, awaited).
+    `external_help`: the command to show for an external role instead of `hammer <role> --run-dir`
+    (`hammer serve` shows the bundle's edge command). `stop_signals` (main thread only): signals that
+    stop the run as Ctrl-C does and then return what ran (`UpResult.stopped_by`; a served run's
+    summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure."""
     run_dir = Path(run_dir)
+    with _stop_on(stop_signals) as stopping:
+        return _launch(cfg, settings, run_dir, on_tick, chaos, resume, external_agents, external_help or {},
+                       stopping)
+
+
+@contextmanager
+def _stop_on(signals: tuple[int, ...]):
+    """While launching: each of `signals` raises Stopped once; later ones (and any after the run is
+    ending, `stopping["ending"]`) are logged and ignored, so the stop broadcast and the summary
+    are not cut short by a service manager repeating its signal."""
+    state: dict = {"by": None, "ending": False}
+    if not signals or threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def on_signal(signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if state["by"] is not None or state["ending"]:
+            log.warning("%s: already stopping", name)
+            return
+        state["by"] = name
+        log.warning("%s: stopping every role", name)
+        raise Stopped(name)
+
+    previous = {s: signal.signal(s, on_signal) for s in signals}
+    try:
+        yield state
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resume: bool,
+            external_agents: tuple[int, ...], external_help: dict[str, str], stopping: dict) -> UpResult:
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
     if external_agents:
@@ -241,6 +341,7 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         settings = resolve_agents_per_process(cfg, settings)
     specs = role_specs(cfg, run_dir, settings)
     external = external_commands(cfg, run_dir, settings.external, settings)
+    external.update({k: v for k, v in external_help.items() if k in external})
     if chaos is None and settings.chaos:
         from hammer.faults.chaos import ChaosScheduler
 
@@ -260,18 +361,43 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
         raise UpError(str(e)) from None
     if settings.secure:
         hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external)
-    with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
-        launcher.run(hub)
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings)
+    stopped_by = None
+    try:
+        with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
+            launcher.run(hub)
+    except Stopped as e:  # every role was told to stop (Launcher.run's stop_all): write what ran
+        stopped_by = e.signal_name
+    finally:
+        stopping["ending"] = True
     summary_file = run_dir / "env_summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
     links, roles = _write_links(cfg, run_dir, launcher.board, launcher.own_rejections)
     _write_episode_links(run_dir, list(links))
-    if not summary.get("completed"):
+    if stopped_by is not None:
+        summary = _stopped_summary(cfg, settings, run_dir, summary, stopped_by)
+    elif not summary.get("completed"):
         raise UpError(f"env host stopped before the budget was spent (see {run_dir / 'logs' / 'env.log'})")
-    summary = _verdict(cfg, settings, run_dir, summary, links, roles)
+    summary = _verdict(cfg, settings, run_dir, summary, links, roles, launcher.board.attendance)
     return UpResult(run_dir, summary, dict(launcher.board.restarts), time.monotonic() - launcher.t_start, links,
-                    list(launcher.board.chaos_log))
+                    list(launcher.board.chaos_log), stopped_by)
+
+
+def _stopped_summary(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, stopped_by: str) -> dict:
+    """What a run stopped by a signal ran, marked `interrupted` and `stopped_by`. A served run gets its
+    summary.json (its only result; a restarted `hammer serve` sets it aside). A training run does not:
+    summary.json marks a run finished (sweeps skip it, the archive takes it), and this one continues
+    with `hammer up --resume`; its env_summary.json says it."""
+    summary = {"episodes": 0, "env_steps": 0, "final_paper_metric_last500": None, "n_agents": cfg.n_agents,
+               "variant": cfg.variant, "env": cfg.env, **summary,
+               "completed": False, "interrupted": True, "stopped_by": stopped_by}
+    (run_dir / "env_summary.json").write_text(json.dumps(summary, indent=1))
+    if settings.mode == "eval":
+        from hammer.learning.rundir import RunDir
+
+        RunDir(run_dir).write_summary(summary)
+    log.warning("run stopped by %s after %d episodes", stopped_by, summary["episodes"])
+    return summary
 
 
 class Launcher:
@@ -282,8 +408,9 @@ class Launcher:
     tick_s = 0.25
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
-                 chaos=None, external: dict[str, str] | None = None) -> None:
+                 chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None) -> None:
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
+        self.settings = settings or RuntimeSettings(run_id="-")
         self.on_tick, self.chaos = on_tick, chaos
         self.external = external or {}  # role -> the command that starts it by hand; never started here
         self.names = {s.name for s in specs}  # the processes
@@ -291,7 +418,7 @@ class Launcher:
         self.sup = Supervisor(run_dir / "logs")
         self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
         self.sup.set_env(RUN_VERSION_ENV, None)  # ... and its resume version
-        self.board = Board(restarts={n: 0 for n in self.names})
+        self.board = Board(restarts={n: 0 for n in self.names}, attendance=Attendance(self.alive_expected))
         # Only counters the launcher can believe reach the verdict (runtime.heartbeats).
         self.ledger = HeartbeatLedger(self.sup.started_pids)
         self.own_rejections: dict[str, int] = {}  # the launcher's, as a role's final counters: rejected.<reason>
@@ -301,6 +428,10 @@ class Launcher:
     def run(self, hub: HammerSession) -> None:
         self.watch = hub.watch_alive()
         self.heartbeats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
+        # The env host's stop at the end of its budget: the tokens that go after it are roles stopping.
+        # (A secure run keeps control to the launcher: there env_summary.json on disk says it, below.)
+        self.stops = None if self.settings.secure else hub.subscribe(hub.keys.ctl("all"), Control)
+        file_log = _launcher_log(self.run_dir, self.settings.log_max_mb)
         try:
             for name, cmd in self.external.items():
                 log.warning("external role %s: start it by hand with: %s", name, cmd)
@@ -313,10 +444,14 @@ class Launcher:
                 self.wait_alive(self.alive_expected - {"env"})
                 self.sup.start(later[0])
             self.wait_alive()
+            self.board.attendance.start()
             while not self.done:
                 self.tick()
         finally:
+            self.board.attendance.end()
             self.stop_all(hub)
+            logging.getLogger("hammer.up").removeHandler(file_log)
+            file_log.close()
 
     def wait_alive(self, names: set[str] | None = None) -> None:
         """Until every role's liveliness token is up; a role that exits meanwhile ends the run."""
@@ -348,8 +483,18 @@ class Launcher:
         time.sleep(self.tick_s)
 
     def on_liveliness(self) -> None:
+        att = self.board.attendance
+        if self.stops is not None and any(c.command == "stop" and c.sender in ("env", LAUNCHER)
+                                          for c in self.stops.drain()):
+            att.end()
         for ev in self.watch.drain():
             (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
+            if ev.alive:
+                att.up(ev.role)
+            else:
+                if (self.run_dir / "env_summary.json").is_file():  # the env host has finished: roles stop now
+                    att.end()
+                att.down(ev.role)
             if not ev.alive and ev.role == "env" and "env" in self.external:
                 self.done = True  # a hand-started env host is gone: nothing of ours to wait for
 
@@ -442,19 +587,25 @@ def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str
     return links, roles
 
 
-def _verdict(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, links: dict, roles: dict) -> dict:
-    """summary.json (and env_summary.json) gain `degraded`, its reasons and the rejections per role."""
+def _verdict(cfg, settings: RuntimeSettings, run_dir: Path, summary: dict, links: dict, roles: dict,
+             attendance: Attendance | None = None) -> dict:
+    """summary.json (and env_summary.json) gain `degraded`, its reasons, the rejections per role and
+    who was away when (`attendance`: a role away longer than max_absence_s degrades the run)."""
     from hammer.faults.links import degraded_reasons, rejections
 
     steps = int(roles.get("env", {}).get("step", 0)) - (settings.resume_step or 0)
     reasons = degraded_reasons(roles, links, max(steps, 0) * cfg.num_envs * cfg.n_agents,
                                settings.degraded_fraction, settings.degraded_rejections)
-    summary = {**summary, "degraded": bool(reasons), "degraded_reasons": reasons, "rejected": rejections(roles)}
+    extra = {}
+    if attendance is not None:
+        reasons += attendance.degraded_reasons(settings.max_absence_s)
+        extra["attendance"] = attendance.summary()
+    summary = {**summary, "degraded": bool(reasons), "degraded_reasons": reasons, "rejected": rejections(roles), **extra}
     for name in ("summary.json", "env_summary.json"):
         path = run_dir / name
         if path.is_file():
             path.write_text(json.dumps({**json.loads(path.read_text()), **{k: summary[k] for k in (
-                "degraded", "degraded_reasons", "rejected")}}, indent=1))
+                "degraded", "degraded_reasons", "rejected", *extra)}}, indent=1))
     return summary
 
 
@@ -464,6 +615,6 @@ def _write_episode_links(run_dir: Path, links: list[str]) -> None:
     from hammer.faults.episode_links import write_episode_links
 
     try:
-        write_episode_links(run_dir, links)
+        write_episode_links(run_dir, links, return_rows=False)
     except (OSError, ValueError) as e:  # the run's own results stand without the per-episode view
         log.warning("episode_links.csv: per-link columns not added: %s", e)

@@ -72,16 +72,29 @@ class HostState:
 
 
 class EpisodeRows:
-    """The finished episodes' rows of episode_links.csv, and how many of them are already on disk."""
+    """The finished episodes' rows of episode_links.csv, written to the file as they come.
+
+    A served run finishes thousands of episodes a minute for hours; a row kept in memory for the
+    end of the run (~170 B each) made the env host grow without end. Only the rows since the last
+    write are held (`pending`, at most `write_every`); the file is the record. A checkpoint
+    fsyncs it (`append_new`), and resuming cuts it back to the checkpoint's episodes (`cut`), so
+    rows written after the last checkpoint of a killed session never count."""
+
+    write_every = 256
 
     def __init__(self, run_dir: Path, num_envs: int) -> None:
         self.path = Path(run_dir) / EPISODE_LINKS
-        self.rows: list[tuple] = []
-        self.saved = 0  # rows already in the file (written at checkpoint points)
+        self.pending: list[tuple] = []
+        self.total = 0  # rows of the run: on disk + pending
         # Per env copy, since its current episode started: agent-steps on a fallback message / on the
         # default action. Zeroed where an episode starts: after it ends, and at every env reset.
         self.fallback = np.zeros(num_envs, np.int64)
         self.defaulted = np.zeros(num_envs, np.int64)
+
+    def start(self) -> None:
+        """A fresh file: the header only (an earlier attempt's rows must not precede ours)."""
+        self.path.write_text(",".join(EPISODE_ROW_COLUMNS) + "\n")
+        self.pending, self.total = [], 0
 
     def count(self, fallback: np.ndarray, defaulted: np.ndarray) -> None:
         """One vector step's (K, N) masks of fallback messages and default actions."""
@@ -94,42 +107,58 @@ class EpisodeRows:
     def add(self, episode: int, e, end_step: int) -> None:
         """The row of finished episode number `episode` (an envs.base.EpisodeStats) ending at `end_step`."""
         i = e.env_index
-        self.rows.append((episode, i, e.length, end_step - e.length + 1, end_step,
-                          int(self.fallback[i]), int(self.defaulted[i])))
+        self.pending.append((episode, i, e.length, end_step - e.length + 1, end_step,
+                             int(self.fallback[i]), int(self.defaulted[i])))
+        self.total += 1
+        if len(self.pending) >= self.write_every:
+            self.write_pending()
 
     def end(self, finished: list) -> None:
         """These copies' episodes ended (counted or beyond the budget): their next ones start at zero."""
         for e in finished:
             self.fallback[e.env_index] = self.defaulted[e.env_index] = 0
 
-    def append_new(self) -> None:
-        """Append the rows not yet on disk (at a checkpoint point), fsynced."""
-        new = self.rows[self.saved:]
-        if new or not self.path.is_file():
+    def write_pending(self) -> None:
+        """Append the rows not yet on disk (the header first into an empty file)."""
+        if self.pending or not self.path.is_file():
             with open(self.path, "a") as f:
                 if f.tell() == 0:
                     f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
-                f.writelines(",".join(map(str, row)) + "\n" for row in new)
-            fsync_file(self.path)
-            self.saved = len(self.rows)
+                f.writelines(",".join(map(str, row)) + "\n" for row in self.pending)
+            self.pending = []
+
+    def append_new(self) -> None:
+        """At a checkpoint point: every row on disk, fsynced (the host state vouches for them)."""
+        self.write_pending()
+        fsync_file(self.path)
 
     def write_all(self) -> None:
-        with open(self.path, "w") as f:
-            f.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
-            f.writelines(",".join(map(str, row)) + "\n" for row in self.rows)
+        """At the end of the run: the last rows."""
+        self.write_pending()
 
-    def read(self, n: int) -> list[tuple]:
-        """The first n rows of the file (base columns; a torn last line is never among them)."""
-        rows: list[tuple] = []
-        if n:
-            with open(self.path, newline="") as f:
-                for row in csv.DictReader(f):
-                    if len(rows) == n:
-                        break
-                    rows.append(tuple(int(row[c]) for c in EPISODE_ROW_COLUMNS))
-        if len(rows) != n or [r[0] for r in rows] != list(range(1, n + 1)):
-            raise ValueError(f"{self.path}: expected episodes 1..{n}, found {len(rows)} rows")
-        return rows
+    def cut(self, n: int) -> None:
+        """Keep the first n rows (base columns; a torn last line is never among them) and drop the
+        rest, streaming through the file: what a resumed session continues from."""
+        tmp = self.path.with_suffix(".csv.tmp")
+        kept = 0
+        with open(tmp, "w") as out:
+            out.write(",".join(EPISODE_ROW_COLUMNS) + "\n")
+            if n:
+                with open(self.path, newline="") as f:
+                    for row in csv.DictReader(f):
+                        if kept == n:
+                            break
+                        vals = tuple(int(row[c]) for c in EPISODE_ROW_COLUMNS)
+                        if vals[0] != kept + 1:
+                            break
+                        out.write(",".join(map(str, vals)) + "\n")
+                        kept += 1
+        if kept != n:
+            tmp.unlink()
+            raise ValueError(f"{self.path}: expected episodes 1..{n}, found {kept} in order")
+        fsync_file(tmp)
+        tmp.replace(self.path)
+        self.pending, self.total = [], n
 
 
 def save(rd: RunDir, state: HostState, episodes: EpisodeRows) -> None:
@@ -141,7 +170,7 @@ def save(rd: RunDir, state: HostState, episodes: EpisodeRows) -> None:
     episodes.append_new()
     write_host_state(rd.path, {
         "update": state.update, "episodes": state.episodes, "env_steps": state.env_steps, "step": state.step,
-        "wall_time": state.wall_time(), "recent": list(state.recent), "episode_rows": len(episodes.rows)})
+        "wall_time": state.wall_time(), "recent": list(state.recent), "episode_rows": episodes.total})
 
 
 def restore(rd: RunDir, state: HostState, episodes: EpisodeRows, update: int, step: int) -> int:
@@ -167,7 +196,5 @@ def restore(rd: RunDir, state: HostState, episodes: EpisodeRows, update: int, st
     state.steps_at_start = state.env_steps
     state.wall_start = time.perf_counter() - float(saved["wall_time"])
     rd.truncate_metrics(state.episodes)
-    episodes.rows = episodes.read(state.episodes)
-    episodes.saved = 0  # the next save rewrites the file with exactly these rows
-    episodes.path.unlink(missing_ok=True)
+    episodes.cut(state.episodes)
     return int(saved["step"])

@@ -28,6 +28,7 @@ import numpy as np
 from hammer.env_host import checkpoint
 from hammer.env_host.actions import ActionCollector, StepActions
 from hammer.env_host.checkpoint import EpisodeRows, HostState
+from hammer.env_host.trace import TraceWriter
 from hammer.envs.base import VecEnv, VecStep
 from hammer.envs.local_view import local_view_from_config
 from hammer.faults.steplog import STEP_LOG_DIR, LoggedPublisher, StepLog, column
@@ -43,15 +44,14 @@ from hammer.protocol.schemas import Action, ExperienceChunk, GlobalState, Heartb
 from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.role import Role, process_cpu_s
 
-TRACE_ARRAYS = ("steps", "obs", "msgs", "actions", "fallback", "defaulted", "versions")
-
 
 class EnvHost(Role):
     heartbeat_every_s = 0.5
 
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
                  act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
-                 max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None) -> None:
+                 max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None,
+                 trace_max_mb: float = 512.0) -> None:
         if (resume_from is None) != (resume_step is None):
             raise ValueError("resume_from and resume_step go together")
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
@@ -87,7 +87,7 @@ class EnvHost(Role):
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self.rollout = RolloutLayout.from_config(cfg, self.spec).chunk_steps()
         self.writer = RolloutWriter(self.rollout, self.spec)
-        self.trace: dict[str, list] | None = {name: [] for name in TRACE_ARRAYS} if trace else None
+        self.trace = TraceWriter(rd.path, int(trace_max_mb * 2**20)) if trace else None
 
     def counters(self) -> dict[str, int | float]:
         st = self.state
@@ -209,9 +209,7 @@ class EnvHost(Role):
         self.time_s["loop"] += t1 - t0
         self.time_s["env_step"] += time.perf_counter() - t1
         if self.trace is not None:
-            for name, v in zip(TRACE_ARRAYS, (st.step, obs, got.msgs, got.actions, got.fallback, got.defaulted,
-                                              self.rollout_version)):
-                self.trace[name].append(np.copy(v))
+            self.trace.add(st.step, obs, got.msgs, got.actions, got.fallback, got.defaulted, self.rollout_version)
         return step, got
 
     def _send_observations(self, obs: np.ndarray, prev: np.ndarray, active: np.ndarray) -> None:
@@ -233,6 +231,7 @@ class EnvHost(Role):
         t_start = st.wall_start = time.perf_counter()
         self.cpu_at_start = process_cpu_s()
         self.rd.truncate_metrics(0)
+        self.episodes.start()
         if not self.wait_weights(0) or not self._wait_actors_ready():
             return self.summary(t_start)
         obs, active = self._reset_env(0)
@@ -313,8 +312,8 @@ class EnvHost(Role):
         also flushes this process's step log and writes the trace."""
         self.step_log.flush()
         self.episodes.write_all()
-        if self.trace is not None and self.trace["steps"]:
-            np.savez(self.rd.path / "trace.npz", **{k: np.stack(v) for k, v in self.trace.items()})
+        if self.trace is not None:
+            self.trace.close()
 
     def summary(self, t_start: float) -> dict:
         """`wall_time` covers the whole run (it continues across resumes, like metrics.csv's

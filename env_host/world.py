@@ -57,8 +57,9 @@ class RealtimeWorld(Role):
         self.fresh = np.zeros(self.n, np.int64)  # ... on one that arrived since the previous tick
         self.defaults = np.zeros(self.n, np.int64)  # robot-ticks on the default action (robot missing)
         self.ages: list[collections.deque] = [collections.deque(maxlen=AGES_KEPT) for _ in range(self.n)]
-        self.metrics: list[float] = []
-        self.returns: list[float] = []
+        self.episodes = 0  # running totals, not lists: a world that runs for days stays flat
+        self.metric_sum = self.return_sum = 0.0
+        self.recent: collections.deque[float] = collections.deque(maxlen=100)
         self.obs, self.active = env.reset(seed)
         self.startup_s = startup_s
         self.timeline = None if timeline is None else open(timeline, "a", buffering=1)  # noqa: SIM115 - closed in on_stop
@@ -70,12 +71,11 @@ class RealtimeWorld(Role):
     def counters(self) -> dict[str, int]:
         per_robot = {f"local_{i}.{what}": int(a[i]) for i in range(self.n)
                      for what, a in (("applied", self.applied), ("fresh", self.fresh), ("defaults", self.defaults))}
-        return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "episodes": len(self.metrics),
+        return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "default_actions": int(self.defaults.sum()), **self.presence.counters(), **per_robot}
 
     def gauges(self) -> dict[str, float]:
-        recent = self.metrics[-100:]
-        return {"paper_metric_100": float(np.mean(recent)) if recent else 0.0,
+        return {"paper_metric_100": float(np.mean(self.recent)) if self.recent else 0.0,
                 "robots_present": self.presence.present_count()}
 
     def on_start(self) -> None:
@@ -130,16 +130,18 @@ class RealtimeWorld(Role):
         step = self.env.step(self.spec.env_action(actions))
         self.obs, self.active = step.obs, step.next_active
         for e in step.episodes:
-            self.metrics.append(e.paper_metric)
-            self.returns.append(e.team_return)
+            self.episodes += 1
+            self.metric_sum += e.paper_metric
+            self.return_sum += e.team_return
+            self.recent.append(e.paper_metric)
         self.publish_obs(self.clock.ticks)
         self.progressed()
         if self.timeline is not None and now - self._timeline_t >= 1.0:
             self._timeline_t = now
             self.timeline.write(json.dumps({"t": round(time.time(), 3), "ticks": self.clock.ticks,
                                             "fresh": self.fresh.tolist(), "defaults": self.defaults.tolist()}) + "\n")
-        if self.episodes_budget is not None and len(self.metrics) >= self.episodes_budget:
-            self.stop_reason = f"{len(self.metrics)} episodes done"
+        if self.episodes_budget is not None and self.episodes >= self.episodes_budget:
+            self.stop_reason = f"{self.episodes} episodes done"
         elif self.seconds is not None and now - self.started >= self.seconds:
             self.stop_reason = f"{self.seconds:g} s done"
 
@@ -164,7 +166,7 @@ class RealtimeWorld(Role):
                 "action_age_ms_p50": round(float(np.percentile(ages, 50)), 2) if ages.size else None,
                 "action_age_ms_p99": round(float(np.percentile(ages, 99)), 2) if ages.size else None}
         return {"hz": round(1 / self.clock.period, 3), "seconds": round(elapsed, 3), "ticks": self.clock.ticks,
-                "ticks_skipped": self.clock.skipped, "episodes": len(self.metrics),
-                "paper_metric_mean": float(np.mean(self.metrics)) if self.metrics else None,
-                "team_return_mean": float(np.mean(self.returns)) if self.returns else None,
+                "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
+                "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
+                "team_return_mean": self.return_sum / self.episodes if self.episodes else None,
                 "presence": self.presence.counters(), "robots": robots}

@@ -13,6 +13,12 @@ and one row per step with events since the previous flush. A step can appear in 
 a second, in the heartbeat's rhythm, so a SIGKILLed process loses roughly what its last heartbeat
 also missed; a torn last line is skipped by the reader. Plain CSV: nothing read back can run code.
 
+A served run steps for hours, so a file is bounded (`step_log_max_mb` of runtime.json, per
+process): past half of it the file becomes `<role>-<pid>.prev.csv` (the one before is deleted) and
+a fresh one starts. The highest step whose rows were deleted goes to `<role>-<pid>.cut`, so
+`faults.episode_links` can leave the link columns of the episodes that began by then empty
+rather than count them short.
+
 Torch-free: the local-agent client uses it.
 """
 
@@ -25,6 +31,7 @@ from hammer.faults.links import LINK_IDS, link_of_pattern
 
 EVENTS = ("sent", "dropped", "duplicated", "delivered", "late", "duplicate", "fallbacks", "defaults")
 STEP_LOG_DIR = "linksteps"
+DEFAULT_MAX_MB = 64.0  # RuntimeSettings.step_log_max_mb's default
 
 
 def column(link: str, event: str) -> str:
@@ -37,18 +44,33 @@ def column(link: str, event: str) -> str:
 class StepLog:
     """Counts of link events per global step, appended to this process's CSV by `flush`.
 
-    `directory=None` records nothing (a role started without a run directory to write to)."""
+    `directory=None` records nothing (a role started without a run directory to write to).
+    `max_bytes`: the disk it may take (None: the run's `step_log_max_mb`, from the runtime.json next
+    to `directory`, so every role that writes one obeys the run's cap without passing it along)."""
 
-    def __init__(self, directory: Path | None, role: str, columns: list[str], pid: int | None = None) -> None:
+    def __init__(self, directory: Path | None, role: str, columns: list[str], pid: int | None = None,
+                 max_bytes: int | None = None) -> None:
         self.columns = list(columns)
         self._index = {c: j for j, c in enumerate(self.columns)}
         self._pending: dict[int, list[int]] = {}
         self.path: Path | None = None
+        self.max_bytes = max_bytes
+        self._size = 0  # bytes in the current file
+        self._top = -1  # highest step in the current file
+        self._prev_top = -1  # ... in the .prev.csv file (-1: none)
+        self.cut = -1  # highest step whose rows were deleted
         if directory is not None:
             Path(directory).mkdir(parents=True, exist_ok=True)
             self.path = Path(directory) / f"{role}-{os.getpid() if pid is None else pid}.csv"
-            with open(self.path, "w") as f:
-                f.write(",".join(["step", *self.columns]) + "\n")
+            if self.max_bytes is None:
+                self.max_bytes = _run_cap(Path(directory).parent)
+            self._start_file()
+
+    def _start_file(self) -> None:
+        header = ",".join(["step", *self.columns]) + "\n"
+        with open(self.path, "w") as f:
+            f.write(header)
+        self._size, self._top = len(header), -1
 
     def add(self, step: int, col: str, n: int = 1) -> None:
         if self.path is None or not n:
@@ -63,9 +85,48 @@ class StepLog:
         if self.path is None or not self._pending:
             return
         text = "".join(f"{s},{','.join(map(str, row))}\n" for s, row in sorted(self._pending.items()))
+        self._top = max(self._top, max(self._pending))
         self._pending.clear()
         with open(self.path, "a") as f:
             f.write(text)
+        self._size += len(text)
+        if self._size > self.max_bytes / 2:
+            self._rotate()
+
+    def _rotate(self) -> None:
+        """The current file becomes .prev.csv; the one before it is deleted and its top step recorded."""
+        prev = self.path.with_name(self.path.stem + ".prev.csv")
+        if self._prev_top >= 0:
+            prev.unlink(missing_ok=True)
+            self.cut = max(self.cut, self._prev_top)
+            tmp = self.path.with_suffix(".cut.tmp")
+            tmp.write_text(f"{self.cut}\n")
+            tmp.replace(self.path.with_suffix(".cut"))
+        self.path.replace(prev)
+        self._prev_top = self._top
+        self._start_file()
+
+
+def _run_cap(run_dir: Path) -> int:
+    """`step_log_max_mb` of the run's runtime.json in bytes (the default without one)."""
+    import json
+
+    try:
+        mb = float(json.loads((run_dir / "runtime.json").read_text()).get("step_log_max_mb", DEFAULT_MAX_MB))
+    except (OSError, ValueError, TypeError):
+        mb = DEFAULT_MAX_MB
+    return max(1, int(mb * 2**20))
+
+
+def read_cut(directory: Path) -> int:
+    """The highest step any process of the run deleted step-log rows of (-1: none)."""
+    top = -1
+    for p in Path(directory).glob("*.cut"):
+        try:
+            top = max(top, int(p.read_text().split()[0]))
+        except (OSError, ValueError, IndexError):
+            continue
+    return top
 
 
 class LoggedPublisher:

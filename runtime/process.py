@@ -3,6 +3,13 @@
 One definition for every entry that starts a role (the role commands of `hammer up`, the edge
 agent's own entry), so they all log the same way, never outlive the launcher that started them and
 close their Zenoh session when told to stop.
+
+A role's log is its stderr, which the launcher points at RUN/logs/<role>.log, so that a crash's
+traceback and the C libraries' own lines land there too. A run of days must not fill the disk with
+it, so the role rotates that file itself (`RotatingStderr`): past `log_max_mb` of runtime.json the
+file becomes <role>.log.1 (.1 becomes .2, the oldest goes) and stderr continues in a fresh file,
+one writer throughout (logging.handlers.RotatingFileHandler would leave stderr writing into the
+renamed file).
 """
 
 from __future__ import annotations
@@ -11,12 +18,14 @@ import json
 import logging
 import os
 import signal
+import stat
 import sys
 import threading
 import time
 from pathlib import Path
 
 PARENT_ENV = "HAMMER_PARENT_PID"  # set by the launcher (deploy.supervisor) for every role it starts
+LOG_MAX_MB, LOG_BACKUPS = 10.0, 2  # RuntimeSettings.log_max_mb's default; <role>.log.1 and .2 are kept
 
 log = logging.getLogger("hammer.deploy")
 
@@ -26,8 +35,9 @@ def setup_process(role: str, run_dir: Path | None = None) -> None:
     ends at its last line; Python warnings too; a first line of what it runs (from `run_dir`); the
     launcher watchdog; SIGTERM and SIGINT turned into a clean exit so the Zenoh session closes."""
     sys.stderr.reconfigure(line_buffering=True)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
+    handler = RotatingStderr(int(_log_max_mb(run_dir) * 2**20))
+    handler.setFormatter(logging.Formatter(f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.INFO, handlers=[handler])
     logging.captureWarnings(True)
     _describe(role, run_dir)
     parent_watchdog()
@@ -38,6 +48,72 @@ def setup_process(role: str, run_dir: Path | None = None) -> None:
 
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
+
+
+def _log_max_mb(run_dir: Path | None) -> float:
+    try:
+        return float(json.loads((Path(run_dir) / "runtime.json").read_text()).get("log_max_mb", LOG_MAX_MB))
+    except (OSError, ValueError, TypeError):
+        return LOG_MAX_MB
+
+
+class RotatingStderr(logging.StreamHandler):
+    """Log records to stderr; when stderr is a log file (a regular file named *.log) past
+    `max_bytes`, rotate it: rename it <name>.1 (older ones shifted, `backups` kept) and point this
+    process's stderr (and stdout, where it shares the file) at a fresh file of the old name."""
+
+    def __init__(self, max_bytes: int, backups: int = LOG_BACKUPS) -> None:
+        super().__init__(sys.stderr)
+        self.max_bytes, self.backups = max(1, max_bytes), max(1, backups)
+        self.path = _log_file(2)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        super().emit(record)
+        if self.path is not None:
+            try:
+                if os.fstat(2).st_size > self.max_bytes:
+                    self.rotate()
+            except OSError:  # the file went away under us: go on logging to whatever stderr is
+                self.path = None
+
+    def rotate(self) -> None:
+        path = self.path
+        try:
+            same = os.stat(path).st_ino == os.fstat(2).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:  # renamed or replaced by someone else: leave it to them
+            self.path = None
+            return
+        sys.stderr.flush()
+        sys.stdout.flush()
+        try:
+            stdout_too = os.fstat(1).st_ino == os.fstat(2).st_ino
+        except OSError:  # no stdout
+            stdout_too = False
+        for i in range(self.backups - 1, 0, -1):
+            older = path.with_name(f"{path.name}.{i}")
+            if older.exists():
+                older.replace(path.with_name(f"{path.name}.{i + 1}"))
+        path.replace(path.with_name(f"{path.name}.1"))
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.dup2(fd, 2)
+            if stdout_too:
+                os.dup2(fd, 1)
+        finally:
+            os.close(fd)
+
+
+def _log_file(fd: int) -> Path | None:
+    """The file behind `fd` when it is a regular *.log file (None otherwise: a terminal, a pipe)."""
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+    except OSError:
+        return None
+    return path if path.name.endswith(".log") and path.is_absolute() else None
 
 
 def _describe(role: str, run_dir: Path | None) -> None:

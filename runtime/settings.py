@@ -19,14 +19,15 @@ from pathlib import Path
 from typing import Literal
 
 from hammer.protocol.fault_injection import FaultSpec
-from hammer.protocol.session import TransportConfig, loopback_endpoint
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from hammer.protocol.session import TransportConfig, is_loopback_endpoint, loopback_endpoint
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
 
 
-_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "weights_republish_s",
+_BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
+           "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
            "weights_republish_max_s")
 
 
@@ -66,6 +67,11 @@ class RuntimeSettings(BaseModel):
     hub_port: int = Field(0, ge=0, le=65535, description="the launcher's Zenoh listen port on 127.0.0.1")
     zenoh_config_file: str | None = Field(
         None, description="Zenoh JSON5 config for multi-machine runs (router/client/TLS); overrides hub_port")
+    hub_listen: list[str] = Field(
+        default_factory=list,
+        description="more endpoints the launcher's hub listens on besides 127.0.0.1:hub_port (`hammer serve --listen`), "
+                    "e.g. tcp/192.0.2.1:7447, for agents on other machines; the run's own roles keep loopback; "
+                    "beyond loopback it needs secure=true or insecure=true")
     msg_deadline_ms: float = Field(
         50.0, gt=0, description="how long a local agent waits for its central message before a fallback")
     act_deadline_ms: float = Field(
@@ -116,6 +122,19 @@ class RuntimeSettings(BaseModel):
                                       "exceed this fraction of agent x env-copy steps")
     degraded_rejections: int = Field(
         0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
+    max_absence_s: float = Field(
+        10.0, gt=0, description="the run is reported degraded when a role's liveliness token was gone longer than "
+                                "this at a time (a crashed agent the launcher restarts is back in a few seconds)")
+    step_log_max_mb: float = Field(
+        64.0, gt=0, description="disk one process's per-step link log (RUN/linksteps/) may take: beyond half of it "
+                                "the file is rotated and the one before dropped; episodes that began before the "
+                                "dropped steps get empty link columns in episode_links.csv")
+    trace_max_mb: float = Field(
+        512.0, gt=0, description="trace=true: disk the env host's trace may take; beyond it the oldest steps are "
+                                 "dropped (trace.npz keeps the latest, its `steps` say which)")
+    log_max_mb: float = Field(
+        10.0, gt=0, description="size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated "
+                                "(<role>.log.1, .2; older ones are deleted)")
     agents_per_process: int = Field(
         0, ge=0, description="local agents per process: 1 = one process each (what an edge device runs); k > 1 = "
                              "pools of k agents, each pool one process and one event loop (local_agent/pool.py); "
@@ -145,6 +164,24 @@ class RuntimeSettings(BaseModel):
         """Raise ValueError (one line) when `transport` reaches past this machine in the plain profile
         and neither this run nor the command (`insecure`) accepted that (CockroachDB's convention)."""
         refuse_plain_beyond_loopback(transport, self.secure, self.insecure or insecure, fix)
+
+    @field_validator("hub_listen")
+    @classmethod
+    def _hub_listen_endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            try:
+                TransportConfig(listen=[e])
+            except ValueError:
+                raise ValueError(f"hub_listen: {e!r} is not an endpoint; fix: give one like tcp/192.0.2.1:7447 "
+                                 "(this machine's address the agents reach, and a port)") from None
+        return v
+
+    @model_validator(mode="after")
+    def _one_hub_config(self) -> RuntimeSettings:
+        if self.hub_listen and self.zenoh_config_file:
+            raise ValueError("hub_listen (--listen) and zenoh_config_file: the Zenoh config decides where the hub "
+                             "listens; fix: pass one of them")
+        return self
 
     @model_validator(mode="after")
     def _hub_is_secure(self) -> RuntimeSettings:
@@ -183,10 +220,21 @@ class RuntimeSettings(BaseModel):
             return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
         return TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)])
 
+    def transport_to(self, connect: str) -> TransportConfig:
+        """A role joining the hub at `connect` by hand. Beyond loopback it listens on every interface:
+        peers meet directly and the hub relays nothing between them, so the run's other roles must be
+        able to reach it back (a role listening on its own loopback would hear only the hub)."""
+        try:
+            return TransportConfig(listen=["tcp/127.0.0.1:0" if is_loopback_endpoint(connect) else "tcp/0.0.0.0:0"],
+                                   connect=[connect])
+        except ValueError:
+            raise ValueError(f"--connect {connect!r}: not a Zenoh endpoint; fix: give the hub's address and port, "
+                             "e.g. tcp/192.0.2.1:7447") from None
+
     def hub_transport(self) -> TransportConfig:
         if self.zenoh_config_file:
             return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
-        return TransportConfig(listen=[loopback_endpoint(self.hub_port)])
+        return TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen])
 
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
                 identity_directory: Path | None = None) -> TransportConfig:
@@ -209,7 +257,7 @@ class RuntimeSettings(BaseModel):
     def save(self, run_dir: Path) -> None:
         # `secure`, `secure_hub`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
         fields = type(self).model_fields
-        exclude = {f for f in ("secure", "secure_hub", "external", *_BOUNDS)
+        exclude = {f for f in ("secure", "secure_hub", "external", "hub_listen", *_BOUNDS)
                    if getattr(self, f) == fields[f].get_default(call_default_factory=True)}
         if self.agents_per_process <= 1:  # one agent per process: what a runtime.json without it means
             exclude.add("agents_per_process")

@@ -34,6 +34,62 @@ class BundleError(ValueError):
     """The bundle cannot be used; the message is the one-line reason and its fix."""
 
 
+MANIFEST_FIELDS = ("bundle_format", "schema_version", "created_at", "env", "env_spec", "variant", "central_mode",
+                   "central_net", "msg_dim", "local_input_dim", "fallback", "source", "config", "files")
+RUN_CHOICES = {"num_envs": "--num-envs K", "seed": "--seed S", "episodes": "--episodes N"}  # set when serving
+FALLBACKS = ("zeros", "last", "last_k")
+
+
+def _count(value: Any, low: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def check_manifest(m: dict[str, Any], mf: Path) -> None:
+    """Every manifest value a server or an edge agent reads, checked for its type and range. The manifest
+    is not among the hashed files (a hand edit is possible, and the edge agent reads it without the
+    RunConfig's validation), so a wrong value must fail here, naming the field, not later as messages
+    every role rejects (an edge agent acting on K=1 copies of a K=32 run)."""
+    def bad(field: str, value: Any, want: str, fix: str = "export the bundle again") -> BundleError:
+        return BundleError(f"{mf}: {field} {value!r} {want}; fix: {fix}")
+
+    for k, value in m.items():
+        if k not in MANIFEST_FIELDS:
+            hint = (f"it is chosen when serving, not in the manifest: remove it and pass {RUN_CHOICES[k]} to "
+                    "hammer serve (and hammer local --bundle)" if k in RUN_CHOICES else "remove it, or export the "
+                    "bundle again")
+            raise bad(k, value, "is not a manifest field", hint)
+    env, cfg = m["env_spec"], m["config"]
+    for field, value in (("env_spec", env), ("config", cfg), ("files", m["files"])):
+        if not isinstance(value, dict):
+            raise bad(field, value, "must be a JSON object")
+    for field, low in (("n_agents", 1), ("obs_dim", 1), ("action_dim", 1)):
+        if not _count(env.get(field), low):
+            raise bad(f"env_spec.{field}", env.get(field), f"must be an integer >= {low}")
+    if not isinstance(env.get("discrete"), bool):
+        raise bad("env_spec.discrete", env.get("discrete"), "must be true or false")
+    if not isinstance(env.get("name"), str):
+        raise bad("env_spec.name", env.get("name"), "must be a string")
+    for field, low in (("msg_dim", 0), ("local_input_dim", 1)):
+        if not _count(m[field], low):
+            raise bad(field, m[field], f"must be an integer >= {low}")
+    if not isinstance(m["variant"], str):
+        raise bad("variant", m["variant"], "must be a string")
+    if not _count(cfg.get("num_envs"), 1):
+        raise bad("config.num_envs", cfg.get("num_envs"), "must be an integer >= 1 (env copies K)",
+                  "set the trained value back (serve with --num-envs K to change it)")
+    if not _count(cfg.get("seed"), 0):
+        raise bad("config.seed", cfg.get("seed"), "must be an integer >= 0", "set it back (serve with --seed S)")
+    for field, want in (("n_agents", env["n_agents"]), ("variant", m["variant"])):
+        if cfg.get(field) != want:
+            raise bad(f"config.{field}", cfg.get(field), f"differs from the manifest's {want!r}")
+    fb = m.get("fallback", {})
+    if not isinstance(fb, dict) or fb.get("mode", "zeros") not in FALLBACKS or not _count(fb.get("k", 3), 0):
+        raise bad("fallback", fb, f"must be {{mode: {' | '.join(FALLBACKS)}, k: integer >= 0}}")
+    for name, digest in m["files"].items():
+        if not isinstance(digest, str) or len(digest) != 64:
+            raise bad(f"files.{name}", digest, "must be a sha256 (64 hex digits)")
+
+
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -243,6 +299,7 @@ def load_bundle(path: Path, check_config: bool = True) -> Bundle:
     missing = [k for k in ("env_spec", "config", "files", "variant", "msg_dim", "local_input_dim") if k not in m]
     if missing:
         raise BundleError(f"{mf}: no {', '.join(missing)}; fix: export the bundle again")
+    check_manifest(m, mf)
     files = m["files"]
     if LOCAL not in files or (m.get("central_mode") is not None and CENTRAL not in files):
         raise BundleError(f"{mf}: files lacks the policy this variant needs; fix: export the bundle again")

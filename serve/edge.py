@@ -10,6 +10,11 @@ The run's settings come from the bundle (fallback) and the run id, or from a cop
 run's runtime.json (`--settings`), overridden by `--runtime FIELD=VALUE`. A secure run needs the
 agent's three identity files (`--identity DIR`: ca.pem, local-<i>.pem, local-<i>.key;
 docs/security.md), no run directory.
+
+An edge device is started by its own machine, not by the run (`run_edge`): it may come up before the
+hub and keeps trying (`--connect-retry-s`), saying what it waits for; it says it joined only once it
+sees the run; and with `--stay` it is a service that outlives each served session (a restarted
+`hammer serve --run-dir` keeps its run id) until SIGTERM.
 """
 
 from __future__ import annotations
@@ -17,11 +22,24 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import time
 from pathlib import Path
+
+DEFAULT_CONNECT_RETRY_S = 300.0  # an agent started long before its server is a configuration mistake
+WAIT_LOG_EVERY_S = 10.0
+GONE_WAIT_S = 15.0  # after a stop: the longest wait for the stopped session's roles to go (they exit within ~10 s)
+STAY_IDLE_S = 120.0  # --stay: a session that sends nothing this long is gone (its server killed without a stop)
+_ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]#?]+):(\d{1,5})([#?]\S*)?")
+
+
+class JoinError(RuntimeError):
+    """The run could not be reached in time; the message is the one-line reason and its fix."""
 
 
 def agent_spec(bundle, agent: int, seed: int | None):
-    """(AgentSpec, num_envs) of agent `agent` from the manifest alone (no RunConfig)."""
+    """(AgentSpec, num_envs) of agent `agent` from the manifest alone (no RunConfig; its values are
+    checked on load, serve.bundle.check_manifest)."""
     from hammer.local_agent.client import AgentSpec
 
     m, c = bundle.manifest, bundle.config_data
@@ -57,7 +75,7 @@ def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtim
         if not eq:
             raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
         rt[key.strip()] = yaml.safe_load(val)
-    rt.update(hub_port=0, zenoh_config_file=None, external=[])  # where to connect is this machine's business
+    rt.update(hub_port=0, zenoh_config_file=None, external=[], hub_listen=[])  # where to connect is this machine's business
     try:
         return RuntimeSettings.model_validate(rt)
     except Exception as e:  # noqa: BLE001 - pydantic's multi-line report, in one line
@@ -75,9 +93,8 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
     if zenoh_config is not None:
         transport = TransportConfig(zenoh_config_file=zenoh_config)
     else:
-        host = connect.split("/", 1)[-1].rsplit(":", 1)[0]  # a hub on this host: stay on loopback
-        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if host in ("127.0.0.1", "localhost", "[::1]")
-                                            else "tcp/0.0.0.0:0"], connect=[connect])
+        check_endpoint(connect)
+        transport = settings.transport_to(connect)  # a hub on this host: stay on loopback
     if settings.secure and identity is None:
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")
@@ -96,14 +113,27 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
                                                                  identity_directory=identity)
 
 
+def check_endpoint(endpoint: str, flag: str = "--connect",
+                   fix: str = "give the hub's protocol, address and port, e.g. tcp/192.0.2.1:7447") -> None:
+    """A peer session opens whatever it is told to connect to and then waits for it forever, so a
+    mistyped --connect would look like a hub not up yet: refuse it in one line instead."""
+    m = _ENDPOINT.fullmatch(endpoint)
+    if not endpoint.startswith("unixsock-stream/") and (m is None or not 0 < int(m.group(3)) < 65536):
+        raise ValueError(f"{flag} {endpoint!r}: not a Zenoh endpoint; fix: {fix}")
+
+
 def edge_inputs(bundle_path: Path, agent: int, run_id: str | None, connect: str | None, zenoh_config: Path | None,
                 seed: int | None, settings_file: Path | None = None, runtime: list[str] | None = None,
-                identity: Path | None = None, insecure: bool = False):
-    """(settings, transport, AgentSpec, num_envs) of an edge agent; ValueError (BundleError) with the reason."""
+                identity: Path | None = None, insecure: bool = False, num_envs: int | None = None):
+    """(settings, transport, AgentSpec, num_envs) of an edge agent; ValueError (BundleError) with the reason.
+    `num_envs`: the served run's env copies when `hammer serve --num-envs` changed them (default the bundle's)."""
     from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle_path, check_config=False)
-    spec, num_envs = agent_spec(b, agent, seed)
+    spec, num_envs_trained = agent_spec(b, agent, seed)
+    if num_envs is not None and num_envs < 1:
+        raise ValueError(f"--num-envs {num_envs}: must be at least 1 (the served run's env copies)")
+    num_envs = num_envs_trained if num_envs is None else num_envs
     settings = edge_settings(b, run_id, settings_file, runtime or [])
     return settings, edge_transport(settings, f"local-{agent}", spec.n_agents, connect, zenoh_config, identity,
                                     insecure), \
@@ -139,3 +169,157 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
                     logging.getLogger("hammer.deploy").warning("could not write counters: %s", e)
     except KeyboardInterrupt:
         pass
+
+
+def hub_endpoints(transport) -> list[str]:
+    """Where this agent looks for the run (for what it logs): --connect, or its Zenoh config's connect endpoints."""
+    if transport.connect or transport.zenoh_config_file is None:
+        return list(transport.connect)
+    cfg = transport.to_zenoh()
+    value = json.loads(cfg.get_json("connect/endpoints"))
+    if isinstance(value, dict):  # per mode: {"router": [...], "peer": [...], "client": [...]}
+        value = value.get(json.loads(cfg.get_json("mode")), [])
+    return [str(e) for e in value] if isinstance(value, list) else []
+
+
+class _Stop:
+    """A stop signal (SIGTERM, SIGINT) taken while serving: the signal's name, and the client to end."""
+
+    def __init__(self) -> None:
+        self.by: str | None = None
+        self.client = None
+
+
+def _open(settings, transport, name: str, where: str, deadline: float | None, stop: _Stop, log):
+    """The agent's session, opened as soon as it can be: a client-mode config fails to open while its
+    router is down (zenoh.ZError), so that is retried like a hub that is not reachable yet."""
+    import zenoh
+    from hammer.protocol.session import HammerSession
+
+    next_log = 0.0
+    while stop.by is None:
+        session = HammerSession(settings.run_id, transport, settings.faults, sender=name)
+        try:
+            return session.open()
+        except zenoh.ZError as e:
+            now = time.monotonic()
+            reason = str(e).split(" at ", 1)[0].strip()
+            if deadline is not None and now > deadline:
+                raise JoinError(f"{name}: {where} not reachable within --connect-retry-s ({reason}); fix: check the "
+                                "address and that the run's hub or router is up there, or wait longer with "
+                                "--connect-retry-s") from None
+            if now >= next_log:
+                log.info("%s waiting for %s (%s)", name, where, reason)
+                next_log = now + WAIT_LOG_EVERY_S
+            time.sleep(1.0)
+    return None
+
+
+def _run_seen(session, name: str, watch_liveliness: bool) -> tuple[bool, set[str]]:
+    """(linked to anyone, the run's roles seen besides this agent). Where a secure run's access rules
+    do not let a local agent ask who is alive (peers meeting directly), a mutual-TLS link with the
+    run's CA is the sign: only the run's own roles hold its identities."""
+    z = session.zenoh
+    linked = any(True for _ in z.info.peers_zid()) or any(True for _ in z.info.routers_zid())
+    if not linked:
+        return False, set()
+    if not watch_liveliness:
+        return True, {"a peer of the secure run"}
+    return True, session.alive_roles(timeout=0.5) - {name}
+
+
+def wait_for_run(session, settings, name: str, where: str, deadline: float | None, stop: _Stop, log,
+                 ended: float | None = None) -> bool:
+    """Until a role of the run is seen (True), or a stop signal (False); JoinError after `deadline`.
+    `ended`: when this agent's previous session stopped (--stay): its roles must be gone first, so
+    the agent does not join the session that is shutting down (a faster restart is joined once
+    GONE_WAIT_S have passed)."""
+    watch = session.transport.security is None or settings.secure_hub
+    gone, next_log = ended is None, 0.0
+    while stop.by is None:
+        linked, roles = _run_seen(session, name, watch)
+        now = time.monotonic()
+        if not gone and (not roles or now - ended > GONE_WAIT_S):
+            gone = True
+        if gone and roles:
+            log.info("%s joined run %s at %s (seen: %s)", name, settings.run_id, where, ", ".join(sorted(roles)))
+            return True
+        if deadline is not None and now > deadline:
+            what = "connected, but no role of the run answered" if linked else "not reachable"
+            raise JoinError(f"{name}: run {settings.run_id} at {where}: {what} within --connect-retry-s; fix: check "
+                            "the address, the run id and that `hammer serve` runs there (with --listen for other "
+                            "machines), or wait longer with --connect-retry-s")
+        if now >= next_log:
+            if not gone:
+                log.info("%s: run %s stopped; waiting for its next session at %s", name, settings.run_id, where)
+            elif linked:
+                log.info("%s waiting for run %s at %s (connected; no role of the run yet)", name, settings.run_id,
+                         where)
+            else:
+                log.info("%s waiting for %s (not reachable yet)", name, where)
+            next_log = now + WAIT_LOG_EVERY_S
+        time.sleep(0.1)  # the agent's cold start includes this wait
+    return False
+
+
+def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float = DEFAULT_CONNECT_RETRY_S,
+             stay: bool = False) -> None:
+    """Serve as an edge agent started by its own machine: reach the run (retrying for
+    `connect_retry_s` s, 0 = forever), act until the run stops it; with `stay`, then wait for the
+    run's next session (same run id) and join it, until SIGTERM or SIGINT, which end it cleanly
+    (the counters logged, exit 0). Raises JoinError (one line) when the run was never reached."""
+    import collections
+    import signal
+    import threading
+
+    from hammer.local_agent.client import LocalAgentClient
+
+    log = logging.getLogger("hammer.local")
+    name = f"local-{spec.agent}"
+    where = ", ".join(hub_endpoints(transport)) or "the run"
+    stop = _Stop()
+
+    def on_signal(signum, frame) -> None:
+        stop.by = signal.Signals(signum).name
+        log.warning("%s: %s, stopping", name, stop.by)
+        if stop.client is not None and stop.client.stop_reason is None:
+            stop.client.stop_reason = stop.by  # the role's loop ends at its next turn, as on a stop command
+
+    signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
+    previous = {s: signal.signal(s, on_signal) for s in signals}
+    deadline = time.monotonic() + connect_retry_s if connect_retry_s > 0 else None
+    runs, totals, ended = 0, collections.Counter(), None
+    try:
+        while stop.by is None:
+            session = _open(settings, transport, name, where, deadline, stop, log)
+            if session is None:
+                break
+            with session:
+                if not wait_for_run(session, settings, name, where, deadline, stop, log, ended):
+                    break
+                deadline = None  # the run was reached: from now on the agent waits for it as long as it takes
+                client = LocalAgentClient(session, spec, num_envs, settings.fallback, settings.fallback_k,
+                                          settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
+                                          step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
+                                          idle_exit_s=STAY_IDLE_S if stay else None)
+                client.stall_warn_s = settings.stall_warn_s
+                stop.client = client
+                if stop.by is not None:
+                    client.stop_reason = stop.by
+                client.run()
+                stop.client = None
+                runs += 1
+                counts = client.counts.as_dict()
+                totals.update(counts)
+                log.info("counters: %s", counts)
+            ended = time.monotonic()
+            if not stay or stop.by is not None:
+                break
+            log.info("%s: run %s session %d ended (%s); staying for the next one", name, settings.run_id, runs,
+                     client.stop_reason)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    if stop.by is not None:
+        log.info("%s stopped by %s after %d session(s) of run %s; counters: %s", name, stop.by, runs,
+                 settings.run_id, dict(totals))

@@ -56,11 +56,14 @@ class EdgeAgent:
     `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
     run; `insecure` to accept plain traffic beyond loopback. `max_msg_age_s`: the oldest central
     message acted on; `fallback`: the team's own (from the bundle) unless given (zeros, last, last_k).
+    `connect_retry_s`: how long to keep trying to open a client session whose router is not up yet
+    (a peer opens at once and reaches the hub whenever it appears), then ConnectionError.
     """
 
     def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
-                 max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None) -> None:
+                 max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None,
+                 connect_retry_s: float = 300.0) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
         from hammer.protocol.dims import Dims
         from hammer.protocol.schemas import CentralMsg
@@ -92,8 +95,7 @@ class EdgeAgent:
         self.last_fresh = False
         self._stale_since: float | None = None  # when the messages went stale (None: fresh, or none yet)
         self.ages: collections.deque[float] = collections.deque(maxlen=1024)  # of the messages acted on, s
-        self.session = HammerSession(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
-        self.session.open()
+        self.session = self._open(HammerSession, connect_retry_s)
         try:
             keys = self.session.keys
             self._msgs = self.session.subscribe_latest(
@@ -105,6 +107,25 @@ class EdgeAgent:
             raise
         log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
                  ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
+
+    def _open(self, session_type, retry_s: float):
+        import zenoh
+
+        deadline, next_log = time.monotonic() + retry_s, 0.0
+        while True:
+            session = session_type(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
+            try:
+                return session.open()
+            except zenoh.ZError as e:
+                reason = str(e).split(" at ", 1)[0].strip()
+                now = time.monotonic()
+                if now > deadline:
+                    raise ConnectionError(f"{self.name}: the run's router not reachable within {retry_s:g} s "
+                                          f"({reason}); fix: check the address and that the router is up") from None
+                if now >= next_log:
+                    log.info("%s waiting for the run's router (%s)", self.name, reason)
+                    next_log = now + 10.0
+                time.sleep(0.5)
 
     # ----- the control step -----------------------------------------------------------------------
     def act(self, obs: Any) -> np.ndarray:

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -17,26 +20,21 @@ import numpy as np
 import pytest
 from hammer.central_agent.fleet import FleetCentral
 from hammer.deploy.fleet import FleetPlan, run_fleet
-from hammer.learning.config import merge_config
-from hammer.learning.rundir import RunDir
-from hammer.learning.trainer import train
 from hammer.protocol.binding import rule_for
 from hammer.protocol.schemas import Uplink
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.runtime.presence import Presence
-from hammer.serve.bundle import CENTRAL, export_bundle, load_bundle
+from hammer.serve.bundle import CENTRAL, load_bundle
 from hammer.serve.edge_agent import EdgeAgent
+
+from tests.runtime_helpers import ENV, ROOT, trained_bundle
 
 pytestmark = pytest.mark.timeout(240)
 
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory):
-    d = tmp_path_factory.mktemp("fleet")
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         "episodes=48", "seed=4"])
-    train(cfg, RunDir.create(d / "run", cfg), tensorboard=False)
-    return export_bundle(d / "run", d / "bundle").path
+    return trained_bundle(tmp_path_factory.mktemp("fleet"), episodes=48)
 
 
 def _wait(cond, timeout=10.0):
@@ -144,6 +142,8 @@ def test_the_sdk_loads_no_torch(bundle):
 import sys
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.serve.edge_agent import EdgeAgent
+
+from tests.runtime_helpers import ENV, ROOT, trained_bundle
 port = free_loopback_port()
 with HammerSession("r", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
     with EdgeAgent({str(bundle)!r}, 0, run_id="r", connect=loopback_endpoint(port)) as robot:
@@ -153,3 +153,27 @@ print("torch" in sys.modules, "torch.nn" in sys.modules)
     out = subprocess.run([sys.executable, "-P", "-c", code], check=False, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
+    """The README's "On a robot" block, as it stands (only the port made free), against the command the
+    README names, from a folder of the user's own; then SIGTERM to `hammer serve`: a summary, exit 0."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("### On a robot"):]
+    code = re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
+    command = re.search(r"`(hammer serve bundles/lib-cn3 --realtime [^`]*)`", section).group(1)
+    port = str(free_loopback_port())
+    shutil.copytree(bundle, tmp_path / "bundles" / "lib-cn3")
+    serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
+                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=tmp_path, env=ENV,
+                           capture_output=True, text=True, timeout=120, check=False)
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.stdout.split() == ["True", "True"]
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        out = serve.communicate(timeout=60)[0].decode()
+    assert serve.returncode == 0, out[-2000:]
+    s = json.loads((tmp_path / "runs" / "site-a" / "summary.json").read_text())
+    assert s["stopped_by"].startswith("interrupted") and "local-0" not in s["restarts"]

@@ -17,18 +17,11 @@ from hammer.benchmarks.edge_chain import chain, replay_check, train_team
 from hammer.benchmarks.netns import NetnsUnavailable
 from safetensors.numpy import load_file, save_file
 
+from tests.runtime_helpers import netns_reason
+
 pytestmark = pytest.mark.timeout(300)
 
 
-def _netns_reason() -> str | None:
-    if os.geteuid() != 0 or shutil.which("ip") is None or shutil.which("tc") is None:
-        return "needs root and iproute2 (ip, tc) to create network namespaces"
-    name = f"hmrprobe{os.getpid() % 100000}"
-    r = subprocess.run(["ip", "netns", "add", name], check=False, capture_output=True, text=True)
-    if r.returncode != 0:
-        return f"cannot create a network namespace here: {r.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", name], check=False, capture_output=True)
-    return None
 
 
 def _update_of(run, out):
@@ -47,7 +40,7 @@ def _update_of(run, out):
 
 
 def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv):
-    reason = _netns_reason()
+    reason = netns_reason(("ip", "tc"))
     if reason:
         pytest.skip(reason)
     a = train_team(tmp_path / "a", seed=1, episodes=16,

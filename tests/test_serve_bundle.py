@@ -235,15 +235,19 @@ def test_faults_eval_and_sweep_serve_a_bundle_with_its_fallback(trained, tmp_pat
     assert links["central->local"]["dropped"] > 0  # the fault of the command line applied too
 
 
-def test_serve_says_policy_server_and_gives_external_agents_the_seed(trained, tmp_path):
-    """The start-up lines of a served run: no learner runs (the policy server does), and the command an
-    external agent needs carries --seed when one was given (its sampling stream must be the run's)."""
+def test_serve_says_policy_server_and_gives_external_agents_the_seed(trained, tmp_path, caplog):
+    """The start-up lines of a served run: no learner runs (the policy server does), and the one command each
+    external agent needs (the launcher shows it as it waits) carries --seed when one was given (its sampling
+    stream must be the run's) and the hub's endpoint."""
     export_bundle(trained, tmp_path / "b")
     r = CliRunner().invoke(app, ["serve", str(tmp_path / "b"), "--episodes", "8", "--seed", "3", "--external",
                                  "1,central", "--runtime", "startup_timeout_s=3", "--run-dir", str(tmp_path / "s"),
                                  "--no-dashboard"])
     assert r.exit_code == 1 and "local-1 (external: start it by hand)" in r.output, r.output  # nobody joined
-    assert "--agent I --run-id s --connect tcp/<this host>:" in r.output and "--seed 3" in r.output
-    assert "hammer central --run-dir" in r.output
+    hints = [m for m in caplog.messages if "start it by hand with:" in m]
+    assert len(hints) == 2, hints  # local-1 and central, once each
+    local = next(m for m in hints if "local-1" in m)
+    assert "--agent 1 --run-id s --connect tcp/127.0.0.1:" in local and local.endswith("--seed 3"), local
+    assert any("hammer central --run-dir" in m and "--connect tcp/127.0.0.1:" in m for m in hints), hints
     line = next(ln for ln in r.output.splitlines() if ln.startswith("will run:"))
     assert "policy server" in line and "learner" not in line and "--resume" not in line and "external" in line

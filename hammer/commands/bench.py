@@ -13,6 +13,7 @@ part against a baseline taken in the same run:
   edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
   seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
   scale        cn N=3..50: train vs up vs up with agent pools, the floor      (benchmarks.scale)
+  soak         a served team for N minutes: RSS per process, disk, growth    (benchmarks.soak)
 
 The measuring code is imported inside each command, so `hammer --help` stays fast.
 """
@@ -385,6 +386,52 @@ def bench_scale_command(
     typer.echo(markdown(r))
     for f in r.get("files", []):
         typer.echo(f"wrote {f}")
+
+
+@bench.command("soak")
+def bench_soak(
+    minutes: Annotated[float, typer.Option(min=0.1, help="how long to serve the team")] = 10.0,
+    every: Annotated[float, typer.Option(min=1, help="seconds between samples")] = 30.0,
+    bundle: Annotated[Path | None, typer.Option(help="serve this bundle (default: an untrained cn3 team, "
+                                                     "exported as `hammer bench edge` makes one)")] = None,
+    runtime: Annotated[list[str] | None, typer.Option(
+        "--runtime", help="RuntimeSettings field=value for the served run, repeatable, e.g. trace=true.")] = None,
+    work: Annotated[Path | None, typer.Option(help="where the bundle and the run go (default runs/soak-<time>)")] = None,
+    json_dir: Annotated[str, typer.Option("--json-dir", help="write soak-<date>.json here ('' to skip)")] = "docs/results",
+) -> None:
+    """A served team for MINUTES: RSS of the launcher and every role process and the run directory's disk
+    use every EVERY seconds, then each one's growth from the first minute to the end."""
+    from hammer.benchmarks.soak import print_soak, run_soak, write_result
+    from hammer.console import table_console
+
+    try:
+        r = run_soak(minutes, every, work, bundle, tuple(runtime or ()), progress=lambda line: typer.echo(line, err=True))
+    except RuntimeError as e:
+        fail(str(e), code=1)
+    print_soak(r, table_console())
+    if json_dir:
+        typer.echo(f"wrote {write_result(r, Path(json_dir))}")
+
+
+@bench.command("fleet")
+def bench_fleet(
+    bundle: Annotated[Path, typer.Argument(help="A trained team (`hammer export`) that can run as a fleet (cn, mw).")],
+    hz: Annotated[float, typer.Option(min=0.1, help="the world's and the central agent's rate")] = 20.0,
+    outages: Annotated[str, typer.Option(help="links cut one after another, LINK:SECONDS, LINK local-<i> or central")
+                       ] = "local-0:5,local-0:30,central:5,central:30",
+    baseline_s: Annotated[float, typer.Option(help="length of the run without outages")] = 30.0,
+    edge_venv: Annotated[Path | None, typer.Option(help="the robots' interpreter (a torch-free venv)")] = None,
+    out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+) -> None:
+    """A realtime fleet across network namespaces (root): each robot, the central agent and the world in
+    namespaces of their own; links cut and restored; the healthy robots' control rate during each outage,
+    the time to fresh messages after it, defaults, and the paper metric against no outage (docs/fleet.md)."""
+    from hammer.benchmarks.fleet import main
+
+    code = main([str(bundle), "--hz", str(hz), "--outages", outages, "--baseline-s", str(baseline_s),
+                 *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else [])])
+    if code:
+        raise typer.Exit(code)
 
 
 def register(app: typer.Typer) -> None:

@@ -11,6 +11,13 @@ import argparse
 import sys
 from pathlib import Path
 
+# Shared with the typer side of `hammer local` (hammer/commands/common.py), which the edge never imports.
+CONNECT_RETRY_HELP = ("Seconds to keep trying to reach the run (its hub or router may start later), logging what "
+                      "it waits for; then exit 1 with the reason. 0: forever. Default 300.")
+STAY_HELP = ("Be a service: after the run stops, wait for its next session (a restarted `hammer serve --run-dir` "
+             "keeps the run id) and join it; exit cleanly (0, counters logged) on SIGTERM or Ctrl-C.")
+NUM_ENVS_HELP = "The served run's env copies K, when `hammer serve --num-envs` changed them (default the bundle's)."
+
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hammer local", description="An edge local agent joining a run with only "
@@ -29,25 +36,63 @@ def parser() -> argparse.ArgumentParser:
                                                   "local-<i>.key (copied from the launcher's RUN/identity/).")
     ap.add_argument("--insecure", action="store_true", help="Run plain (no TLS) although the hub is beyond "
                                                             "loopback: only on a network you trust (docs/security.md).")
+    ap.add_argument("--fleet", action="store_true", help="A robot of a realtime fleet (`hammer serve --realtime`): "
+                                                         "acts on each observation the world sends it at once, on "
+                                                         "the freshest central message (docs/fleet.md).")
+    ap.add_argument("--max-msg-age-s", type=float, default=0.5, help="--fleet: the oldest central message acted on "
+                                                                     "(else the team's fallback). Default 0.5.")
+    ap.add_argument("--connect-retry-s", type=float, default=None, metavar="S", help=CONNECT_RETRY_HELP)
+    ap.add_argument("--stay", action="store_true", help=STAY_HELP)
+    ap.add_argument("--num-envs", type=int, metavar="K", help=NUM_ENVS_HELP)
     ap.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)  # refused with a bundle, in one line
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`hammer local --bundle ...` without the CLI framework; returns the exit code (2: a usage error)."""
-    from hammer.serve.edge import edge_inputs, run_agent
+    """`hammer local --bundle ...` without the CLI framework; returns the exit code (2: a usage error,
+    1: the run was not reached in time)."""
+    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
 
     a = parser().parse_args(argv)
+    if a.fleet:
+        return _robot(a)
     try:
         if a.run_dir is not None:
             raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
+        if a.connect_retry_s is not None and a.connect_retry_s < 0:
+            raise ValueError(f"--connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: keep trying forever)")
         inputs = edge_inputs(a.bundle, a.agent, a.run_id, a.connect, a.zenoh_config, a.seed, a.settings, a.runtime,
-                             a.identity, a.insecure)
+                             a.identity, a.insecure, a.num_envs)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     from hammer.runtime.process import setup_process
 
     setup_process(f"local-{a.agent}")
-    run_agent(*inputs)
+    try:
+        run_edge(*inputs, connect_retry_s=DEFAULT_CONNECT_RETRY_S if a.connect_retry_s is None else a.connect_retry_s,
+                 stay=a.stay)
+    except JoinError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _robot(a: argparse.Namespace) -> int:
+    """A robot of a fleet: the SDK's EdgeAgent driven by the world's observations (serve/edge_agent.py)."""
+    from hammer.runtime.process import setup_process
+    from hammer.serve.edge_agent import EdgeAgent, robot_role
+
+    setup_process(f"local-{a.agent}")
+    try:
+        agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
+                          identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    try:
+        with agent:
+            robot_role(agent).run()
+    except KeyboardInterrupt:
+        pass
     return 0

@@ -17,7 +17,15 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import ConnectOpt, RunDirOpt, ZenohCfgOpt, fail
+from hammer.commands.common import (
+    ConnectOpt,
+    ConnectRetryOpt,
+    EdgeNumEnvsOpt,
+    RunDirOpt,
+    StayOpt,
+    ZenohCfgOpt,
+    fail,
+)
 from hammer.runtime.bounds import known_step, known_version
 from hammer.runtime.process import setup_process
 from hammer.runtime.settings import read_env_spec
@@ -31,9 +39,7 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
     s = RuntimeSettings.load(run_dir)
     if zenoh_config is not None:
         s = s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
-    transport = s.transport()
-    if connect is not None and zenoh_config is None:
-        transport = transport.model_copy(update={"connect": [connect]})
+    transport = s.transport_to(connect) if connect is not None and zenoh_config is None else s.transport()
     if s.secure:
         transport = s.secured(transport, role, run_dir, _read_config(run_dir).n_agents)
     # runtime.json's insecure=true (`hammer up --insecure`) is the run's consent
@@ -108,6 +114,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
                   insecure: Annotated[bool, typer.Option(
                       help="Run plain (no TLS) although --connect is beyond loopback: only on a network you trust "
                            "(docs/security.md).")] = False,
+                  connect_retry_s: ConnectRetryOpt = None, stay: StayOpt = False, num_envs: EdgeNumEnvsOpt = None,
                   ) -> None:
     """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
@@ -116,8 +123,11 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
         _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                    identity, insecure)
+                    identity, insecure, connect_retry_s, stay, num_envs)
         return
+    if connect_retry_s is not None or stay or num_envs is not None:
+        fail("--connect-retry-s, --stay and --num-envs go with --bundle (an edge agent); a role of a run made by "
+             "`hammer up` is started and stopped by its launcher")
     setup_process(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
         fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
@@ -143,9 +153,10 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 
 
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                identity, insecure: bool = False) -> None:
+                identity, insecure: bool = False, connect_retry_s: float | None = None, stay: bool = False,
+                num_envs: int | None = None) -> None:
     """One agent from a bundle, no run directory (serve/edge.py; the console script's fast path)."""
-    from hammer.serve.edge import edge_inputs, run_agent
+    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
 
     try:
         if agents is not None:
@@ -153,11 +164,15 @@ def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, s
         if run_dir is not None:
             raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
         inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity,
-                             insecure)
+                             insecure, num_envs)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     setup_process(f"local-{agent}")
-    run_agent(*inputs)
+    try:
+        run_edge(*inputs, connect_retry_s=DEFAULT_CONNECT_RETRY_S if connect_retry_s is None else connect_retry_s,
+                 stay=stay)
+    except JoinError as e:
+        fail(str(e), code=1)
 
 
 def _pool_agents(text: str, n_agents: int) -> list[int]:
@@ -178,9 +193,7 @@ def _local_transport(settings, run_dir: Path, connect: str | None, zenoh_config:
     """The transport of a local-agent process of a run: in a secure run the identity is the agent's
     own (`local-<i>`) or its pool's, which must then be one of the run's pools (identities are made
     by `hammer up`; the CA key is gone afterwards)."""
-    transport = settings.transport()
-    if connect is not None and zenoh_config is None:
-        transport = transport.model_copy(update={"connect": [connect]})
+    transport = settings.transport_to(connect) if connect is not None and zenoh_config is None else settings.transport()
     if not settings.secure:
         return transport
     from hammer.protocol.access import pool_name
@@ -266,12 +279,14 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
         fail(str(e))
     env = make_env(cfg)
     rd = RunDir(run_dir)
+    host = None
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
             s.declare_alive("env")
             host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
-                           resume_from=settings.resume_from, resume_step=settings.resume_step)
+                           resume_from=settings.resume_from, resume_step=settings.resume_step,
+                           trace_max_mb=settings.trace_max_mb)
             host.stall_warn_s = settings.stall_warn_s
             summary = host.run_eval() if settings.mode == "eval" else host.run_training()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
@@ -291,6 +306,9 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             s.publish(s.keys.ctl("all"), Control(command="stop"))
     except KeyboardInterrupt:
         logging.getLogger("hammer.env").warning("env stopped: interrupted")
+        if host is not None:  # a signal to the whole process group (Ctrl-C): the launcher reports what ran
+            summary = {**host.summary(host.state.wall_start), "interrupted": True}
+            (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
     finally:
         rd.close()
         env.close()

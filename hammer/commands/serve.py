@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import InsecureOpt, SecureOpt, fail
+from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -68,9 +68,22 @@ def serve_command(
     dashboard: Annotated[bool, typer.Option(help="Live terminal dashboard (plain status lines when not a TTY).")] = True,
     secure: SecureOpt = False,
     insecure: InsecureOpt = False,
+    listen: ListenOpt = None,
+    num_envs: Annotated[int | None, typer.Option(
+        min=1, help="Env copies K stepped together (default: the bundle's, as trained); external edge agents are "
+                    "told it.")] = None,
+    realtime: Annotated[float | None, typer.Option(
+        min=0.1, help="Run the team as a fleet at this many Hz (docs/fleet.md): a world that never waits, a central "
+                      "agent fed by the robots' uplinks, one torch-free process per robot; K=1.")] = None,
+    seconds: Annotated[float | None, typer.Option(
+        min=1, help="--realtime: run this long (default: until --episodes episodes).")] = None,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
-    local agents and the policy server, with the dashboard and run directory of `hammer up`."""
+    local agents and the policy server, with the dashboard and run directory of `hammer up`.
+
+    SIGTERM (systemd, `docker stop`) or Ctrl-C stops every role, external agents included, and writes
+    summary.json (`interrupted`, `stopped_by`); exit 0. Serving again with the same --run-dir keeps the run
+    id (edge agents started with --stay join again); the earlier session's results go to RUN/previous/."""
     from rich.console import Console
 
     from hammer.commands.up import run_up
@@ -79,40 +92,147 @@ def serve_command(
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
+    if realtime is not None:
+        _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
+                     secure, insecure, listen, num_envs)
+        return
+    if seconds is not None:
+        fail("--seconds needs --realtime HZ (a lock-stepped served run ends after --episodes)")
     try:
         b = load_bundle(bundle)
-        cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
+        cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}),
+                       **({} if num_envs is None else {"num_envs": num_envs}))
         b.check_env_here(cfg)
         skip, roles = _external(external, cfg)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
         settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
                                                                                    *(["secure=true"] if secure else []),
-                                                                                   *(["insecure=true"] if insecure else [])])
+                                                                                   *(["insecure=true"] if insecure else [])],
+                                        listen=_listen(listen))
         if roles:
             settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
         if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
             from hammer.protocol.session import free_loopback_port
 
             settings = settings.model_copy(update={"hub_port": free_loopback_port()})
+        settings.refuse_plain_beyond_loopback(settings.hub_transport())  # before anything is written
     except (BundleError, ValueError) as e:
         fail(str(e))
-    console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}) -> {path}")
+    console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}, "
+                  f"env copies K={cfg.num_envs}) -> {path}")
     for lf in plan.links:
         console.print(f"fault: {lf.describe()} (seed {plan.seed})")
-    where = f"{'tls' if settings.secure else 'tcp'}/<this host>:{settings.hub_port or '<port>'}"
+    if settings.hub_listen:
+        shown = [f"tls/{e.split('/', 1)[1]}" if settings.secure else e for e in settings.hub_listen]
+        console.print(f"agents on other machines reach this run at {', '.join(shown)}", soft_wrap=True)
     if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's settings and its own key
-        console.print(f"waiting for external agents {', '.join(map(str, skip))}: copy {path}/runtime.json and "
-                      f"identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md), then hammer local --bundle "
-                      f"{bundle} --agent I --settings runtime.json --identity DIR --connect {where}"
-                      + (f" --seed {seed}" if seed is not None else ""), soft_wrap=True)
-    elif skip:
-        console.print(f"waiting for external agents {', '.join(map(str, skip))}: hammer local --bundle {bundle} "
-                      f"--agent I --run-id {settings.run_id} --connect {where}"
-                      + (f" --seed {seed}" if seed is not None else ""), soft_wrap=True)
-    if roles:
-        console.print(f"waiting for the external central agent: hammer central --run-dir {path} --connect {where} "
-                      "(the run directory's config.json, runtime.json and env_spec.json are all it needs)", soft_wrap=True)
-    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip))
+        console.print(f"an external agent on another machine needs copies of {path}/runtime.json and of its "
+                      f"{path}/identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md)", soft_wrap=True)
+    from hammer.deploy.up import set_aside_served_session
+
+    earlier = set_aside_served_session(path)  # a restarted service: same directory, same run id
+    if earlier is not None:
+        console.print(f"the previous session's results are in {earlier}")
+    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip),
+           external_help=_external_help(bundle, b, cfg, settings, path, skip, roles, seed))
+
+
+def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
+                 fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
+                 insecure: bool, listen, num_envs: int | None) -> None:
+    """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
+    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.serve.bundle import BundleError
+
+    refused = ((fault, "--fault (link faults are a lock-stepped run's; cut a link instead: hammer bench fleet)"),
+               (runtime, "--runtime"), (secure, "--secure (a fleet has no secure profile yet)"),
+               (num_envs, "--num-envs (a fleet is one world, K=1)"))
+    for given, what in refused:
+        if given:
+            fail(f"--realtime does not take {what}")
+    try:
+        robots = [int(x) for x in (external or "").split(",") if x.strip()]
+    except ValueError:
+        fail(f"--external {external!r}: with --realtime, robot indices only, e.g. 0,2")
+    path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
+                     seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, insecure=insecure)
+    last = [0.0]
+
+    def tick(board, t: float) -> None:
+        if t - last[0] >= 5.0:
+            last[0] = t
+            w = board.heartbeats.get("env")
+            c = {**w.counters, **w.gauges} if w else {}
+            console.print(f"t {t:5.0f} s  ticks {int(c.get('ticks', 0))}  robots present "
+                          f"{int(c.get('robots_present', 0))}  defaults {int(c.get('default_actions', 0))}  "
+                          f"episodes {int(c.get('episodes', 0))}  metric(100) {c.get('paper_metric_100', 0):.2f}"
+                          + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
+
+    console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json)")
+    for i in robots:
+        console.print(f"waiting for robot {i}: hammer local --bundle {bundle} --agent {i} --run-id {path.name} "
+                      f"--connect <this run's hub> --fleet (or hammer.edge.EdgeAgent)", soft_wrap=True)
+    try:
+        s = run_fleet(plan, path, on_tick=tick)
+    except (BundleError, ValueError) as e:
+        fail(str(e))
+    w = s["world"]
+    console.print(f"{'done' if s['completed'] else 'stopped: ' + str(s['stopped_by'])}: {w.get('ticks', 0)} ticks in "
+                  f"{w.get('seconds', 0):.0f} s, {w.get('episodes', 0)} episodes, paper metric "
+                  f"{'-' if w.get('paper_metric_mean') is None else round(w['paper_metric_mean'], 2)}; per robot control Hz "
+                  f"{[r.get('control_hz') for r in s['robots'].values()]}, defaults "
+                  f"{[r.get('defaults') for r in s['robots'].values()]}; summary {path}/summary.json", soft_wrap=True)
+
+
+def _listen(listen: list[str] | None) -> list[str]:
+    """--listen endpoints, checked: the agents must be told a fixed port (0 would be whatever the OS picks)."""
+    from hammer.serve.edge import check_endpoint
+
+    for e in listen or []:
+        check_endpoint(e, "--listen", "give this machine's address the agents reach and a fixed port, e.g. "
+                                      "tcp/192.0.2.1:7447")
+    return list(listen or [])
+
+
+def _hub_endpoint(settings) -> str:
+    """Where a role on another machine connects: the first --listen endpoint (an any-address one as
+    `<this host>`), else the loopback hub (an agent on this machine)."""
+    proto = "tls" if settings.secure else "tcp"
+    if settings.hub_listen:
+        addr = settings.hub_listen[0].split("/", 1)[1]
+        host, _, port = addr.rpartition(":")
+        if host.strip("[]") in ("0.0.0.0", "::"):
+            host = "<this host>"
+        return f"{proto}/{host}:{port}"
+    if settings.zenoh_config_file:
+        return "<the hub's endpoint in your Zenoh config>"
+    return f"{proto}/127.0.0.1:{settings.hub_port}"
+
+
+def _external_help(bundle: Path, b, cfg, settings, path: Path, agents: list[int], roles: list[str],
+                  seed: int | None) -> dict[str, str]:
+    """The one command each external role needs (the launcher shows it as it waits for them): an edge
+    agent from the bundle, the central agent from the run directory; the hub's endpoint filled in."""
+    import shlex
+
+    from hammer.protocol.session import is_loopback_endpoint
+
+    where = _hub_endpoint(settings)
+    plain_out = not settings.secure and ("<" in where or not is_loopback_endpoint(where))  # the agent's consent too
+    out = {}
+    for i in agents:
+        cmd = ["hammer", "local", "--bundle", str(bundle), "--agent", str(i)]
+        cmd += (["--settings", str(path / "runtime.json"), "--identity", str(path / "identity")] if settings.secure
+                else ["--run-id", settings.run_id])
+        cmd += ["--connect", where, *(["--insecure"] if plain_out else []),
+                *(["--seed", str(seed)] if seed is not None else []),
+                *(["--num-envs", str(cfg.num_envs)] if cfg.num_envs != int(b.config_data["num_envs"]) else [])]
+        out[f"local-{i}"] = shlex.join(cmd)
+    if "central" in roles:
+        out["central"] = shlex.join(["hammer", "central", "--run-dir", str(path), "--connect", where]) + \
+            " (the run directory's config.json, runtime.json and env_spec.json are all it reads)"
+    return out
 
 
 def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:

@@ -87,6 +87,16 @@ def _eta(board, cfg, rate: dict) -> str:
     return eta(rate["start"], episodes, cfg.episodes) if "start" in rate else "-"
 
 
+def _attendance_text(board) -> str:
+    """Who left and came back, and who is away now (deploy.attendance); '' while nobody left."""
+    att = getattr(board, "attendance", None)
+    if att is None or not att.leaves():
+        return ""
+    per = "; ".join(f"{n} left {r.leaves}, rejoined {r.rejoins}" for n, r in sorted(att.roles.items()) if r.leaves)
+    away = att.away()
+    return per + (f"; away now: {', '.join(f'{n} {s:.0f} s' for n, s in sorted(away.items()))}" if away else "")
+
+
 def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None):
     from rich.console import Group
     from rich.table import Table
@@ -108,6 +118,7 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
     t.add_row("policy version per role", versions or "-")
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
+    t.add_row("leaves / rejoins", _attendance_text(board) or "0")
     rejected = {r: {k[9:]: int(v) for k, v in h.counters.items() if k.startswith("rejected.") and v}
                 for r, h in sorted(board.heartbeats.items())}
     t.add_row("rejected messages", "; ".join(f"{r} " + ", ".join(f"{k} {v}" for k, v in c.items())
@@ -253,6 +264,24 @@ def up_command(
     run_up(cfg, settings, path, dashboard, console)
 
 
+def _report_stopped(res, cfg, path: Path, served: bool) -> None:
+    """The verdict of a run stopped by a signal, on stdout like a finished run's; a training run exits
+    128 + the signal's number, with the command that continues it."""
+    import signal
+
+    from rich.console import Console
+
+    s = res.summary
+    metric = s.get("final_paper_metric_last500")
+    Console(soft_wrap=True).print(
+        f"stopped by {res.stopped_by}: {s.get('episodes', 0)} of {cfg.episodes} episodes in {res.wall_time:.0f}s, "
+        f"paper metric {'-' if metric is None else f'{metric:.3f}'}; every role was stopped -> {path} "
+        f"({'summary.json' if served else 'env_summary.json'})", markup=False)
+    if not served:
+        Console(stderr=True, soft_wrap=True).print(f"continue it with: hammer up --resume {path}", markup=False)
+        raise typer.Exit(128 + signal.Signals[res.stopped_by].value)
+
+
 def _resume_inputs(run_dir: Path, episodes: int | None):
     """config.json and runtime.json of a `hammer up` run directory (episodes possibly changed)."""
     import json
@@ -292,10 +321,16 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
 
 
 def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
-            external_agents: tuple[int, ...] = ()) -> None:
+            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None) -> None:
+    """Launch and report. SIGTERM (systemd, `docker stop`) stops every role as Ctrl-C does; a served
+    run then ends cleanly (summary.json with `stopped_by`, exit 0: stopping a service is its normal
+    end, and Ctrl-C does the same there), a training run is resumable and exits 143 (128 + SIGTERM),
+    as Ctrl-C exits 130 (it keeps Ctrl-C's behaviour)."""
+    import signal
+
     from rich.live import Live
 
-    from hammer.deploy.up import UpError, launch
+    from hammer.deploy.up import Stopped, UpError, launch
     from hammer.envs.registry import EnvConfigError
 
     if resume:
@@ -325,10 +360,20 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
                           f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "
                           f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}"
                           f"  eta {_eta(board, cfg, rate)}"
+                          + (f"  [{_attendance_text(board)}]" if _attendance_text(board) else "")
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
+    signals = (signal.SIGTERM, signal.SIGINT) if served else (signal.SIGTERM,)
     try:
-        res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents)
+        res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents,
+                     external_help=external_help, stop_signals=signals)
+    except Stopped as e:  # before any role started: nothing ran
+        if live is not None:
+            live.stop()
+        console.print(f"stopped by {e.signal_name} before the run started")
+        if served:
+            return
+        raise typer.Exit(128 + signal.Signals[e.signal_name].value) from None
     except EnvConfigError as e:  # a bad or refused env: a config mistake, found before any file is written
         if live is not None:
             live.stop()
@@ -345,6 +390,9 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
     if live is not None:
         live.stop()
     s = res.summary
+    if res.stopped_by is not None:
+        _report_stopped(res, cfg, path, served)
+        return
     if s.get("resumed_from") is not None:
         console.print(f"resumed at update {s['resumed_from']}; this session ran {res.wall_time:.0f}s")
     # The verdict goes to stdout (progress and the dashboard stay on stderr): a script reads it there.
