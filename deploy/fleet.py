@@ -51,9 +51,10 @@ class FleetPlan:
     listen: list[str] = field(default_factory=list)  # more endpoints for the hub (robots on other machines)
     external: list[int] = field(default_factory=list)  # robots started elsewhere (the SDK, `hammer local --fleet`)
     insecure: bool = False  # accept plain traffic beyond loopback (a fleet has no secure profile yet)
+    max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
 
     def check(self) -> None:
-        for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s"):
+        for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
         if self.seconds is None and self.episodes is None:
@@ -152,10 +153,12 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     finally:
         sup.stop_all()
         signal.signal(signal.SIGTERM, previous)
-    return _summary(run_dir, board, stopped_by, time.monotonic() - t0)
+    return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
 
 
-def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float) -> dict:
+def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_absence_s: float) -> dict:
+    """summary.json: the world's figures per robot with what each robot said of itself, and the
+    outages by name (a robot missing longer than `max_absence_s` makes the run degraded, named)."""
     world_file = run_dir / "world.json"
     world = json.loads(world_file.read_text()) if world_file.is_file() else {}
     roles = {name: {"counters": dict(h.counters), "gauges": dict(h.gauges)} for name, h in board.heartbeats.items()}
@@ -164,7 +167,11 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float) -> dic
         edge = roles.get(name, {})
         r.update({k: edge.get("counters", {}).get(k) for k in ("acts", "msg_fresh", "msg_stale", "msg_none")})
         r.update({k: edge.get("gauges", {}).get(k) for k in ("msg_age_p50_ms", "msg_age_p99_ms")})
+    absences = world.get("absences", {})
+    reasons = [f"{name} was missing {a['longest_absence_s']:.1f} s at most (> max_absence_s {max_absence_s:g} s; "
+               f"{a['leaves']} time(s))" for name, a in absences.items() if a["longest_absence_s"] > max_absence_s]
     summary = {"completed": stopped_by is None and bool(world), "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
+               "degraded": bool(reasons), "degraded_reasons": reasons, "absences": absences,
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
                "central": roles.get("central", {}).get("counters", {}),
                "restarts": board.restarts, "chaos": board.chaos_log}

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import secrets
 import shlex
@@ -273,7 +274,13 @@ def _launcher_log(run_dir: Path, max_mb: float) -> logging.Handler:
     h = RotatingFileHandler(run_dir / "logs" / "launcher.log", maxBytes=max(1, int(max_mb * 2**20)), backupCount=2)
     h.setFormatter(logging.Formatter("%(asctime)s launcher %(levelname)s %(name)s: %(message)s"))
     logging.getLogger("hammer.up").addHandler(h)
+    own = logging.getLogger(FILE_ONLY)  # the launcher's own start and stop lines: the file, not the console
+    own.propagate, own.level = False, logging.INFO
+    own.addHandler(h)
     return h
+
+
+FILE_ONLY = "hammer.up.launcher"
 
 
 def _tail(path: Path, lines: int = 3) -> str:
@@ -432,6 +439,9 @@ class Launcher:
         # (A secure run keeps control to the launcher: there env_summary.json on disk says it, below.)
         self.stops = None if self.settings.secure else hub.subscribe(hub.keys.ctl("all"), Control)
         file_log = _launcher_log(self.run_dir, self.settings.log_max_mb)
+        own = logging.getLogger(FILE_ONLY)
+        own.info("launcher started: run %s, pid %d, roles %s, run dir %s", self.settings.run_id, os.getpid(),
+                 ", ".join(s.name for s in self.specs), self.run_dir)
         try:
             for name, cmd in self.external.items():
                 log.warning("external role %s: start it by hand with: %s", name, cmd)
@@ -450,7 +460,9 @@ class Launcher:
         finally:
             self.board.attendance.end()
             self.stop_all(hub)
+            own.info("launcher stopped: %s", "the env host is done" if self.done else "interrupted or failed")
             logging.getLogger("hammer.up").removeHandler(file_log)
+            own.removeHandler(file_log)
             file_log.close()
 
     def wait_alive(self, names: set[str] | None = None) -> None:

@@ -169,4 +169,5 @@ class RealtimeWorld(Role):
                 "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
                 "team_return_mean": self.return_sum / self.episodes if self.episodes else None,
-                "presence": self.presence.counters(), "robots": robots}
+                "presence": self.presence.counters(), "absences": self.presence.absences(),
+                "events": list(self.presence.events), "robots": robots}

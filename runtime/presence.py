@@ -9,10 +9,13 @@ central agent of a fleet each keep one `Presence` of the robots they hear from.
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 
 import numpy as np
+
+EVENTS_KEPT = 200  # the latest leave/rejoin events a summary lists (a fleet that runs for days stays flat)
 
 
 class Presence:
@@ -31,6 +34,10 @@ class Presence:
         self.longest_absence_s = 0.0
         self.checked = None  # when `update` last ran
         self.observer_stalls = 0
+        # per member, for the summary: leaves, and the longest absence so far
+        self.member_leaves = np.zeros(n, np.int64)
+        self.member_longest_s = np.zeros(n)
+        self.events: collections.deque[dict] = collections.deque(maxlen=EVENTS_KEPT)
 
     def seen(self, i: int, t: float) -> None:
         self.last[i] = max(self.last[i], t)
@@ -45,6 +52,9 @@ class Presence:
         self.rejoins += 1
         self.absent_s += gone
         self.longest_absence_s = max(self.longest_absence_s, gone)
+        self.member_longest_s[i] = max(self.member_longest_s[i], gone)
+        self.events.append({"t": round(time.time(), 3), "member": self.names[i], "event": "rejoined",
+                            "absent_s": round(gone, 3)})
         self.log.warning("%s rejoined after %.1f s silent (rejoin %d)", self.names[i], gone, self.rejoins)
 
     def update(self, now: float | None = None) -> np.ndarray:
@@ -63,9 +73,24 @@ class Presence:
             self.present[i] = False
             self.left_at[i] = self.last[i]
             self.leaves += 1
+            self.member_leaves[i] += 1
+            self.events.append({"t": round(time.time(), 3), "member": self.names[i], "event": "missing"})
             self.log.warning("%s missing: nothing from it for %.1f s (leave %d)", self.names[i], now - self.last[i],
                              self.leaves)
         return self.present
+
+    def absences(self, now: float | None = None) -> dict[str, dict]:
+        """Per member that was ever missing: its leaves, its longest absence (one still going counts
+        as far as it has gone), and whether it is missing now. For a summary that names outages."""
+        now = time.monotonic() if now is None else now
+        out = {}
+        for i, name in enumerate(self.names):
+            ongoing = 0.0 if self.present[i] or np.isnan(self.left_at[i]) else now - self.left_at[i]
+            if self.member_leaves[i] or ongoing:
+                out[name] = {"leaves": int(self.member_leaves[i]),
+                             "longest_absence_s": round(max(self.member_longest_s[i], ongoing), 3),
+                             "missing_at_end": bool(ongoing)}
+        return out
 
     def present_count(self) -> int:
         return int(self.present.sum())

@@ -121,13 +121,17 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     is away and on fresh messages otherwise."""
     run = tmp_path / "fleet-run"
     plan = FleetPlan(bundle=bundle, hz=20, seconds=10, hold_s=1.0, missing_after_s=1.0, max_msg_age_s=0.5,
-                     chaos=["pause:local-1@t=2,for=3", "pause:central@t=6,for=2"])
+                     max_absence_s=1.5, chaos=["pause:local-1@t=2,for=3", "pause:central@t=6,for=2"])
     s = run_fleet(plan, run)
     assert s["completed"], s
     assert s == json.loads((run / "summary.json").read_text())
     robots, world = s["robots"], s["world"]
     assert world["ticks"] > 0 and world["presence"]["robot_leaves"] >= 1 and world["presence"]["robot_rejoins"] >= 1
     assert robots["local-1"]["defaults"] > 0
+    # the outage is named: who, how long, and the run is degraded for it (3 s > max_absence_s 1.5 s)
+    assert list(s["absences"]) == ["local-1"] and s["absences"]["local-1"]["longest_absence_s"] > 1.5
+    assert s["degraded"] and "local-1 was missing" in s["degraded_reasons"][0]
+    assert [e["event"] for e in s["world"]["events"] if e["member"] == "local-1"] == ["missing", "rejoined"]
     assert robots["local-0"]["defaults"] == 0 and robots["local-2"]["defaults"] == 0
     for name, r in robots.items():
         assert r["msg_stale"] > 0, name  # the central agent's pause
@@ -142,8 +146,6 @@ def test_the_sdk_loads_no_torch(bundle):
 import sys
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.serve.edge_agent import EdgeAgent
-
-from tests.runtime_helpers import ENV, ROOT, trained_bundle
 port = free_loopback_port()
 with HammerSession("r", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
     with EdgeAgent({str(bundle)!r}, 0, run_id="r", connect=loopback_endpoint(port)) as robot:

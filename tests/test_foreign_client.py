@@ -112,8 +112,8 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
 
     # the same run directory as a plain `hammer up`
     assert sorted(p.name for p in (run / "logs").iterdir()) == [f"{r}.log" for r in
-                                                                 ("central", "env", "learner", "local-0", "local-1",
-                                                                  "local-2")]
+                                                                 ("central", "env", "launcher", "learner", "local-0",
+                                                                  "local-1", "local-2")]
     with open(run / "metrics.csv", newline="") as f:
         assert next(csv.reader(f)) == CSV_HEADER
     assert processes_mentioning(str(run)) == []

@@ -125,7 +125,8 @@ def _targets() -> list[Target]:
                enc(Weights.from_blob("local", 1, rng.bytes(256)))),
         Target(keys.weights("central"), keys.weights("central"), Weights, None, ("central",),
                enc(Weights.from_blob("central", 1, rng.bytes(256)))),
-        Target(keys.ctl("all"), keys.ctl("all"), Control, None, ("env", "central", "learner", *locals_),
+        # the launcher reads ctl/all too: the env host's stop ends its attendance record (deploy/attendance.py)
+        Target(keys.ctl("all"), keys.ctl("all"), Control, None, ("env", "central", "learner", "launcher", *locals_),
                enc(Control(command="stop", target="nobody"))),
         *(Target(keys.heartbeat(r), keys.heartbeat("*"), Heartbeat, None, ("launcher",),
                  enc(Heartbeat(role=r, pid=1, status="running", counters={"steps": 1})))

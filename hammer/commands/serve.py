@@ -183,6 +183,8 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                   f"{'-' if w.get('paper_metric_mean') is None else round(w['paper_metric_mean'], 2)}; per robot control Hz "
                   f"{[r.get('control_hz') for r in s['robots'].values()]}, defaults "
                   f"{[r.get('defaults') for r in s['robots'].values()]}; summary {path}/summary.json", soft_wrap=True)
+    if s["degraded"]:
+        console.print(f"degraded: {'; '.join(s['degraded_reasons'])}", soft_wrap=True)
 
 
 def _listen(listen: list[str] | None) -> list[str]:
