@@ -74,8 +74,9 @@ def test_presence_names_leaves_and_rejoins_and_forgives_its_own_stall(caplog):
 
 def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
     """A robot's act() before the central agent exists (fallback, counted), while it serves (fresh
-    messages, and the central agent's state holds the robot's uplinked observation), and after it
-    stopped (the last message grows stale: fallback)."""
+    messages, and the central agent's state holds the robot's uplinked observation), after it
+    stopped (the last message grows stale: fallback), and when a central agent starts again (fresh
+    again: the robot outlives a server restart without doing anything)."""
     port = free_loopback_port()
     b = load_bundle(bundle)
     cfg = b.config(num_envs=1)
@@ -112,6 +113,18 @@ def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
             time.sleep(0.4)
             robot.act(obs)
             assert not robot.last_fresh and robot.counts.msg_stale >= 1
+            # a central agent started again (a server restart): the same robot is on fresh messages again
+            s = HammerSession("fleet-sdk", TransportConfig(listen=["tcp/127.0.0.1:0"],
+                                                           connect=[loopback_endpoint(port)]), sender="central")
+            with s:
+                again = FleetCentral(s, cfg, b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
+                                     missing_after_s=0.5)
+                t = threading.Thread(target=again.run, daemon=True)
+                t.start()
+                assert _wait(fresh), "the robot did not take up the restarted central agent's messages"
+                assert robot.counts.stale_periods == 1  # one stale period, logged, then fresh again
+                again.stop_reason = "test over"
+                t.join(5)
 
 
 def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_away(bundle, tmp_path):
