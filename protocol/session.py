@@ -123,6 +123,10 @@ class TransportConfig(BaseModel):
 
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
+    lease_ms: int | None = Field(None, ge=500, description="Zenoh's lease: a link silent this long is closed "
+                                                           "(None: Zenoh's 10 s)")
+    reconnect_max_ms: int = Field(RECONNECT["period_max_ms"], ge=100, description="the longest wait between "
+                                                                                  "tries to reach a lost endpoint")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
     security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
@@ -182,8 +186,12 @@ class TransportConfig(BaseModel):
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         if self.connect or self.zenoh_config_file is None:
             cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
-        if self.zenoh_config_file is None:
-            cfg.insert_json5("connect/retry", json.dumps(RECONNECT))
+        if self.zenoh_config_file is None or "reconnect_max_ms" in self.model_fields_set:
+            period = min(RECONNECT["period_init_ms"], self.reconnect_max_ms)
+            cfg.insert_json5("connect/retry", json.dumps({**RECONNECT, "period_init_ms": period,
+                                                          "period_max_ms": self.reconnect_max_ms}))
+        if self.lease_ms is not None:
+            cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
         if self.security is not None:
             self.security.apply(cfg)
         return cfg

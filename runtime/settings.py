@@ -28,7 +28,7 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
            "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
-           "weights_republish_max_s")
+           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s")
 
 
 def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
@@ -132,6 +132,13 @@ class RuntimeSettings(BaseModel):
     trace_max_mb: float = Field(
         512.0, gt=0, description="trace=true: disk the env host's trace may take; beyond it the oldest steps are "
                                  "dropped (trace.npz keeps the latest, its `steps` say which)")
+    zenoh_lease_s: float | None = Field(
+        None, ge=0.5, description="Zenoh's lease: a link silent this long is closed and made anew when it returns "
+                                  "(None: Zenoh's 10 s). Within the lease a link that comes back resumes at once; "
+                                  "past it, reaching the hub again takes about a second more (docs/fleet.md)")
+    reconnect_max_s: float = Field(
+        0.5, ge=0.1, description="the longest wait between tries to reach a lost hub or router (from 0.1 s, "
+                                 "doubling; Zenoh's own default backs off to 4 s)")
     log_max_mb: float = Field(
         10.0, gt=0, description="size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated "
                                 "(<role>.log.1, .2; older ones are deleted)")
@@ -213,28 +220,38 @@ class RuntimeSettings(BaseModel):
 
         return tuple((pool_name(g), tuple(g)) for g in self.agent_groups(n_agents) if len(g) > 1)
 
+    def link(self, transport: TransportConfig) -> TransportConfig:
+        """`transport` with this run's lease and reconnect period (`zenoh_lease_s`, `reconnect_max_s`);
+        a Zenoh config file keeps its own retry periods unless `reconnect_max_s` is set here."""
+        update: dict = {}
+        if self.zenoh_lease_s is not None:
+            update["lease_ms"] = round(self.zenoh_lease_s * 1000)
+        if "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
+            update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
+        return TransportConfig.model_validate({**transport.model_dump(exclude_unset=True), **update})
+
     def transport(self) -> TransportConfig:
         """Each role is a peer connecting to the hub; peers then meet directly (gossip), so the
         step loop has no extra router hop."""
         if self.zenoh_config_file:
-            return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
-        return TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)])
+            return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
+        return self.link(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)]))
 
     def transport_to(self, connect: str) -> TransportConfig:
         """A role joining the hub at `connect` by hand. Beyond loopback it listens on every interface:
         peers meet directly and the hub relays nothing between them, so the run's other roles must be
         able to reach it back (a role listening on its own loopback would hear only the hub)."""
         try:
-            return TransportConfig(listen=["tcp/127.0.0.1:0" if is_loopback_endpoint(connect) else "tcp/0.0.0.0:0"],
-                                   connect=[connect])
+            return self.link(TransportConfig(
+                listen=["tcp/127.0.0.1:0" if is_loopback_endpoint(connect) else "tcp/0.0.0.0:0"], connect=[connect]))
         except ValueError:
             raise ValueError(f"--connect {connect!r}: not a Zenoh endpoint; fix: give the hub's address and port, "
                              "e.g. tcp/192.0.2.1:7447") from None
 
     def hub_transport(self) -> TransportConfig:
         if self.zenoh_config_file:
-            return TransportConfig(zenoh_config_file=Path(self.zenoh_config_file))
-        return TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen])
+            return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
+        return self.link(TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen]))
 
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
                 identity_directory: Path | None = None) -> TransportConfig:

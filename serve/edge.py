@@ -91,7 +91,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
     if connect is None and zenoh_config is None:
         raise ValueError("--bundle needs --connect tcp/<hub>:<port> (or --zenoh-config): where the run's hub listens")
     if zenoh_config is not None:
-        transport = TransportConfig(zenoh_config_file=zenoh_config)
+        transport = settings.link(TransportConfig(zenoh_config_file=zenoh_config))
     else:
         check_endpoint(connect)
         transport = settings.transport_to(connect)  # a hub on this host: stay on loopback

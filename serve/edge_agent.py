@@ -58,12 +58,13 @@ class EdgeAgent:
     message acted on; `fallback`: the team's own (from the bundle) unless given (zeros, last, last_k).
     `connect_retry_s`: how long to keep trying to open a client session whose router is not up yet
     (a peer opens at once and reaches the hub whenever it appears), then ConnectionError.
+    `runtime`: RuntimeSettings items as `hammer local --runtime` takes them (`zenoh_lease_s=30`, ...).
     """
 
     def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
                  max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None,
-                 connect_retry_s: float = 300.0) -> None:
+                 connect_retry_s: float = 300.0, runtime: tuple[str, ...] = ()) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
         from hammer.protocol.dims import Dims
         from hammer.protocol.schemas import CentralMsg
@@ -77,7 +78,7 @@ class EdgeAgent:
         fleet_check(b)
         self.spec, _ = agent_spec(b, agent, seed)
         env = b.env_spec_data
-        self.settings = edge_settings(b, run_id, None, [f"fallback={fallback}"] if fallback else [])
+        self.settings = edge_settings(b, run_id, None, [*runtime, *([f"fallback={fallback}"] if fallback else [])])
         self.transport = edge_transport(self.settings, f"local-{agent}", self.spec.n_agents, connect, zenoh_config,
                                         identity, insecure)
         self.agent, self.max_msg_age_s = agent, max_msg_age_s

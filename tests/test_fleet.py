@@ -192,3 +192,28 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
     assert serve.returncode == 0, out[-2000:]
     s = json.loads((tmp_path / "runs" / "site-a" / "summary.json").read_text())
     assert s["stopped_by"].startswith("interrupted") and "local-0" not in s["restarts"]
+
+
+def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
+    """`zenoh_lease_s` and `reconnect_max_s` reach the Zenoh config of every session a run builds; a
+    --zenoh-config file keeps its own retry periods unless one is set; a bad value names the field."""
+    from hammer.runtime.settings import RuntimeSettings
+    from pydantic import ValidationError
+
+    s = RuntimeSettings(run_id="r", hub_port=free_loopback_port(), zenoh_lease_s=30, reconnect_max_s=0.2)
+    c = s.transport().to_zenoh()
+    assert json.loads(c.get_json("transport/link/tx/lease")) == 30000
+    assert json.loads(c.get_json("connect/retry"))["period_max_ms"] == 200
+    with HammerSession("r", s.hub_transport(), sender="hub"), HammerSession("r", s.transport(), sender="env"):
+        pass  # Zenoh takes them
+    plain = RuntimeSettings(run_id="r", hub_port=7447).hub_transport().to_zenoh()
+    assert json.loads(plain.get_json("transport/link/tx/lease")) == 10000
+    assert json.loads(plain.get_json("connect/retry"))["period_max_ms"] == 500
+    f = tmp_path / "client.json5"
+    f.write_text('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7447"], retry: {period_max_ms: 3000}}}')
+    s2 = RuntimeSettings(run_id="r", zenoh_config_file=str(f))
+    assert json.loads(s2.transport().to_zenoh().get_json("connect/retry"))["period_max_ms"] == 3000
+    s3 = RuntimeSettings(run_id="r", zenoh_config_file=str(f), reconnect_max_s=1.0)
+    assert json.loads(s3.transport().to_zenoh().get_json("connect/retry"))["period_max_ms"] == 1000
+    with pytest.raises(ValidationError, match="reconnect_max_s"):
+        RuntimeSettings(run_id="r", reconnect_max_s=0.01)

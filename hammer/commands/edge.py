@@ -86,7 +86,8 @@ def _robot(a: argparse.Namespace) -> int:
     setup_process(f"local-{a.agent}")
     try:
         agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
-                          identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed)
+                          identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed,
+                          runtime=tuple(a.runtime))
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
