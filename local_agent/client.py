@@ -303,6 +303,8 @@ class LocalAgentClient(AgentSteps, Role):
             return
         self.weights.take(obs.policy_version)
         self.sync_weight_counters()
+        if self.agent.policy is None:  # no version came in time and none is held: no action, the env
+            return  # host's default stands in (counted there and as weights_wait_timeouts here)
         if self.messages is not None:
             msg, fallback_mask = self.message_for(obs)
         else:

@@ -210,6 +210,10 @@ class LocalAgentPool(Role):
         for version in sorted({m.waiting.policy_version for m in members}):
             group = [m for m in members if m.waiting.policy_version == version]
             self.weights.take(version)
+            if self.members[0].agent.policy is None:  # none came in time, none held: no action, the env
+                for m in group:  # host's default stands in (counted there and as weights_wait_timeouts)
+                    m.waiting = None
+                continue
             inputs = []
             for m in group:
                 obs = m.waiting

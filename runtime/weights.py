@@ -46,6 +46,7 @@ class WeightsIntake:
         self._inbox = WeightsInbox(load, version)
         self.loaded = 0  # versions loaded
         self.wait_timeouts = 0  # steps that named a version which did not come in time
+        self.versions_passed = 0  # a (re)started role's first version was gone: it took the next one
 
     @property
     def version(self) -> int:
@@ -81,6 +82,8 @@ class WeightsIntake:
                 self._offer(w)
                 if self._inbox.select(need):
                     self.loaded += 1
+                elif need is not None and self.version < 0 and self._passed(need):
+                    return
                 continue
             if need is None or self.version >= need:
                 return
@@ -90,6 +93,20 @@ class WeightsIntake:
             log.warning("%s policy version %d not received in %.0fs; acting with %d",
                         self.network, need, self.timeout_s, self.version)
             return
+
+    def _passed(self, need: int) -> bool:
+        """A role holding no policy yet (just started or restarted) whose first steps name version
+        `need` while only newer ones arrive: each version is published once (republished only to an
+        idle run), so `need` will never come. Load the oldest newer one rather than wait out the
+        timeout and act without a policy; counted (`versions_passed`) and logged."""
+        newer = [v for v in self._inbox.held if v > need]
+        if not newer or not self._inbox.select(min(newer)):
+            return False
+        self.loaded += 1
+        self.versions_passed += 1
+        log.warning("%s policy version %d is gone (the run is at %d): acting with %d from this step on",
+                    self.network, need, max(newer), self.version)
+        return True
 
     def preload_oldest(self) -> bool:
         """While idle with no policy: load the oldest version held, so the first step is not slowed

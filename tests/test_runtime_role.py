@@ -176,6 +176,29 @@ def test_weights_intake_times_out_on_a_version_that_never_comes(hub_and_role_ses
     assert intake.wait_timeouts == 1
 
 
+def test_a_restarted_role_whose_first_version_is_gone_takes_the_next_one(hub_and_role_session):
+    """A role restarted mid-run holds no policy; its first steps name the version current when it
+    joined, and only newer ones are published after it (each version once). It must not wait out the
+    timeout and then act without a policy (a pool crashed so); a role that holds a policy still waits
+    for exactly the version its step names."""
+    hub, s = hub_and_role_session
+    loads: list[int] = []
+    intake = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=30.0)
+    _settle()
+    _publish_versions(hub, [5, 6])
+    t0 = time.monotonic()
+    intake.take(4)
+    assert time.monotonic() - t0 < 10.0 and intake.version == 5 and loads == [5]
+    assert intake.versions_passed == 1 and intake.wait_timeouts == 0
+    intake.take(6)
+    assert intake.version == 6
+    waiting = WeightsIntake(s, "local", lambda blob, v: loads.append(v), timeout_s=0.5, version=3)
+    _settle()
+    _publish_versions(hub, [5])
+    waiting.take(4)  # holds version 3: never jumps ahead of what the step names
+    assert waiting.version == 3 and waiting.wait_timeouts == 1 and waiting.versions_passed == 0
+
+
 def test_weights_intake_preloads_the_oldest_version_held(hub_and_role_session):
     hub, s = hub_and_role_session
     loads: list[int] = []
