@@ -1,6 +1,7 @@
 """`hammer bench fleet`: a trained team as a realtime fleet across network namespaces, links cut.
 
     hammer bench fleet BUNDLE [--hz 20] [--outages local-0:5,local-0:30,central:5,central:30] (root)
+    hammer bench fleet BUNDLE --soak-minutes 60          (a fleet on loopback: RSS and disk over time)
 
 The hub namespace holds the Zenoh router (`hammer hub`) and the realtime world; the central agent
 and every robot (`hammer local --bundle ... --fleet`, the torch-free SDK path) run in namespaces of
@@ -137,6 +138,46 @@ def _figures(run: Path, n: int, hz: float, events: list[dict]) -> dict:
     return {"hz": hz, "world": world, "outages": out}
 
 
+def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 30.0) -> dict:
+    """A fleet on loopback for `minutes` (`hammer serve --realtime`'s launcher): RSS of every role
+    process and the run directory's disk use every `every_s`, and each one's growth from the end of
+    the first minute to the end."""
+    import threading
+
+    import psutil
+    from hammer.deploy.fleet import FleetPlan, run_fleet
+
+    run = work / f"fleet-soak-{os.getpid()}"
+    samples: list[dict] = []
+    done = threading.Event()
+
+    def sample() -> None:
+        me, t0 = psutil.Process(), time.monotonic()
+        while not done.wait(0 if not samples else every_s):
+            rss = {}
+            for c in me.children(recursive=True):
+                try:
+                    cmd = c.cmdline()
+                    agent = next((cmd[i + 1] for i, a in enumerate(cmd) if a == "--agent"), None)
+                    role = f"local-{agent}" if agent else "world" if "fleet-world" in cmd else "central"
+                    rss[role] = round(c.memory_info().rss / 2**20, 1)
+                except psutil.Error:
+                    pass
+            disk = sum(p.stat().st_size for p in run.rglob("*") if p.is_file()) if run.exists() else 0
+            samples.append({"t": round(time.monotonic() - t0), "rss_mb": rss, "disk_kb": disk // 1024})
+
+    threading.Thread(target=sample, daemon=True).start()
+    try:
+        summary = run_fleet(FleetPlan(bundle=bundle, hz=hz, seconds=minutes * 60), run)
+    finally:
+        done.set()
+    settled = [s for s in samples if s["t"] >= 60 and s["rss_mb"]] or [s for s in samples if s["rss_mb"]]
+    first, last = settled[0], settled[-1]
+    growth = {k: round((last["rss_mb"].get(k, v) - v) / v * 100, 2) for k, v in first["rss_mb"].items()}
+    return {"minutes": minutes, "hz": hz, "world": summary["world"], "samples": samples,
+            "growth_pct_from": first["t"], "growth_pct": growth, "disk_kb": [first["disk_kb"], last["disk_kb"]]}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="hammer bench fleet", description=__doc__.split("\n\n")[0])
     ap.add_argument("bundle", type=Path)
@@ -146,7 +187,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--edge-venv", type=Path, help="The robots' interpreter (a torch-free venv: benchmarks/edge_venv.py).")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-fleet"))
     ap.add_argument("--out", type=Path, help="Write the JSON result here.")
+    ap.add_argument("--soak-minutes", type=float, help="Instead: a fleet on loopback for this long, RSS per "
+                                                       "process and disk every 30 s (no root needed).")
     a = ap.parse_args(argv)
+    if a.soak_minutes:
+        a.work.mkdir(parents=True, exist_ok=True)
+        r = soak(a.bundle, a.work, a.soak_minutes, a.hz)
+        print(f"fleet soak, {a.soak_minutes:g} min at {a.hz:g} Hz: {r['world']['ticks']} ticks "
+              f"({r['world']['ticks_skipped']} skipped), {r['world']['episodes']} episodes; RSS growth from "
+              f"t={r['growth_pct_from']} s to the end: " + ", ".join(f"{k} {v:+.1f} %" for k, v in r["growth_pct"].items())
+              + f"; run directory {r['disk_kb'][0]} -> {r['disk_kb'][1]} kB")
+        if a.out:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps(r, indent=1))
+            print(f"wrote {a.out}")
+        return 0
     try:
         outages = parse_outages(a.outages)
     except ValueError as e:

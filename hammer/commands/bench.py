@@ -422,6 +422,8 @@ def bench_fleet(
     baseline_s: Annotated[float, typer.Option(help="length of the run without outages")] = 30.0,
     edge_venv: Annotated[Path | None, typer.Option(help="the robots' interpreter (a torch-free venv)")] = None,
     out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+    soak_minutes: Annotated[float | None, typer.Option(help="instead: a fleet on loopback this long, RSS per "
+                                                           "process and disk every 30 s (no root)")] = None,
 ) -> None:
     """A realtime fleet across network namespaces (root): each robot, the central agent and the world in
     namespaces of their own; links cut and restored; the healthy robots' control rate during each outage,
@@ -429,7 +431,8 @@ def bench_fleet(
     from hammer.benchmarks.fleet import main
 
     code = main([str(bundle), "--hz", str(hz), "--outages", outages, "--baseline-s", str(baseline_s),
-                 *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else [])])
+                 *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else []),
+                 *(["--soak-minutes", str(soak_minutes)] if soak_minutes else [])])
     if code:
         raise typer.Exit(code)
 
