@@ -148,6 +148,7 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
     from hammer.deploy.fleet import FleetPlan, run_fleet
 
     run = work / f"fleet-soak-{os.getpid()}"
+    every_s = min(every_s, max(1.0, minutes * 60 / 6))  # a short soak still gets a few samples
     samples: list[dict] = []
     done = threading.Event()
 
@@ -172,6 +173,8 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
     finally:
         done.set()
     settled = [s for s in samples if s["t"] >= 60 and s["rss_mb"]] or [s for s in samples if s["rss_mb"]]
+    if not settled:
+        raise RuntimeError(f"no process sampled in {minutes:g} min (logs: {run / 'logs'})")
     first, last = settled[0], settled[-1]
     growth = {k: round((last["rss_mb"].get(k, v) - v) / v * 100, 2) for k, v in first["rss_mb"].items()}
     return {"minutes": minutes, "hz": hz, "world": summary["world"], "samples": samples,

@@ -217,3 +217,14 @@ def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
     assert json.loads(s3.transport().to_zenoh().get_json("connect/retry"))["period_max_ms"] == 1000
     with pytest.raises(ValidationError, match="reconnect_max_s"):
         RuntimeSettings(run_id="r", reconnect_max_s=0.01)
+
+
+def test_the_fleet_soak_bench_samples_every_process(bundle, tmp_path, capsys):
+    from hammer.benchmarks.fleet import main
+
+    out = tmp_path / "soak.json"
+    assert main([str(bundle), "--soak-minutes", "0.3", "--work", str(tmp_path), "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert set(r["growth_pct"]) == {"world", "central", "local-0", "local-1", "local-2"}
+    assert r["world"]["ticks"] > 0 and len(r["samples"]) >= 1
+    assert "RSS growth" in capsys.readouterr().out
