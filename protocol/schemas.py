@@ -305,18 +305,25 @@ class Action(Message):
         self._check_agent(self.agent, dims)
         if self.msg is not None:
             expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
-        if dims.discrete is not None and dims.discrete != self.discrete:
-            want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
-            raise ShapeError(f"actions must be {want}, got {self.action.dtype} {self.action.shape}", "action")
-        if dims.action_dim is None:
-            return
-        if self.discrete:
-            if self.action.size:
-                lo, hi = min_max(self.action)
-                if lo < 0 or hi >= dims.action_dim:
-                    raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
-        else:
-            expect("action", "action vector length", self.action.shape[1], dims.action_dim)
+        check_actions(self.action, dims)
+
+
+def check_actions(action: np.ndarray, dims: Dims) -> None:
+    """An `action` field against declared dims (an action's, an uplink's): ids or vectors as declared,
+    ids within the action count, vectors of the declared length."""
+    discrete = action.dtype == np.int64
+    if dims.discrete is not None and dims.discrete != discrete:
+        want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
+        raise ShapeError(f"actions must be {want}, got {action.dtype} {action.shape}", "action")
+    if dims.action_dim is None:
+        return
+    if discrete:
+        if action.size:
+            lo, hi = min_max(action)
+            if lo < 0 or hi >= dims.action_dim:
+                raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
+    else:
+        expect("action", "action vector length", action.shape[1], dims.action_dim)
 
 
 ArrayName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$")]
@@ -452,18 +459,8 @@ class Uplink(Message):
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
         expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
-        if self.action is None:
-            return
-        if dims.discrete is not None and dims.discrete != (self.action.dtype == np.int64):
-            raise ShapeError(f"actions must be {'(K,) int64 ids' if dims.discrete else '(K, A) float32 vectors'}, "
-                             f"got {self.action.dtype} {self.action.shape}", "action")
-        if dims.action_dim is not None and self.action.size:
-            if self.action.dtype == np.int64:
-                lo, hi = min_max(self.action)
-                if lo < 0 or hi >= dims.action_dim:
-                    raise RangeError(f"action ids must be in [0, {dims.action_dim})", "action")
-            else:
-                expect("action", "action vector length", self.action.shape[1], dims.action_dim)
+        if self.action is not None:
+            check_actions(self.action, dims)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -6,6 +6,7 @@ on what (defaults, fallbacks, fresh messages) and that outages are named."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import re
@@ -72,6 +73,24 @@ def test_presence_names_leaves_and_rejoins_and_forgives_its_own_stall(caplog):
     assert "local-1 missing" in text and "local-1 rejoined after 2.0 s silent (rejoin 1)" in text
 
 
+@contextlib.contextmanager
+def _central_agent(port: int, b, bundle):
+    """A fleet's central agent (50 Hz) in a thread of this process, with a session of its own."""
+    s = HammerSession("fleet-sdk", TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)]),
+                      sender="central")
+    with s:
+        central = FleetCentral(s, b.config(num_envs=1), b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
+                               missing_after_s=0.5)
+        t = threading.Thread(target=central.run, daemon=True)
+        t.start()
+        try:
+            yield central
+        finally:
+            central.stop_reason = "test over"
+            t.join(5)
+        assert not t.is_alive()
+
+
 def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
     """A robot's act() before the central agent exists (fallback, counted), while it serves (fresh
     messages, and the central agent's state holds the robot's uplinked observation), after it
@@ -79,7 +98,6 @@ def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
     again: the robot outlives a server restart without doing anything)."""
     port = free_loopback_port()
     b = load_bundle(bundle)
-    cfg = b.config(num_envs=1)
     with HammerSession("fleet-sdk", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
         robot = EdgeAgent(bundle, 1, run_id="fleet-sdk", connect=loopback_endpoint(port), max_msg_age_s=0.3)
         with robot:
@@ -91,40 +109,22 @@ def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
                 robot.act(np.zeros(5))
             with pytest.raises(ValueError, match="NaN"):
                 robot.act(np.full(robot.obs_dim, np.nan))
-            s = HammerSession("fleet-sdk", TransportConfig(listen=["tcp/127.0.0.1:0"],
-                                                           connect=[loopback_endpoint(port)]), sender="central")
-            with s:
-                central = FleetCentral(s, cfg, b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
-                                       missing_after_s=0.5)
-                t = threading.Thread(target=central.run, daemon=True)
-                t.start()
+            def fresh():
+                robot.act(obs)
+                return robot.last_fresh
 
-                def fresh():
-                    robot.act(obs)
-                    return robot.last_fresh
-
+            with _central_agent(port, b, bundle) as central:
                 assert _wait(fresh), "no fresh central message reached the robot"
                 assert _wait(lambda: np.array_equal(central.obs[0, 1], obs))
                 assert central.presence.joins == 1 and central.uplinks.stats.rejected_total == 0
                 assert robot.counts.msg_fresh >= 1 and robot.counts.msgs_received >= 1
-                central.stop_reason = "test over"
-                t.join(5)
-                assert not t.is_alive()
             time.sleep(0.4)
             robot.act(obs)
             assert not robot.last_fresh and robot.counts.msg_stale >= 1
             # a central agent started again (a server restart): the same robot is on fresh messages again
-            s = HammerSession("fleet-sdk", TransportConfig(listen=["tcp/127.0.0.1:0"],
-                                                           connect=[loopback_endpoint(port)]), sender="central")
-            with s:
-                again = FleetCentral(s, cfg, b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
-                                     missing_after_s=0.5)
-                t = threading.Thread(target=again.run, daemon=True)
-                t.start()
+            with _central_agent(port, b, bundle):
                 assert _wait(fresh), "the robot did not take up the restarted central agent's messages"
                 assert robot.counts.stale_periods == 1  # one stale period, logged, then fresh again
-                again.stop_reason = "test over"
-                t.join(5)
 
 
 def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_away(bundle, tmp_path):
