@@ -133,7 +133,7 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     missing and back; the others never do; every robot acts on its fallback while the central agent
     is away and on fresh messages otherwise."""
     run = tmp_path / "fleet-run"
-    plan = FleetPlan(bundle=bundle, hz=20, seconds=10, hold_s=1.0, missing_after_s=1.0, max_msg_age_s=0.5,
+    plan = FleetPlan(bundle=bundle, hz=20, seconds=10, hold_s=2.0, missing_after_s=2.0, max_msg_age_s=0.5,
                      max_absence_s=1.5, chaos=["pause:local-1@t=2,for=3", "pause:central@t=6,for=2"])
     s = run_fleet(plan, run)
     assert s["completed"], s
