@@ -160,8 +160,10 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
                 try:
                     cmd = c.cmdline()
                     agent = next((cmd[i + 1] for i, a in enumerate(cmd) if a == "--agent"), None)
-                    role = f"local-{agent}" if agent else "world" if "fleet-world" in cmd else "central"
-                    rss[role] = round(c.memory_info().rss / 2**20, 1)
+                    role = (f"local-{agent}" if agent else "world" if "fleet-world" in cmd
+                            else "central" if "fleet-central" in cmd else None)
+                    if role is not None:  # not a child still starting (its command line is ours until exec)
+                        rss[role] = round(c.memory_info().rss / 2**20, 1)
                 except psutil.Error:
                     pass
             disk = sum(p.stat().st_size for p in run.rglob("*") if p.is_file()) if run.exists() else 0
@@ -175,7 +177,10 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
     settled = [s for s in samples if s["t"] >= 60 and s["rss_mb"]] or [s for s in samples if s["rss_mb"]]
     if not settled:
         raise RuntimeError(f"no process sampled in {minutes:g} min (logs: {run / 'logs'})")
-    first, last = settled[0], settled[-1]
+    # the samples with every role up (not one starting, nor the end, when the world has exited first)
+    full = max(len(s["rss_mb"]) for s in settled)
+    whole = [s for s in settled if len(s["rss_mb"]) == full]
+    first, last = whole[0], whole[-1]
     growth = {k: round((last["rss_mb"].get(k, v) - v) / v * 100, 2) for k, v in first["rss_mb"].items()}
     return {"minutes": minutes, "hz": hz, "world": summary["world"], "samples": samples,
             "growth_pct_from": first["t"], "growth_pct": growth, "disk_kb": [first["disk_kb"], last["disk_kb"]]}
