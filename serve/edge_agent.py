@@ -1,7 +1,7 @@
 """The robot-side SDK: one local agent of a trained team inside a robot's own control loop.
 
     from hammer.edge import EdgeAgent
-    with EdgeAgent("bundles/cn3", agent=1, run_id="site-a", connect="tcp/10.0.0.1:7447") as robot:
+    with EdgeAgent("bundles/cn3", agent=1, run_id="site-a", connect="tcp/192.0.2.1:7447", insecure=True) as robot:
         while running:
             action = robot.act(read_sensors())   # never waits on the network
             drive(action)
