@@ -34,14 +34,18 @@ GAP_S = 10.0  # between outages, and before the first: the fleet settles
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 
 
-def parse_outages(text: str) -> list[tuple[str, float]]:
-    """`local-0:5,central:30` -> [("local-0", 5.0), ("central", 30.0)]."""
+def parse_outages(text: str) -> list[tuple[str, float, str]]:
+    """`local-0:5,central:30@robot` -> [("local-0", 5.0, "hub"), ("central", 30.0, "robot")]: the link,
+    how long it is down, and which end is taken down: `hub` (default), a cut beyond the robot (its own
+    interface stays up, as when a switch or access point fails), or `robot`, its own interface (as
+    when it drives out of range)."""
     out = []
     for item in filter(None, (x.strip() for x in text.split(","))):
-        link, _, secs = item.partition(":")
-        if not re.fullmatch(r"local-\d+|central", link) or not secs:
-            raise ValueError(f"--outages {item!r}: expected LINK:SECONDS with LINK local-<i> or central")
-        out.append((link, float(secs)))
+        spec, _, side = item.partition("@")
+        link, _, secs = spec.partition(":")
+        if not re.fullmatch(r"local-\d+|central", link) or not secs or side not in ("", "hub", "robot"):
+            raise ValueError(f"--outages {item!r}: expected LINK:SECONDS[@hub|@robot] with LINK local-<i> or central")
+        out.append((link, float(secs), side or "hub"))
     return out
 
 
@@ -65,14 +69,17 @@ def _rates(timeline: list[dict], t0: float, t1: float) -> list[float] | None:
     return [round((fb - fa) / dt, 2) for fa, fb in zip(a["fresh"], b["fresh"], strict=True)]
 
 
-def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float]], hz: float, tag: str,
-              edge_python: Path | None = None, seconds: float | None = None) -> dict:
-    """One fleet across namespaces with `outages` one after another; returns its figures."""
+def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], hz: float, tag: str,
+              edge_python: Path | None = None, seconds: float | None = None,
+              neigh_retrans_ms: int | None = None) -> dict:
+    """One fleet across namespaces with `outages` one after another; returns its figures.
+    `neigh_retrans_ms`: the kernel's neighbour (ARP) retransmission timer on the robots' and the
+    central agent's interfaces, 1000 ms unless set (see main's --neigh-retrans-ms)."""
     from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle)
     n = int(b.env_spec_data["n_agents"])
-    total = seconds or GAP_S + sum(s + GAP_S for _, s in outages)
+    total = seconds or GAP_S + sum(s + GAP_S for _, s, _ in outages)
     run = work / f"fleet-{tag}"
     run.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-P", "-m", "hammer.cli"]
@@ -81,6 +88,10 @@ def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float]], hz: fl
     procs = Procs(run)
     events: list[dict] = []
     with topology(n, tag, central=True) as top:
+        if neigh_retrans_ms is not None:
+            for ns, dev in top.far.values():
+                subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-qw",
+                                f"net.ipv4.neigh.{dev}.retrans_time_ms={neigh_retrans_ms}"], check=True, timeout=10)
         try:
             hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}", "--insecure"], "hub.log")
             _wait_for("the hub listening", lambda: b"listening" in (run / "hub.log").read_bytes(), 30, [hub])
@@ -100,14 +111,14 @@ def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float]], hz: fl
             _wait_for("the world's clock", lambda: b"world clock starts" in (run / "env.log").read_bytes(), 90,
                       [world])
             start = time.time()
-            for link, secs in outages:
+            for link, secs, side in outages:
                 time.sleep(max(0.0, start + GAP_S - time.time()))
-                dev = top.links[link][0]
+                ns, dev = (top.hub, top.links[link][0]) if side == "hub" else top.far[link]
                 down = time.time()
-                subprocess.run(["ip", "-n", top.hub, "link", "set", dev, "down"], check=True, timeout=10)
+                subprocess.run(["ip", "-n", ns, "link", "set", dev, "down"], check=True, timeout=10)
                 time.sleep(secs)
-                subprocess.run(["ip", "-n", top.hub, "link", "set", dev, "up"], check=True, timeout=10)
-                events.append({"link": link, "seconds": secs, "down": down, "up": time.time()})
+                subprocess.run(["ip", "-n", ns, "link", "set", dev, "up"], check=True, timeout=10)
+                events.append({"link": link, "side": side, "seconds": secs, "down": down, "up": time.time()})
                 start = time.time()
             world.wait(timeout=total + 60)
         finally:
@@ -129,7 +140,7 @@ def _figures(run: Path, n: int, hz: float, events: list[dict]) -> dict:
         heard = [min((t for t in _log_times(run / "env.log", f"{r} rejoined") if t >= e["up"]), default=None)
                  for r in robots] if cut else []
         out.append({
-            "link": e["link"], "seconds": e["seconds"],
+            "link": e["link"], "side": e["side"], "seconds": e["seconds"],
             "healthy_control_hz_during": None if during is None else [during[i] for i in healthy],
             "healthy_control_fraction_during": None if during is None else round(min(during[i] for i in healthy) / hz, 3),
             "control_hz_after": after,
@@ -190,7 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="hammer bench fleet", description=__doc__.split("\n\n")[0])
     ap.add_argument("bundle", type=Path)
     ap.add_argument("--hz", type=float, default=20.0)
-    ap.add_argument("--outages", default="local-0:5,local-0:30,central:5,central:30")
+    ap.add_argument("--outages", default="local-0:5,local-0:30,local-0:30@robot,central:5,central:30",
+                    help="LINK:SECONDS[@hub|@robot], comma-separated: the link's hub end (a cut beyond the "
+                         "robot) or the robot's own interface is taken down.")
+    ap.add_argument("--neigh-retrans-ms", type=int, help="The kernel's neighbour (ARP) retransmission timer "
+                    "on the robots' and the central agent's interfaces (Linux default 1000 ms).")
     ap.add_argument("--baseline-s", type=float, default=30.0, help="Length of the run without outages.")
     ap.add_argument("--edge-venv", type=Path, help="The robots' interpreter (a torch-free venv: benchmarks/edge_venv.py).")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-fleet"))
@@ -222,17 +237,18 @@ def main(argv: list[str] | None = None) -> int:
     tag = str(os.getpid() % 10000)
     try:
         base = fleet_run(a.bundle, a.work, [], a.hz, f"{tag}b", a.edge_venv, seconds=a.baseline_s)
-        cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv)
+        cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv, neigh_retrans_ms=a.neigh_retrans_ms)
     except NetnsUnavailable as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    result = {"bundle": str(a.bundle), "hz": a.hz, "baseline": base["world"], "with_outages": cut}
+    result = {"bundle": str(a.bundle), "hz": a.hz, "neigh_retrans_ms": a.neigh_retrans_ms,
+              "baseline": base["world"], "with_outages": cut}
     b_metric, c_metric = base["world"].get("paper_metric_mean"), cut["world"].get("paper_metric_mean")
     print(f"fleet at {a.hz:g} Hz, {base['world']['seconds']:.0f} s without outages: paper metric "
           f"{b_metric if b_metric is None else round(b_metric, 2)}, control Hz per robot "
           f"{[r['control_hz'] for r in base['world']['robots'].values()]}")
     for o in cut["outages"]:
-        print(f"  {o['link']} down {o['seconds']:g} s: healthy robots {o['healthy_control_hz_during']} Hz during "
+        print(f"  {o['link']} down {o['seconds']:g} s ({o['side']} end): healthy robots {o['healthy_control_hz_during']} Hz during "
               f"({o['healthy_control_fraction_during']} of nominal), fresh messages "
               f"{o['fresh_messages_s_after_return']} s after the link returned, world hears the robot "
               f"{o['world_hears_robot_s_after_return']} s after")

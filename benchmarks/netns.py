@@ -48,17 +48,24 @@ def _ip(*args: str, ns: str | None = None) -> str:
 
 @dataclass
 class Topology:
-    """The namespaces of one run and its links: link name (local-<i>, central) -> (hub-side veth, hub address)."""
+    """The namespaces of one run and its links: link name (local-<i>, central) -> (hub-side veth, hub
+    address); `far`: link name -> (namespace, veth) of its other end, the robot's own interface."""
 
     hub: str
     agents: list[str]
     central: str | None
     links: dict[str, tuple[str, str]] = field(default_factory=dict)
+    far: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+
+def _veth_names(tag: str, net: int) -> tuple[str, str]:
+    """The hub-side and far-side names of the veth pair of subnet `net` (15 characters at most)."""
+    return f"h{tag}{net}"[:15], f"a{tag}{net}"[:15]
 
 
 def _veth(tag: str, net: int, hub: str, ns: str, rate_kbit: int) -> tuple[str, str]:
     """A veth pair hub <-> ns with 10.213.<net>.1 (hub side) / .2 and an optional tbf both ways."""
-    h, a = f"h{tag}{net}"[:15], f"a{tag}{net}"[:15]
+    h, a = _veth_names(tag, net)
     _ip("link", "add", h, "netns", hub, "type", "veth", "peer", "name", a, "netns", ns)
     _ip("addr", "add", f"10.213.{net}.1/30", "dev", h, ns=hub)
     _ip("addr", "add", f"10.213.{net}.2/30", "dev", a, ns=ns)
@@ -86,8 +93,10 @@ def topology(n_agents: int, tag: str, rate_kbit: int = 0, central: bool = False)
             _ip("link", "set", "lo", "up", ns=ns)
         for i, ns in enumerate(top.agents):
             top.links[f"local-{i}"] = _veth(tag, i, top.hub, ns, rate_kbit if i == 0 else 0)
+            top.far[f"local-{i}"] = (ns, _veth_names(tag, i)[1])
         if central:
             top.links["central"] = _veth(tag, CENTRAL_NET, top.hub, top.central, 0)
+            top.far["central"] = (top.central, _veth_names(tag, CENTRAL_NET)[1])
         yield top
     finally:
         for ns in reversed(made):

@@ -50,7 +50,8 @@ class FleetPlan:
     hub_port: int = 0
     listen: list[str] = field(default_factory=list)  # more endpoints for the hub (robots on other machines)
     external: list[int] = field(default_factory=list)  # robots started elsewhere (the SDK, `hammer local --fleet`)
-    insecure: bool = False  # accept plain traffic beyond loopback (a fleet has no secure profile yet)
+    secure: bool = False  # mutual TLS with the run's identities (RUN/identity/) and per-role access rules
+    insecure: bool = False  # accept plain traffic beyond loopback (on a network you trust)
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
 
     def check(self) -> None:
@@ -59,11 +60,18 @@ class FleetPlan:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
         if self.seconds is None and self.episodes is None:
             raise ValueError("a fleet run needs an end: seconds or episodes")
+        if self.secure and self.insecure:
+            raise ValueError("secure and insecure contradict each other: pass one of --secure, --insecure")
 
 
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
                run_dir: Path) -> list[RoleSpec]:
+    """Each role's command; in a secure fleet each reads its own identity from RUN/identity/ (a role
+    on another machine gets a copy of its three files) and makes `connect` a TLS endpoint."""
+    from hammer.protocol.identity import identity_dir
+
     common = ["--bundle", str(plan.bundle), "--run-id", run_id, "--connect", connect,
+              *(["--identity", str(identity_dir(run_dir))] if plan.secure else []),
               *(["--seed", str(plan.seed)] if plan.seed is not None else [])]
     specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
                               "--run-dir", str(run_dir),
@@ -95,16 +103,21 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
         raise ValueError(f"external robots {plan.external}: this team has robots 0..{n - 1}")
     connect = loopback_endpoint(plan.hub_port or free_loopback_port())
     hub_transport = TransportConfig(listen=[connect, *plan.listen])
-    refuse_plain_beyond_loopback(hub_transport, False, plan.insecure,
-                                 fix="--insecure on a network you trust (a fleet has no secure profile yet)")
+    refuse_plain_beyond_loopback(hub_transport, plan.secure, plan.insecure)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     run_id = run_dir.name
+    if plan.secure:
+        from hammer.deploy.up import secure_identities
+        from hammer.runtime.settings import RuntimeSettings
+
+        hub_transport = secure_identities(n, RuntimeSettings(run_id=run_id, secure=True), run_dir, hub_transport,
+                                          fresh=True)
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
     (run_dir / "fleet.json").write_text(json.dumps({
-        "bundle": str(plan.bundle), "run_id": run_id, "hub": connect, "plan": {**plan.__dict__, "bundle": str(plan.bundle)},
+        "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0], "plan": {**plan.__dict__, "bundle": str(plan.bundle)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs}}, indent=1))
     board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs})
     sup = Supervisor(run_dir / "logs")

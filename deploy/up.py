@@ -367,7 +367,7 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
     except ValueError as e:
         raise UpError(str(e)) from None
     if settings.secure:
-        hub_transport = _secure_identities(cfg, settings, run_dir, hub_transport, fresh=not resume)
+        hub_transport = secure_identities(cfg.n_agents, settings, run_dir, hub_transport, fresh=not resume)
     launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings)
     stopped_by = None
     try:
@@ -568,21 +568,21 @@ class Launcher:
         self.own_rejections = self.rejection_counters(hub)
 
 
-def _secure_identities(cfg, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
-    """A secure run: a new CA and role identities in RUN/identity/ (kept on resume, so remote roles
-    keep the files they were given), and RUN/access_control.json, the rules every process applies
-    (a client in another language inserts it into its Zenoh config; docs/wire-format.md). Returns
-    the launcher's own secured transport."""
+def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
+    """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
+    RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
+    RUN/access_control.json, the rules every process applies (a client in another language inserts
+    it into its Zenoh config; docs/wire-format.md). Returns the launcher's own secured transport."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
     from hammer.protocol.identity import create_identities, has_identities, identity_dir
     from hammer.protocol.keys import Keys
 
-    roles = role_names(cfg.n_agents, pools=settings.pools(cfg.n_agents), router=settings.secure_hub)
+    roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub)
     if fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
-    rules = access_control(Keys(settings.run_id), cfg.n_agents, settings.pools(cfg.n_agents), router=settings.secure_hub)
+    rules = access_control(Keys(settings.run_id), n_agents, settings.pools(n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
-    return settings.secured(hub_transport, LAUNCHER, run_dir, cfg.n_agents)
+    return settings.secured(hub_transport, LAUNCHER, run_dir, n_agents)
 
 
 def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str, int] | None = None):

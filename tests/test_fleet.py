@@ -154,6 +154,60 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     assert "local-0 missing" not in env_log and "local-2 missing" not in env_log
 
 
+def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, tmp_path):
+    """`hammer serve --realtime --secure`: every role on mutual TLS with its own identity and the run's
+    access rules. Robot 0 is external and never starts; a hostile peer holding robot 1's stolen
+    identity joins the fleet's hub and floods uplinks and actions for robot 0 (well formed, each
+    stamped as robot 0's) while listening for robot 0's and robot 1's central messages. It gets robot
+    1's messages (it is linked in: a stolen key does its robot's job), never robot 0's; neither the
+    world nor the central agent ever hears of robot 0."""
+    from hammer.protocol.identity import identity_dir
+    from hammer.protocol.schemas import Action, CentralMsg
+    from hammer.runtime.settings import RuntimeSettings
+
+    b = load_bundle(bundle)
+    n, obs_dim = b.env_spec_data["n_agents"], b.env_spec_data["obs_dim"]
+    run = tmp_path / "fleet-secure"
+    plan = FleetPlan(bundle=bundle, hz=20, seconds=10, secure=True, external=[0], max_absence_s=60)
+    got, out = {0: 0, 1: 0}, {"sent": 0}
+
+    def thief() -> None:  # the launcher takes the main thread (it handles SIGTERM)
+        assert _wait(lambda: (run / "fleet.json").is_file(), 60), "the fleet did not start"
+        fleet = json.loads((run / "fleet.json").read_text())
+        out["fleet"] = fleet
+        stolen = RuntimeSettings(run_id=run.name, secure=True).secured(
+            TransportConfig(listen=["tcp/127.0.0.1:0"], connect=["tcp/" + fleet["hub"].split("/", 1)[1]]),
+            "local-1", None, n, identity_directory=identity_dir(run))
+        with HammerSession(run.name, stolen, sender="local-1") as s:
+            k = s.keys
+            msgs = {i: s.subscribe(k.msg(i), CentralMsg) for i in (0, 1)}
+            up0, act0 = s.publisher(k.up(0), block=False), s.publisher(k.act(0), block=False)
+            one = np.zeros(1, np.int64)
+            end = time.monotonic() + 6
+            while time.monotonic() < end:
+                up0.publish(Uplink(agent=0, env_idx=one, obs=np.ones((1, obs_dim), np.float32), action=one))
+                act0.publish(Action(step=0, env_idx=one, agent=0, action=one, fallback=np.array([False])))
+                out["sent"] += 1
+                for i in (0, 1):
+                    got[i] += len(msgs[i].drain())
+                time.sleep(0.02)
+
+    t = threading.Thread(target=thief, daemon=True)
+    t.start()
+    s = run_fleet(plan, run)
+    t.join(30)
+    fleet = out["fleet"]
+    assert fleet["hub"].startswith("tls/127.0.0.1:") and "--identity" in fleet["commands"]["local-1"]
+    sent = out["sent"]
+    assert sent > 100 and got[1] > 0, (sent, got)  # linked in and doing robot 1's job
+    assert got[0] == 0
+    robots = s["robots"]
+    assert robots["local-0"]["applied"] == 0 and robots["local-0"]["defaults"] > 0, robots["local-0"]
+    assert robots["local-1"]["fresh"] > 0 and robots["local-1"]["msg_fresh"] > 0
+    assert s["world"]["presence"]["robot_joins"] == n - 1, s["world"]  # the world never heard robot 0 ...
+    assert s["central"]["robot_joins"] == n - 1, s["central"]  # ... nor did the central agent
+
+
 def test_the_sdk_loads_no_torch(bundle):
     code = f"""
 import sys

@@ -417,8 +417,13 @@ def bench_soak(
 def bench_fleet(
     bundle: Annotated[Path, typer.Argument(help="A trained team (`hammer export`) that can run as a fleet (cn, mw).")],
     hz: Annotated[float, typer.Option(min=0.1, help="the world's and the central agent's rate")] = 20.0,
-    outages: Annotated[str, typer.Option(help="links cut one after another, LINK:SECONDS, LINK local-<i> or central")
-                       ] = "local-0:5,local-0:30,central:5,central:30",
+    outages: Annotated[str | None, typer.Option(
+        help="links cut one after another, LINK:SECONDS with LINK local-<i> or central; LINK:SECONDS@robot takes "
+             "the robot's own interface down instead of the hub's end (a cut beyond the robot); default "
+             "local-0:5,local-0:30,local-0:30@robot,central:5,central:30")] = None,
+    neigh_retrans_ms: Annotated[int | None, typer.Option(
+        help="the kernel's neighbour (ARP) retransmission timer on the robots' and the central agent's "
+             "interfaces (Linux default 1000 ms)")] = None,
     baseline_s: Annotated[float, typer.Option(help="length of the run without outages")] = 30.0,
     edge_venv: Annotated[Path | None, typer.Option(help="the robots' interpreter (a torch-free venv)")] = None,
     out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
@@ -430,7 +435,9 @@ def bench_fleet(
     the time to fresh messages after it, defaults, and the paper metric against no outage (docs/fleet.md)."""
     from hammer.benchmarks.fleet import main
 
-    code = main([str(bundle), "--hz", str(hz), "--outages", outages, "--baseline-s", str(baseline_s),
+    code = main([str(bundle), "--hz", str(hz), *(["--outages", outages] if outages else []),
+                 *(["--neigh-retrans-ms", str(neigh_retrans_ms)] if neigh_retrans_ms is not None else []),
+                 "--baseline-s", str(baseline_s),
                  *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else []),
                  *(["--soak-minutes", str(soak_minutes)] if soak_minutes else [])])
     if code:

@@ -23,6 +23,8 @@ ZenohOpt = Annotated[Path | None, typer.Option("--zenoh-config", help="A Zenoh J
                                                                         "(client of a router, across machines).")]
 HzOpt = Annotated[float, typer.Option("--hz", help="Ticks per second.")]
 SeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed (default: the team's training seed).")]
+IdentityOpt = Annotated[Path | None, typer.Option("--identity", help="A secure fleet: the directory with ca.pem and "
+                                                                      "this role's <role>.pem, <role>.key (RUN/identity/).")]
 
 
 def register(app: typer.Typer) -> None:
@@ -31,27 +33,21 @@ def register(app: typer.Typer) -> None:
 
 
 def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
-          insecure: bool):
-    """The bundle, the team's config at K = 1, and this role's transport (a peer connecting to the
-    fleet's hub; plain beyond loopback only with --insecure: the secure profile is not built for
-    fleets yet)."""
-    from hammer.protocol.session import TransportConfig, is_loopback_endpoint
-    from hammer.runtime.settings import refuse_plain_beyond_loopback
+          insecure: bool, identity: Path | None, role: str):
+    """The bundle, the team's config at K = 1, and this role's transport: a peer connecting to the
+    fleet's hub as the robots do (serve/edge.py), TLS with the role's identity in a secure fleet,
+    plain beyond loopback only with --insecure."""
     from hammer.serve.bundle import load_bundle
+    from hammer.serve.edge import edge_settings, edge_transport
     from hammer.serve.edge_agent import fleet_check
 
     b = load_bundle(bundle)
     fleet_check(b)
     cfg = b.config(num_envs=1, **({} if seed is None else {"seed": seed}))
-    if zenoh_config is not None:
-        transport = TransportConfig(zenoh_config_file=zenoh_config)
-    elif connect is None:
+    if connect is None and zenoh_config is None:
         raise ValueError("--connect tcp/<hub>:<port> or --zenoh-config FILE: where the fleet's hub is")
-    else:
-        local = is_loopback_endpoint(connect)
-        transport = TransportConfig(listen=["tcp/127.0.0.1:0" if local else "tcp/0.0.0.0:0"], connect=[connect])
-    refuse_plain_beyond_loopback(transport, False, insecure, fix="--insecure on a network you trust (a fleet "
-                                                                  "has no secure profile yet)")
+    transport = edge_transport(edge_settings(b, run_id, None, []), role, cfg.n_agents, connect, zenoh_config,
+                               identity, insecure)
     return b, cfg, transport, run_id
 
 
@@ -64,7 +60,7 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   run_dir: Annotated[Path | None, typer.Option(help="Where world.json goes.")] = None,
                   timeline: Annotated[Path | None, typer.Option(help="Append a JSON line a second: per-robot "
                                                                      "totals (for benches).")] = None,
-                  seed: SeedOpt = None, insecure: InsecureOpt = False) -> None:
+                  seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     from hammer.env_host.world import RealtimeWorld
@@ -72,8 +68,8 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     from hammer.protocol.session import HammerSession
 
     try:
-        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure)
-    except ValueError as e:
+        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env")
+    except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     world = None
     try:
@@ -91,7 +87,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                     hz: HzOpt = 20.0,
                     missing_after_s: Annotated[float, typer.Option(help="A robot silent this long is missing "
                                                                        "(zeros in the state).")] = 0.5,
-                    seed: SeedOpt = None, insecure: InsecureOpt = False) -> None:
+                    seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
     from hammer.central_agent.fleet import FleetCentral
@@ -99,9 +95,9 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     from hammer.serve.bundle import CENTRAL
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure)
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "central")
         blob = (b.path / CENTRAL).read_bytes() if (b.path / CENTRAL).is_file() else None
-    except ValueError as e:
+    except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     try:
         with HammerSession(run_id, transport, sender="central") as s:

@@ -145,7 +145,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     from hammer.serve.bundle import BundleError
 
     refused = ((fault, "--fault (link faults are a lock-stepped run's; cut a link instead: hammer bench fleet)"),
-               (runtime, "--runtime"), (secure, "--secure (a fleet has no secure profile yet)"),
+               (runtime, "--runtime"),
                (num_envs, "--num-envs (a fleet is one world, K=1)"))
     for given, what in refused:
         if given:
@@ -156,7 +156,8 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         fail(f"--external {external!r}: with --realtime, robot indices only, e.g. 0,2")
     path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
-                     seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, insecure=insecure)
+                     seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
+                     insecure=insecure)
     last = [0.0]
 
     def tick(board, t: float) -> None:
@@ -171,8 +172,10 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
 
     console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json)")
     for i in robots:
+        who = (f"--identity <a copy of ca.pem, local-{i}.pem, local-{i}.key from {path}/identity>" if secure
+               else "")
         console.print(f"waiting for robot {i}: hammer local --bundle {bundle} --agent {i} --run-id {path.name} "
-                      f"--connect <this run's hub> --fleet (or hammer.edge.EdgeAgent)", soft_wrap=True)
+                      f"--connect <this run's hub> {who} --fleet (or hammer.edge.EdgeAgent)", soft_wrap=True)
     try:
         s = run_fleet(plan, path, on_tick=tick)
     except (BundleError, ValueError) as e:
