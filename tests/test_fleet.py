@@ -28,7 +28,7 @@ from hammer.runtime.presence import Presence
 from hammer.serve.bundle import CENTRAL, load_bundle
 from hammer.serve.edge_agent import EdgeAgent
 
-from tests.runtime_helpers import ENV, ROOT, trained_bundle
+from tests.runtime_helpers import ENV, ROOT, netns_reason, trained_bundle
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -206,6 +206,69 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
     assert robots["local-1"]["fresh"] > 0 and robots["local-1"]["msg_fresh"] > 0
     assert s["world"]["presence"]["robot_joins"] == n - 1, s["world"]  # the world never heard robot 0 ...
     assert s["central"]["robot_joins"] == n - 1, s["central"]  # ... nor did the central agent
+
+
+def test_the_docs_secure_fleet_commands_join_a_robot_from_another_namespace(bundle, tmp_path):
+    """docs/fleet.md's pair of commands for a robot on another machine, as written (the TEST-NET
+    address replaced by a veth address private to the test's namespaces, the run shortened): `hammer
+    serve --realtime 20 --external 1 --listen ... --secure` in one namespace; in the other, robot 1
+    from its own folder holding only the bundle and its copy of its three identity files."""
+    import os
+    import shlex
+
+    reason = netns_reason(("ip",))
+    if reason:
+        pytest.skip(reason)
+    from hammer.benchmarks.netns import NetnsUnavailable, topology
+
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    serve_cmd = shlex.split(re.search(r"^(hammer serve bundles/cn3 --realtime .*--secure.*)$", text, re.MULTILINE)[1])
+    robot_cmd = shlex.split(re.search(r"^(hammer local --bundle bundles/cn3 .*--identity .*)$", text, re.MULTILINE)[1])
+    tag = f"f{os.getpid() % 10000}"
+    run = tmp_path / "runs" / "site-a"
+    robot_home = tmp_path / "robot"
+    shutil.copytree(bundle, tmp_path / "bundles" / "cn3")
+    shutil.copytree(bundle, robot_home / "bundles" / "cn3")
+    cli = [sys.executable, "-P", "-m", "hammer.cli"]
+    edge = [sys.executable, "-P", "-m", "hammer"]
+
+    def fill(cmd: list[str], address: str) -> list[str]:
+        cmd = [x.replace("192.0.2.1", address) for x in cmd]
+        return [("12" if cmd[i - 1] == "--seconds" else x) for i, x in enumerate(cmd)]
+
+    try:
+        with topology(1, tag) as top:
+            address = top.links["local-0"][1]
+            with open(tmp_path / "serve.log", "w") as f:
+                serve = subprocess.Popen(["ip", "netns", "exec", top.hub, *cli, *fill(serve_cmd, address)[1:]],
+                                         cwd=tmp_path, env=ENV, stdout=f, stderr=subprocess.STDOUT)
+            robot = None
+            try:
+                key = run / "identity" / "local-1.key"
+                assert _wait(lambda: key.is_file() or serve.poll() is not None, 60), "no identities made"
+                (robot_home / "identity").mkdir()
+                for name in ("ca.pem", "local-1.pem", "local-1.key"):
+                    shutil.copy(run / "identity" / name, robot_home / "identity" / name)
+                with open(tmp_path / "robot.log", "w") as f:
+                    robot = subprocess.Popen(["ip", "netns", "exec", top.agents[0], *edge,
+                                              *fill(robot_cmd, address)[1:]],
+                                             cwd=robot_home, env=ENV, stdout=f, stderr=subprocess.STDOUT)
+                assert serve.wait(150) == 0, (tmp_path / "serve.log").read_text()[-2000:]
+                robot.wait(30)
+            finally:
+                for p in (serve, robot):
+                    if p is not None and p.poll() is None:
+                        p.kill()
+                        p.wait(10)
+    except NetnsUnavailable as e:
+        pytest.skip(str(e))
+    s = json.loads((run / "summary.json").read_text())
+    robot_log = (tmp_path / "robot.log").read_text()
+    assert json.loads((run / "fleet.json").read_text())["hub"].startswith("tls/")
+    assert "joined run site-a" in robot_log, robot_log[-2000:]
+    one = s["robots"]["local-1"]
+    assert one["fresh"] > 0 and one["msg_fresh"] > 0, one  # it acted, on fresh messages, across the veth, over TLS
+    assert s["world"]["presence"]["robot_joins"] == 3
 
 
 def test_the_sdk_loads_no_torch(bundle):
