@@ -7,8 +7,9 @@ can. So this role keeps each robot's latest uplink with its arrival time, and at
 clock builds the state the central network was trained on, o_1 ⊕ … ⊕ o_N ⊕ a_1 ⊕ … ⊕ a_N, from them.
 
 The missing rule (one, declared: `MISSING_RULE`): a robot silent for longer than `missing_after_s`
-is missing, and its part of the state is zeros (observation and action), as an agent that is not
-present is in training (`encode_actions` zeroes an absent agent's action). Each robot's joins,
+is missing, and its part of the state is zeros (observation and action): `CentralActing.global_state`
+with `present`, the same function a training run with `missing_prob` > 0 uses to simulate robots
+going missing, so a team can learn to act well while one is away. Each robot's joins,
 leaves (goes missing) and rejoins are log lines with its name and a counter, and heartbeat counters.
 
 Messages go out at every tick to every robot (`central/msg/<i>`) through reliable publishers with
@@ -87,9 +88,8 @@ class FleetCentral(Role):
     def tick(self, now: float) -> None:
         """One message per robot from the state of the latest uplinks (missing robots as zeros)."""
         present = self.presence.update(now)[None]  # (1, N)
-        obs = self.obs * present[..., None]
         prev = encode_actions(self.spec, self.actions, present)
-        state = self.acting.global_state(obs, prev)
+        state = self.acting.global_state(self.obs, prev, present)  # the missing rule: zeros
         net = self.net
         out = self.acting.messages(state, self.streams, 0.0, net.message_mean if net is not None else None,
                                    net.values if self.acting.rl else None)

@@ -70,12 +70,13 @@ class CentralServer(Role):
                  idle_exit_s: float | None = None, load_when_idle: bool = False,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
                  max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None) -> None:
+                 start_version: int | None = None, training: bool = False) -> None:
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
         super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
         self.cfg, self.n_agents = cfg, cfg.n_agents
         self.acting = CentralActing.from_config(cfg)
+        self.training = training  # a training run: the absences missing_prob simulates apply (as in the trainer)
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
         self.state_dim = cfg.n_agents * (spec.obs_dim + (spec.action_dim if cfg.use_prev_actions else 0))
         self.load_when_idle = load_when_idle
@@ -129,7 +130,8 @@ class CentralServer(Role):
             self.skip_without_policy(state.step)
             return
         net = self.net
-        out = self.acting.messages(self.acting.global_state(state.obs, state.prev_actions), self.streams,
+        present = self.acting.training_presence(state.step, state.env_idx) if self.training else None
+        out = self.acting.messages(self.acting.global_state(state.obs, state.prev_actions, present), self.streams,
                                    self.cfg.msg_dropout, net.message_mean if net is not None else None,
                                    net.values if self.acting.rl else None)
         self.publish_messages(state, out)

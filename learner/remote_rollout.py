@@ -38,7 +38,7 @@ class RemoteRollout:
         for t in range(buf.t):
             obs, msg = r["obs"][t], r["msg"][t]
             buf.obs[t], buf.msg[t] = obs, msg
-            buf.state[t] = team.global_state(obs, r["prev"][t])
+            buf.state[t] = team.global_state(obs, r["prev"][t], int(r["steps"][t]))
             if central is not None:
                 rec = central.get(int(r["steps"][t]))
                 if rec is None:  # the central agent never saw this step: agents acted on fallbacks
@@ -54,7 +54,7 @@ class RemoteRollout:
             if r["reset"][t].any():
                 idx = np.flatnonzero(r["reset"][t].any(axis=1))
                 fobs = r["final_obs"][t][idx]
-                fstate = team.global_state(fobs, r["final_prev"][t][idx])
+                fstate = team.global_state(fobs, r["final_prev"][t][idx], int(r["steps"][t]), idx)
                 buf.final_values[t, idx] = team.local_values(fobs, team.bootstrap_messages(fstate))
                 buf.c_final_values[t, idx] = team.central_values(fstate)
         return missing

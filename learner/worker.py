@@ -172,7 +172,7 @@ class LearnerWorker(Role):
         stats["lagged_updates"] += int(lag > 0)
         stats["policy_lag_max"] = max(stats["policy_lag_max"], lag)
         self.curve.add(rollout)
-        logs = self.learner.learn(rollout["last_obs"], rollout["last_prev"], self.update)
+        logs = self.learner.learn(rollout["last_obs"], rollout["last_prev"], self.update, int(rollout["steps"][-1]) + 1)
         t2 = time.perf_counter()
         self.update += 1
         stats["updates"] = self.update

@@ -37,6 +37,25 @@ def zero_prev_actions(spec: EnvSpec, k: int) -> np.ndarray:
     return np.zeros((k, spec.n_agents, spec.action_dim), dtype=np.float32)
 
 
+_MIX = np.array([0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
+
+
+def missing_mask(seed: int, step: int, env_idx: np.ndarray, n_agents: int, prob: float, window: int) -> np.ndarray:
+    """(K, N) bool: which robots the central agent sees as missing at vector `step` of env copies
+    `env_idx`, in training that simulates absences (RunConfig.missing_prob). A robot is missing for
+    whole windows of `window` steps, each with probability `prob`, decided by a hash of (seed,
+    window, copy, agent): a pure function of the step, so the trainer, the central server and the
+    learner (which rebuilds the states it trains on) agree without sharing a random stream, and no
+    stream the randomness contract pins (learning.sampling) is drawn from."""
+    # array arithmetic throughout: uint64 wraps around silently (numpy scalars would warn)
+    x = (np.asarray(env_idx, np.uint64)[:, None] * _MIX[2] + np.arange(n_agents, dtype=np.uint64)[None, :] * _MIX[3]
+         + (np.array([seed, (step - 1) // window], np.uint64) * _MIX[:2]).sum(dtype=np.uint64))
+    x = (x ^ (x >> np.uint64(30))) * _MIX[1]  # splitmix64's finaliser
+    x = (x ^ (x >> np.uint64(27))) * _MIX[2]
+    x ^= x >> np.uint64(31)
+    return (x >> np.uint64(11)).astype(np.float64) * 2.0**-53 < prob
+
+
 @dataclass
 class CentralOut:
     """One vector step of central messages, all numpy."""
@@ -56,10 +75,20 @@ class CentralActing:
     wiring: Wiring
     msg_std: float
     use_prev_actions: bool
+    seed: int = 0
+    missing_prob: float = 0.0
+    missing_window: int = 20
 
     @classmethod
     def from_config(cls, cfg: RunConfig) -> CentralActing:
-        return cls(cfg.wiring, cfg.msg_std, cfg.use_prev_actions)
+        return cls(cfg.wiring, cfg.msg_std, cfg.use_prev_actions, cfg.seed, cfg.missing_prob, cfg.missing_window)
+
+    def training_presence(self, step: int, env_idx: np.ndarray) -> np.ndarray | None:
+        """(K, N) bool: the robots present to the central agent at `step` of a training run that
+        simulates absences (`missing_mask`); None when it does not."""
+        if self.missing_prob <= 0:
+            return None
+        return ~missing_mask(self.seed, step, env_idx, self.n_agents, self.missing_prob, self.missing_window)
 
     @property
     def n_agents(self) -> int:
@@ -77,9 +106,16 @@ class CentralActing:
     def rl(self) -> bool:
         return self.wiring.central_rl
 
-    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
-        """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32."""
+    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+        """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32.
+
+        `present` (K, N) bool: the missing rule, the one a fleet's central agent applies to a silent
+        robot and training simulates (`training_presence`): a robot not present is zeros, its
+        observation and its previous action."""
         k = obs.shape[0]
+        if present is not None and not present.all():
+            obs = np.where(present[..., None], obs, np.float32(0))
+            prev_actions = np.where(present[..., None], prev_actions, np.float32(0))
         parts = [obs.reshape(k, -1)]
         if self.use_prev_actions:
             parts.append(prev_actions.reshape(k, -1))

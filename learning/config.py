@@ -56,6 +56,11 @@ class RunConfig(BaseModel):
     use_prev_actions: bool = Field(True, description="global state includes every agent's previous action")
     msg_std: float = Field(0.5, gt=0, description="std of the Gaussian message policy (rl mode)")
     msg_dropout: float = Field(0.0, ge=0, le=1, description="prob. of zeroing each message in training")
+    missing_prob: float = Field(
+        0.0, ge=0, lt=1, description="training only: the chance that the central agent sees a robot as missing "
+                                     "for a window of missing_window vector steps (its observation and previous "
+                                     "action zeroed in the global state: a fleet's missing rule, docs/fleet.md)")
+    missing_window: int = Field(20, ge=1, description="vector steps a simulated absence (missing_prob) lasts")
 
     # --- PPO ---------------------------------------------------------------------------------
     rollout_steps: int = Field(50, ge=1, description="vector steps T per update")
@@ -134,6 +139,8 @@ _FIXES = {
     "gae_lambda": "use a value in [0, 1], e.g. gae_lambda=0.95",
     "clip": "use a clip epsilon in (0, 1), e.g. clip=0.2",
     "msg_dropout": "use a probability in [0, 1]",
+    "missing_prob": "use a probability in [0, 1), e.g. --set missing_prob=0.1 (0: no simulated absences)",
+    "missing_window": "use a number of vector steps >= 1, e.g. --set missing_window=20",
     "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
     "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
 }

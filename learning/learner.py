@@ -89,11 +89,11 @@ class TeamLearner:
                 for group in opt.optimizer.param_groups:
                     group.update(fused=True, foreach=None, lr=lr)
 
-    def batch(self, obs: np.ndarray, prev: np.ndarray) -> tuple[dict[str, torch.Tensor], Masks]:
+    def batch(self, obs: np.ndarray, prev: np.ndarray, step: int | None = None) -> tuple[dict[str, torch.Tensor], Masks]:
         """Advantages/returns for the filled buffer, flattened to (T*K, N, ...) tensors, and the
-        masking the losses need for them."""
+        masking the losses need for them. `obs`, `prev`: the state after the rollout, vector `step`."""
         cfg, team, buf = self.cfg, self.team, self.buf
-        last_state = team.global_state(obs, prev)
+        last_state = team.global_state(obs, prev, step)
         last_v = team.local_values(obs, team.bootstrap_messages(last_state))
         dones = buf.terminated | buf.truncated
         nv = next_values(buf.values, last_v, buf.final_values, buf.reset)
@@ -168,7 +168,7 @@ class TeamLearner:
         perm = torch.from_numpy(np.concatenate(parts))
         yield from minibatch_slices({k: v.index_select(0, perm) for k, v in b.items()}, [len(p) for p in parts])
 
-    def learn(self, obs: np.ndarray, prev: np.ndarray, update: int) -> dict[str, float]:
+    def learn(self, obs: np.ndarray, prev: np.ndarray, update: int, step: int | None = None) -> dict[str, float]:
         """PPO epochs over shuffled minibatches of rows; one backward over the summed losses,
         then each network clips its own gradient norm and steps its own optimiser.
 
@@ -178,7 +178,7 @@ class TeamLearner:
         (`learning.compiled_update`).
         """
         cfg = self.cfg
-        b, masks = self.batch(obs, prev)
+        b, masks = self.batch(obs, prev, step)
         rng = stream(cfg.seed, MINIBATCH_STREAM, update)
         if self.compiled_update is not None:
             return self.compiled_update.learn(self.epoch_minibatches, b, masks, rng)

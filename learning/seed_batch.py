@@ -154,7 +154,7 @@ class SeedBatch:
         """One vector step for the live seeds: batched forward, per-seed sampling, env step, record."""
         lead = self.trainers[0].team
         trs = [self.trainers[s] for s in live]
-        states = [tr.team.global_state(obs[s], prev[s]) for s, tr in zip(live, trs, strict=True)]
+        states = [tr.team.global_state(obs[s], prev[s], tr.vector_step) for s, tr in zip(live, trs, strict=True)]
         all_states = self._stack_all(live, states)
         mean = values = None
         if lead.central is not None:
@@ -215,7 +215,7 @@ class SeedBatch:
     def _learn(self, obs: list[np.ndarray], prev: list[np.ndarray], update: int) -> list[dict[str, float]]:
         """Every seed's PPO update as one batched computation (see the module docstring)."""
         cfg, lead = self.cfg, self.trainers[0].learner
-        batches = [tr.learner.batch(obs[s], prev[s]) for s, tr in enumerate(self.trainers)]
+        batches = [tr.learner.batch(obs[s], prev[s], tr.vector_step) for s, tr in enumerate(self.trainers)]
         bs = [b for b, _ in batches]
         # one graph for every seed: a masking op is skipped only where no seed needs it
         masks = Masks(all(m.full for _, m in batches), all(m.c_full for _, m in batches))

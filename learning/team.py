@@ -61,8 +61,14 @@ class Team:
     def zero_prev_actions(self, k: int) -> np.ndarray:
         return zero_prev_actions(self.spec, k)
 
-    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray) -> np.ndarray:
-        return self.acting.global_state(obs, prev_actions)
+    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray, step: int | None = None,
+                     env_idx: np.ndarray | None = None) -> np.ndarray:
+        """The central agent's state; at vector `step` of training (of copies `env_idx`, default all),
+        with the robots that `missing_prob` takes away at that step zeroed (CentralActing)."""
+        present = None
+        if step is not None:
+            present = self.acting.training_presence(step, np.arange(obs.shape[0]) if env_idx is None else env_idx)
+        return self.acting.global_state(obs, prev_actions, present)
 
     # ----- central agent ------------------------------------------------------------------------
     def _message_mean(self, state: np.ndarray) -> np.ndarray:

@@ -106,7 +106,7 @@ class Trainer:
             obs, prev, done_training = self._collect(obs, prev)
             if done_training:
                 break
-            self.log_update(self.learner.learn(obs, prev, self.update))
+            self.log_update(self.learner.learn(obs, prev, self.update, self.vector_step))
         return self.finish()
 
     def start(self) -> bool:
@@ -171,12 +171,18 @@ class Trainer:
             "env": self.cfg.env,
         }
 
+    @property
+    def vector_step(self) -> int:
+        """The vector step being acted (1 first), as the env host of `hammer up` numbers it; before
+        `_record` counts it."""
+        return self.env_steps // self.cfg.num_envs + 1
+
     def _collect(self, obs: np.ndarray, prev: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """Fill the rollout buffer; returns the next obs/prev actions and whether the budget is spent."""
         cfg, team, streams = self.cfg, self.team, self.streams
         self.writer.begin()
         for t in range(cfg.rollout_steps):
-            state = team.global_state(obs, prev)
+            state = team.global_state(obs, prev, self.vector_step)
             c = team.central_messages(state, streams, cfg.msg_dropout)
             action, logp, value = team.local_act(obs, c.sent, streams)
             st = self.env.step(team.env_action(action))
@@ -197,7 +203,7 @@ class Trainer:
         nxt = self.writer.write(t, obs, prev, c.sent, action, st)
         prev, idx = nxt.prev, nxt.reset_idx
         if idx.size:
-            fstate = team.global_state(st.final_obs[idx], nxt.final_prev)
+            fstate = team.global_state(st.final_obs[idx], nxt.final_prev, self.vector_step, idx)
             buf.final_values[t, idx] = team.local_values(st.final_obs[idx], team.bootstrap_messages(fstate))
             buf.c_final_values[t, idx] = team.central_values(fstate)
         obs = st.obs

@@ -73,6 +73,29 @@ def test_presence_names_leaves_and_rejoins_and_forgives_its_own_stall(caplog):
     assert "local-1 missing" in text and "local-1 rejoined after 2.0 s silent (rejoin 1)" in text
 
 
+def test_the_missing_rule_is_one_function_that_training_simulates():
+    """A missing robot is zeros in the central state (observation and previous action), whether a
+    fleet's central agent found it silent or training took it away (missing_prob): one function;
+    training's absences last whole windows, hit the asked share, and agree for any subset of copies."""
+    from hammer.learning.central_acting import CentralActing, missing_mask
+    from hammer.learning.config import merge_config
+
+    cfg = merge_config("cn3", overrides=["num_envs=4", "missing_prob=0.25", "missing_window=5"])
+    acting = CentralActing.from_config(cfg)
+    rng = np.random.default_rng(0)
+    obs, prev = rng.normal(size=(4, 3, 18)).astype(np.float32), rng.normal(size=(4, 3, 5)).astype(np.float32)
+    present = np.array([[True, False, True]] * 4)
+    state = acting.global_state(obs, prev, present).reshape(4, -1)
+    assert (state[:, 18:36] == 0).all() and (state[:, 54 + 5:54 + 10] == 0).all()  # robot 1: obs and action
+    assert np.array_equal(state[:, :18], obs[:, 0]) and np.array_equal(state[:, 36:54], obs[:, 2])
+    assert np.array_equal(acting.global_state(obs, prev, np.ones((4, 3), bool)), acting.global_state(obs, prev))
+    m = np.stack([missing_mask(cfg.seed, s, np.arange(16), 3, 0.25, 5) for s in range(1, 1001)])
+    assert 0.22 < m.mean() < 0.28 and (m[:5] == m[0]).all() and (m[5:10] == m[5]).all() and (m[5] != m[0]).any()
+    assert np.array_equal(missing_mask(cfg.seed, 7, np.array([2, 9]), 3, 0.25, 5), m[6][[2, 9]])
+    assert acting.training_presence(7, np.arange(16)).tolist() == (~m[6]).tolist()
+    assert CentralActing.from_config(merge_config("cn3")).training_presence(7, np.arange(4)) is None
+
+
 @contextlib.contextmanager
 def _central_agent(port: int, b, bundle):
     """A fleet's central agent (50 Hz) in a thread of this process, with a session of its own."""

@@ -105,6 +105,28 @@ def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path)
     assert json.loads((up / "learner_summary.json").read_text())["updates"] >= 2
 
 
+def test_up_reproduces_the_trainer_with_simulated_absences(tmp_path):
+    """missing_prob: in training the central agent sees robots go missing (a fleet's missing rule:
+    zeros) for windows of steps. `hammer up`'s central server and learner derive who is missing
+    from the step number as the trainer does, so the episodes are equal; they differ from a run
+    without absences (the central agent's inputs did change)."""
+    up, tr, plain = tmp_path / "up", tmp_path / "train", tmp_path / "plain"
+    absences = ["--set", "missing_prob=0.3", "--set", "missing_window=5"]
+    r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", *absences, "--run-dir", str(up), "--no-dashboard",
+                "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+    assert r1.returncode == 0, r1.stderr[-2000:]
+    for run, extra in ((tr, absences), (plain, [])):
+        r = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", *extra, "--episodes", "70",
+                   "--run-dir", str(run), "--quiet")
+        assert r.returncode == 0, r.stderr[-2000:]
+    links = json.loads((up / "summary.json").read_text())["links"]
+    assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
+    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(plain)
+    assert len(a) == len(b) == 70 and len(set(a)) > 40
+    assert a == pytest.approx(b, abs=1e-5)
+    assert a != pytest.approx(c, abs=1e-5)
+
+
 def _tensorboard(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

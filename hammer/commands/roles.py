@@ -254,7 +254,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
                                    step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
                                    max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step),
-                                   start_version=known_version(settings.resume_from))
+                                   start_version=known_version(settings.resume_from), training=settings.mode == "train")
             server.stall_warn_s = settings.stall_warn_s
             server.run()
             logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())
