@@ -2,7 +2,9 @@
 
     BUNDLE/manifest.json        bundle format, wire SCHEMA_VERSION, env id/kwargs/spec, variant, central
                                 mode and network (concat | set), message length, fallback, the run it came from (+ final metric),
-                                the full RunConfig, sha256 of every other file
+                                the full RunConfig, sha256 of every other file, and its seal: the sha256 of
+                                all of that (format 2), so no field changes unnoticed
+    BUNDLE/manifest.sig         optional: an ed25519 signature of manifest.json (serve/signing.py)
     BUNDLE/local.safetensors    the shared local policy (numpy dict, never pickle)
     BUNDLE/central.safetensors  the central agent (variants with a central network)
 
@@ -24,7 +26,7 @@ from typing import Any
 
 from hammer.protocol.schemas import SCHEMA_VERSION
 
-BUNDLE_FORMAT = 1
+BUNDLE_FORMAT = 2  # 2: the manifest carries its seal (format 1 bundles load, unsealed)
 MANIFEST = "manifest.json"
 LOCAL, CENTRAL = "local.safetensors", "central.safetensors"
 SPEC_FIELDS = ("name", "n_agents", "obs_dim", "discrete", "action_dim")  # what the weights must fit
@@ -35,7 +37,7 @@ class BundleError(ValueError):
 
 
 MANIFEST_FIELDS = ("bundle_format", "schema_version", "created_at", "env", "env_spec", "variant", "central_mode",
-                   "central_net", "msg_dim", "local_input_dim", "fallback", "source", "config", "files")
+                   "central_net", "msg_dim", "local_input_dim", "fallback", "source", "config", "files", "seal")
 RUN_CHOICES = {"num_envs": "--num-envs K", "seed": "--seed S", "episodes": "--episodes N"}  # set when serving
 FALLBACKS = ("zeros", "last", "last_k")
 
@@ -45,10 +47,11 @@ def _count(value: Any, low: int) -> bool:
 
 
 def check_manifest(m: dict[str, Any], mf: Path) -> None:
-    """Every manifest value a server or an edge agent reads, checked for its type and range. The manifest
-    is not among the hashed files (a hand edit is possible, and the edge agent reads it without the
-    RunConfig's validation), so a wrong value must fail here, naming the field, not later as messages
-    every role rejects (an edge agent acting on K=1 copies of a K=32 run)."""
+    """Every manifest value a server or an edge agent reads, checked for its type and range, before its
+    seal (a hand edit with a wrong value is named by its field; one with a plausible value by the
+    seal; a format-1 bundle has no seal, and the edge agent reads it without the RunConfig's
+    validation), so a wrong value fails here, not later as messages every role rejects (an edge
+    agent acting on K=1 copies of a K=32 run)."""
     def bad(field: str, value: Any, want: str, fix: str = "export the bundle again") -> BundleError:
         return BundleError(f"{mf}: {field} {value!r} {want}; fix: {fix}")
 
@@ -88,6 +91,13 @@ def check_manifest(m: dict[str, Any], mf: Path) -> None:
     for name, digest in m["files"].items():
         if not isinstance(digest, str) or len(digest) != 64:
             raise bad(f"files.{name}", digest, "must be a sha256 (64 hex digits)")
+
+
+def seal(m: dict[str, Any]) -> str:
+    """The sha256 of the manifest without its seal, as canonical JSON (sorted keys, no spaces): what
+    makes every field of the manifest, the config included, part of the integrity check."""
+    rest = {k: v for k, v in m.items() if k != "seal"}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def sha256(path: Path) -> str:
@@ -203,8 +213,9 @@ class Bundle:
             env.close()
 
 
-def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
-    """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded back."""
+def export_bundle(run_dir: Path, out: Path, *, force: bool = False, sign: Path | None = None) -> Bundle:
+    """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded
+    back. `sign`: an ed25519 private key (`hammer keygen`) that signs it (serve/signing.py)."""
     from hammer.learning.config import build_config
 
     run_dir, out = Path(run_dir), Path(out)
@@ -248,7 +259,12 @@ def export_bundle(run_dir: Path, out: Path, *, force: bool = False) -> Bundle:
         "config": cfg.model_dump(mode="json"),
         "files": {name: sha256(tmp / name) for name in files},
     }
+    manifest["seal"] = seal(manifest)
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+    if sign is not None:
+        from hammer.serve.signing import sign_bundle
+
+        sign_bundle(tmp, sign)
     if out.exists():
         shutil.rmtree(out)
     tmp.rename(out)
@@ -274,13 +290,19 @@ def _env_spec(run_dir: Path, cfg) -> dict:
     return d
 
 
-def load_bundle(path: Path, check_config: bool = True) -> Bundle:
-    """Read and check a bundle: format, wire schema, every file's sha256, the weights against the env's dims.
-    check_config=False: the full RunConfig is not validated (the edge agent reads only the wiring)."""
+def load_bundle(path: Path, check_config: bool = True, trust: tuple[Path, ...] | list[Path] = ()) -> Bundle:
+    """Read and check a bundle: format, wire schema, the manifest's seal, every file's sha256, the
+    weights against the env's dims. check_config=False: the full RunConfig is not validated (the edge
+    agent reads only the wiring). `trust`: public keys (`hammer keygen`'s NAME.pub), one of which must
+    have signed the manifest, checked before anything else is read from it."""
     path = Path(path)
     mf = path / MANIFEST
     if not mf.is_file():
         raise BundleError(f"{mf} is missing: pass a directory made by `hammer export RUN --out BUNDLE`")
+    if trust:
+        from hammer.serve.signing import verify_bundle
+
+        verify_bundle(path, list(trust))
     try:
         m = json.loads(mf.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -300,6 +322,10 @@ def load_bundle(path: Path, check_config: bool = True) -> Bundle:
     if missing:
         raise BundleError(f"{mf}: no {', '.join(missing)}; fix: export the bundle again")
     check_manifest(m, mf)
+    if fmt >= 2 and m.get("seal") != seal(m):
+        raise BundleError(f"{mf}: the manifest changed after export (its seal {str(m.get('seal'))[:16]}... does not "
+                          "match its fields: a hand edit or a corrupted copy); fix: copy the bundle again, or export "
+                          "it again with the values you want (serve-time choices are options of hammer serve)")
     files = m["files"]
     if LOCAL not in files or (m.get("central_mode") is not None and CENTRAL not in files):
         raise BundleError(f"{mf}: files lacks the policy this variant needs; fix: export the bundle again")

@@ -124,12 +124,13 @@ def check_endpoint(endpoint: str, flag: str = "--connect",
 
 def edge_inputs(bundle_path: Path, agent: int, run_id: str | None, connect: str | None, zenoh_config: Path | None,
                 seed: int | None, settings_file: Path | None = None, runtime: list[str] | None = None,
-                identity: Path | None = None, insecure: bool = False, num_envs: int | None = None):
+                identity: Path | None = None, insecure: bool = False, num_envs: int | None = None,
+                trust: tuple[Path, ...] = ()):
     """(settings, transport, AgentSpec, num_envs) of an edge agent; ValueError (BundleError) with the reason.
     `num_envs`: the served run's env copies when `hammer serve --num-envs` changed them (default the bundle's)."""
     from hammer.serve.bundle import load_bundle
 
-    b = load_bundle(bundle_path, check_config=False)
+    b = load_bundle(bundle_path, check_config=False, trust=trust)
     spec, num_envs_trained = agent_spec(b, agent, seed)
     if num_envs is not None and num_envs < 1:
         raise ValueError(f"--num-envs {num_envs}: must be at least 1 (the served run's env copies)")

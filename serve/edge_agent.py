@@ -59,12 +59,15 @@ class EdgeAgent:
     `connect_retry_s`: how long to keep trying to open a client session whose router is not up yet
     (a peer opens at once and reaches the hub whenever it appears), then ConnectionError.
     `runtime`: RuntimeSettings items as `hammer local --runtime` takes them (`zenoh_lease_s=30`, ...).
+    `trust`: ed25519 public keys (`hammer keygen`'s NAME.pub); given any, the bundle loads only if one
+    of them signed it (serve/signing.py), else BundleError.
     """
 
     def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
                  max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None,
-                 connect_retry_s: float = 300.0, runtime: tuple[str, ...] = ()) -> None:
+                 connect_retry_s: float = 300.0, runtime: tuple[str, ...] = (),
+                 trust: tuple[str | Path, ...] = ()) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
         from hammer.protocol.dims import Dims
         from hammer.protocol.schemas import CentralMsg
@@ -74,7 +77,7 @@ class EdgeAgent:
 
         if not max_msg_age_s > 0:
             raise ValueError(f"max_msg_age_s: must be > 0 s, got {max_msg_age_s}")
-        b = load_bundle(Path(bundle), check_config=False)
+        b = load_bundle(Path(bundle), check_config=False, trust=tuple(Path(k) for k in trust))
         fleet_check(b)
         self.spec, _ = agent_spec(b, agent, seed)
         env = b.env_spec_data

@@ -17,7 +17,7 @@ from hammer.learning.config import merge_config
 from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
-from hammer.serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle
+from hammer.serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle, seal
 from hammer.serve.settings import serve_settings
 from typer.testing import CliRunner
 
@@ -80,6 +80,7 @@ def test_a_set_central_net_travels_in_the_bundle(tmp_path):
         np.testing.assert_allclose(net.message_mean(s), team.central.message_mean(torch.from_numpy(s)).numpy(), atol=2e-6)
     m = json.loads((b.path / "manifest.json").read_text())
     m["config"]["central_net"] = "concat"
+    m["seal"] = seal(m)  # a manifest consistent with itself but not with its weights
     (b.path / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(BundleError, match="holds the set central network but the config says central_net=concat"):
         load_bundle(b.path)
@@ -109,6 +110,7 @@ def test_weights_that_do_not_fit_the_env_fail(trained, tmp_path):
     b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
     m = json.loads((b / "manifest.json").read_text())
     m["env_spec"]["obs_dim"] = 26  # what cn5 observes: the first layer takes 22 inputs
+    m["seal"] = seal(m)
     (b / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(BundleError, match="takes 22 inputs"):
         load_bundle(b)
@@ -219,7 +221,8 @@ def test_faults_eval_and_sweep_serve_a_bundle_with_its_fallback(trained, tmp_pat
     b = tmp_path / "b"
     export_bundle(trained, b)
     m = json.loads((b / "manifest.json").read_text())
-    m["fallback"] = {"mode": "last_k", "k": 2}  # the manifest is not among the hashed files
+    m["fallback"] = {"mode": "last_k", "k": 2}
+    m["seal"] = seal(m)  # as exported so (the seal covers every field)
     (b / "manifest.json").write_text(json.dumps(m))
     s = point_settings(Point(team="t", run=str(b), drop=0.5, delay_ms=0.0, seed=1), 20.0)
     assert (s.mode, s.fallback, s.fallback_k, s.msg_deadline_ms) == ("eval", "last_k", 2, 20.0)
@@ -251,3 +254,77 @@ def test_serve_says_policy_server_and_gives_external_agents_the_seed(trained, tm
     assert any("hammer central --run-dir" in m and "--connect tcp/127.0.0.1:" in m for m in hints), hints
     line = next(ln for ln in r.output.splitlines() if ln.startswith("will run:"))
     assert "policy server" in line and "learner" not in line and "--resume" not in line and "external" in line
+
+
+def test_a_hand_edit_with_a_plausible_value_fails_on_the_seal(trained, tmp_path):
+    """The seal covers the whole manifest, the config included: a change no field check can call
+    wrong (another seed, another fallback) is still caught, in one line."""
+    b = _copy(export_bundle(trained, tmp_path / "b").path, tmp_path)
+    m = json.loads((b / "manifest.json").read_text())
+    assert m["bundle_format"] == 2 and m["seal"] == seal(m)
+    for edit in ({**m, "config": {**m["config"], "seed": 5}}, {**m, "fallback": {"mode": "last", "k": 3}}):
+        (b / "manifest.json").write_text(json.dumps(edit))
+        with pytest.raises(BundleError, match="the manifest changed after export") as e:
+            load_bundle(b, check_config=False)
+        assert "\n" not in str(e.value)
+    legacy = {k: v for k, v in m.items() if k != "seal"}  # a format-1 bundle (before seals) still loads
+    (b / "manifest.json").write_text(json.dumps({**legacy, "bundle_format": 1}))
+    assert load_bundle(b).manifest["bundle_format"] == 1
+
+
+def test_signed_bundles_load_only_against_a_trusted_key(trained, tmp_path):
+    """`hammer keygen`, `hammer export --sign`, `hammer sign`, as a user runs them; then what an edge
+    agent given --trust does with a signed, a tampered, a foreign-signed and an unsigned bundle."""
+    from hammer.serve.signing import SignatureError
+
+    keys = tmp_path / "keys"
+    for name in ("site", "other"):
+        r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "keygen", str(keys / name)], env=ENV,
+                           capture_output=True, text=True, timeout=120, check=False)
+        assert r.returncode == 0, r.stderr
+    assert oct((keys / "site.key").stat().st_mode & 0o777) == "0o600"
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "keygen", str(keys / "site")], env=ENV,
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 2 and "exists" in r.stderr and r.stderr.count("\n") == 1  # never overwritten silently
+    signed = tmp_path / "signed"
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "export", str(trained), "--out", str(signed),
+                        "--sign", str(keys / "site.key")], env=ENV, capture_output=True, text=True, timeout=300,
+                       check=False)
+    assert r.returncode == 0 and "signed with" in r.stdout, r.stderr
+    site, other = keys / "site.pub", keys / "other.pub"
+    assert load_bundle(signed, trust=[site]).manifest["seal"]
+    assert load_bundle(signed, trust=[other, site])  # any trusted key will do
+    with pytest.raises(SignatureError, match="does not verify against the trusted key"):
+        load_bundle(signed, trust=[other])
+    # tampered: a field changed and the seal made to match (a tamperer can compute a sha256, not a signature)
+    forged = _copy(signed, tmp_path)
+    m = json.loads((forged / "manifest.json").read_text())
+    m["fallback"] = {"mode": "last", "k": 3}
+    m["seal"] = seal(m)
+    (forged / "manifest.json").write_text(json.dumps(m, indent=1))
+    assert load_bundle(forged).manifest["fallback"]["mode"] == "last"  # nothing else could tell
+    with pytest.raises(SignatureError, match="changed after signing") as e:
+        load_bundle(forged, trust=[site])
+    assert "\n" not in str(e.value)
+    # weights swapped under a signed manifest: the signature holds, the file's sha256 does not
+    swapped = tmp_path / "swapped"
+    shutil.copytree(signed, swapped)
+    data = bytearray((swapped / "local.safetensors").read_bytes())
+    data[-1] ^= 0x01
+    (swapped / "local.safetensors").write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="local.safetensors: sha256 differs"):
+        load_bundle(swapped, trust=[site])
+    unsigned = export_bundle(trained, tmp_path / "unsigned").path
+    with pytest.raises(SignatureError, match="not signed"):
+        load_bundle(unsigned, trust=[site])
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "sign", str(unsigned), "--key",
+                        str(keys / "site.key")], env=ENV, capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+    assert load_bundle(unsigned, trust=[site])
+    # the edge agent (the console script's torch-free path) refuses the forged bundle in one line, before joining
+    port = free_loopback_port()
+    for bundle, what in ((forged, "changed after signing"), (export_bundle(trained, tmp_path / "u2").path, "not signed")):
+        r = subprocess.run([sys.executable, "-P", "-m", "hammer", "local", "--bundle", str(bundle), "--agent", "0",
+                            "--run-id", "x", "--connect", f"tcp/127.0.0.1:{port}", "--trust", str(site)],
+                           env=ENV, capture_output=True, text=True, timeout=120, check=False)
+        assert r.returncode == 2 and what in r.stderr and r.stderr.count("\n") == 1, r.stderr

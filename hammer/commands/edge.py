@@ -34,6 +34,9 @@ def parser() -> argparse.ArgumentParser:
                     help="RuntimeSettings field, repeatable, e.g. msg_deadline_ms=20.")
     ap.add_argument("--identity", type=Path, help="A secure run: the directory with ca.pem, local-<i>.pem and "
                                                   "local-<i>.key (copied from the launcher's RUN/identity/).")
+    ap.add_argument("--trust", type=Path, action="append", default=[], metavar="KEY.pub",
+                    help="Load the bundle only if this ed25519 public key (`hammer keygen`) signed it; repeatable. "
+                         "An unsigned or tampered bundle is refused.")
     ap.add_argument("--insecure", action="store_true", help="Run plain (no TLS) although the hub is beyond "
                                                             "loopback: only on a network you trust (docs/security.md).")
     ap.add_argument("--fleet", action="store_true", help="A robot of a realtime fleet (`hammer serve --realtime`): "
@@ -62,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.connect_retry_s is not None and a.connect_retry_s < 0:
             raise ValueError(f"--connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: keep trying forever)")
         inputs = edge_inputs(a.bundle, a.agent, a.run_id, a.connect, a.zenoh_config, a.seed, a.settings, a.runtime,
-                             a.identity, a.insecure, a.num_envs)
+                             a.identity, a.insecure, a.num_envs, tuple(a.trust))
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -87,7 +90,7 @@ def _robot(a: argparse.Namespace) -> int:
     try:
         agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
                           identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed,
-                          runtime=tuple(a.runtime))
+                          runtime=tuple(a.runtime), trust=tuple(a.trust))
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

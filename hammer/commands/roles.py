@@ -115,6 +115,9 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
                       help="Run plain (no TLS) although --connect is beyond loopback: only on a network you trust "
                            "(docs/security.md).")] = False,
                   connect_retry_s: ConnectRetryOpt = None, stay: StayOpt = False, num_envs: EdgeNumEnvsOpt = None,
+                  trust: Annotated[list[Path] | None, typer.Option(
+                      help="With --bundle: load it only if this ed25519 public key (`hammer keygen`) signed it; "
+                           "repeatable. An unsigned or tampered bundle is refused.")] = None,
                   ) -> None:
     """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
@@ -123,10 +126,10 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
         fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
     if bundle is not None:
         _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                    identity, insecure, connect_retry_s, stay, num_envs)
+                    identity, insecure, connect_retry_s, stay, num_envs, tuple(trust or ()))
         return
-    if connect_retry_s is not None or stay or num_envs is not None:
-        fail("--connect-retry-s, --stay and --num-envs go with --bundle (an edge agent); a role of a run made by "
+    if connect_retry_s is not None or stay or num_envs is not None or trust:
+        fail("--connect-retry-s, --stay, --num-envs and --trust go with --bundle (an edge agent); a role of a run made by "
              "`hammer up` is started and stopped by its launcher")
     setup_process(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
@@ -154,7 +157,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
 
 def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
                 identity, insecure: bool = False, connect_retry_s: float | None = None, stay: bool = False,
-                num_envs: int | None = None) -> None:
+                num_envs: int | None = None, trust: tuple[Path, ...] = ()) -> None:
     """One agent from a bundle, no run directory (serve/edge.py; the console script's fast path)."""
     from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
 
@@ -164,7 +167,7 @@ def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, s
         if run_dir is not None:
             raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
         inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity,
-                             insecure, num_envs)
+                             insecure, num_envs, trust)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     setup_process(f"local-{agent}")

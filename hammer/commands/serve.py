@@ -19,6 +19,8 @@ from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
 
 def register(app: typer.Typer) -> None:
     app.command("export")(export_command)
+    app.command("keygen")(keygen_command)
+    app.command("sign")(sign_command)
     app.command("serve")(serve_command)
     app.command("push")(push_command)
     app.command("rollback")(rollback_command)
@@ -29,6 +31,9 @@ def export_command(
     run: Annotated[Path, typer.Argument(help="A finished run directory (`hammer train` or `hammer up`): its final/ policy.")],
     out: Annotated[Path, typer.Option(help="The bundle directory to write (manifest.json + safetensors).")],
     force: Annotated[bool, typer.Option(help="Replace an existing bundle at --out.")] = False,
+    sign: Annotated[Path | None, typer.Option(help="Sign it with this ed25519 private key (`hammer keygen NAME` "
+                                                   "makes NAME.key): agents given --trust NAME.pub load only bundles "
+                                                   "it signed.")] = None,
 ) -> None:
     """Write a self-contained bundle of a trained team: the weights (safetensors) and a manifest (env, spaces,
     variant, message length, fallback, source run and its final metric, sha256 of every file).
@@ -37,14 +42,48 @@ def export_command(
     from hammer.serve.bundle import BundleError, export_bundle
 
     try:
-        b = export_bundle(run, out, force=force)
+        b = export_bundle(run, out, force=force, sign=sign)
     except (BundleError, ValueError) as e:
         fail(str(e))
     m = b.manifest
+    if sign is not None:
+        typer.echo(f"signed with {sign} ({out}/manifest.sig)")
     metric = m["source"]["final_paper_metric_last500"]
     typer.echo(f"bundle {out}: {m['env']['id']} N={m['env_spec']['n_agents']} {m['variant']}"
                f"{'/' + m['central_mode'] if m['central_mode'] else ''}, message length {m['msg_dim']}, "
                f"final metric {'-' if metric is None else f'{metric:.3f}'}, files {', '.join(m['files'])}")
+
+
+def keygen_command(
+    name: Annotated[Path, typer.Argument(help="Writes NAME.key (private, 0600: keep it where bundles are exported) "
+                                              "and NAME.pub (give it to the robots).")],
+    force: Annotated[bool, typer.Option(help="Replace an existing key pair.")] = False,
+) -> None:
+    """A new ed25519 key pair for signing bundles (`hammer export --sign NAME.key`, `hammer sign`)."""
+    from hammer.serve.signing import new_key
+
+    try:
+        private, public = new_key(name, force=force)
+    except (FileExistsError, OSError) as e:
+        fail(str(e))
+    typer.echo(f"private key {private} (keep it secret), public key {public} (agents: --trust {public})")
+
+
+def sign_command(
+    bundle: Annotated[Path, typer.Argument(help="A bundle made by `hammer export`.")],
+    key: Annotated[Path, typer.Option(help="The ed25519 private key (`hammer keygen NAME`: NAME.key).")],
+) -> None:
+    """Sign a bundle: an ed25519 signature of its manifest (which holds every file's sha256 and its own
+    seal) in BUNDLE/manifest.sig. The bundle is checked whole first: only an intact bundle is signed."""
+    from hammer.serve.bundle import BundleError, load_bundle
+    from hammer.serve.signing import sign_bundle
+
+    try:
+        load_bundle(bundle, check_config=False)
+        kid = sign_bundle(bundle, key)
+    except (BundleError, ValueError) as e:
+        fail(str(e))
+    typer.echo(f"signed {bundle} with key {kid} ({bundle}/manifest.sig)")
 
 
 def serve_command(
