@@ -162,6 +162,7 @@ class EnvHost(Role):
         t0 = time.monotonic()
         deadline = t0 + self.weights_timeout_s
         self.stall_what = f"policy version {version} from the learner"
+        asked = t0
         try:
             while self.weights_version < version:
                 if self.stop_requested():
@@ -170,6 +171,9 @@ class EnvHost(Role):
                 w = self.weights_in.get(timeout=0.2)
                 if w is not None:
                     self.on_weights(w, version)
+                elif time.monotonic() - asked >= 1.0:  # a publication missed: ask (a policy server answers)
+                    asked = time.monotonic()
+                    self.session.fetch(self.keys.weights("local"), self.weights_in)
                 elif time.monotonic() > deadline:
                     raise TimeoutError(f"learner did not publish policy version {version} within "
                                        f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")

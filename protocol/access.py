@@ -9,7 +9,10 @@ process applies the same rules to everyone it talks to:
   weights message from a wrong identity never reaches the subscriber);
 - egress `put` to role R is sent only on keys R may subscribe to (a role cannot read what it has
   no business reading by declaring a subscriber);
-- R may declare subscribers only on its own subscriptions and a liveliness token only as itself.
+- R may declare subscribers only on its own subscriptions and a liveliness token only as itself;
+- R may ask (a Zenoh query) only for keys it may subscribe to, gets replies only on those, and only
+  a role that answers a key (the policy server, `learner`, for the weights) may declare a queryable
+  on it or reply on it: a stolen agent key cannot answer a late joiner's request for the policy.
 
 Every process enforces the table on its own links, so the rules hold in both topologies:
 peers meeting directly (`hammer up --secure`) and clients behind a router (`hammer hub --run-dir`,
@@ -42,6 +45,7 @@ class Grant:
     liveliness: tuple[str, ...] = ()  # tokens it may declare
     watch_liveliness: bool = False  # may subscribe to / query every role's liveliness
     relay: bool = False  # a router: forwards everyone's traffic (and checks each hop itself)
+    answers: tuple[str, ...] = ()  # keys it answers queries on (a late joiner asks for the current policy)
 
 
 Pools = tuple[tuple[str, tuple[int, ...]], ...]  # agent pools: (pool name, its agents)
@@ -90,8 +94,9 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
-            # the policy server (the learner of a served run) republishes the weights when a role joins
-            liveliness=(keys.alive("learner"),), watch_liveliness=True),
+            # the policy server (the learner of a served run) answers a late joiner's query for the weights
+            liveliness=(keys.alive("learner"),), watch_liveliness=True,
+            answers=(keys.weights("local"), keys.weights("central"))),
     }
     if router:
         g[HUB] = Grant(relay=True)
@@ -116,7 +121,7 @@ def access_control(keys: Keys, n_agents: int, pools: Pools = (), router: bool = 
     rules: list[dict] = [
         # A process's own declarations may leave it; the receiving side decides what to accept.
         _rule("own-declarations", "egress", ["declare_subscriber", "liveliness_token", "declare_liveliness_subscriber",
-                                              "liveliness_query"], everything),
+                                              "liveliness_query", "declare_queryable", "query"], everything),
     ]
     subjects: list[dict] = []
     policies: list[dict] = [{"id": "own-declarations", "rules": ["own-declarations"], "subjects": []}]
@@ -127,13 +132,15 @@ def access_control(keys: Keys, n_agents: int, pools: Pools = (), router: bool = 
         if g.relay:
             mine.append(_rule(f"{role}-relays-in", "ingress", ["put", "declare_subscriber", "liveliness_token",
                                                                "declare_liveliness_subscriber", "liveliness_query",
-                                                               "reply"], everything))
+                                                               "reply", "query", "declare_queryable"], everything))
             mine.append(_rule(f"{role}-relays-out", "egress", ["put", "reply"], everything))
         if g.publish:
             mine.append(_rule(f"{role}-publishes", "ingress", ["put"], g.publish))
         if g.subscribe:
-            mine.append(_rule(f"{role}-receives", "egress", ["put"], g.subscribe))
-            mine.append(_rule(f"{role}-subscribes", "ingress", ["declare_subscriber"], g.subscribe))
+            mine.append(_rule(f"{role}-receives", "egress", ["put", "reply"], g.subscribe))
+            mine.append(_rule(f"{role}-subscribes", "ingress", ["declare_subscriber", "query"], g.subscribe))
+        if g.answers:
+            mine.append(_rule(f"{role}-answers-queries", "ingress", ["declare_queryable", "reply"], g.answers))
         if g.liveliness:
             mine.append(_rule(f"{role}-alive", "ingress", ["liveliness_token"], g.liveliness))
             mine.append(_rule(f"{role}-answers-liveliness", "ingress", ["reply"], g.liveliness))

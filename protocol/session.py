@@ -28,6 +28,7 @@ import re
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Self
@@ -515,19 +516,24 @@ class Publisher:
     def publish(self, msg: Message) -> int:
         """Stamp run/ts/seq/sender (the sender the key implies, protocol.binding), encode and send;
         returns the seq used."""
-        run = self._session.run_id
-        if msg.run and msg.run != run:
-            raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
         t0 = time.perf_counter()
-        with self._lock:
-            seq = next(self._seq)
-        data = encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._sender},
-                      max_bytes=self.max_bytes)
+        seq, data = self.stamped(msg)
         t1 = time.perf_counter()
         self.put_bytes(data)
         self.encode_s += t1 - t0
         self.put_s += time.perf_counter() - t1
         return seq
+
+    def stamped(self, msg: Message) -> tuple[int, bytes]:
+        """(seq, bytes) of `msg` stamped as this key's next message (run, ts, seq, the sender the key
+        implies) and encoded: what `publish` sends, and what an answer to a query on this key carries."""
+        run = self._session.run_id
+        if msg.run and msg.run != run:
+            raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
+        with self._lock:
+            seq = next(self._seq)
+        return seq, encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._sender},
+                           max_bytes=self.max_bytes)
 
     def put_bytes(self, data: bytes) -> None:
         self.sent_msgs += 1
@@ -566,6 +572,7 @@ class HammerSession:
         self._publishers: dict[tuple[str, bool, bool], Publisher] = {}
         self._subs: list[Any] = []
         self._tokens: list[Any] = []
+        self._queryables: list[Any] = []
         self._lock = threading.Lock()
 
     # ---- lifecycle -------------------------------------------------------------------------
@@ -594,12 +601,13 @@ class HammerSession:
             self.faults.close()
         for s in self._subs:
             s.close()
-        for t in self._tokens:
+        for t in [*self._tokens, *self._queryables]:
             _quietly(t.undeclare)
         for p in self._publishers.values():
             p.close()
         self._subs.clear()
         self._tokens.clear()
+        self._queryables.clear()
         self._publishers.clear()
         self._z.close()
         self._z = None
@@ -668,6 +676,35 @@ class HammerSession:
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
+
+    # ---- ask for the current message (queries) --------------------------------------------
+
+    def answer(self, key: str, current: Callable[[], Message | None]) -> None:
+        """Answer every query on `key` (a Zenoh queryable) with `current()`, stamped as this session's
+        publisher of `key` stamps (None: nothing to say yet). Why: a role that joins late asks for
+        what it missed (the policy), so the copy crosses its own link only, instead of everyone
+        receiving a republish. `current` runs on a Zenoh thread: it must only hand over what it has."""
+        pub = self.publisher(key)
+
+        def on_query(query: zenoh.Query) -> None:
+            msg = current()
+            if msg is not None:
+                query.reply(key, pub.stamped(msg)[1])
+
+        self._queryables.append(self.zenoh.declare_queryable(self._own(key), on_query))
+
+    def fetch(self, key: str, into: Subscription, timeout: float = 2.0) -> None:
+        """Ask whoever answers `key` for its current message; returns at once. Each reply goes through
+        `into`'s intake exactly as a published sample of its key would (size cap, queue bound, then
+        decode, validation and key binding in the consumer's thread), so a reply is trusted no more
+        than a publication."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok
+            if ok is not None:
+                into._on_sample(ok)
+
+        self.zenoh.get(self._own(key), on_reply, timeout=timeout)
 
     def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)

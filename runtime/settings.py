@@ -148,8 +148,9 @@ class RuntimeSettings(BaseModel):
                              "0 = from the machine's cores (`hammer up` resolves it: auto_agents_per_process)")
 
     weights_republish_s: float = Field(
-        1.0, gt=0, description="eval: the policy server republishes the weights this long after a publish, then "
-                               "twice as long each time (late joiners; every role joining starts it over)")
+        0.0, ge=0, description="eval: 0 (default): the policy server publishes each version once and a role that "
+                               "joins late asks for it (a query, over its own link only); > 0: it also republishes "
+                               "this long after a publish, then twice as long each time")
     weights_republish_max_s: float = Field(
         16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
                                 "weights_republish_s for a fixed period")

@@ -5,7 +5,10 @@ observation / global state carries it). Weights can arrive before that step (pol
 little after the step that needs them (the learner publishes as the env host moves on), so an
 acting role holds received versions (`learning.policy_versions.WeightsInbox`) and, when a step
 names a version it has not loaded, waits for it up to a timeout, then acts with what it has and
-counts the timeout. A version further ahead than the learner can be (runtime.bounds) is
+counts the timeout. A role that holds no policy, or waits for a version, asks for it (a query the
+policy server of a served run answers, `HammerSession.fetch`, at most once every `FETCH_EVERY_S`):
+a late joiner gets the policy over its own link instead of everyone getting a republish. A
+reply is validated and bounded as a publication is. A version further ahead than the learner can be (runtime.bounds) is
 rejected, never held: one forged `Weights` of version 2^62 must not become "the newest", neither
 before the first real weights (the run's known version is the reference then) nor after.
 Torch-free: the edge local agent uses it.
@@ -23,6 +26,7 @@ from hammer.protocol.session import HammerSession
 from hammer.runtime.bounds import DEFAULT_RESYNC_S, FIRST_VERSION_SLACK, StepWindow, version_ahead
 
 log = logging.getLogger("hammer.weights")
+FETCH_EVERY_S = 1.0  # a role without the version it needs asks again this often
 
 
 class WeightsIntake:
@@ -42,8 +46,11 @@ class WeightsIntake:
         self.timeout_s = timeout_s
         self.max_policy_lag = max_policy_lag
         self._reject = reject or (lambda reason, what: log.warning("rejected (%s): %s", reason, what))
-        self._sub = session.subscribe(session.keys.weights(network), Weights)
+        self._session, self._key = session, session.keys.weights(network)
+        self._sub = session.subscribe(self._key, Weights)
         self._inbox = WeightsInbox(load, version)
+        self.fetches = 0  # queries sent for the current policy
+        self._last_fetch = -FETCH_EVERY_S
         self.loaded = 0  # versions loaded
         self.wait_timeouts = 0  # steps that named a version which did not come in time
         self.versions_passed = 0  # a (re)started role's first version was gone: it took the next one
@@ -72,11 +79,18 @@ class WeightsIntake:
     def take(self, need: int | None) -> None:
         """Load the version `need` names, never a newer one (see WeightsInbox), waiting for it up to
         `timeout_s`; need=None: load the newest received, without waiting."""
-        deadline = time.monotonic() + self.timeout_s
+        start = time.monotonic()
+        deadline = start + self.timeout_s
+        if need is None and self.known < 0:
+            self.fetch()  # idle without a policy (the central agent of a served run): ask for the current one
         if need is not None and self.version < need and self._inbox.select(need):
             self.loaded += 1  # received during an earlier take (policy lag): held, not waited for
         while True:
             wait = 0.0 if need is None or self.version >= need else deadline - time.monotonic()
+            if wait > 0 and need > self.known:  # not here: after a second's wait (a publication comes first), ask
+                if time.monotonic() - start >= FETCH_EVERY_S:
+                    self.fetch()
+                wait = min(wait, FETCH_EVERY_S)
             w = self._sub.get(timeout=max(wait, 0.0))
             if w is not None:
                 self._offer(w)
@@ -117,7 +131,18 @@ class WeightsIntake:
         if self._inbox.held and self._inbox.select(min(self._inbox.held)):
             self.loaded += 1
             return True
+        if self.known < 0:
+            self.fetch()
         return False
+
+    def fetch(self) -> None:
+        """Ask for the current version (at most once every FETCH_EVERY_S); the reply, if anyone
+        answers, arrives through the subscription."""
+        now = time.monotonic()
+        if now - self._last_fetch >= FETCH_EVERY_S:
+            self._last_fetch = now
+            self.fetches += 1
+            self._session.fetch(self._key, self._sub)
 
     def _offer(self, w: Weights) -> None:
         if self._bound.ahead(w.version, self.known):

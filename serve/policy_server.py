@@ -2,13 +2,14 @@
 
 Deployment and evaluation run the real runtime (every hop, every fault) but must not change the
 policy, so the learner role is taken by this server: it publishes the exported
-`local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0. It republishes them
-for late joiners, with a back-off: after `republish_s`, then twice as long each time up to
-`republish_max_s`, and at once (the back-off starting over) whenever a role of the run declares its
-liveliness, i.e. a started or restarted agent is subscribed. Why: the weights go over every agent's
-link; republished every second they alone would take more than a constrained radio link carries
-(figures in docs/deploy.md, "Real links"). The files are sent as
-they are (safetensors, never pickle); numpy and zenoh only, so serving does not pay for a torch import.
+`local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0, once per version,
+and answers queries for the current one (`HammerSession.answer`): a role that joins late, or
+missed a version, asks (runtime/weights.py) and the copy crosses its own link only. Why: the
+weights are 35-39 kB; republished to every agent whenever one joined, they held a 256 kbit/s link
+for 1.2 s each time (docs/deploy.md, "Real links"). A periodic republish with a back-off
+(`republish_s`, doubling up to `republish_max_s`) is there for runs that want one; off by default.
+The files are sent as they are (safetensors, never pickle); numpy and zenoh only, so serving does
+not pay for a torch import.
 
 Given the run directory, it also follows the run's update history (serve/push.py: `hammer push`,
 `hammer rollback`): the newest entry's weights, checked against their recorded sha256, become the
@@ -43,11 +44,12 @@ def policy_blobs(policy_dir: Path, needs_central: bool) -> dict[str, bytes]:
 
 
 class PolicyServer(Role):
-    """Publishes the frozen weights (version 0, then each pushed version) until a stop command,
-    republishing them with a back-off that starts over when a role joins."""
+    """Publishes the frozen weights (version 0, then each pushed version) until a stop command, and
+    answers whoever asks for the current version; `republish_s` > 0: also republishes with a
+    back-off (doubling up to `republish_max_s`)."""
 
     def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
-                 republish_s: float = 1.0, run_dir: Path | None = None, republish_max_s: float | None = None) -> None:
+                 republish_s: float = 0.0, run_dir: Path | None = None, republish_max_s: float | None = None) -> None:
         blobs = policy_blobs(policy_dir, needs_central)  # a missing file fails before anything is declared
         super().__init__(session, "learner", report_faults=False)
         self.blobs, self.needs_central = blobs, needs_central
@@ -55,15 +57,24 @@ class PolicyServer(Role):
         self.republish_max_s = max(republish_s, republish_max_s if republish_max_s is not None else republish_s)
         self.period = republish_s  # the wait before the next republish: doubles up to republish_max_s
         self.pubs = {role: session.publisher(self.keys.weights(role)) for role in blobs}
-        self.joins = session.watch_alive(history=False)
-        self.published = self.joined = 0
+        self.published = self.answered = 0
         self.last_publish = 0.0
         self.version, self.run_dir, self.history_seen = 0, run_dir, 0
         self.updates_rejected = 0
+        self._current: dict[str, Weights] = {}
+        for role in blobs:
+            session.answer(self.keys.weights(role), lambda role=role: self._answer(role))
+
+    def _answer(self, role: str) -> Weights | None:
+        """The current version's weights for a query (on a Zenoh thread: only hands over what it has)."""
+        w = self._current.get(role)
+        if w is not None:
+            self.answered += 1
+        return w
 
     def counters(self) -> dict[str, int]:
         return {"frozen_publishes": self.published, "updates_rejected": self.updates_rejected,
-                "roles_joined": self.joined}
+                "weights_answered": self.answered}
 
     def gauges(self) -> dict[str, int]:
         return {"policy_version": self.version}
@@ -72,25 +83,14 @@ class PolicyServer(Role):
         self.publish()
 
     def poll(self, timeout: float) -> bool:
-        """Nothing to receive but joins: a role declaring its liveliness (subscribed by then) gets the
-        weights at once, and the back-off starts over (a second chance if the first copy raced its
-        subscription through a router)."""
-        ev = self.joins.get(timeout=timeout)
-        joined = False
-        while ev is not None:
-            if ev.alive and ev.role != self.name:
-                self.joined += 1
-                joined = True
-            ev = self.joins.get(0)
-        if joined:
-            self.period = self.republish_s
-            self.publish()
+        """Nothing to receive: queries are answered on Zenoh's thread (`_answer`)."""
+        time.sleep(timeout)
         return False
 
     def on_idle(self) -> None:
         if self.run_dir is not None:
             self.follow_history()
-        if time.monotonic() - self.last_publish >= self.period:
+        if self.republish_s > 0 and time.monotonic() - self.last_publish >= self.period:
             self.publish()
             self.period = min(self.period * 2, self.republish_max_s)
 
@@ -125,8 +125,9 @@ class PolicyServer(Role):
         self.heartbeat_soon()
 
     def publish(self) -> None:
-        for role, blob in self.blobs.items():
-            self.pubs[role].publish(Weights.from_blob(role, self.version, blob))
+        self._current = {role: Weights.from_blob(role, self.version, blob) for role, blob in self.blobs.items()}
+        for role, w in self._current.items():
+            self.pubs[role].publish(w)
         self.published += 1
         self.last_publish = time.monotonic()
 

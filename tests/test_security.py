@@ -173,6 +173,31 @@ def test_only_the_learner_publishes_weights(team):
         assert _late_extra(sub, 0.2) == []
 
 
+def test_only_the_learner_answers_a_request_for_the_weights(team):
+    """A late joiner asks for the current policy (a query, runtime/weights.py). A thief with local-1's
+    key that answers such requests with its own well-formed weights reaches nobody; the learner's
+    answer arrives; and local-0 cannot ask for the central agent's weights."""
+    from hammer.protocol.codec import decode
+    from hammer.protocol.schemas import Weights
+
+    s, _ = team
+    s["local-1"].answer(KEYS.weights("local"), lambda: Weights.from_blob("local", 99, b"forged"))
+    ask_local = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    ask_central = s["local-0"].subscribe_raw(KEYS.weights("central"))
+    _settle()
+    s["local-0"].fetch(KEYS.weights("local"), ask_local, timeout=1.0)
+    assert _late_extra(ask_local, 1.2) == []  # the thief's queryable and replies are refused
+    s["learner"].answer(KEYS.weights("local"), lambda: Weights.from_blob("local", 3, b"real"))
+    s["learner"].answer(KEYS.weights("central"), lambda: Weights.from_blob("central", 3, b"real"))
+    _settle()
+    s["local-0"].fetch(KEYS.weights("local"), ask_local, timeout=1.0)
+    got = _wait_for(ask_local, 1)
+    assert [decode(b, Weights).version for b in got] == [3]  # the learner's, not the thief's 99
+    assert _late_extra(ask_local, 0.5) == []
+    s["local-0"].fetch(KEYS.weights("central"), ask_central, timeout=1.0)
+    assert _late_extra(ask_central, 1.2) == []  # not a key local-0 may read
+
+
 def test_only_the_launcher_publishes_control(team):
     """The env host too: in a plain run its end-of-budget stop is obeyed, here the rules drop it."""
     s, _ = team

@@ -150,41 +150,48 @@ def test_push_checks_and_cli(bundles, tmp_path):
     assert r.exit_code == 0 and "version 2 serves the policy of version 0" in r.output
 
 
-def test_the_policy_server_backs_off_and_republishes_when_a_role_joins(bundles):
-    """Republishes at 0, 0.5, 1.5, 3.5 s (the period doubling to its ceiling), not every 0.5 s; a role
-    declaring its liveliness gets the weights at once, long before the next scheduled copy (7.5 s)."""
+def test_the_policy_server_publishes_once_and_a_late_joiner_asks(bundles):
+    """A policy crosses each link once per version: the policy server publishes version 0 once (a
+    role subscribed from the start gets exactly one copy in 6 s); a role that joins later asks for it
+    (runtime/weights.py: a query the server answers) and loads it, and nobody else receives a copy.
+    With weights_republish_s > 0 it republishes, backing off (0, 0.5, 1.5, 3.5 s: not every 0.5 s)."""
     import threading
     import time
 
     from hammer.protocol.schemas import Control, Weights
     from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+    from hammer.runtime.weights import WeightsIntake
     from hammer.serve.policy_server import PolicyServer
 
     a, _ = bundles
-    port = free_loopback_port()
-    peer = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)])
-    with HammerSession("backoff", TransportConfig(listen=[loopback_endpoint(port)]), sender="launcher") as hub, \
-            HammerSession("backoff", peer, sender="learner") as s, HammerSession("backoff", peer, sender="local-0") as j:
-        got = j.subscribe(j.keys.weights("local"), Weights)
-        time.sleep(0.5)  # the subscription has reached the other sessions
-        server = PolicyServer(s, a.path, needs_central=True, republish_s=0.5, republish_max_s=4.0)
-        runner = threading.Thread(target=server.run, daemon=True)
-        t0 = time.monotonic()
-        runner.start()
-
-        def arrivals(until: float) -> list[float]:
-            out = []
-            while time.monotonic() - t0 < until:
+    for republish_s in (0.0, 0.5):
+        port = free_loopback_port()
+        peer = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)])
+        with HammerSession("once", TransportConfig(listen=[loopback_endpoint(port)]), sender="launcher") as hub, \
+                HammerSession("once", peer, sender="learner") as s, HammerSession("once", peer, sender="local-1") as w:
+            got = w.subscribe(w.keys.weights("local"), Weights)
+            time.sleep(0.5)  # the subscription has reached the other sessions
+            server = PolicyServer(s, a.path, needs_central=True, republish_s=republish_s, republish_max_s=4.0)
+            runner = threading.Thread(target=server.run, daemon=True)
+            t0 = time.monotonic()
+            runner.start()
+            time.sleep(1.0)
+            with HammerSession("once", peer, sender="local-0") as j:  # a role that joins late
+                loaded: list[int] = []
+                intake = WeightsIntake(j, "local", lambda blob, v, loaded=loaded: loaded.append(v), timeout_s=5.0)
+                end = time.monotonic() + 5
+                while not loaded and time.monotonic() < end:
+                    intake.preload_oldest()
+                    time.sleep(0.05)
+            arrivals = []
+            while time.monotonic() - t0 < 6.0:
                 if got.get(timeout=0.05) is not None:
-                    out.append(time.monotonic() - t0)
-            return out
-
-        before = arrivals(5.0)
-        j.declare_alive("local-0")
-        joined = time.monotonic() - t0
-        after = arrivals(6.0)
-        hub.publish(hub.keys.ctl("all"), Control(command="stop"))
-        runner.join(timeout=10)
-    assert 3 <= len(before) <= 5, before  # a fixed 0.5 s period would have sent 10
-    assert after and after[0] - joined < 0.8, (joined, after)  # the join, not the schedule (7.5 s)
-    assert server.counters()["roles_joined"] >= 1
+                    arrivals.append(time.monotonic() - t0)
+            hub.publish(hub.keys.ctl("all"), Control(command="stop"))
+            runner.join(timeout=10)
+        assert loaded == [0] and intake.fetches >= 1, (loaded, intake.fetches)
+        if republish_s == 0:
+            assert len(arrivals) == 1, arrivals  # published once; the joiner's copy went to the joiner only
+            assert server.counters()["weights_answered"] >= 1
+        else:
+            assert 3 <= len(arrivals) <= 5, arrivals  # a fixed 0.5 s period would have sent 12
