@@ -102,8 +102,8 @@ class FleetCentral(Role):
 
 
 def _safetensors(blob: bytes | None) -> dict[str, np.ndarray]:
-    from safetensors.numpy import load
+    from hammer.learning.numpy_policy import params_from_blob
 
     if blob is None:
         raise ValueError("this team's central agent has a network: its central.safetensors is needed")
-    return load(blob)
+    return params_from_blob(blob)

@@ -32,7 +32,12 @@ from hammer.envs.base import EnvSpec
 from hammer.faults.steplog import LoggedPublisher, StepLog, column
 from hammer.learning.central_acting import CentralActing, CentralOut
 from hammer.learning.config import RunConfig
-from hammer.learning.numpy_policy import NumpyCentralAgent, NumpySetCentralAgent, numpy_central
+from hammer.learning.numpy_policy import (
+    NumpyCentralAgent,
+    NumpySetCentralAgent,
+    numpy_central,
+    params_from_blob,
+)
 from hammer.learning.sampling import ActingStreams
 from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import CentralMsg, ExperienceChunk, GlobalState
@@ -40,7 +45,6 @@ from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
-from safetensors.numpy import load as load_safetensors
 
 DELIVERED, LATE = column("env->central", "delivered"), column("env->central", "late")
 
@@ -150,7 +154,7 @@ class CentralServer(Role):
 
     def load_weights(self, blob: bytes, version: int) -> None:
         """WeightsIntake's loader: fail on weights of another run's config here, not on the first forward."""
-        net = numpy_central(load_safetensors(blob))
+        net = numpy_central(params_from_blob(blob))
         got = (net.kind, net.state_dim, net.n_agents, net.msg_dim, net.critic is not None)
         want = (self.cfg.central_net, self.state_dim, self.n_agents, self.acting.msg_dim, self.acting.rl)
         if got != want:

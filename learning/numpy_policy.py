@@ -13,6 +13,22 @@ import numpy as np
 LOG_2PI = float(np.log(2 * np.pi))
 
 
+def params_from_blob(blob: bytes) -> dict[str, np.ndarray]:
+    """The weight dict of a safetensors blob off the wire or a file (never pickle), float16 tensors
+    as float32: a policy server may send the weights in half the bytes (`weights_float16`), and
+    every forward pass computes in float32."""
+    from safetensors.numpy import load
+
+    return {k: v.astype(np.float32) if v.dtype == np.float16 else v for k, v in load(blob).items()}
+
+
+def float16_blob(blob: bytes) -> bytes:
+    """The same safetensors blob with every float32 tensor as float16 (half the bytes on a link)."""
+    from safetensors.numpy import load, save
+
+    return save({k: v.astype(np.float16) if v.dtype == np.float32 else v for k, v in load(blob).items()})
+
+
 def _layers(params: dict[str, np.ndarray], prefix: str) -> list[tuple[np.ndarray, np.ndarray]]:
     out = []
     i = 0

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from hammer.faults.steplog import LoggedPublisher, StepLog, column
-from hammer.learning.numpy_policy import NumpyLocalPolicy, softmax
+from hammer.learning.numpy_policy import NumpyLocalPolicy, params_from_blob, softmax
 from hammer.learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
 from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import Action, CentralMsg, LocalObs
@@ -34,7 +34,6 @@ from hammer.protocol.session import HammerSession
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
-from safetensors.numpy import load as load_safetensors
 
 if TYPE_CHECKING:  # annotations only: the edge agent builds its AgentSpec without the (pydantic) RunConfig
     from hammer.envs.base import EnvSpec
@@ -119,7 +118,7 @@ class LocalAgent:
         self._onehot = np.eye(self.spec.n_agents, dtype=np.float32)[self.spec.agent]
 
     def load_weights(self, blob: bytes, version: int) -> None:
-        self.policy = NumpyLocalPolicy(load_safetensors(blob))
+        self.policy = NumpyLocalPolicy(params_from_blob(blob))
         self.version = version
 
     def policy_input(self, obs: np.ndarray, msg: np.ndarray | None) -> np.ndarray:

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from hammer.faults.links import flat_fault_counters
 from hammer.faults.steplog import LoggedPublisher, StepLog
-from hammer.learning.numpy_policy import NumpyLocalPolicy
+from hammer.learning.numpy_policy import NumpyLocalPolicy, params_from_blob
 from hammer.local_agent.client import AgentSpec, AgentSteps, step_log_columns
 from hammer.protocol.access import pool_name
 from hammer.protocol.dims import Dims
@@ -47,7 +47,6 @@ from hammer.protocol.session import HammerSession, Inbox, burst_express, io_coun
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
-from safetensors.numpy import load as load_safetensors
 
 
 def parse_agents(text: str, n_agents: int | None = None) -> list[int]:
@@ -163,7 +162,7 @@ class LocalAgentPool(Role):
 
     def _load_weights(self, blob: bytes, version: int) -> None:
         """One policy object for every agent of the pool (they all run the shared local policy)."""
-        policy = NumpyLocalPolicy(load_safetensors(blob))
+        policy = NumpyLocalPolicy(params_from_blob(blob))
         for m in self.members:
             m.agent.policy, m.agent.version = policy, version
 

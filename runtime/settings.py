@@ -28,7 +28,7 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
            "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
-           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s")
+           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16")
 
 
 def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
@@ -151,6 +151,9 @@ class RuntimeSettings(BaseModel):
         0.0, ge=0, description="eval: 0 (default): the policy server publishes each version once and a role that "
                                "joins late asks for it (a query, over its own link only); > 0: it also republishes "
                                "this long after a publish, then twice as long each time")
+    weights_float16: bool = Field(
+        False, description="eval: the policy server sends the weights as float16, half the bytes on every link "
+                           "(the agents compute in float32; how many actions change: docs/deploy.md)")
     weights_republish_max_s: float = Field(
         16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
                                 "weights_republish_s for a fixed period")

@@ -49,8 +49,10 @@ class PolicyServer(Role):
     back-off (doubling up to `republish_max_s`)."""
 
     def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
-                 republish_s: float = 0.0, run_dir: Path | None = None, republish_max_s: float | None = None) -> None:
-        blobs = policy_blobs(policy_dir, needs_central)  # a missing file fails before anything is declared
+                 republish_s: float = 0.0, run_dir: Path | None = None, republish_max_s: float | None = None,
+                 float16: bool = False) -> None:
+        self.float16 = float16
+        blobs = self._wire(policy_blobs(policy_dir, needs_central))  # a missing file fails before anything is declared
         super().__init__(session, "learner", report_faults=False)
         self.blobs, self.needs_central = blobs, needs_central
         self.republish_s = republish_s
@@ -64,6 +66,14 @@ class PolicyServer(Role):
         self._current: dict[str, Weights] = {}
         for role in blobs:
             session.answer(self.keys.weights(role), lambda role=role: self._answer(role))
+
+    def _wire(self, blobs: dict[str, bytes]) -> dict[str, bytes]:
+        """The blobs as sent: float16 tensors with `float16` (learning.numpy_policy.float16_blob)."""
+        if not self.float16:
+            return blobs
+        from hammer.learning.numpy_policy import float16_blob
+
+        return {role: float16_blob(b) for role, b in blobs.items()}
 
     def _answer(self, role: str) -> Weights | None:
         """The current version's weights for a query (on a Zenoh thread: only hands over what it has)."""
@@ -118,7 +128,7 @@ class PolicyServer(Role):
             self.updates_rejected += 1
             self.log.error("update to version %d rejected: %s", e["version"], err)
             return
-        self.blobs, self.version = blobs, e["version"]
+        self.blobs, self.version = self._wire(blobs), e["version"]
         self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
         self.period = self.republish_s  # a new version: republished soon for anyone who missed the first copy
         self.publish()

@@ -328,3 +328,27 @@ def test_signed_bundles_load_only_against_a_trusted_key(trained, tmp_path):
                             "--run-id", "x", "--connect", f"tcp/127.0.0.1:{port}", "--trust", str(site)],
                            env=ENV, capture_output=True, text=True, timeout=120, check=False)
         assert r.returncode == 2 and what in r.stderr and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_weights_sent_as_float16_halve_the_bytes_and_serve(trained, tmp_path):
+    """`weights_float16`: the policy server sends half the bytes; every receiver computes in float32
+    (learning.numpy_policy.params_from_blob), and a served run completes with no default action."""
+    from hammer.learning.numpy_policy import float16_blob, params_from_blob
+    from safetensors.numpy import load
+
+    b = export_bundle(trained, tmp_path / "b")
+    blob = (b.path / "local.safetensors").read_bytes()
+    half = float16_blob(blob)
+    assert len(half) < 0.55 * len(blob)
+    exact, got = load(blob), params_from_blob(half)
+    assert set(got) == set(exact) and all(got[k].dtype == np.float32 for k in got)
+    assert max(float(np.abs(got[k] - exact[k]).max()) for k in got) < 1e-2
+    assert all(np.array_equal(params_from_blob(blob)[k], exact[k]) for k in exact)  # float32 untouched
+    run = tmp_path / "served"
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "serve", str(b.path), "--episodes", "16",
+                        "--run-dir", str(run), "--no-dashboard", "--runtime", "weights_float16=true"],
+                       env=ENV, capture_output=True, text=True, timeout=300, check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((run / "runtime.json").read_text())["weights_float16"] is True
+    links = json.loads((run / "summary.json").read_text())["links"]
+    assert links["default_actions"] == 0 and links["msg_fallback_copies"] == 0

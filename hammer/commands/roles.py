@@ -339,7 +339,8 @@ def learner_command(run_dir: RunDirOpt,
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
                 PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network,
-                             settings.weights_republish_s, run_dir, settings.weights_republish_max_s).run()
+                             settings.weights_republish_s, run_dir, settings.weights_republish_max_s,
+                             float16=settings.weights_float16).run()
         except PolicyDirError as e:
             fail(str(e))
         except KeyboardInterrupt:
