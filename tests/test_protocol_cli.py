@@ -63,3 +63,20 @@ def test_bench_codec_cold_mode_runs(tmp_path):
     assert data["meta"]["cold"] is True and len(data["rows"]) == 8
     assert all(r["decode_fast_us"] > 0 and r["decode_ref_us"] > 0 for r in data["rows"])
     assert "cache-cold" in result.output
+
+
+def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
+    """The baseline of the compact wire: per link, the encoded messages of one step add up, and the
+    minimum is the numbers alone (cn3 own-observation: 57 B an agent link, 171 B the central, at K=1)."""
+    out = tmp_path / "wire.json"
+    r = CliRunner().invoke(app, ["bench", "wire", "--num-envs", "1,32", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    rows = {row["K"]: row for row in json.loads(out.read_text())["rows"]}
+    assert (rows[1]["agent_link_min"], rows[1]["central_link_min"]) == (57, 171)
+    assert rows[32]["agent_link_min"] == 32 * 57
+    for row in rows.values():
+        assert row["agent_link"] == row["local_obs"] + row["central_msg"] + row["action"]
+        assert row["central_link"] == row["global_state"] + 3 * row["central_msg"]
+        assert row["action"] > row["action_without_echoed_msg"]  # the echo is counted, and visible
+        assert row["agent_link"] > row["agent_link_min"]
+    assert rows[1]["agent_link_ratio"] > rows[32]["agent_link_ratio"]  # headers weigh most on one copy

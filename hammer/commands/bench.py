@@ -85,6 +85,22 @@ def bench_transport(
         typer.echo(f"wrote {json_out}")
 
 
+@bench.command("wire")
+def bench_wire(
+    bundle: Annotated[Path | None, typer.Argument(help="A team's bundle for its dimensions (default: cn3 with "
+                                                       "own-observation views, D=10 M=4 A=5 N=3).")] = None,
+    num_envs: Annotated[str, typer.Option(help="env copies K, comma-separated")] = "1,32",
+    out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+) -> None:
+    """Encoded bytes one vector step puts on an agent's link and on the central agent's link, per
+    message type, against the physical minimum (the numbers alone), at each K."""
+    from hammer.benchmarks.wire import main
+
+    code = main([*([str(bundle)] if bundle else []), "--num-envs", num_envs, *(["--out", str(out)] if out else [])])
+    if code:
+        raise typer.Exit(code)
+
+
 @bench.command("codec")
 def bench_codec(
     k: Annotated[int, typer.Option(min=1, help="env copies per message (K)")] = 32,
