@@ -59,13 +59,14 @@ def _write_history(run_dir: Path, entries: list[dict]) -> None:
     os.replace(tmp, Path(run_dir) / PUSHES)
 
 
-def push(bundle_path: Path, run_dir: Path) -> dict:
-    """Record `bundle_path` as the next policy version of the served run; returns the history entry."""
+def push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = ()) -> dict:
+    """Record `bundle_path` as the next policy version of the served run; returns the history entry.
+    `trust`: public keys, one of which must have signed the bundle (serve/signing.py)."""
     from hammer.learning.config import build_config
 
     run_dir = Path(run_dir)
     _, cfg_data = _served(run_dir)
-    b = load_bundle(bundle_path)
+    b = load_bundle(bundle_path, trust=trust)
     served, new = build_config(cfg_data), b.config()
     spec = json.loads((run_dir / "env_spec.json").read_text())
     b.check_env(spec)

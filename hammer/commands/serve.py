@@ -297,6 +297,8 @@ def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
 def push_command(
     bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
     to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve`.")],
+    trust: Annotated[list[Path] | None, typer.Option(
+        help="Push it only if this ed25519 public key (`hammer keygen`) signed it; repeatable.")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
     same step boundary (the first step that names it). The dashboard shows the version per role."""
@@ -304,7 +306,7 @@ def push_command(
     from hammer.serve.push import push
 
     try:
-        e = push(bundle, to)
+        e = push(bundle, to, trust=tuple(trust or ()))
     except (BundleError, ValueError, OSError) as err:
         fail(str(err))
     typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
