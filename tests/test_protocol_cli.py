@@ -80,3 +80,12 @@ def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
         assert row["action"] > row["action_without_echoed_msg"]  # the echo is counted, and visible
         assert row["agent_link"] > row["agent_link_min"]
     assert rows[1]["agent_link_ratio"] > rows[32]["agent_link_ratio"]  # headers weigh most on one copy
+
+
+def test_bench_peers_says_why_it_skips_without_jaxmarls_baselines(tmp_path):
+    """JaxMARL's IPPO baseline lives in its repository, not its pip package: without it the bench
+    says so and how to get it, and builds nothing."""
+    venv = tmp_path / "jax-venv"
+    r = CliRunner().invoke(app, ["bench", "peers", "--jaxmarl-repo", str(tmp_path), "--jax-venv", str(venv)])
+    assert r.exit_code == 0 and "skipped" in r.output and "FLAIROx/JaxMARL" in r.output, r.output
+    assert not venv.exists()

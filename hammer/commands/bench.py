@@ -85,6 +85,26 @@ def bench_transport(
         typer.echo(f"wrote {json_out}")
 
 
+@bench.command("peers")
+def bench_peers(
+    jaxmarl_repo: Annotated[Path | None, typer.Option(help="A checkout of FLAIROx/JaxMARL (its baselines/IPPO; the "
+                                                           "pip package does not ship them).")] = None,
+    jax_venv: Annotated[Path, typer.Option(help="JaxMARL's own venv (built with pip here if missing)")] = Path(
+        "/tmp/hammer-jaxmarl-venv"),
+    env_steps: Annotated[int, typer.Option(min=1000, help="env steps of each run (JaxMARL's defaults: x2.5)")] = 400_000,
+    out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+) -> None:
+    """hammer's training rate against JaxMARL's IPPO-FF on MPE simple spread, one core each, one after
+    the other: at hammer's cn3 schedule and at JaxMARL's defaults; compile times and the end of both
+    learning curves (docs/fast-envs.md)."""
+    from hammer.benchmarks.peers import main
+
+    code = main([*(["--jaxmarl-repo", str(jaxmarl_repo)] if jaxmarl_repo else []), "--jax-venv", str(jax_venv),
+                 "--env-steps", str(env_steps), *(["--out", str(out)] if out else [])])
+    if code:
+        raise typer.Exit(code)
+
+
 @bench.command("wire")
 def bench_wire(
     bundle: Annotated[Path | None, typer.Argument(help="A team's bundle for its dimensions (default: cn3 with "
