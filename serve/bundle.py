@@ -262,9 +262,9 @@ def export_bundle(run_dir: Path, out: Path, *, force: bool = False, sign: Path |
     manifest["seal"] = seal(manifest)
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
     if sign is not None:
-        from hammer.serve.signing import sign_bundle
+        from hammer.serve.signing import sign_manifest
 
-        sign_bundle(tmp, sign)
+        sign_manifest(tmp / MANIFEST, sign)
     if out.exists():
         shutil.rmtree(out)
     tmp.rename(out)
@@ -300,9 +300,9 @@ def load_bundle(path: Path, check_config: bool = True, trust: tuple[Path, ...] |
     if not mf.is_file():
         raise BundleError(f"{mf} is missing: pass a directory made by `hammer export RUN --out BUNDLE`")
     if trust:
-        from hammer.serve.signing import verify_bundle
+        from hammer.serve.signing import verify_manifest
 
-        verify_bundle(path, list(trust))
+        verify_manifest(mf, list(trust))
     try:
         m = json.loads(mf.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:

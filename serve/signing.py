@@ -19,12 +19,10 @@ import json
 import os
 from pathlib import Path
 
-from hammer.serve.bundle import MANIFEST, BundleError
-
-SIGNATURE = "manifest.sig"
+SIGNATURE = "manifest.sig"  # beside the manifest it signs
 
 
-class SignatureError(BundleError):
+class SignatureError(ValueError):
     """The bundle's signature is missing or does not verify; the message is the reason and its fix."""
 
 
@@ -87,24 +85,26 @@ def key_id(public_key) -> str:
     return hashlib.sha256(raw).hexdigest()[:16]
 
 
-def sign_bundle(bundle_dir: Path, private_key: Path) -> str:
-    """Sign the manifest of the bundle in `bundle_dir` (its exact bytes) with `private_key`; returns the key id."""
+def sign_manifest(manifest: Path, private_key: Path) -> str:
+    """Sign a bundle's manifest file (its exact bytes) with `private_key`, into SIGNATURE beside it;
+    returns the key id."""
     key = _private(private_key)
-    data = (Path(bundle_dir) / MANIFEST).read_bytes()
+    data = Path(manifest).read_bytes()
     kid = key_id(key.public_key())
-    (Path(bundle_dir) / SIGNATURE).write_text(json.dumps(
+    Path(manifest).with_name(SIGNATURE).write_text(json.dumps(
         {"algorithm": "ed25519", "key_id": kid, "signature": base64.b64encode(key.sign(data)).decode()}, indent=1))
     return kid
 
 
-def verify_bundle(bundle_dir: Path, trusted: list[Path] | tuple[Path, ...]) -> str:
-    """The key id of the trusted key that signed this bundle's manifest; SignatureError otherwise
-    (no signature, a malformed one, or one no trusted key verifies: tampered, or signed by another key)."""
+def verify_manifest(manifest: Path, trusted: list[Path] | tuple[Path, ...]) -> str:
+    """The key id of the trusted key that signed this bundle manifest; SignatureError otherwise (no
+    signature, a malformed one, or one no trusted key verifies: tampered, or signed by another key)."""
     from cryptography.exceptions import InvalidSignature
 
-    bundle_dir = Path(bundle_dir)
+    manifest = Path(manifest)
+    bundle_dir = manifest.parent
     keys = [_public(p) for p in trusted]
-    sig_file = bundle_dir / SIGNATURE
+    sig_file = manifest.with_name(SIGNATURE)
     if not sig_file.is_file():
         raise SignatureError(f"{bundle_dir}: not signed ({SIGNATURE} missing) and --trust asks for a signed bundle; "
                              "fix: sign it where it was exported (`hammer sign BUNDLE --key NAME.key`)")
@@ -115,7 +115,7 @@ def verify_bundle(bundle_dir: Path, trusted: list[Path] | tuple[Path, ...]) -> s
             raise ValueError("expected an ed25519 signature of 64 bytes")
     except (ValueError, KeyError, TypeError) as e:
         raise SignatureError(f"{sig_file}: not a bundle signature ({e}); fix: sign the bundle again") from None
-    data = (bundle_dir / MANIFEST).read_bytes()
+    data = manifest.read_bytes()
     for key in keys:
         try:
             key.verify(signature, data)

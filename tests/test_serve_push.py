@@ -144,14 +144,15 @@ def test_push_checks_and_cli(bundles, tmp_path):
     with pytest.raises(BundleError):  # a bundle whose manifest no longer matches its files
         (cn5 / "manifest.json").write_text((cn5 / "manifest.json").read_text().replace('"n_agents": 3', '"n_agents": 5'))
         push(cn5, run)
-    from hammer.serve.signing import new_key, sign_bundle
+    from hammer.serve.bundle import MANIFEST
+    from hammer.serve.signing import new_key, sign_manifest
 
     _, pub = new_key(tmp_path / "keys" / "site")
     r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--trust", str(pub)])
     assert r.exit_code == 2 and "not signed" in r.output and not (run / "pushes.json").exists()
     signed = tmp_path / "signed"
     shutil.copytree(a.path, signed)
-    sign_bundle(signed, tmp_path / "keys" / "site.key")
+    sign_manifest(signed / MANIFEST, tmp_path / "keys" / "site.key")
     r = runner.invoke(app, ["push", str(signed), "--to", str(run), "--trust", str(pub)])
     assert r.exit_code == 0 and "policy version 1" in r.output
     r = runner.invoke(app, ["rollback", str(run)])

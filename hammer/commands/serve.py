@@ -75,12 +75,12 @@ def sign_command(
 ) -> None:
     """Sign a bundle: an ed25519 signature of its manifest (which holds every file's sha256 and its own
     seal) in BUNDLE/manifest.sig. The bundle is checked whole first: only an intact bundle is signed."""
-    from hammer.serve.bundle import BundleError, load_bundle
-    from hammer.serve.signing import sign_bundle
+    from hammer.serve.bundle import MANIFEST, BundleError, load_bundle
+    from hammer.serve.signing import sign_manifest
 
     try:
         load_bundle(bundle, check_config=False)
-        kid = sign_bundle(bundle, key)
+        kid = sign_manifest(bundle / MANIFEST, key)
     except (BundleError, ValueError) as e:
         fail(str(e))
     typer.echo(f"signed {bundle} with key {kid} ({bundle}/manifest.sig)")
