@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"jaxmarl_hammer_schedule": jm, "jaxmarl_defaults": jd, "hammer": hm,
               "ratio_matched": round(hm["env_steps_per_s"] / jm["env_steps_per_s"], 3),
               "ratio_vs_jaxmarl_defaults": round(hm["env_steps_per_s"] / jd["env_steps_per_s"], 3)}
-    print(f"JaxMARL {jm['jax']} IPPO-FF, hammer's schedule: {jm['env_steps_per_s']:,.0f} env-steps/s "
+    print(f"JaxMARL IPPO-FF (jax {jm['jax']}), hammer's schedule: {jm['env_steps_per_s']:,.0f} env-steps/s "
           f"(compile {jm['compile_s']} s, {jm['env_steps']:,} steps); final mean episode return "
           f"{jm['final_return_mean']:.2f}")
     print(f"JaxMARL IPPO-FF, its defaults ({jd['num_envs']} envs x {jd['num_steps']} steps): "
