@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from hammer.benchmarks.netns import PORT, NetnsUnavailable, Procs, _wait_for, client_config, topology
+from hammer.benchmarks.results import write_json
 
 GAP_S = 10.0  # between outages, and before the first: the fleet settles
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
@@ -220,10 +221,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({r['world']['ticks_skipped']} skipped), {r['world']['episodes']} episodes; RSS growth from "
               f"t={r['growth_pct_from']} s to the end: " + ", ".join(f"{k} {v:+.1f} %" for k, v in r["growth_pct"].items())
               + f"; run directory {r['disk_kb'][0]} -> {r['disk_kb'][1]} kB")
-        if a.out:
-            a.out.parent.mkdir(parents=True, exist_ok=True)
-            a.out.write_text(json.dumps(r, indent=1))
-            print(f"wrote {a.out}")
+        write_json(a.out, r)
         return 0
     try:
         outages = parse_outages(a.outages)
@@ -255,10 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     w = cut["world"]
     print(f"  with outages: paper metric {w.get('paper_metric_mean') if c_metric is None else round(c_metric, 2)}, "
           f"defaults per robot {[r['defaults'] for r in w['robots'].values()]}, ticks skipped {w['ticks_skipped']}")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(result, indent=1))
-        print(f"wrote {a.out}")
+    write_json(a.out, result)
     return 0
 
 

@@ -25,6 +25,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from hammer.benchmarks.results import write_json
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -109,10 +111,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{hm['final_team_return_mean']:.2f}")
     print(f"hammer / JaxMARL: {result['ratio_matched']}x at the same schedule, {result['ratio_vs_jaxmarl_defaults']}x "
           "against JaxMARL at its defaults (one core each)")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(result, indent=1))
-        print(f"wrote {a.out}")
+    write_json(a.out, result)
     return 0
 
 

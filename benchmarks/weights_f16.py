@@ -20,6 +20,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+from hammer.benchmarks.results import write_json
 
 
 def _serve(bundle: Path, run: Path, episodes: int, float16: bool) -> dict:
@@ -82,10 +83,7 @@ def main(argv: list[str] | None = None) -> int:
           f"(first at step {r['first_step_differing']}); largest message difference {r['max_message_difference']}; "
           f"paper metric float32 {r['paper_metric']['float32']} vs float16 {r['paper_metric']['float16']}; "
           f"defaults {r['defaults']}")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(r, indent=1))
-        print(f"wrote {a.out}")
+    write_json(a.out, r)
     return 0
 
 

@@ -16,11 +16,11 @@ the baseline the compact wire of issue 31 is measured against.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
+from hammer.benchmarks.results import write_json
 
 COMMON = {"run": "r" * 24, "ts": 1_764_800_000_000_000_000, "seq": 123_456, "step": 123_456}  # realistic widths
 
@@ -86,10 +86,7 @@ def main(argv: list[str] | None = None) -> int:
               f"action {r['action']}, of which the echoed message {r['action'] - r['action_without_echoed_msg']}) "
               f"against a minimum of {r['agent_link_min']:,} B: {r['agent_link_ratio']}x; central link "
               f"{r['central_link']:,} B against {r['central_link_min']:,} B: {r['central_link_ratio']}x")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"dims": d, "rows": rows}, indent=1))
-        print(f"wrote {a.out}")
+    write_json(a.out, {"dims": d, "rows": rows})
     return 0
 
 
