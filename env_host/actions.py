@@ -50,6 +50,7 @@ class StepActions:
     msgs: np.ndarray  # (K, N, M) float32: the message each agent acted on (zeros where none came)
     fallback: np.ndarray  # (K, N) bool: the agent acted on a fallback message (its central message was late)
     defaulted: np.ndarray  # (K, N) bool: the agent's action missed the deadline; the default was used
+    arrived_ms: np.ndarray | None = None  # (N,) ms from the collection's start to each action (NaN: none in time)
 
 
 class ActionCollector:
@@ -66,20 +67,23 @@ class ActionCollector:
         self._cols = {e: column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults")}
         self._recent_got: dict[int, np.ndarray] = {}  # step -> agents whose action arrived
 
-    def collect(self, step: int, policy_version: int) -> StepActions:
-        """The actions of `step`; those of another version than `policy_version` are counted off-policy."""
+    def collect(self, step: int, policy_version: int | np.ndarray) -> StepActions:
+        """The actions of `step`; those of another version than `policy_version` (one for every
+        agent, or (N,) during a staged rollout: each agent's own) are counted off-policy."""
         n, k = self.n, self.k
         out = StepActions(self.spec.default_actions(k), np.zeros((k, n, self.msg_dim), np.float32),
-                          np.zeros((k, n), dtype=bool), np.zeros((k, n), dtype=bool))
+                          np.zeros((k, n), dtype=bool), np.zeros((k, n), dtype=bool), np.full(n, np.nan))
         got = np.zeros(n, dtype=bool)
-        deadline = time.monotonic() + self.deadline_s
+        start = time.monotonic()
+        deadline = start + self.deadline_s
         while not got.all():
             a = self.actions_in.get(timeout=max(0.0, deadline - time.monotonic()))
             if a is None:
                 break
             if self._accept(a, step, got):
-                self._apply(a, out, policy_version)
+                self._apply(a, out, policy_version if np.isscalar(policy_version) else int(policy_version[a.agent]))
                 got[a.agent] = True
+                out.arrived_ms[a.agent] = (time.monotonic() - start) * 1e3
         out.defaulted[:, ~got] = True
         self.counters.default_actions += int(out.defaulted.sum())
         self.step_log.add(step, self._cols["defaults"], int(out.defaulted.sum()))

@@ -18,6 +18,11 @@ the per-link columns from the roles' step logs (this process logs the state / ob
 sent and the actions it received, `RUN/linksteps/env-<pid>.csv`; see faults/episode_links.py and
 docs/faults.md). `trace.npz` (obs, messages, actions, masks per step) on request.
 Resuming (`hammer up --resume`): see env_host/checkpoint.py.
+
+A served run names a version per agent: after `hammer push --canary` (serve/canary.py) the
+canary's agents get the new version in their LocalObs while the others and the central agent keep
+the base (runtime/pushes.py reads the history; a version is named only once its weights reached
+this host). It also writes each agent's health for the rollout's gates (env_host/health.py).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import numpy as np
 from hammer.env_host import checkpoint
 from hammer.env_host.actions import ActionCollector, StepActions
 from hammer.env_host.checkpoint import EpisodeRows, HostState
+from hammer.env_host.health import AgentHealth
 from hammer.env_host.trace import TraceWriter
 from hammer.envs.base import VecEnv, VecStep
 from hammer.envs.local_view import local_view_from_config
@@ -42,7 +48,10 @@ from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
 from hammer.protocol.schemas import Action, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
 from hammer.protocol.session import HammerSession, burst_express
+from hammer.runtime.pushes import HistoryError, assignment, read_pushes
 from hammer.runtime.role import Role, process_cpu_s
+
+HISTORY_EVERY_S = 0.25  # a served run reads its update history (pushes.json) at most this often
 
 
 class EnvHost(Role):
@@ -88,6 +97,9 @@ class EnvHost(Role):
         self.rollout = RolloutLayout.from_config(cfg, self.spec).chunk_steps()
         self.writer = RolloutWriter(self.rollout, self.spec)
         self.trace = TraceWriter(rd.path, int(trace_max_mb * 2**20)) if trace else None
+        self.agent_versions: np.ndarray | None = None  # eval: each agent's version (a staged rollout)
+        self.health: AgentHealth | None = None
+        self._history_read, self._history_mtime, self._history_bad, self._named_for = 0.0, None, False, -2
 
     def counters(self) -> dict[str, int | float]:
         st = self.state
@@ -202,13 +214,16 @@ class EnvHost(Role):
         t0 = time.perf_counter()
         self._send_observations(obs, prev, active)
         self.stall_what = "actions"
-        got = self.collector.collect(st.step, self.rollout_version)
+        got = self.collector.collect(st.step, self.rollout_version if self.agent_versions is None
+                                     else self.agent_versions)
         if not got.defaulted.all():  # a step of default actions only is no progress of the team
             self.progressed()
         # Control-loop latency: observations out -> every action in (3 hops), env step excluded.
         t1 = time.perf_counter()
         st.step_latency_ms.append((t1 - t0) * 1e3)
         self.episodes.count(got.fallback, got.defaulted)
+        if self.health is not None:
+            self.health.step(got, got.arrived_ms)
         step = self.env.step(self.spec.env_action(got.actions))
         self.time_s["loop"] += t1 - t0
         self.time_s["env_step"] += time.perf_counter() - t1
@@ -223,10 +238,11 @@ class EnvHost(Role):
                                                active=active, policy_version=version))
         joint = obs.reshape(self.k, -1) if self.wiring.joint_obs else None
         seen = self.local_view(obs)
+        per = self.agent_versions
         for i in range(self.n):
             self.obs_out[i].publish(LocalObs(step=step, env_idx=self.env_idx, agent=i,
                                              obs=joint if joint is not None else np.ascontiguousarray(seen[:, i]),
-                                             active=active[:, i], policy_version=version))
+                                             active=active[:, i], policy_version=version if per is None else int(per[i])))
 
     # ----- evaluation ---------------------------------------------------------------------------
     def run_eval(self) -> dict:
@@ -240,26 +256,60 @@ class EnvHost(Role):
             return self.summary(t_start)
         obs, active = self._reset_env(0)
         prev = zero_prev_actions(self.spec, self.k)
-        while not self.stop_requested():
-            self.heartbeat()
-            self._take_pushed_version()
-            step, got = self._vector_step(obs, prev, active)
-            prev = next_prev_actions(self.spec, got.actions, step).prev
-            obs, active = step.obs, step.next_active
-            st.env_steps += self.k
-            if step.episodes and self._record_episodes(step.episodes):
-                break
+        self.agent_versions = np.zeros(self.n, np.int64)
+        self.health = AgentHealth(self.session, self.rd.path, self.n)
+        try:
+            while not self.stop_requested():
+                self.heartbeat()
+                self._take_pushed_version()
+                step, got = self._vector_step(obs, prev, active)
+                prev = next_prev_actions(self.spec, got.actions, step).prev
+                obs, active = step.obs, step.next_active
+                st.env_steps += self.k
+                for e in step.episodes:
+                    self.health.episode(e.paper_metric, e.team_return)
+                if step.episodes and self._record_episodes(step.episodes):
+                    break
+                self.health.poll(st.step, self.agent_versions.tolist(), self.rollout_version)
+            self.health.write(st.step, self.agent_versions.tolist(), self.rollout_version)
+        finally:
+            self.health.close()
         self.rd.flush()
         return self.summary(t_start)
 
     def _take_pushed_version(self) -> None:
-        """Eval: a newer policy version published (`hammer push` / `hammer rollback`) is named from the
-        next step on, by every observation and global state of that step (actors hold it until then)."""
+        """Eval: a newer policy version published (`hammer push` / `hammer rollback` / a staged
+        rollout) is named from the next step on, by the observations of the agents it is for (every
+        agent, or the canary's) and, once every agent is on it, by the global state (actors hold it
+        until then). Which agents: the run's history (runtime/pushes.py), re-read when it changed;
+        without a readable history every agent takes the newest version (a plain push)."""
         for w in self.weights_in.drain():
             self.weights_version = max(self.weights_version, w.version)
-        if self.weights_version > self.rollout_version:
-            self.log.info("policy version %d from step %d", self.weights_version, self.state.step + 1)
-            self.rollout_version = self.weights_version
+        now = time.monotonic()
+        if now - self._history_read < HISTORY_EVERY_S:
+            return
+        self._history_read = now
+        try:
+            mtime = (self.rd.path / "pushes.json").stat().st_mtime_ns
+        except FileNotFoundError:
+            mtime = None
+        if mtime == self._history_mtime and self.weights_version == self._named_for:
+            return
+        self._history_mtime, self._named_for = mtime, self.weights_version
+        try:
+            entries = read_pushes(self.rd.path)
+        except HistoryError as e:
+            if not self._history_bad:
+                self.log.error("%s (every agent takes the newest version)", e)
+            self._history_bad, entries = True, []
+        a = assignment(entries, self.weights_version)
+        if not entries:  # no history to follow: the newest published version, for everyone
+            a.base = max(self.weights_version, self.rollout_version)
+        versions = np.array([max(v, int(old)) for v, old in zip(a.agent_versions(self.n), self.agent_versions)])
+        base = max(a.base, self.rollout_version)  # never back: a version once named stays named
+        if base != self.rollout_version or not np.array_equal(versions, self.agent_versions):
+            self.log.info("from step %d: central version %d, agents %s", self.state.step + 1, base, versions.tolist())
+        self.rollout_version, self.agent_versions = base, versions
 
     def _wait_actors_ready(self) -> bool:
         """Eval: start stepping only once the central agent and every local agent hold the policy

@@ -150,6 +150,7 @@ class LocalAgentPool(Role):
             self._route[m.observations] = (m, self.on_obs)
             if m.messages is not None:
                 self._route[m.messages] = (m, self.on_message)
+        self.policies: dict[int, NumpyLocalPolicy] = {}  # version -> policy (the last few: a canary and its base)
         self.weights = WeightsIntake(session, "local", self._load_weights, weights_timeout_s,
                                      reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
         self.forwards = self.stacked_forwards = 0  # forward calls, and those that served several agents at once
@@ -161,8 +162,13 @@ class LocalAgentPool(Role):
         return [self._control, self.weights._sub]
 
     def _load_weights(self, blob: bytes, version: int) -> None:
-        """One policy object for every agent of the pool (they all run the shared local policy)."""
+        """One policy object for every agent of the pool (they all run the shared local policy). The
+        last few versions stay: during a staged rollout (serve/canary.py) a pool may hold canary
+        agents and others, whose steps name two versions, and the intake only ever loads forward."""
         policy = NumpyLocalPolicy(params_from_blob(blob))
+        self.policies[version] = policy
+        for v in sorted(self.policies)[:-4]:
+            del self.policies[v]
         for m in self.members:
             m.agent.policy, m.agent.version = policy, version
 
@@ -213,6 +219,10 @@ class LocalAgentPool(Role):
                 for m in group:  # host's default stands in (counted there and as weights_wait_timeouts)
                     m.waiting = None
                 continue
+            kept = [v for v in self.policies if v <= version]  # an older version's step after a newer load
+            if kept and max(kept) != self.members[0].agent.version:
+                for m in self.members:
+                    m.agent.policy, m.agent.version = self.policies[max(kept)], max(kept)
             inputs = []
             for m in group:
                 obs = m.waiting

@@ -679,17 +679,19 @@ class HammerSession:
 
     # ---- ask for the current message (queries) --------------------------------------------
 
-    def answer(self, key: str, current: Callable[[], Message | None]) -> None:
+    def answer(self, key: str, current: Callable[[], Message | list[Message] | None]) -> None:
         """Answer every query on `key` (a Zenoh queryable) with `current()`, stamped as this session's
-        publisher of `key` stamps (None: nothing to say yet). Why: a role that joins late asks for
-        what it missed (the policy), so the copy crosses its own link only, instead of everyone
-        receiving a republish. `current` runs on a Zenoh thread: it must only hand over what it has."""
+        publisher of `key` stamps (None: nothing to say yet; a list: one reply each, e.g. the two
+        policy versions of a staged rollout). Why: a role that joins late asks for what it missed
+        (the policy), so the copy crosses its own link only, instead of everyone receiving a
+        republish. `current` runs on a Zenoh thread: it must only hand over what it has."""
         pub = self.publisher(key)
 
         def on_query(query: zenoh.Query) -> None:
-            msg = current()
-            if msg is not None:
-                query.reply(key, pub.stamped(msg)[1])
+            msgs = current()
+            for msg in msgs if isinstance(msgs, list) else [msgs]:
+                if msg is not None:
+                    query.reply(key, pub.stamped(msg)[1])
 
         self._queryables.append(self.zenoh.declare_queryable(self._own(key), on_query))
 

@@ -37,7 +37,8 @@ class BundleError(ValueError):
 
 
 MANIFEST_FIELDS = ("bundle_format", "schema_version", "created_at", "env", "env_spec", "variant", "central_mode",
-                   "central_net", "msg_dim", "local_input_dim", "fallback", "source", "config", "files", "seal")
+                   "central_net", "msg_dim", "local_input_dim", "fallback", "source", "config", "files", "seal",
+                   "works_with_central")
 RUN_CHOICES = {"num_envs": "--num-envs K", "seed": "--seed S", "episodes": "--episodes N"}  # set when serving
 FALLBACKS = ("zeros", "last", "last_k")
 
@@ -91,6 +92,9 @@ def check_manifest(m: dict[str, Any], mf: Path) -> None:
     for name, digest in m["files"].items():
         if not isinstance(digest, str) or len(digest) != 64:
             raise bad(f"files.{name}", digest, "must be a sha256 (64 hex digits)")
+    ww = m.get("works_with_central", [])
+    if not isinstance(ww, list) or not all(isinstance(d, str) and len(d) == 64 for d in ww):
+        raise bad("works_with_central", ww, "must be a list of sha256 digests of central.safetensors files")
 
 
 def seal(m: dict[str, Any]) -> str:
@@ -213,9 +217,14 @@ class Bundle:
             env.close()
 
 
-def export_bundle(run_dir: Path, out: Path, *, force: bool = False, sign: Path | None = None) -> Bundle:
+def export_bundle(run_dir: Path, out: Path, *, force: bool = False, sign: Path | None = None,
+                  works_with: tuple[Path, ...] = ()) -> Bundle:
     """Write a bundle of the trained team in `run_dir` (its final/ policy) to `out`; returns it, loaded
-    back. `sign`: an ed25519 private key (`hammer keygen`) that signs it (serve/signing.py)."""
+    back. `sign`: an ed25519 private key (`hammer keygen`) that signs it (serve/signing.py).
+    `works_with`: folders holding a central.safetensors (a bundle, a run's final/ or a served run's
+    policies/v<N>/) this team's local policy also works with: a staged rollout pairs the canary's
+    local policy with the served central network, and refuses a pair the bundle does not declare
+    (its own central network is always declared; serve/push.py)."""
     from hammer.learning.config import build_config
 
     run_dir, out = Path(run_dir), Path(out)
@@ -259,6 +268,14 @@ def export_bundle(run_dir: Path, out: Path, *, force: bool = False, sign: Path |
         "config": cfg.model_dump(mode="json"),
         "files": {name: sha256(tmp / name) for name in files},
     }
+    if works_with:
+        found = [Path(d) / CENTRAL for d in works_with]
+        missing = [str(f) for f in found if not f.is_file()]
+        if missing:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise BundleError(f"--works-with: {', '.join(missing)} missing; fix: name a bundle or policy folder "
+                              "holding the central network's weights")
+        manifest["works_with_central"] = sorted({sha256(f) for f in found})
     manifest["seal"] = seal(manifest)
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
     if sign is not None:

@@ -12,8 +12,14 @@ The files are sent as they are (safetensors, never pickle); numpy and zenoh only
 not pay for a torch import.
 
 Given the run directory, it also follows the run's update history (serve/push.py: `hammer push`,
-`hammer rollback`): the newest entry's weights, checked against their recorded sha256, become the
-published version (the env host names it from the next step on).
+`hammer rollback`, and a staged rollout, serve/canary.py): the newest entry's weights, checked
+against their recorded sha256, become the published version (the env host names it from the next
+step on, for every agent or, during a canary, for the canary's agents). An entry that names the
+version already published (a stage, a promotion, a gate record) publishes nothing. During a canary
+two versions are in use, so a query is answered with both (the base and the canary): a role that
+(re)joins mid-canary then holds the one its steps name, instead of the newest only, which would put
+an agent outside the canary on the canary's policy (runtime/weights.py loads the version a step
+names, or the newest below it).
 """
 
 from __future__ import annotations
@@ -64,6 +70,9 @@ class PolicyServer(Role):
         self.version, self.run_dir, self.history_seen = 0, run_dir, 0
         self.updates_rejected = 0
         self._current: dict[str, Weights] = {}
+        self._also: dict[str, Weights] = {}  # during a canary: the base version, answered with the current one
+        self.policy_dir = Path(policy_dir)
+        self._by_version: dict[int, dict[str, bytes]] = {0: blobs}  # wire blobs published, for the canary's base
         for role in blobs:
             session.answer(self.keys.weights(role), lambda role=role: self._answer(role))
 
@@ -75,12 +84,12 @@ class PolicyServer(Role):
 
         return {role: float16_blob(b) for role, b in blobs.items()}
 
-    def _answer(self, role: str) -> Weights | None:
-        """The current version's weights for a query (on a Zenoh thread: only hands over what it has)."""
-        w = self._current.get(role)
-        if w is not None:
-            self.answered += 1
-        return w
+    def _answer(self, role: str) -> list[Weights]:
+        """The current version's weights for a query, and the base version's during a canary (on a
+        Zenoh thread: only hands over what it has)."""
+        out = [w for w in (self._also.get(role), self._current.get(role)) if w is not None]
+        self.answered += bool(out)
+        return out
 
     def counters(self) -> dict[str, int]:
         return {"frozen_publishes": self.published, "updates_rejected": self.updates_rejected,
@@ -106,6 +115,7 @@ class PolicyServer(Role):
 
     def follow_history(self) -> None:
         """A new entry in RUN/pushes.json: load its weights (hash-checked) and publish them as its version."""
+        from hammer.runtime.pushes import assignment
         from hammer.serve.bundle import BundleError, sha256
         from hammer.serve.push import read_history
 
@@ -119,6 +129,9 @@ class PolicyServer(Role):
         if len(entries) <= max(self.history_seen, 0):
             return
         self.history_seen, e = len(entries), entries[-1]
+        if e["version"] == self.version:  # a stage, a promotion or a gate record: nothing new to publish
+            self._keep_base(assignment(entries))
+            return
         try:
             blobs = policy_blobs(Path(e["policy_dir"]), self.needs_central)
             bad = [n for n, d in e.get("files", {}).items() if sha256(Path(e["policy_dir"]) / n) != d]
@@ -129,10 +142,27 @@ class PolicyServer(Role):
             self.log.error("update to version %d rejected: %s", e["version"], err)
             return
         self.blobs, self.version = self._wire(blobs), e["version"]
+        self._by_version = {**{v: b for v, b in self._by_version.items() if v >= self.version - 8},
+                            self.version: self.blobs}
         self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
         self.period = self.republish_s  # a new version: republished soon for anyone who missed the first copy
         self.publish()
+        self._keep_base(assignment(entries))
         self.heartbeat_soon()
+
+    def _keep_base(self, a) -> None:
+        """Answer queries with the base version too while a canary of the current version is open."""
+        if a.canary != self.version or a.base == self.version:
+            self._also = {}
+            return
+        blobs = self._by_version.get(a.base)
+        if blobs is None:  # started mid-canary: the base's files (checked when it was pushed)
+            try:
+                blobs = self._wire(policy_blobs(Path(a.dirs.get(a.base, self.policy_dir)), self.needs_central))
+            except PolicyDirError as err:
+                self.log.error("base version %d of the canary not answerable: %s", a.base, err)
+                return
+        self._also = {role: Weights.from_blob(role, a.base, blob) for role, blob in blobs.items()}
 
     def publish(self) -> None:
         self._current = {role: Weights.from_blob(role, self.version, blob) for role, blob in self.blobs.items()}

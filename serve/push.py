@@ -19,24 +19,17 @@ import shutil
 import time
 from pathlib import Path
 
+from hammer.runtime.pushes import PUSHES, RECORD_ONLY, HistoryError, assignment, read_pushes
 from hammer.serve.bundle import BundleError, load_bundle, sha256
 
-PUSHES = "pushes.json"
 POLICIES = "policies"
 
 
 def read_history(run_dir: Path) -> list[dict]:
-    path = Path(run_dir) / PUSHES
-    if not path.is_file():
-        return []
     try:
-        entries = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise BundleError(f"{path}: not valid JSON ({e}); fix: restore it or remove it to serve the first policy")
-    if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("version"), int)
-                                                and isinstance(e.get("policy_dir"), str) for e in entries):
-        raise BundleError(f"{path}: expected a list of {{version, policy_dir, ...}} entries")
-    return entries
+        return read_pushes(run_dir)
+    except HistoryError as e:
+        raise BundleError(str(e)) from None
 
 
 def _served(run_dir: Path) -> tuple[dict, dict]:
@@ -53,15 +46,29 @@ def _served(run_dir: Path) -> tuple[dict, dict]:
     return rt, cfg
 
 
+def append_entry(run_dir: Path, entry: dict) -> dict:
+    """Append one entry to the history (read, append, replace atomically); returns it."""
+    _write_history(run_dir, [*read_history(run_dir), entry])
+    return entry
+
+
 def _write_history(run_dir: Path, entries: list[dict]) -> None:
     tmp = Path(run_dir) / (PUSHES + ".tmp")
     tmp.write_text(json.dumps(entries, indent=1))
     os.replace(tmp, Path(run_dir) / PUSHES)
 
 
-def push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = ()) -> dict:
+def push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = (), agents: list[int] | None = None) -> dict:
     """Record `bundle_path` as the next policy version of the served run; returns the history entry.
-    `trust`: public keys, one of which must have signed the bundle (serve/signing.py)."""
+    `trust`: public keys, one of which must have signed the bundle (serve/signing.py). `agents`:
+    a canary (serve/canary.py): only these agents switch; the others and the central agent stay on
+    the version in effect, which the bundle's local policy must declare it works with."""
+    b, entries = check_push(bundle_path, run_dir, trust, agents)
+    return record_push(b, bundle_path, run_dir, entries, agents)
+
+
+def check_push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = (), agents: list[int] | None = None):
+    """Every check of a push, nothing written: (the bundle, the history)."""
     from hammer.learning.config import build_config
 
     run_dir = Path(run_dir)
@@ -75,7 +82,54 @@ def push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = ()) -> dict
         raise BundleError(f"{bundle_path}: a {new.variant} team with message length {new.wiring.msg_dim}; the run "
                           f"serves {served.variant} with {served.wiring.msg_dim}; fix: push a team of the same variant")
     entries = read_history(run_dir)
-    version = (entries[-1]["version"] if entries else 0) + 1
+    now = assignment(entries)
+    if now.canary is not None:
+        raise BundleError(f"{run_dir}: a staged rollout of version {now.canary} is open (agents "
+                          f"{sorted(now.canary_agents)}); fix: wait for its decision, or `hammer rollback {run_dir}`")
+    if agents is not None:
+        bad = [i for i in agents if i >= served.n_agents]
+        if bad or not agents:
+            raise BundleError(f"--canary {','.join(map(str, agents))}: the run has agents 0..{served.n_agents - 1}; "
+                              "fix: name at least one of them")
+        if served.wiring.has_central_network:
+            check_central_pairing(b, _version_dir(run_dir, entries, now.base), now.base)
+    return b, entries
+
+
+def _version_dir(run_dir: Path, entries: list[dict], version: int) -> Path:
+    if version == 0:
+        return Path(_served(run_dir)[0]["policy_dir"])
+    return Path(next(e["policy_dir"] for e in entries if e["version"] == version))
+
+
+def central_fingerprint(policy_dir: Path) -> str:
+    """What a local policy is paired with: the sha256 of the central network's weights file."""
+    return sha256(Path(policy_dir) / "central.safetensors")
+
+
+def works_with(b) -> list[str]:
+    """The central networks a bundle's local policy declares it works with: the manifest's
+    `works_with_central` (fingerprints, `hammer export --works-with`), and always its own."""
+    own = b.manifest["files"].get("central.safetensors")
+    return [*([own] if own else []), *b.manifest.get("works_with_central", [])]
+
+
+def check_central_pairing(b, served_dir: Path, version: int) -> None:
+    """A canary's local policy acts with the served central agent's messages (runtime/pushes.py):
+    refuse a local policy that does not declare that central network."""
+    fp = central_fingerprint(served_dir)
+    if fp not in works_with(b):
+        raise BundleError(f"{b.path}: its local policy does not declare the served central network (version "
+                          f"{version}, sha256 {fp[:12]}) and would be paired with it during the canary; fix: push "
+                          "without --canary (every agent and the central agent switch together), or export the "
+                          f"bundle with `--works-with {served_dir}` if it was trained against that central network")
+
+
+def record_push(b, bundle_path: Path, run_dir: Path, entries: list[dict], agents: list[int] | None = None,
+                extra: dict | None = None) -> dict:
+    """Copy the bundle's policy into the run and append its entry (a canary: `agents` set)."""
+    run_dir = Path(run_dir)
+    version = max((e["version"] for e in entries), default=0) + 1
     dst = run_dir / POLICIES / f"v{version}"
     shutil.rmtree(dst, ignore_errors=True)
     dst.mkdir(parents=True)
@@ -83,6 +137,9 @@ def push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = ()) -> dict
         shutil.copyfile(b.path / name, dst / name)
     entry = {"version": version, "action": "push", "policy_dir": str(dst.resolve()), "bundle": str(Path(bundle_path).resolve()),
              "files": {n: sha256(dst / n) for n in b.manifest["files"]}, "at": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    if agents is not None:
+        entry.update(action="canary", agents=sorted(agents), base_version=assignment(entries).base)
+    entry.update(extra or {})
     _write_history(run_dir, [*entries, entry])
     return entry
 
@@ -93,6 +150,8 @@ def effective_stack(run_dir: Path, entries: list[dict]) -> list[dict]:
     rt, _ = _served(run_dir)
     stack = [{"version": 0, "policy_dir": rt["policy_dir"]}]
     for e in entries:
+        if e.get("action") in ("stage", "promote", *RECORD_ONLY):  # a staged rollout's steps: same version
+            continue
         if e.get("action") == "rollback":
             stack.pop()
             stack[-1] = {**stack[-1], "version": e["version"]}
@@ -101,18 +160,20 @@ def effective_stack(run_dir: Path, entries: list[dict]) -> list[dict]:
     return stack
 
 
-def rollback(run_dir: Path) -> dict:
-    """Return the served run to the policy in effect before its latest push (as a new version)."""
+def rollback(run_dir: Path, reason: dict | None = None) -> dict:
+    """Return the served run to the policy in effect before its latest push (as a new version); an
+    open canary ends with it (every agent back on the base). `reason`: kept in the entry."""
     run_dir = Path(run_dir)
     entries = read_history(run_dir)
     stack = effective_stack(run_dir, entries)
     if len(stack) < 2:
         raise BundleError(f"{run_dir}: nothing to roll back (the run serves its first policy); fix: `hammer push` first")
     back = stack[-2]
-    version = entries[-1]["version"] + 1
+    version = max(e["version"] for e in entries) + 1
     entry = {"version": version, "action": "rollback", "policy_dir": back["policy_dir"],
              "restores_version": back["version"], "at": time.strftime("%Y-%m-%dT%H:%M:%S")}
     if "files" in back:
         entry["files"] = back["files"]
+    entry.update(reason or {})
     _write_history(run_dir, [*entries, entry])
     return entry

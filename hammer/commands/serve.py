@@ -34,6 +34,11 @@ def export_command(
     sign: Annotated[Path | None, typer.Option(help="Sign it with this ed25519 private key (`hammer keygen NAME` "
                                                    "makes NAME.key): agents given --trust NAME.pub load only bundles "
                                                    "it signed.")] = None,
+    works_with: Annotated[list[Path] | None, typer.Option(
+        "--works-with", help="Repeatable: a folder with a central.safetensors (a bundle, RUN/final, a served run's "
+                             "policies/v<N>) this team's local policy also works with; a staged rollout "
+                             "(`hammer push --canary`) pairs the canary with the served central network only if "
+                             "the bundle declares it.")] = None,
 ) -> None:
     """Write a self-contained bundle of a trained team: the weights (safetensors) and a manifest (env, spaces,
     variant, message length, fallback, source run and its final metric, sha256 of every file).
@@ -42,7 +47,7 @@ def export_command(
     from hammer.serve.bundle import BundleError, export_bundle
 
     try:
-        b = export_bundle(run, out, force=force, sign=sign)
+        b = export_bundle(run, out, force=force, sign=sign, works_with=tuple(works_with or ()))
     except (BundleError, ValueError) as e:
         fail(str(e))
     m = b.manifest
