@@ -304,18 +304,63 @@ def push_command(
     to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve`.")],
     trust: Annotated[list[Path] | None, typer.Option(
         help="Push it only if this ed25519 public key (`hammer keygen`) signed it; repeatable.")] = None,
+    canary: Annotated[str | None, typer.Option(
+        help="Staged rollout: these local agents (e.g. 0 or 0,2) get the new version first; the command stays, "
+             "compares their health with the rest's and the team's metric with the window before the push, and "
+             "promotes stage by stage or rolls back on its own (docs/deploy.md).")] = None,
+    stages: Annotated[str | None, typer.Option(
+        help="With --canary: agents per stage, counts or percentages, ending at 100%, e.g. 1,50%,100% "
+             "(default: the canary, then everyone).")] = None,
+    gate: Annotated[list[str] | None, typer.Option(
+        help="With --canary: limits, NAME=VALUE[,...], repeatable: metric (paper_metric | team_return), "
+             "metric_drop (0.15), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
+             "crashes (0), timeout_s (600).")] = None,
+    window_episodes: Annotated[int | None, typer.Option(
+        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
-    same step boundary (the first step that names it). The dashboard shows the version per role."""
+    same step boundary (the first step that names it). The dashboard shows the version per role.
+    With --canary: a staged rollout with health gates; Ctrl-C before the verdict rolls back."""
     from hammer.serve.bundle import BundleError
     from hammer.serve.push import push
 
+    if canary is None:
+        extra = [n for n, v in (("--stages", stages), ("--gate", gate), ("--window-episodes", window_episodes)) if v]
+        if extra:
+            fail(f"{', '.join(extra)}: only with --canary; fix: add --canary AGENTS or drop {extra[0]}")
+        try:
+            e = push(bundle, to, trust=tuple(trust or ()))
+        except (BundleError, ValueError, OSError) as err:
+            fail(str(err))
+        typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
+                   "previous one)")
+        return
+    from hammer.protocol.ranges import parse_indices
+    from hammer.serve.canary import CanaryError, Rollout, parse_gate
+
+    def say(text: str) -> None:
+        typer.echo(f"{time.strftime('%H:%M:%S')} {text}")
+
     try:
-        e = push(bundle, to, trust=tuple(trust or ()))
-    except (BundleError, ValueError, OSError) as err:
+        agents = parse_indices(canary, "--canary", what="agent")
+        r = Rollout(bundle, to, agents, stages, parse_gate(gate or [], window_episodes), tuple(trust or ()), say)
+    except (CanaryError, BundleError, ValueError, OSError) as err:
         fail(str(err))
-    typer.echo(f"pushed {bundle} to {to} as policy version {e['version']} (hammer rollback {to} returns to the "
-               "previous one)")
+    import signal
+
+    def on_term(signum, frame) -> None:  # SIGTERM (a supervisor stopping the command) as Ctrl-C: roll back
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        verdict = r.run()
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: rolled back, {to} serves the version before the push")
+        raise typer.Exit(130) from None
+    except (CanaryError, BundleError) as err:
+        fail(str(err), code=1)
+    if verdict != "promoted":
+        raise typer.Exit(1)  # a script sees the rollback
 
 
 def rollback_command(

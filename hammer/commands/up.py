@@ -97,7 +97,28 @@ def _attendance_text(board) -> str:
     return per + (f"; away now: {', '.join(f'{n} {s:.0f} s' for n, s in sorted(away.items()))}" if away else "")
 
 
-def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None):
+def _rollout_text(run_dir, n_agents: int) -> str:
+    """A served run's update history, for the dashboard: the version each agent's steps name (a
+    staged rollout gives the canary's agents a version of their own, runtime/pushes.py) and the
+    latest decision."""
+    from hammer.runtime.pushes import HistoryError, assignment, read_pushes
+
+    try:
+        entries = read_pushes(run_dir)
+    except HistoryError as e:
+        return f"unreadable: {e}"
+    if not entries:
+        return ""
+    a, last = assignment(entries), entries[-1]
+    per = f"central:{a.base} " + " ".join(f"local-{i}:{v}" for i, v in enumerate(a.agent_versions(n_agents)))
+    decision = last.get("decision")
+    stage = f" stage {decision['stage']}" if isinstance(decision, dict) and "stage" in decision else ""
+    reason = f" ({last['reason']})" if last.get("reason") else ""
+    canary = f"canary v{a.canary} open; " if a.canary is not None else ""
+    return f"{canary}{per}; last: {last.get('action', 'push')} v{last['version']}{stage}{reason}"
+
+
+def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None, run_dir=None):
     from rich.console import Group
     from rich.table import Table
 
@@ -116,6 +137,9 @@ def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | Non
                                                  f"{int(c.get('msg_fallback_copies', 0))}")
     versions = ", ".join(f"{r}:{int(h.gauges.get('policy_version', -1))}" for r, h in sorted(board.heartbeats.items()))
     t.add_row("policy version per role", versions or "-")
+    rollout = _rollout_text(run_dir, cfg.n_agents) if run_dir is not None else ""
+    if rollout:
+        t.add_row("updates (pushes.json)", rollout)
     restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
     t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
     t.add_row("leaves / rejoins", _attendance_text(board) or "0")
@@ -350,7 +374,7 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
 
     def tick(board) -> None:
         if live is not None:
-            live.update(_dashboard_table(board, cfg, started, settings, rate))
+            live.update(_dashboard_table(board, cfg, started, settings, rate, path if served else None))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
             env = board.heartbeats.get("env")
