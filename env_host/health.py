@@ -11,8 +11,8 @@ which changes when the agent crashed and was restarted. Written atomically about
 Per agent: the version its steps named, actions in time, default actions (env copies), fallback
 copies (it acted on a fallback message), the summed arrival latency of its actions (ms from the
 observations going out), its rejected messages, its restarts (process ids seen - 1) and its
-leaves (heartbeat silences over `LEAVE_S`). Team-wide: episodes finished and the sum of their paper
-metric and team return: a cooperative team's reward cannot be split per agent, so the judge can
+leaves (heartbeat silences over `LEAVE_S`). Team-wide: episodes finished and the sums (and sums of
+squares, for a window's standard error) of their paper metric and team return: a cooperative team's reward cannot be split per agent, so the judge can
 compare it only over time (the canary window against the window before the push).
 """
 
@@ -44,6 +44,7 @@ class AgentHealth:
         self.latency_ms = np.zeros(n_agents, np.float64)  # summed over `actions`
         self.copies = np.zeros(n_agents, np.int64)  # env copies stepped
         self.episodes, self.metric_sum, self.return_sum = 0, 0.0, 0.0
+        self.metric_sq_sum = self.return_sq_sum = 0.0  # for the judge's standard error of a window's mean
         self.rejected: list[dict[int, int]] = [{} for _ in range(n_agents)]  # pid -> its rejected total
         self.leaves = np.zeros(n_agents, np.int64)
         self.last_beat = [0.0] * n_agents
@@ -65,6 +66,8 @@ class AgentHealth:
         self.episodes += 1
         self.metric_sum += float(paper_metric)
         self.return_sum += float(team_return)
+        self.metric_sq_sum += float(paper_metric) ** 2
+        self.return_sq_sum += float(team_return) ** 2
 
     def poll(self, step: int, versions: list[int], central_version: int) -> None:
         """Take the agents' heartbeats; write the file every WRITE_EVERY_S."""
@@ -89,6 +92,7 @@ class AgentHealth:
                    "leaves": int(self.leaves[i])} for i in range(self.n)]
         data = {"step": step, "time": time.time(), "central_version": int(central_version),
                 "episodes": self.episodes, "metric_sum": self.metric_sum, "return_sum": self.return_sum,
+                "metric_sq_sum": self.metric_sq_sum, "return_sq_sum": self.return_sq_sum,
                 "agents": agents}
         tmp = self.path.with_name(HEALTH + f".{os.getpid()}.tmp")
         tmp.write_text(json.dumps(data))

@@ -55,10 +55,12 @@ class Gate(BaseModel):
     """The limits of a staged rollout (`--gate NAME=VALUE,...`); defaults suit a cn3/mw3 team."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    window_episodes: int = Field(48, ge=1, description="episodes per window (the baseline, each stage, the hold)")
+    window_episodes: int = Field(100, ge=1, description="episodes per window (the baseline, each stage, the hold)")
     metric: str = Field("paper_metric", pattern="^(paper_metric|team_return)$")
     metric_drop: float = Field(0.15, ge=0.0, description="largest drop of the team metric, relative to the "
                                                            "window before the push")
+    metric_z: float = Field(2.0, ge=0.0, description="a drop also fails only if it exceeds this many standard "
+                                                     "errors of the difference of the two windows' means")
     default_rate: float = Field(0.02, ge=0.0, le=1.0, description="canary minus rest: share of default actions")
     fallback_rate: float = Field(0.05, ge=0.0, le=1.0, description="canary minus rest: share acted on a fallback")
     latency_ms: float = Field(20.0, ge=0.0, description="canary minus rest: mean action latency")
@@ -105,15 +107,15 @@ def parse_stages(text: str | None, canary: list[int], n_agents: int) -> list[lis
                 raise CanaryError(f"--stages {text!r}: {tok!r} is not a count or a percentage; fix: e.g. "
                                   "--stages 1,50%,100%") from None
             counts.append(c)
+    if counts[0] == n_agents:
+        raise CanaryError(f"--canary {','.join(map(str, canary))}: the first stage is the whole team; fix: name a "
+                          "subset (a plain `hammer push` switches everyone)")
     if any(c < 1 or c > n_agents for c in counts) or counts != sorted(set(counts)) or counts[-1] != n_agents:
         raise CanaryError(f"--stages {text or ''!r} -> agents per stage {counts}: must rise from 1 to the team "
                           f"({n_agents}); fix: e.g. --stages 1,50%,100%")
     if counts[0] < len(canary):
         raise CanaryError(f"--stages: the first stage has {counts[0]} agents, --canary names {len(canary)}; fix: "
                           "name fewer canary agents or start the stages with that many")
-    if counts[0] == n_agents:
-        raise CanaryError(f"--canary {','.join(map(str, canary))}: the first stage is the whole team; fix: name a "
-                          "subset (a plain `hammer push` switches everyone)")
     return [sorted(order[:c]) for c in counts]
 
 
@@ -141,9 +143,15 @@ def read_health(run_dir: Path) -> Snapshot | None:
     return Snapshot(data)
 
 
-def _team(a: Snapshot, b: Snapshot, key: str) -> float | None:
+def _team(a: Snapshot, b: Snapshot, key: str) -> tuple[float, float, int] | None:
+    """(mean, variance, episodes) of the team metric `key` over the episodes finished between a and b."""
     n = b.episodes - a.episodes
-    return None if n <= 0 else (b.data[key] - a.data[key]) / n
+    if n <= 0:
+        return None
+    mean = (b.data[key] - a.data[key]) / n
+    sq = key.replace("_sum", "_sq_sum")
+    var = max((b.data[sq] - a.data[sq]) / n - mean**2, 0.0) if sq in b.data and sq in a.data else 0.0
+    return mean, var, n
 
 
 def _group(a: Snapshot, b: Snapshot, agents: list[int]) -> dict[str, float]:
@@ -155,15 +163,22 @@ def _group(a: Snapshot, b: Snapshot, agents: list[int]) -> dict[str, float]:
             "crashes": (d["restarts"] + d["leaves"]) / n}
 
 
-def judge(gate: Gate, before: float | None, a: Snapshot, b: Snapshot, canary: list[int], rest: list[int]) -> dict:
-    """Each gate's canary and rest values, limit and verdict over the window a..b."""
+def judge(gate: Gate, before: tuple[float, float, int] | None, a: Snapshot, b: Snapshot, canary: list[int],
+          rest: list[int]) -> dict:
+    """Each gate's canary and rest values, limit and verdict over the window a..b. The metric fails
+    when it dropped by more than `metric_drop` of the baseline and by more than `metric_z` standard
+    errors: an episode's metric varies (cn3: a standard deviation near 30% of the mean), and a
+    rollback on noise would take a good version away."""
     key = "metric_sum" if gate.metric == "paper_metric" else "return_sum"
     checks: dict[str, dict] = {}
     during = _team(a, b, key)
     if before is not None and during is not None:
-        drop = (before - during) / max(abs(before), 1e-9)
-        checks["metric_drop"] = {"canary": round(during, 4), "rest": round(before, 4), "value": round(drop, 4),
-                                 "limit": gate.metric_drop, "ok": drop <= gate.metric_drop}
+        (mb, vb, nb), (md, vd, nd) = before, during
+        drop = (mb - md) / max(abs(mb), 1e-9)
+        se = math.sqrt(vb / nb + vd / nd)
+        checks["metric_drop"] = {"canary": round(md, 4), "rest": round(mb, 4), "value": round(drop, 4),
+                                 "stderr": round(se, 4), "limit": gate.metric_drop,
+                                 "ok": drop <= gate.metric_drop or mb - md <= gate.metric_z * se}
     if rest:
         c, r = _group(a, b, canary), _group(a, b, rest)
         for name in ("default_rate", "fallback_rate", "latency_ms", "rejected", "crashes"):
@@ -245,11 +260,13 @@ class Rollout:
                               f"{g.timeout_s:.0f} s; fix: push to a running `hammer serve`, or lower --window-episodes")
         key = "metric_sum" if g.metric == "paper_metric" else "return_sum"
         before = _team(start, end, key)
+        if before is None:
+            raise CanaryError(f"{self.run_dir}: no episode finished before the push; fix: push to a running `hammer serve`")
         base = assignment(read_history(self.run_dir)).base
-        self.say(f"baseline {g.metric} {before:.4f} over {end.episodes - start.episodes} episodes (version {base})")
+        self.say(f"baseline {g.metric} {before[0]:.4f} over {before[2]} episodes (version {base})")
         entries = read_history(self.run_dir)
         e = record_push(self.b, self.bundle, self.run_dir, entries, agents=self.stages[0],
-                        extra={"stages": self.stages, "gate": g.model_dump(), "baseline": {g.metric: before}})
+                        extra={"stages": self.stages, "gate": g.model_dump(), "baseline": {g.metric: before[0], "episodes": before[2]}})
         self.version, policy_dir = e["version"], e["policy_dir"]
         self.say(f"version {self.version} on agents {self.stages[0]} (stage 1/{len(self.stages)}); the rest and the "
                  f"central agent stay on {base}")

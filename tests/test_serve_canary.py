@@ -1,0 +1,171 @@
+"""Staged rollout with health gates (serve/canary.py): real role processes, real Zenoh on 127.0.0.1,
+real cn3 (mpe2 simple_spread). One served run takes a canary push of a deliberately worse team (every
+local agent of it always moves left, off the landmarks), which the gates roll back on their own, and
+then a good one (the same team, re-exported), which is promoted stage by stage; pushes.json, the
+env host's health file and the agents' own heartbeats say which version each agent acted with."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import threading
+
+import numpy as np
+import pytest
+from hammer.deploy.up import launch
+from hammer.learning.config import merge_config
+from hammer.learning.rundir import RunDir
+from hammer.learning.trainer import train
+from hammer.serve.bundle import BundleError, export_bundle
+from hammer.serve.canary import CanaryError, Gate, parse_gate, parse_stages, staged_push
+from hammer.serve.push import check_push, push, read_history, rollback
+from hammer.serve.settings import serve_settings
+from safetensors.numpy import load_file, save_file
+from typer.testing import CliRunner
+
+from hammer.cli import app
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def _head(w: dict) -> str:
+    last = max(int(k.split(".")[2]) for k in w if k.startswith("actor.layers."))
+    return f"actor.layers.{last}"
+
+
+@pytest.fixture(scope="module")
+def teams(tmp_path_factory):
+    """A (a short real training run), A again (another export of the same team: as good), a worse
+    team (A's local action head replaced by one that always picks action 1, moving left: agents
+    leave the landmarks; the central network is A's, so the canary pairing is allowed) and a team
+    whose central network differs (a canary of it would pair A's central agent with a local policy
+    trained for another)."""
+    root = tmp_path_factory.mktemp("canary-teams")
+    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
+                                         "episodes=24", "seed=6"])
+    train(cfg, RunDir.create(root / "a", cfg), tensorboard=False)
+    for name in ("worse", "other"):
+        shutil.copytree(root / "a", root / name)
+    w = load_file(str(root / "worse" / "final" / "local.safetensors"))
+    h = _head(w)
+    w[h + ".weight"] = np.zeros_like(w[h + ".weight"])
+    w[h + ".bias"] = np.where(np.arange(w[h + ".bias"].shape[0]) == 1, 30.0, -30.0).astype(np.float32)
+    save_file(w, str(root / "worse" / "final" / "local.safetensors"))
+    c = load_file(str(root / "other" / "final" / "central.safetensors"))
+    c["head_weight"] = c["head_weight"] + 0.5
+    save_file(c, str(root / "other" / "final" / "central.safetensors"))
+    a = export_bundle(root / "a", root / "A")
+    return {"a": a, "good": export_bundle(root / "a", root / "good"), "worse": export_bundle(root / "worse", root / "W"),
+            "other": export_bundle(root / "other", root / "O"), "root": root}
+
+
+def _served_dir(bundle, tmp_path):
+    """A run directory as `hammer serve` writes it, without its processes (for the checks)."""
+    settings, _ = serve_settings(bundle, "checks")
+    run = tmp_path / "run"
+    run.mkdir()
+    settings.save(run)
+    (run / "config.json").write_text(json.dumps(bundle.config_data))
+    (run / "env_spec.json").write_text(json.dumps(bundle.env_spec_data))
+    return run
+
+
+def test_options_and_pairing_are_checked(teams, tmp_path):
+    a, other = teams["a"], teams["other"]
+    assert parse_stages("1,50%,100%", [2], 3) == [[2], [0, 2], [0, 1, 2]]
+    assert parse_stages(None, [0, 1], 3) == [[0, 1], [0, 1, 2]]
+    for bad, word in (("2,1,3", "must rise"), ("1,50%", "must rise"), ("x,100%", "not a count")):
+        with pytest.raises(CanaryError, match=word):
+            parse_stages(bad, [0], 3)
+    with pytest.raises(CanaryError, match="whole team"):
+        parse_stages(None, [0, 1, 2], 3)
+    assert parse_gate(["metric_drop=0.3,latency_ms=5"], 10) == Gate(metric_drop=0.3, latency_ms=5, window_episodes=10)
+    with pytest.raises(CanaryError, match=r"--gate metric_drop='-1'.*fix"):
+        parse_gate(["metric_drop=-1"])
+    with pytest.raises(CanaryError, match=r"--gate speed=.*names: window_episodes"):
+        parse_gate(["speed=3"])
+    with pytest.raises(CanaryError, match="--window-episodes"):
+        parse_gate([], 0)
+    run = _served_dir(a, tmp_path)
+    # Another central network: a canary would pair it with the served one; refused in one line.
+    with pytest.raises(BundleError, match="does not declare the served central network.*fix: push without --canary"):
+        check_push(other.path, run, agents=[0])
+    check_push(other.path, run)  # a plain push switches the central agent too: allowed
+    declared = export_bundle(teams["root"] / "other", tmp_path / "declared", works_with=(a.path,))
+    check_push(declared.path, run, agents=[0])  # declared compatible with A's central network
+    runner = CliRunner()
+    r = runner.invoke(app, ["push", str(other.path), "--to", str(run), "--canary", "0"])
+    assert r.exit_code == 2 and "does not declare" in r.output and not (run / "pushes.json").exists()
+    r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--stages", "1,100%"])
+    assert r.exit_code == 2 and "only with --canary" in r.output
+    r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--canary", "0", "--gate", "crashes=x"])
+    assert r.exit_code == 2 and "--gate crashes" in r.output
+    r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--canary", "0"])  # no served process
+    assert r.exit_code == 2 and "health.json" in r.output
+    # An open canary refuses a plain push until its decision; `hammer rollback` ends it.
+    push(a.path, run, agents=[0])
+    with pytest.raises(BundleError, match="staged rollout of version 1 is open"):
+        push(a.path, run)
+    e = rollback(run)
+    assert e["restores_version"] == 0 and push(a.path, run)["version"] == 3
+
+
+def _serve_and_roll_out(teams, tmp_path, window: int) -> tuple[list[str], list[str], dict, list[dict]]:
+    """Serve team A; once it runs, a canary push of the worse team (agents 0 and 1 first), then of the
+    good one in three stages; the run is stopped (SIGINT, a served run's normal end) after both."""
+    a = teams["a"]
+    cfg = a.config(episodes=10**6, msg_dropout=0.0)
+    settings, _ = serve_settings(a, "canary")
+    run = tmp_path / "served"
+    verdicts: list[str] = []
+    said: list[str] = []
+    errors: list[BaseException] = []
+
+    def drive() -> None:
+        try:
+            gate = Gate(window_episodes=window, timeout_s=90)
+            verdicts.append(staged_push(teams["worse"].path, run, [0, 1], None, gate, say=said.append))
+            verdicts.append(staged_push(teams["good"].path, run, [2], "1,2,3", gate, say=said.append))
+        except BaseException as e:  # noqa: BLE001 - reported by the test
+            errors.append(e)
+        finally:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    started: list[threading.Thread] = []
+
+    def tick(board) -> None:
+        if not started and (run / "health.json").is_file():
+            started.append(threading.Thread(target=drive, daemon=True))
+            started[0].start()
+
+    res = launch(cfg, settings, run, on_tick=tick, stop_signals=(signal.SIGINT,))
+    started[0].join(timeout=10)
+    assert not errors, (errors, said)
+    assert res.stopped_by == "SIGINT"
+    return verdicts, said, res.summary, read_history(run)
+
+
+def test_a_worse_canary_is_rolled_back_and_a_good_one_promoted(teams, tmp_path):
+    verdicts, said, summary, history = _serve_and_roll_out(teams, tmp_path, window=128)
+    print("\n".join(said))
+    assert verdicts == ["rolled back", "promoted"], said
+    actions = [e["action"] for e in history]
+    assert actions == ["canary", "rollback", "canary", "stage", "promote", "gate"], history
+    bad = history[1]
+    assert bad["reason"].startswith("gate metric_drop") and bad["restores_version"] == 0, bad
+    drop = bad["decision"]["checks"]["metric_drop"]
+    assert drop["value"] > 0.15 and drop["rest"] - drop["canary"] > 2 * drop["stderr"] > 0 and not drop["ok"]
+    # The worse team acted only where it was named: agents 0 and 1, never agent 2 nor the central agent.
+    assert history[0]["agents"] == [0, 1] and history[0]["base_version"] == 0
+    good = history[2:]
+    assert [e.get("agents") for e in good[:2]] == [[2], [0, 2]] and good[2]["version"] == good[0]["version"] == 3
+    for e in good[1:]:  # every stage's gates passed, each with canary and rest values
+        checks = (e.get("decision") or e)["checks"]
+        assert all(c["ok"] for c in checks.values()), checks
+    assert set(good[1]["decision"]["checks"]) == {"metric_drop", "default_rate", "fallback_rate", "latency_ms",
+                                                 "rejected", "crashes"}
+    health = json.loads((tmp_path / "served" / "health.json").read_text())
+    assert health["central_version"] == 3 and [x["version"] for x in health["agents"]] == [3, 3, 3]
+    assert summary["links"]["off_policy_actions"] == 0  # every action came from the version its agent was named
