@@ -212,8 +212,10 @@ class LocalAgentPool(Role):
     def act(self, members: list[PooledAgent]) -> None:
         """Act for `members` (their observations held): the version each step names, their messages
         or fallbacks, one stacked forward per group of equal shape, each agent's own draws."""
-        for version in sorted({m.waiting.policy_version for m in members}):
-            group = [m for m in members if m.waiting.policy_version == version]
+        groups: dict[int, list[PooledAgent]] = {}
+        for m in members:  # grouped first: acting a group clears its members' held observations
+            groups.setdefault(m.waiting.policy_version, []).append(m)
+        for version, group in sorted(groups.items()):
             self.weights.take(version)
             if self.members[0].agent.policy is None:  # none came in time, none held: no action, the env
                 for m in group:  # host's default stands in (counted there and as weights_wait_timeouts)

@@ -113,11 +113,13 @@ def test_options_and_pairing_are_checked(teams, tmp_path):
 
 
 def _serve_and_roll_out(teams, tmp_path, window: int) -> tuple[list[str], list[str], dict, list[dict]]:
-    """Serve team A; once it runs, a canary push of the worse team (agents 0 and 1 first), then of the
+    """Serve team A (agents 0-1 pooled, agent 2 alone); once it runs, a canary push of the worse team (agents 0 and 1 first), then of the
     good one in three stages; the run is stopped (SIGINT, a served run's normal end) after both."""
     a = teams["a"]
     cfg = a.config(episodes=10**6, msg_dropout=0.0)
-    settings, _ = serve_settings(a, "canary")
+    # Agents 0 and 1 in one pool (one process, one stacked forward): at the good team's stage 2 the
+    # pool holds a canary agent and another, whose steps name two versions (local_agent/pool.py).
+    settings, _ = serve_settings(a, "canary", runtime=["agents_per_process=2"])
     run = tmp_path / "served"
     verdicts: list[str] = []
     said: list[str] = []
