@@ -114,9 +114,10 @@ class PolicyServer(Role):
             self.period = min(self.period * 2, self.republish_max_s)
 
     def follow_history(self) -> None:
-        """A new entry in RUN/pushes.json: load its weights (hash-checked) and publish them as its version."""
+        """New entries in RUN/pushes.json: publish each new version (`_publish_entry`); a stage, a
+        promotion or a gate record names the version already published and publishes nothing."""
         from hammer.runtime.pushes import assignment
-        from hammer.serve.bundle import BundleError, sha256
+        from hammer.serve.bundle import BundleError
         from hammer.serve.push import read_history
 
         try:
@@ -128,10 +129,19 @@ class PolicyServer(Role):
             return
         if len(entries) <= max(self.history_seen, 0):
             return
-        self.history_seen, e = len(entries), entries[-1]
-        if e["version"] == self.version:  # a stage, a promotion or a gate record: nothing new to publish
-            self._keep_base(assignment(entries))
-            return
+        new, self.history_seen = entries[max(self.history_seen, 0):], len(entries)
+        # Every new version in order, not only the newest: a role rejects weights more than one
+        # version ahead of what it holds (runtime.bounds), so a push and its quick rollback (a canary
+        # interrupted at once) seen in one read must not skip the push's version.
+        for i, e in enumerate(new):
+            if e["version"] > self.version and all(e["version"] != later["version"] for later in new[i + 1:]):
+                self._publish_entry(e)
+        self._keep_base(assignment(entries))
+
+    def _publish_entry(self, e: dict) -> None:
+        """Load an entry's weights (hash-checked) and publish them as its version."""
+        from hammer.serve.bundle import sha256
+
         try:
             blobs = policy_blobs(Path(e["policy_dir"]), self.needs_central)
             bad = [n for n, d in e.get("files", {}).items() if sha256(Path(e["policy_dir"]) / n) != d]
@@ -147,7 +157,6 @@ class PolicyServer(Role):
         self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
         self.period = self.republish_s  # a new version: republished soon for anyone who missed the first copy
         self.publish()
-        self._keep_base(assignment(entries))
         self.heartbeat_soon()
 
     def _keep_base(self, a) -> None:

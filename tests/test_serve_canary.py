@@ -171,3 +171,81 @@ def test_a_worse_canary_is_rolled_back_and_a_good_one_promoted(teams, tmp_path):
     health = json.loads((tmp_path / "served" / "health.json").read_text())
     assert health["central_version"] == 3 and [x["version"] for x in health["agents"]] == [3, 3, 3]
     assert summary["links"]["off_policy_actions"] == 0  # every action came from the version its agent was named
+
+
+def test_across_namespaces_from_the_command_line(teams, tmp_path):
+    """The same two rollouts through `hammer push --canary`, with the team served across network
+    namespaces (benchmarks/netns.py: router, `hammer serve`, env host and policy server in the hub
+    namespace; the central agent and each edge agent, `hammer local --bundle`, in one of their own,
+    joined by veth pairs with 10.213.x addresses); then a third rollout interrupted with Ctrl-C
+    (SIGINT) after its canary started, which leaves the run rolled back. Namespaces made and deleted here."""
+    import subprocess
+    import sys
+    import time
+
+    from hammer.benchmarks.netns import PORT, NetnsUnavailable, Procs, _start_central_and_driver, _wait_for, \
+        client_config, topology
+
+    from tests.runtime_helpers import netns_reason
+
+    reason = netns_reason(("ip",))
+    if reason:
+        pytest.skip(reason)
+    a, work = teams["a"], tmp_path
+    run = work / "served"
+    py = [sys.executable, "-P", "-m", "hammer.cli"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    procs = Procs(work)
+    try:
+        with topology(3, f"c{os.getpid() % 10000}", central=True) as top:
+            try:
+                hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}", "--insecure"], "hub.log")
+                _wait_for("the hub listening", lambda: b"listening" in (work / "hub.log").read_bytes(), 30, [hub])
+                inside = client_config(work / "hub-client.json5", f"tcp/127.0.0.1:{PORT}")
+                serve = procs.start(top.hub, [*py, "serve", str(a.path), "--episodes", "1000000", "--external",
+                                              "0,1,2,central", "--runtime", f"zenoh_config_file={inside}", "--runtime",
+                                              "insecure=true", "--run-dir", str(run), "--no-dashboard"], "serve.log")
+                edges = [procs.start(ns, [sys.executable, "-P", "-m", "hammer", "local", "--bundle", str(a.path),
+                                          "--agent", str(i), "--run-id", run.name, "--insecure", "--zenoh-config",
+                                          str(client_config(work / f"edge{i}.json5",
+                                                            f"tcp/{top.links[f'local-{i}'][1]}:{PORT}"))],
+                                     f"local-{i}.log") for i, ns in enumerate(top.agents)]
+                _start_central_and_driver(procs, top, run, py, None, 0, inside, serve)
+                _wait_for("the served run's health.json", lambda: (run / "health.json").is_file(), 120, [serve, *edges])
+
+                def hammer_push(bundle, *args):
+                    return subprocess.run(["ip", "netns", "exec", top.hub, *py, "push", str(bundle), "--to", str(run),
+                                           "--window-episodes", "128", *args], capture_output=True, text=True,
+                                          timeout=240, env=env)
+
+                worse = hammer_push(teams["worse"].path, "--canary", "0-1")
+                assert worse.returncode == 1 and "rolled back (gate failed): gate metric_drop" in worse.stdout, \
+                    (worse.stdout, worse.stderr)
+                good = hammer_push(teams["good"].path, "--canary", "2", "--stages", "1,2,3")
+                assert good.returncode == 0 and "held: version 3 serves every agent" in good.stdout, \
+                    (good.stdout, good.stderr)
+                p = subprocess.Popen(["ip", "netns", "exec", top.hub, *py, "push", str(teams["worse"].path), "--to",
+                                      str(run), "--canary", "1", "--window-episodes", "128"],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+                lines = []
+                for line in p.stdout:  # the canary is on agent 1: interrupt before its window's verdict
+                    lines.append(line)
+                    if "version 4 on agents [1]" in line:
+                        p.send_signal(signal.SIGINT)
+                assert p.wait(timeout=60) == 130 and "interrupted: rolled back" in "".join(lines), lines
+                time.sleep(1.0)  # the env host names the rollback's version
+                health = json.loads((run / "health.json").read_text())
+                serve.send_signal(signal.SIGINT)  # a served run's normal end
+                assert serve.wait(timeout=60) == 0
+            finally:
+                procs.close()
+    except NetnsUnavailable as e:
+        pytest.skip(str(e))
+    history = read_history(run)
+    assert [e["action"] for e in history] == ["canary", "rollback", "canary", "stage", "promote", "gate", "canary",
+                                              "rollback"], history
+    assert history[1]["decision"]["checks"]["metric_drop"]["ok"] is False
+    assert history[-1]["reason"] == "interrupted" and history[-1]["restores_version"] == 3 and history[-1]["version"] == 5
+    assert health["central_version"] == 5 and [x["version"] for x in health["agents"]] == [5, 5, 5], health
+    # Each edge agent's health came across its own link: actions in time and heartbeats, no crash.
+    assert all(x["actions"] > 0 and x["restarts"] == 0 and x["rejected"] == 0 for x in health["agents"]), health
