@@ -208,7 +208,7 @@ class Rollout:
             raise CanaryError(f"--canary {','.join(map(str, canary))}: name distinct agents of 0..{n - 1}; fix: "
                               "e.g. --canary 0")
         self.stages = parse_stages(stages, canary, n)
-        self.bundle = Path(bundle)
+        self.bundle, self.trust = Path(bundle), trust
         self.b, _ = check_push(bundle, run_dir, trust, agents=self.stages[0])  # every check before anything is written
         if read_health(self.run_dir) is None:
             raise CanaryError(f"{self.run_dir / HEALTH}: missing; fix: push to a running `hammer serve` (its env host "
@@ -264,7 +264,7 @@ class Rollout:
             raise CanaryError(f"{self.run_dir}: no episode finished before the push; fix: push to a running `hammer serve`")
         base = assignment(read_history(self.run_dir)).base
         self.say(f"baseline {g.metric} {before[0]:.4f} over {before[2]} episodes (version {base})")
-        entries = read_history(self.run_dir)
+        _, entries = check_push(self.bundle, self.run_dir, self.trust, agents=self.stages[0])  # the history now
         e = record_push(self.b, self.bundle, self.run_dir, entries, agents=self.stages[0],
                         extra={"stages": self.stages, "gate": g.model_dump(), "baseline": {g.metric: before[0], "episodes": before[2]}})
         self.version, policy_dir = e["version"], e["policy_dir"]

@@ -355,7 +355,8 @@ def push_command(
     try:
         verdict = r.run()
     except KeyboardInterrupt:
-        typer.echo(f"interrupted: rolled back, {to} serves the version before the push")
+        typer.echo(f"interrupted: rolled back, {to} serves the version before the push" if r.version is not None
+                   else "interrupted before the push: nothing changed")
         raise typer.Exit(130) from None
     except (CanaryError, BundleError) as err:
         fail(str(err), code=1)
