@@ -45,6 +45,7 @@ from hammer.serve.push import _served, append_entry, check_push, read_history, r
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 log = logging.getLogger("hammer.canary")
+STALE_S = 30.0  # health.json older than this: the served run is not stepping (the env host writes it twice a second)
 
 
 class CanaryError(ValueError):
@@ -210,9 +211,14 @@ class Rollout:
         self.stages = parse_stages(stages, canary, n)
         self.bundle, self.trust = Path(bundle), trust
         self.b, _ = check_push(bundle, run_dir, trust, agents=self.stages[0])  # every check before anything is written
-        if read_health(self.run_dir) is None:
+        h = read_health(self.run_dir)
+        if h is None:
             raise CanaryError(f"{self.run_dir / HEALTH}: missing; fix: push to a running `hammer serve` (its env host "
                               "writes each agent's health there)")
+        age = time.time() - float(h.data.get("time", 0))
+        if age > STALE_S:
+            raise CanaryError(f"{self.run_dir / HEALTH}: last written {age:.0f} s ago (the served run is not stepping); "
+                              "fix: push to a running `hammer serve`")
         self.version: int | None = None
         self.verdict: str | None = None
 

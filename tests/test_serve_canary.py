@@ -104,6 +104,9 @@ def test_options_and_pairing_are_checked(teams, tmp_path):
     assert r.exit_code == 2 and "--gate crashes" in r.output
     r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--canary", "0"])  # no served process
     assert r.exit_code == 2 and "health.json" in r.output
+    (run / "health.json").write_text(json.dumps({"time": 0, "episodes": 0, "agents": []}))  # a run that ended
+    r = runner.invoke(app, ["push", str(a.path), "--to", str(run), "--canary", "0"])
+    assert r.exit_code == 2 and "not stepping" in r.output and not (run / "pushes.json").exists()
     # An open canary refuses a plain push until its decision; `hammer rollback` ends it.
     push(a.path, run, agents=[0])
     from hammer.commands.up import _rollout_text

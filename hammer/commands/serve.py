@@ -313,7 +313,7 @@ def push_command(
              "(default: the canary, then everyone).")] = None,
     gate: Annotated[list[str] | None, typer.Option(
         help="With --canary: limits, NAME=VALUE[,...], repeatable: metric (paper_metric | team_return), "
-             "metric_drop (0.15), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
+             "metric_drop (0.15), metric_z (2: standard errors), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
              "crashes (0), timeout_s (600).")] = None,
     window_episodes: Annotated[int | None, typer.Option(
         help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
