@@ -19,7 +19,7 @@ from hammer.learning.config import merge_config
 from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.serve.bundle import BundleError, export_bundle
-from hammer.serve.canary import CanaryError, Gate, parse_gate, parse_stages, staged_push
+from hammer.serve.canary import CanaryError, Gate, Snapshot, judge, parse_gate, parse_stages, staged_push
 from hammer.serve.push import check_push, push, read_history, rollback
 from hammer.serve.settings import serve_settings
 from safetensors.numpy import load_file, save_file
@@ -118,6 +118,44 @@ def test_options_and_pairing_are_checked(teams, tmp_path):
     assert e["restores_version"] == 0 and push(a.path, run)["version"] == 3
 
 
+def _health(episodes: int, metric: list[float], **per_agent: list[float]) -> Snapshot:
+    """A health.json read: 3 agents, 100 actions and 800 env copies each, plus `per_agent` totals."""
+    agents = [{"agent": i, "version": 0, "actions": 100, "copies": 800, "defaults": 0, "fallbacks": 0,
+               "latency_ms_sum": 300.0, "rejected": 0, "restarts": 0, "leaves": 0} for i in range(3)]
+    for key, values in per_agent.items():
+        for i, v in enumerate(values):
+            agents[i][key] = v
+    m = np.array(metric, float)
+    return Snapshot({"episodes": episodes, "metric_sum": float(m.sum()), "metric_sq_sum": float((m**2).sum()),
+                     "return_sum": 0.0, "return_sq_sum": 0.0, "agents": agents})
+
+
+def test_each_gate_compares_the_canary_with_the_rest():
+    """judge() on two reads of health.json: every per-agent gate fails on its own signal (the
+    canary, agent 0, against agents 1-2 over the same window) and the metric fails only when the
+    drop is both over its relative limit and over metric_z standard errors."""
+    gate, zero = Gate(), _health(0, [])
+    rng = np.random.default_rng(0)
+    before_eps = rng.normal(-27.0, 7.7, 100)
+    before = (before_eps.mean(), before_eps.var(), 100)
+    same = _health(100, list(rng.normal(-27.0, 7.7, 100)))
+    assert all(c["ok"] for c in judge(gate, before, zero, same, [0], [1, 2]).values())
+    for key, values, name in ((("defaults"), [80, 0, 0], "default_rate"), ("fallbacks", [200, 8, 0], "fallback_rate"),
+                              ("latency_ms_sum", [2600.0, 300.0, 310.0], "latency_ms"), ("rejected", [1, 0, 0], "rejected"),
+                              ("restarts", [1, 0, 0], "crashes"), ("leaves", [1, 0, 0], "crashes")):
+        worse = _health(100, list(rng.normal(-27.0, 7.7, 100)), **{key: values})
+        checks = judge(gate, before, zero, worse, [0], [1, 2])
+        assert [n for n, c in checks.items() if not c["ok"]] == [name], (key, checks)
+        on_the_rest = _health(100, list(rng.normal(-27.0, 7.7, 100)), **{key: values[::-1]})
+        assert all(c["ok"] for c in judge(gate, before, zero, on_the_rest, [0], [1, 2]).values())  # the rest's trouble
+    worse = _health(100, list(rng.normal(-37.0, 7.7, 100)))
+    assert not judge(gate, before, zero, worse, [0], [1, 2])["metric_drop"]["ok"]
+    noisy = _health(4, [-5.0, -60.0, -5.0, -60.0])  # a 20% drop on 4 wild episodes: within the noise
+    drop = judge(gate, before, zero, noisy, [0], [1, 2])["metric_drop"]
+    assert drop["value"] > 0.15 and drop["ok"], drop
+    assert set(judge(gate, before, zero, same, [0, 1, 2], [])) == {"metric_drop"}  # promoted: no rest to compare
+
+
 def _serve_and_roll_out(teams, tmp_path, window: int) -> tuple[list[str], list[str], dict, list[dict]]:
     """Serve team A (agents 0-1 pooled, agent 2 alone); once it runs, a canary push of the worse team (agents 0 and 1 first), then of the
     good one in three stages; the run is stopped (SIGINT, a served run's normal end) after both."""
@@ -189,8 +227,15 @@ def test_across_namespaces_from_the_command_line(teams, tmp_path):
     import sys
     import time
 
-    from hammer.benchmarks.netns import PORT, NetnsUnavailable, Procs, _start_central_and_driver, _wait_for, \
-        client_config, topology
+    from hammer.benchmarks.netns import (
+        PORT,
+        NetnsUnavailable,
+        Procs,
+        _start_central_and_driver,
+        _wait_for,
+        client_config,
+        topology,
+    )
 
     from tests.runtime_helpers import netns_reason
 
@@ -221,8 +266,8 @@ def test_across_namespaces_from_the_command_line(teams, tmp_path):
 
                 def hammer_push(bundle, *args):
                     return subprocess.run(["ip", "netns", "exec", top.hub, *py, "push", str(bundle), "--to", str(run),
-                                           "--window-episodes", "128", *args], capture_output=True, text=True,
-                                          timeout=240, env=env)
+                                           "--window-episodes", "128", *args], check=False, capture_output=True,
+                                          text=True, timeout=240, env=env)
 
                 worse = hammer_push(teams["worse"].path, "--canary", "0-1")
                 assert worse.returncode == 1 and "rolled back (gate failed): gate metric_drop" in worse.stdout, \
