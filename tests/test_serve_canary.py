@@ -284,7 +284,9 @@ def test_across_namespaces_from_the_command_line(teams, tmp_path):
                     if "version 4 on agents [1]" in line:
                         p.send_signal(signal.SIGINT)
                 assert p.wait(timeout=60) == 130 and "interrupted: rolled back" in "".join(lines), lines
-                time.sleep(1.0)  # the env host names the rollback's version
+                _wait_for("every agent on the rollback's version", lambda: json.loads(
+                    (run / "health.json").read_text())["central_version"] == 5, 60, [serve])
+                time.sleep(1.0)  # a few more steps on it
                 health = json.loads((run / "health.json").read_text())
                 serve.send_signal(signal.SIGINT)  # a served run's normal end
                 assert serve.wait(timeout=60) == 0
