@@ -53,6 +53,12 @@ class _SigmoidTanh(torch.autograd.Function):
         return torch.ops.aten.tanh_backward(grad, y)
 
 
+# `_SigmoidTanh.apply` without `torch.autograd.Function.apply`'s Python wrapper, which binds the
+# arguments to forward's signature by `inspect.signature` on every call (a noticeable part of an
+# eager PPO update, hundreds of calls each) before calling this same C entry point. Only for plain
+# tensors outside functorch transforms (the wrapper's other branch), which is where `tanh` uses it.
+_sigmoid_tanh_apply = super(torch.autograd.Function, _SigmoidTanh).apply
+
 _FAST_TANH_MIN = 8192  # elements; below this the plain kernel wins (call overhead dominates)
 
 
@@ -70,7 +76,7 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
     if torch._C._are_functorch_transforms_active():  # seed batches (vmap): plain ops batch cheaply
         return _traced_tanh(x)
     if x.requires_grad:
-        return _SigmoidTanh.apply(x)
+        return _sigmoid_tanh_apply(x)
     return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
 
 
