@@ -26,7 +26,8 @@ def encode_actions(spec: EnvSpec, actions: np.ndarray, active: np.ndarray) -> np
     """Actions as the central agent sees them: one-hot (discrete) or raw, zero if absent. (K, N, A)."""
     if spec.discrete:
         enc = np.zeros((*actions.shape, spec.action_dim), dtype=np.float32)
-        np.put_along_axis(enc, actions[..., None].astype(np.int64), 1.0, axis=-1)
+        # one flat fancy index (what np.put_along_axis does, without its per-call index building)
+        enc.reshape(-1, spec.action_dim)[np.arange(actions.size), actions.reshape(-1).astype(np.int64, copy=False)] = 1.0
     else:
         enc = np.clip(actions, spec.action_low, spec.action_high).astype(np.float32)
     return enc * active[..., None]

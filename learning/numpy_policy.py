@@ -60,6 +60,14 @@ def softmax(logits: np.ndarray) -> np.ndarray:
     return e / e.sum(axis=-1, keepdims=True)
 
 
+def take_last(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """`np.take_along_axis(a, idx[..., None], axis=-1)[..., 0]` (a: (..., A), idx: (...) ints) as one
+    flat fancy index: the same values, without take_along_axis's per-call index building (this runs
+    every acting step)."""
+    flat = a.reshape(-1, a.shape[-1])
+    return flat[np.arange(flat.shape[0]), idx.reshape(-1)].reshape(idx.shape)
+
+
 def gaussian_logp_of_draw(z: np.ndarray, log_std: np.ndarray | float) -> np.ndarray:
     """Log-density of the Gaussian sample mean + exp(log_std) * z, summed over the last axis, from
     its standard-normal draw z (float32): acting knows z, so this needs no mean and no division.

@@ -18,7 +18,7 @@ from hammer.envs.local_view import local_view_from_config
 from hammer.learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from hammer.learning.config import RunConfig
 from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
-from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax
+from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax, take_last
 from hammer.learning.run_env import check_env_fits
 from hammer.learning.sampling import ActingStreams, categorical_inverse_cdf
 
@@ -129,7 +129,7 @@ class Team:
             u = streams.local_uniforms(k)
             probs = softmax(out)  # float64, as the randomness contract specifies
             action = categorical_inverse_cdf(probs, u)
-            logp = np.log(np.take_along_axis(probs, action[..., None], axis=-1)[..., 0]).astype(np.float32)
+            logp = np.log(take_last(probs, action)).astype(np.float32)
             return action, logp, value
         z = streams.local_normals(k, self.act_dim)
         log_std = self.local.log_std.detach().numpy()
@@ -145,7 +145,7 @@ class Team:
         value = self.local.value(x).numpy()
         if self.discrete:
             probs = softmax(out)
-            return np.log(np.take_along_axis(probs, action[..., None], axis=-1)[..., 0]).astype(np.float32), value
+            return np.log(take_last(probs, action)).astype(np.float32), value
         log_std = self.local.log_std.detach().numpy()
         z = (action - out) / np.exp(log_std)  # the Gaussian draw behind the action (to float precision)
         return gaussian_logp_of_draw(z, log_std), value
