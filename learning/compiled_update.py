@@ -7,6 +7,11 @@ bookkeeping at run time), then per network the grad-norm clip and torch's own Ad
 on the parameters and on the Adam state the `torch.optim.Adam` objects own (checkpoints
 unchanged). The maths, the rows and their order are the eager `TeamLearner.learn`'s; only float
 rounding differs (tests/test_learning_compile.py). The eager path never reads this module.
+
+`compile_scope=epoch` traces a whole epoch into one graph instead (`_train_epoch`: the epoch's
+shuffle gather, then every minibatch step in order), one call per epoch instead of one per
+minibatch: the update runs ~20% faster, for a compile (dynamo's tracing, mostly) about as many
+times longer as an epoch has minibatches.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from hammer.learning.ppo import PPOUpdater, UpdateStats, clip_coefficient
+from hammer.learning.ppo import PPOUpdater, UpdateStats, clip_coefficient, minibatch_indices
 from torch import nn
 from torch.optim.adam import adam as functional_adam
 
@@ -41,10 +46,12 @@ class CompiledUpdate:
     is one graph per minibatch size, batch fields and `Masks`: one for cn."""
 
     def __init__(self, team: Team, losses: Losses, updaters: list[PPOUpdater], epochs: int,
-                 minibatches: int) -> None:
+                 minibatches: int, scope: str = "step") -> None:
         self.nets = _Nets(team, losses)
         self.updaters, self.epochs, self.minibatches = updaters, epochs, minibatches
+        self.scope = scope  # RunConfig.compile_scope: one graph per minibatch step, or per epoch
         self.step = torch.compile(self._train_step, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
+        self.epoch = torch.compile(self._train_epoch, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
         self.compiled: set[tuple] = set()
 
     def learn(self, minibatches: Minibatches, b: dict[str, torch.Tensor], masks: Masks,
@@ -57,6 +64,8 @@ class CompiledUpdate:
         exp_avgs, exp_avg_sqs, steps = ([t for s in states for t in s[i]] for i in range(3))
         keys = tuple(b)
         rows = len(b[keys[0]])
+        if self.scope == "epoch":
+            return self._learn_epochs(b, keys, rows, masks, rng, params, exp_avgs, exp_avg_sqs, steps)
         graphs = {(len(part), masks, keys) for part in np.array_split(np.arange(rows), self.minibatches)}
         total = UpdateStats()
         with _skip_guards(graphs <= self.compiled):
@@ -68,6 +77,41 @@ class CompiledUpdate:
                         total.add(stats)
         self.compiled |= graphs
         return total.means()
+
+    def _learn_epochs(self, b: dict[str, torch.Tensor], keys: tuple[str, ...], rows: int, masks: Masks,
+                      rng: np.random.Generator, params: list[torch.Tensor], exp_avgs: list[torch.Tensor],
+                      exp_avg_sqs: list[torch.Tensor], steps: list[torch.Tensor]) -> dict[str, float]:
+        """`learn` with one call of the compiled `_train_epoch` per epoch: the rows of each
+        minibatch and their order are the eager loop's (`minibatch_indices` on the same stream)."""
+        fields = [b[k] for k in keys]
+        total = UpdateStats()
+        for epoch in range(self.epochs):
+            parts = minibatch_indices(rows, self.minibatches, rng)
+            sizes = tuple(len(p) for p in parts)
+            graph = ("epoch", sizes, masks, keys)
+            with _skip_guards(graph in self.compiled):
+                stats = self.epoch(params, exp_avgs, exp_avg_sqs, steps, keys, fields,
+                                   torch.from_numpy(np.concatenate(parts)), sizes, masks)
+            self.compiled.add(graph)
+            if epoch == self.epochs - 1:
+                for st in stats:
+                    total.add(st)
+        return total.means()
+
+    def _train_epoch(self, params: list[torch.Tensor], exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
+                     steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor],
+                     perm: torch.Tensor, sizes: tuple[int, ...], masks: Masks) -> list[dict[str, torch.Tensor]]:
+        """One epoch, written to be traced into one graph: every field gathered in the epoch's
+        shuffled row order `perm`, then `_train_step` on each consecutive slice of `sizes` rows, in
+        order (each step sees the parameters the previous one stepped). Returns each step's
+        statistics."""
+        shuffled = [f.index_select(0, perm) for f in fields]
+        out, start = [], 0
+        for n in sizes:
+            out.append(self._train_step(params, exp_avgs, exp_avg_sqs, steps, keys,
+                                        [f.narrow(0, start, n) for f in shuffled], masks))
+            start += n
+        return out
 
     def _train_step(self, params: list[torch.Tensor], exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
                     steps: list[torch.Tensor], keys: tuple[str, ...], fields: list[torch.Tensor],

@@ -60,7 +60,8 @@ class TeamLearner:
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
         self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
         self.updaters = [opt for opt in (self.local_opt, self.central_opt) if opt is not None]
-        self.compiled_update = (CompiledUpdate(self.team, self.losses, self.updaters, cfg.epochs, cfg.minibatches)
+        self.compiled_update = (CompiledUpdate(self.team, self.losses, self.updaters, cfg.epochs, cfg.minibatches,
+                                              cfg.compile_scope)
                                 if cfg.compile else None)
 
     # ----- state (checkpoints) -------------------------------------------------------------------

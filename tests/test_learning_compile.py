@@ -1,6 +1,7 @@
 """`compile=true` runs the same PPO update as eager, to float rounding.
 
-The compiled update is one graph per minibatch step (losses, `torch.func.grad`, clip, Adam), so
+The compiled update is one graph per minibatch step (losses, `torch.func.grad`, clip, Adam; or,
+with compile_scope=epoch, one per epoch holding all of its minibatch steps), so
 the checks are on what an update leaves behind: the logged statistics, the parameters and the
 Adam state after several optimiser steps, on the same rollout buffer from the same initial weights.
 """
@@ -66,6 +67,9 @@ def _assert_same_update(eager: TeamLearner, compiled: TeamLearner, obs, prev, up
     ["variant=hammer", "central_mode=rl", "epochs=2"],
     ["variant=hammer", "central_mode=backprop", "epochs=1"],
     ["variant=il", "epochs=1"],
+    # compile_scope=epoch: a whole epoch (shuffle + every minibatch step) as one graph
+    ["variant=hammer", "central_mode=rl", "epochs=2", "compile_scope=epoch"],
+    ["variant=hammer", "central_mode=backprop", "epochs=1", "compile_scope=epoch"],
 ])
 def test_compiled_update_matches_eager(overrides):
     cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=10", "minibatches=2", *overrides])
