@@ -57,12 +57,13 @@ def run_jaxmarl(py: Path, repo: Path, schedule: str, env_steps: int) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
-def run_hammer(work: Path, env_steps: int) -> dict:
+def run_hammer(work: Path, env_steps: int, sets: list[str] | None = None) -> dict:
     run = work / "hammer-cn3-il"
     shutil.rmtree(run, ignore_errors=True)
     episodes = max(1, env_steps // 25)  # cn3 episodes are 25 steps of each env copy
     cmd = [*_one_core(), sys.executable, "-P", "-m", "hammer.cli", "train", "--preset", "cn3", "--variant", "il",
-           "--set", "compile=true", "--episodes", str(episodes), "--run-dir", str(run), "--quiet"]
+           "--set", "compile=true", *(x for kv in sets or [] for x in ("--set", kv)),
+           "--episodes", str(episodes), "--run-dir", str(run), "--quiet"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=False)
     if r.returncode != 0:
         raise RuntimeError(f"hammer train failed: {r.stderr.strip()[-1500:]}")
@@ -71,7 +72,8 @@ def run_hammer(work: Path, env_steps: int) -> dict:
     a, b = rows[len(rows) // 5], rows[-1]
     steps, secs = int(b["env_steps"]) - int(a["env_steps"]), float(b["wall_time"]) - float(a["wall_time"])
     tail = rows[-max(1, len(rows) // 10):]
-    return {"system": "hammer", "schedule": "hammer", "env_steps": int(b["env_steps"]),
+    return {"system": "hammer", "schedule": "hammer", "sets": ["compile=true", *(sets or [])],
+            "env_steps": int(b["env_steps"]),
             "warmup_s": float(a["wall_time"]), "steady_s": round(secs, 3),
             "env_steps_per_s": round(steps / secs, 1),
             "final_paper_metric_mean": sum(float(x["paper_metric"]) for x in tail) / len(tail),
@@ -85,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--env-steps", type=int, default=400_000, help="Env steps of each run (defaults: x2.5).")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-peers"))
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--hammer-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="More config for hammer's run (repeatable), e.g. compile_scope=epoch.")
     a = ap.parse_args(argv)
     if a.jaxmarl_repo is None or not (a.jaxmarl_repo / "baselines/IPPO/ippo_ff_mpe.py").is_file():
         print("skipped: JaxMARL's IPPO baseline is not here; fix: git clone https://github.com/FLAIROx/JaxMARL and "
@@ -97,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     jm = run_jaxmarl(py, a.jaxmarl_repo, "hammer", a.env_steps)
     jd = run_jaxmarl(py, a.jaxmarl_repo, "defaults", int(a.env_steps * 2.5))
-    hm = run_hammer(a.work, a.env_steps)
+    hm = run_hammer(a.work, a.env_steps, a.hammer_set)
     result = {"jaxmarl_hammer_schedule": jm, "jaxmarl_defaults": jd, "hammer": hm,
               "ratio_matched": round(hm["env_steps_per_s"] / jm["env_steps_per_s"], 3),
               "ratio_vs_jaxmarl_defaults": round(hm["env_steps_per_s"] / jd["env_steps_per_s"], 3)}
@@ -106,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{jm['final_return_mean']:.2f}")
     print(f"JaxMARL IPPO-FF, its defaults ({jd['num_envs']} envs x {jd['num_steps']} steps): "
           f"{jd['env_steps_per_s']:,.0f} env-steps/s (compile {jd['compile_s']} s)")
-    print(f"hammer cn3 IL compile=true: {hm['env_steps_per_s']:,.0f} env-steps/s steady (first fifth, with compile: "
+    print(f"hammer cn3 IL {' '.join(hm['sets'])}: {hm['env_steps_per_s']:,.0f} env-steps/s steady (first fifth, with compile: "
           f"{hm['warmup_s']:.1f} s); final paper metric {hm['final_paper_metric_mean']:.2f}, team return "
           f"{hm['final_team_return_mean']:.2f}")
     print(f"hammer / JaxMARL: {result['ratio_matched']}x at the same schedule, {result['ratio_vs_jaxmarl_defaults']}x "

@@ -93,6 +93,8 @@ def bench_peers(
         "/tmp/hammer-jaxmarl-venv"),
     env_steps: Annotated[int, typer.Option(min=1000, help="env steps of each run (JaxMARL's defaults: x2.5)")] = 400_000,
     out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+    hammer_set: Annotated[list[str] | None, typer.Option(help="more config for hammer's run, KEY=VALUE "
+                                                               "(repeatable), e.g. compile_scope=epoch")] = None,
 ) -> None:
     """hammer's training rate against JaxMARL's IPPO-FF on MPE simple spread, one core each, one after
     the other: at hammer's cn3 schedule and at JaxMARL's defaults; compile times and the end of both
@@ -100,7 +102,8 @@ def bench_peers(
     from hammer.benchmarks.peers import main
 
     code = main([*(["--jaxmarl-repo", str(jaxmarl_repo)] if jaxmarl_repo else []), "--jax-venv", str(jax_venv),
-                 "--env-steps", str(env_steps), *(["--out", str(out)] if out else [])])
+                 "--env-steps", str(env_steps), *(["--out", str(out)] if out else []),
+                 *(x for kv in hammer_set or [] for x in ("--hammer-set", kv))])
     if code:
         raise typer.Exit(code)
 
