@@ -10,7 +10,7 @@ rounding differs (tests/test_learning_compile.py). The eager path never reads th
 
 `compile_scope=epoch` traces a whole epoch into one graph instead (`_train_epoch`: the epoch's
 shuffle gather, then every minibatch step in order), one call per epoch instead of one per
-minibatch: the update runs ~20% faster, for a compile (dynamo's tracing, mostly) about as many
+minibatch: the update runs ~15-25% faster, for a compile (dynamo's tracing, mostly) about as many
 times longer as an epoch has minibatches.
 """
 

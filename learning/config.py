@@ -96,7 +96,7 @@ class RunConfig(BaseModel):
                            "both); float rounding differs from eager")
     compile_scope: Literal["step", "epoch"] = Field(
         "step", description="with compile=true, what one graph holds: `step`, one minibatch step; `epoch`, a "
-                            "whole epoch (its shuffle and every minibatch step: one call per epoch, updates ~20% "
+                            "whole epoch (its shuffle and every minibatch step: one call per epoch, updates ~15-25% "
                             "faster, but ~4x the compile; pays in long runs and benchmarks). Solo runs and `hammer up`'s "
                             "learner; seed batches (`--seeds`) keep their own per-minibatch graph")
     out: str = Field("runs", description="root directory for run directories")
