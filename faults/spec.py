@@ -23,8 +23,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from hammer.protocol.config_model import ConfigDict, Field, Model, ValidationError, model_validator
 from hammer.protocol.fault_injection import FaultRule, FaultSpec
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 LINKS: dict[str, str] = {
     "env->central": "env/state",
@@ -40,7 +40,7 @@ class FaultSpecError(ValueError):
     """A fault spec that cannot be parsed; the message names the part and the fix."""
 
 
-class LinkFault(BaseModel):
+class LinkFault(Model):
     """Faults on one link of the step loop, for every agent or for one agent only."""
 
     model_config = ConfigDict(extra="forbid")
@@ -83,7 +83,7 @@ class LinkFault(BaseModel):
         return f"{self.link}{' (' + who + ')' if who else ''}: {', '.join(parts) or 'no faults'}"
 
 
-class FaultPlan(BaseModel):
+class FaultPlan(Model):
     """Every link fault of a run plus its seed (the YAML `faults:` section has this shape)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -37,12 +37,12 @@ import zenoh
 from hammer.protocol.access import SecureLink
 from hammer.protocol.binding import check_key, sender_of
 from hammer.protocol.codec import Expected, _expected_types, decode, encode
+from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.dims import Dims
 from hammer.protocol.errors import ProtocolError, RunMismatchError
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.keys import Keys
 from hammer.protocol.schemas import Message
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def _endpoint_list(raw: str, mode: str) -> list[str]:
     return list(value) if isinstance(value, list) else []
 
 
-class TransportConfig(BaseModel):
+class TransportConfig(Model):
     """How a process reaches the others.
 
     Default: a peer with no endpoints (talks to nobody). Typical loopback setup: one process
