@@ -23,15 +23,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from hammer.faults.links import LINKS
 from hammer.protocol.config_model import ConfigDict, Field, Model, ValidationError, model_validator
 from hammer.protocol.fault_injection import FaultRule, FaultSpec
 
-LINKS: dict[str, str] = {
-    "env->central": "env/state",
-    "env->local": "env/obs/{agent}",
-    "central->local": "central/msg/{agent}",
-    "local->env": "agent/act/{agent}",
-}
 PER_AGENT = {"env->local", "central->local", "local->env"}
 _FIELDS = ("drop", "duplicate", "delay_ms", "jitter_ms", "reorder", "reorder_window", "reorder_max_hold_ms")
 

@@ -27,11 +27,12 @@ definitions as they were.
 
 from __future__ import annotations
 
+import inspect
 import json
 import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, ClassVar, Literal, Union
 
 __all__ = ["ConfigDict", "Field", "FieldInfo", "Model", "ValidationError", "field_validator", "model_validator"]
 
@@ -65,14 +66,14 @@ def _bad(kind: str, msg: str, value: Any) -> _Bad:
     return _Bad([{"type": kind, "loc": (), "msg": msg, "input": value}])
 
 
-def ConfigDict(**kw: Any) -> dict:  # noqa: N802 - pydantic's spelling
+def ConfigDict(**kw: Any) -> dict:
     return dict(kw)
 
 
 class FieldInfo:
     """One field: its default (or factory), bounds and description."""
 
-    __slots__ = ("default", "default_factory", "ge", "gt", "le", "lt", "description", "annotation", "convert")
+    __slots__ = ("annotation", "convert", "default", "default_factory", "description", "ge", "gt", "le", "lt")
 
     def __init__(self, default: Any = _REQUIRED, *, default_factory: Any = None, ge: Any = None, gt: Any = None,
                  le: Any = None, lt: Any = None, description: str | None = None) -> None:
@@ -99,7 +100,7 @@ class FieldInfo:
                 raise _bad(kind, f"Input should be {words} {bound}", given)
 
 
-def Field(default: Any = _REQUIRED, **kw: Any) -> Any:  # noqa: N802 - pydantic's spelling
+def Field(default: Any = _REQUIRED, **kw: Any) -> Any:
     return FieldInfo(default, **kw)
 
 
@@ -278,18 +279,18 @@ def _converter(tp: Any) -> Any:
 class Model:
     """Base of a settings model: fields from annotations, validated on construction (see the module doc)."""
 
-    model_config: dict = {}
-    model_fields: dict[str, FieldInfo] = {}
-    _field_validators: dict[str, list] = {}
-    _model_validators: list = []
-    _resolved = False
+    model_config: ClassVar[dict] = {}
+    model_fields: ClassVar[dict[str, FieldInfo]] = {}
+    _field_validators: ClassVar[dict[str, list]] = {}
+    _model_validators: ClassVar[list] = []
+    _resolved: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
         fields = dict(getattr(cls, "model_fields", {}))
         field_validators: dict[str, list] = {k: list(v) for k, v in getattr(cls, "_field_validators", {}).items()}
         model_validators = list(getattr(cls, "_model_validators", []))
-        for name in cls.__dict__.get("__annotations__", {}):
+        for name in inspect.get_annotations(cls):
             if name.startswith("_") or name in ("model_config", "model_fields"):
                 continue
             value = cls.__dict__.get(name, _REQUIRED)
