@@ -131,6 +131,10 @@ class TransportConfig(Model):
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
     security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
+    shared_memory: bool | None = Field(
+        None, description="Zenoh's shared memory with peers on this machine (None: Zenoh's default, on: a put over "
+                          "3 KB to a local peer goes through a 16 MB pool this process maps); an edge agent turns it "
+                          "off (serve/edge.py): 16 MB of its RSS on loopback, nothing across machines")
 
     @field_validator("listen", "connect")
     @classmethod
@@ -191,6 +195,8 @@ class TransportConfig(Model):
             period = min(RECONNECT["period_init_ms"], self.reconnect_max_ms)
             cfg.insert_json5("connect/retry", json.dumps({**RECONNECT, "period_init_ms": period,
                                                           "period_max_ms": self.reconnect_max_ms}))
+        if self.shared_memory is not None:
+            cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.lease_ms is not None:
             cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
         if self.security is not None:

@@ -105,6 +105,8 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
         edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None)
     _, t, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None, insecure=True)
     assert t.connect == ["tcp/192.0.2.1:7447"] and t.listen == ["tcp/0.0.0.0:0"]
+    # no Zenoh shared-memory pool (16 MB of RSS with a peer on the same host; issue 31)
+    assert t.shared_memory is False and t.to_zenoh().get_json("transport/shared_memory/enabled") == "false"
     RuntimeSettings(run_id="sec", secure=True).save(tmp_path)
     with pytest.raises(ValueError, match="--identity"):  # a secure run without the agent's identity files
         edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=tmp_path / "runtime.json")
