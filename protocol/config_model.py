@@ -48,6 +48,9 @@ class ValidationError(ValueError):
         super().__init__(f"{title}: " + "; ".join(
             f"{'.'.join(map(str, e['loc']))}: {e['msg']}" if e["loc"] else e["msg"] for e in errors))
 
+    def __reduce__(self) -> tuple:  # picklable (a worker's error crossing a process boundary)
+        return type(self), (self.title, self._errors)
+
     def errors(self, include_url: bool = False) -> list[dict]:
         return [dict(e) for e in self._errors]
 
