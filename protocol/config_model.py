@@ -412,7 +412,7 @@ class Model:
     __hash__ = None  # type: ignore[assignment] - mutable, like pydantic's models
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}({', '.join(f'{k}={self.__dict__[k]!r}' for k in type(self).model_fields)})"
+        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k in type(self).model_fields if (v := self.__dict__.get(k, _REQUIRED)) is not _REQUIRED)})"
 
 
 def _dump(v: Any, mode: str) -> Any:
