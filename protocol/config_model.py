@@ -21,7 +21,7 @@ Why not pydantic: on the edge agent pydantic + pydantic-core cost ~11 MB of RSS 
 import for four small settings models (issue 31). Why not msgspec Structs: they cannot say which
 fields a caller set (`model_fields_set`: which transport settings override a Zenoh config file,
 which runtime.json keys were written), and their errors would need rewording to name the field and
-the fix; this module is ~200 lines, imports nothing beyond the standard library, and keeps the models'
+the fix; this module (~300 lines of code) imports nothing beyond the standard library and keeps the models'
 definitions as they were.
 """
 
