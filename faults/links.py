@@ -31,8 +31,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from hammer.faults.spec import LINKS
-
+# The step loop's links and the keys (relative to hammer/<run>/) their messages travel on; the link
+# fault specs (faults/spec.py) write rules for these. Here, not there, so a role that only counts
+# (every local agent, the edge agent) loads no fault-spec models.
+LINKS: dict[str, str] = {
+    "env->central": "env/state",
+    "env->local": "env/obs/{agent}",
+    "central->local": "central/msg/{agent}",
+    "local->env": "agent/act/{agent}",
+}
 LINK_IDS = {link: link.replace("->", "_") for link in LINKS}
 _FAULT_FIELDS = ("matched", "sent", "dropped", "duplicated", "delayed", "reordered")
 # Shown under every link table: why delivered can exceed sent, and why live figures may not add up.

@@ -23,15 +23,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from hammer.faults.links import LINKS
+from hammer.protocol.config_model import ConfigDict, Field, Model, ValidationError, model_validator
 from hammer.protocol.fault_injection import FaultRule, FaultSpec
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-LINKS: dict[str, str] = {
-    "env->central": "env/state",
-    "env->local": "env/obs/{agent}",
-    "central->local": "central/msg/{agent}",
-    "local->env": "agent/act/{agent}",
-}
 PER_AGENT = {"env->local", "central->local", "local->env"}
 _FIELDS = ("drop", "duplicate", "delay_ms", "jitter_ms", "reorder", "reorder_window", "reorder_max_hold_ms")
 
@@ -40,7 +35,7 @@ class FaultSpecError(ValueError):
     """A fault spec that cannot be parsed; the message names the part and the fix."""
 
 
-class LinkFault(BaseModel):
+class LinkFault(Model):
     """Faults on one link of the step loop, for every agent or for one agent only."""
 
     model_config = ConfigDict(extra="forbid")
@@ -83,7 +78,7 @@ class LinkFault(BaseModel):
         return f"{self.link}{' (' + who + ')' if who else ''}: {', '.join(parts) or 'no faults'}"
 
 
-class FaultPlan(BaseModel):
+class FaultPlan(Model):
     """Every link fault of a run plus its seed (the YAML `faults:` section has this shape)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator
 
 Send = Callable[[bytes], None]
 log = logging.getLogger(__name__)
@@ -71,7 +71,7 @@ def key_matches(pattern: str, key: str) -> bool:
 Probability = float
 
 
-class FaultRule(BaseModel):
+class FaultRule(Model):
     """Faults for the keys matching `match` (relative to `hammer/<run>/`)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -95,7 +95,7 @@ class FaultRule(BaseModel):
         return self.match
 
 
-class FaultSpec(BaseModel):
+class FaultSpec(Model):
     """A seed and an ordered list of rules (first match wins). No rules = no faults."""
 
     model_config = ConfigDict(extra="forbid")

@@ -37,12 +37,12 @@ import zenoh
 from hammer.protocol.access import SecureLink
 from hammer.protocol.binding import check_key, sender_of
 from hammer.protocol.codec import Expected, _expected_types, decode, encode
+from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.dims import Dims
 from hammer.protocol.errors import ProtocolError, RunMismatchError
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.keys import Keys
 from hammer.protocol.schemas import Message
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def _endpoint_list(raw: str, mode: str) -> list[str]:
     return list(value) if isinstance(value, list) else []
 
 
-class TransportConfig(BaseModel):
+class TransportConfig(Model):
     """How a process reaches the others.
 
     Default: a peer with no endpoints (talks to nobody). Typical loopback setup: one process
@@ -131,6 +131,10 @@ class TransportConfig(BaseModel):
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
     security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
+    shared_memory: bool | None = Field(
+        None, description="Zenoh's shared memory with peers on this machine (None: Zenoh's default, on: a put over "
+                          "3 KB to a local peer goes through a 16 MB pool this process maps); an edge agent turns it "
+                          "off (serve/edge.py): 16 MB of its RSS on loopback, nothing across machines")
 
     @field_validator("listen", "connect")
     @classmethod
@@ -191,6 +195,8 @@ class TransportConfig(BaseModel):
             period = min(RECONNECT["period_init_ms"], self.reconnect_max_ms)
             cfg.insert_json5("connect/retry", json.dumps({**RECONNECT, "period_init_ms": period,
                                                           "period_max_ms": self.reconnect_max_ms}))
+        if self.shared_memory is not None:
+            cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.lease_ms is not None:
             cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
         if self.security is not None:

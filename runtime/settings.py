@@ -5,7 +5,7 @@ decide how the processes talk: where the hub listens, per-hop deadlines, fallbac
 Both are written into the run directory by `hammer up` (config.json, runtime.json) and every
 role reads them from there, so all roles of a run agree by construction.
 
-Imports stay light (pydantic + protocol): the local-agent edge client reads this too.
+Imports stay light (protocol only, no pydantic: `protocol.config_model`): the edge agent reads this too.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Literal
 
+from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.fault_injection import FaultSpec
 from hammer.protocol.session import TransportConfig, is_loopback_endpoint, loopback_endpoint
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
@@ -58,7 +58,7 @@ def refuse_plain_beyond_loopback(transport: TransportConfig, secure: bool, insec
                          f"for any agent, publish weights or stop the run; fix: {fix}")
 
 
-class RuntimeSettings(BaseModel):
+class RuntimeSettings(Model):
     """How the roles of one run talk. Defaults suit one host on loopback."""
 
     model_config = ConfigDict(extra="forbid")

@@ -94,7 +94,10 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         transport = settings.link(TransportConfig(zenoh_config_file=zenoh_config))
     else:
         check_endpoint(connect)
-        transport = settings.transport_to(connect)  # a hub on this host: stay on loopback
+        # A hub on this host: stay on loopback. No Zenoh shared memory: its 16 MB pool is mapped (and counted
+        # in the RSS) as soon as a peer on the same host sends a large message, and a robot's peers are
+        # on other machines (issue 31); a --zenoh-config file decides for itself.
+        transport = settings.transport_to(connect).model_copy(update={"shared_memory": False})
     if settings.secure and identity is None:
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")

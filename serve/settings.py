@@ -11,8 +11,8 @@ def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_se
     import yaml
     from hammer.faults.chaos import parse_chaos
     from hammer.faults.spec import build_plan
+    from hammer.protocol.config_model import ValidationError
     from hammer.runtime.settings import RuntimeSettings
-    from pydantic import ValidationError
 
     plan = build_plan(fault, fault_seed)
     for c in chaos or []:
@@ -33,7 +33,7 @@ def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_se
         rt[key.strip()] = yaml.safe_load(val)
     try:
         return RuntimeSettings.model_validate(rt), plan
-    except ValidationError as e:  # pydantic's multi-line report, in one line naming each field
+    except ValidationError as e:  # one line naming each field
         raise ValueError("; ".join(f"{'.'.join(map(str, x['loc'])) or 'runtime settings'}: "
                                    f"{x['msg'].removeprefix('Value error, ')}" for x in e.errors(include_url=False))) \
             from None

@@ -42,6 +42,50 @@ def test_the_edge_entry_loads_neither_the_cli_framework_nor_the_training_config(
         "typer", "rich", "hammer.learning.config", "torch", "hammer.cli", "yaml"}
 
 
+# The wire modules (messages, codec, field types): pydantic models on main, msgspec Structs on the
+# codec branch (issue 31); once they are merged no module of the edge path may import pydantic.
+WIRE = {"hammer.protocol.schemas", "hammer.protocol.codec", "hammer.protocol.fields", "hammer.protocol.fast_path",
+        "hammer.protocol.errors"}
+_WHO_IMPORTS_PYDANTIC = """
+import builtins, json, sys
+importers = set()
+real = builtins.__import__
+def hook(name, globals=None, locals=None, fromlist=(), level=0):
+    who = (globals or {}).get("__name__", "?")
+    if level == 0 and name.split(".")[0] in ("pydantic", "pydantic_core") and not who.startswith("pydantic"):
+        importers.add(who)
+    return real(name, globals, locals, fromlist, level)
+builtins.__import__ = hook
+from pathlib import Path
+from hammer.commands.edge import parser
+from hammer.serve.edge import edge_inputs
+import hammer.faults.steplog, hammer.local_agent.client, hammer.runtime.process, hammer.serve.edge_agent
+bundle, settings = sys.argv[1:3]
+parser().parse_args(["--bundle", bundle, "--agent", "0"])
+s, t, spec, k = edge_inputs(Path(bundle), 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=Path(settings),
+                            runtime=["fallback_k=5", "msg_deadline_ms=20"])
+assert s.faults.enabled and s.fallback_k == 5 and t.model_fields_set >= {"connect"}
+print(json.dumps({"importers": sorted(importers), "loaded": "pydantic" in sys.modules}))
+"""
+
+
+def test_the_edge_agents_settings_load_no_pydantic(team, tmp_path):
+    """RuntimeSettings, TransportConfig, FaultSpec, the link faults: the edge agent reads them (runtime.json with
+    faults, --runtime items) through protocol/config_model.py, not pydantic (~11 MB of RSS and 0.2 s of start, issue 31):
+    only the wire modules may still import it, and none may once they are msgspec's."""
+    import json
+
+    bundle, _ = team
+    RuntimeSettings(run_id="served-x", mode="eval", policy_dir=str(bundle.path), hub_port=7447,
+                    faults={"seed": 3, "rules": [{"match": "agent/act/*", "drop": 0.1}]}).save(tmp_path)
+    r = subprocess.run([sys.executable, "-c", _WHO_IMPORTS_PYDANTIC, str(bundle.path), str(tmp_path / "runtime.json")],
+                       check=False, capture_output=True, text=True, cwd=ROOT, env=ENV, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(out["importers"]) <= WIRE, out["importers"]
+    assert out["loaded"] == bool(out["importers"]), out
+
+
 def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team, tmp_path):
     bundle, _ = team
     RuntimeSettings(run_id="served-x", msg_deadline_ms=12, fallback="last", step_window=77, hub_port=7447,
@@ -61,6 +105,8 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
         edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None)
     _, t, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None, insecure=True)
     assert t.connect == ["tcp/192.0.2.1:7447"] and t.listen == ["tcp/0.0.0.0:0"]
+    # no Zenoh shared-memory pool (16 MB of RSS with a peer on the same host; issue 31)
+    assert t.shared_memory is False and t.to_zenoh().get_json("transport/shared_memory/enabled") == "false"
     RuntimeSettings(run_id="sec", secure=True).save(tmp_path)
     with pytest.raises(ValueError, match="--identity"):  # a secure run without the agent's identity files
         edge_inputs(bundle.path, 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=tmp_path / "runtime.json")

@@ -337,8 +337,8 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
 def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
     """`zenoh_lease_s` and `reconnect_max_s` reach the Zenoh config of every session a run builds; a
     --zenoh-config file keeps its own retry periods unless one is set; a bad value names the field."""
+    from hammer.protocol.config_model import ValidationError
     from hammer.runtime.settings import RuntimeSettings
-    from pydantic import ValidationError
 
     s = RuntimeSettings(run_id="r", hub_port=free_loopback_port(), zenoh_lease_s=30, reconnect_max_s=0.2)
     c = s.transport().to_zenoh()

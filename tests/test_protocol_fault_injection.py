@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 import pytest
+from hammer.protocol.config_model import ValidationError
 from hammer.protocol.fault_injection import FaultInjector, FaultRule, FaultSpec, key_matches
 from hammer.protocol.schemas import LocalObs
 from hammer.protocol.session import HammerSession, TransportConfig
-from pydantic import ValidationError
 
 
 def _run(spec: FaultSpec, n: int, key: str = "agent/act/0", pace_s: float = 0.0

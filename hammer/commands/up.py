@@ -17,8 +17,7 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
     """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
     import difflib
 
-    from pydantic import ValidationError
-
+    from hammer.protocol.config_model import ValidationError
     from hammer.runtime.settings import RuntimeSettings
 
     if not isinstance(err, ValidationError):
