@@ -86,7 +86,6 @@ class HostilePeer(PeerThread):
 
     def _stops(self, s: HammerSession) -> None:
         for sender in FORGED_STOP_SENDERS:
-            data = encode(Control(command="stop"), stamp={"run": s.run_id, "ts": time.time_ns(),
-                                                          "seq": self.sent["control"], "sender": sender})
+            data = encode(Control(command="stop"), stamp={"sender": sender})
             s.put_bytes(s.keys.ctl("all"), data)
             self.sent["control"] += 1

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from hammer.protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
 from hammer.protocol.session import HammerSession, TransportConfig
+from msgspec.structs import replace
 
 from tests.peer_thread import PeerThread
 
@@ -43,11 +44,11 @@ class StallPeer(PeerThread):
             junk = np.random.default_rng(0).bytes(4096)
             for i, o in enumerate((obs0, obs1)):
                 self._send(f"obs_step_local-{i}", lambda m, i=i: s.publish(k.obs(i), m),
-                           o.model_copy(update={"step": HUGE_OBS_STEP}))
-            self._send("state_step", lambda m: s.publish(k.state(), m), state.model_copy(update={"step": HUGE_STATE_STEP}))
+                           replace(o, step=HUGE_OBS_STEP))
+            self._send("state_step", lambda m: s.publish(k.state(), m), replace(state, step=HUGE_STATE_STEP))
             # a step inside the window, naming a policy version no learner has published
             self._send("obs_version", lambda m: s.publish(k.obs(0), m),
-                       obs0.model_copy(update={"step": now + 50, "policy_version": HUGE_VERSION}))
+                       replace(obs0, step=now + 50, policy_version=HUGE_VERSION))
             for net in ("local", "central"):
                 self._send(f"weights_{net}", lambda m, net=net: s.publish(k.weights(net), m),
                            Weights.from_blob(net, HUGE_VERSION, junk))

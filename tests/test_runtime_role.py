@@ -214,8 +214,7 @@ def _stop_from(session: HammerSession, sender: str) -> None:
     """A stop command whose header names `sender` (plain profile: the header is whatever the peer writes)."""
     from hammer.protocol.codec import encode
 
-    data = encode(Control(command="stop"), stamp={"run": session.run_id, "ts": time.time_ns(), "seq": 0,
-                                                  "sender": sender})
+    data = encode(Control(command="stop"), stamp={"sender": sender})
     session.put_bytes(session.keys.ctl("all"), data)
 
 
