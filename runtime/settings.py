@@ -257,6 +257,13 @@ class RuntimeSettings(BaseModel):
             return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
         return self.link(TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen]))
 
+    @property
+    def echo(self) -> bool:
+        """Whether an action carries back the message it acted on: the env host records it in the
+        rollout (training) and in a trace; serving needs neither, and the message stays off the
+        wire (issue 31). The env host declares it (`Dims.echo`) and refuses an action without it."""
+        return self.mode == "train" or self.trace
+
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
                 identity_directory: Path | None = None) -> TransportConfig:
         """`transport` as role `role` of a secure run: TLS endpoints, the role's identity from
