@@ -12,8 +12,8 @@ import pytest
 from hammer.benchmarks.transport import echo_main
 from hammer.protocol.codec import encode
 from hammer.protocol.dims import Dims
-from hammer.protocol.samples import sample_messages
 from hammer.protocol.fields import DTYPE_CODES
+from hammer.protocol.samples import sample_messages
 from hammer.protocol.schemas import SCHEMA_VERSION, Control, GlobalState, LocalObs, Message, fields_of
 from hammer.protocol.session import HammerSession, TransportConfig
 
