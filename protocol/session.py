@@ -333,8 +333,10 @@ class Subscription(_QueueSub):
         self.stats.received += 1
         t0 = time.perf_counter()
         try:
-            msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes)
-            check_key(msg, key[self._prefix_len:])
+            msg = decode(data, self.expected, max_bytes=self.max_bytes)
+            check_key(msg, key[self._prefix_len:])  # who it claims to be, before what it declares
+            if self.dims is not None:
+                msg.check_dims(self.dims)
         except ProtocolError as e:
             self.stats.decode_s += time.perf_counter() - t0
             self.stats.rejected[e.reason] += 1

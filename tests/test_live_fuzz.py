@@ -72,7 +72,10 @@ class Target:
         if self.dims is not None and len(payload) > self.expected.cap_for_dims(self.dims):
             return "size"  # refused on arrival: over what a message of the receiver's sizes can weigh
         try:
-            check_key(codec.decode(payload, self.expected, self.dims), Keys(RUN).relative(self.key))
+            msg = codec.decode(payload, self.expected)
+            check_key(msg, Keys(RUN).relative(self.key))  # in the receiver's order: key, then declared dims
+            if self.dims is not None:
+                msg.check_dims(self.dims)
         except ProtocolError as e:
             return e.reason
         return None
