@@ -79,6 +79,64 @@ def step_sizes(d: dict, k: int) -> dict:
                         "central_link": half["global_state"] + n * half["central_msg"]}}
 
 
+def half_effect(bundle: Path, k: int = 32, steps: int = 200, seed: int = 0) -> dict:
+    """What the opt-in float16 observations and messages do to a served team's actions: the team acts
+    on float32 (its actions step the env, as served: messages the central agent's means); at every
+    step each agent's action is also drawn from the float16-rounded observation and message with the
+    same random draws. Returns the fraction of actions that differ (discrete: another id; continuous:
+    the largest absolute difference) and the largest change of an input value."""
+    from hammer.envs.local_view import local_view_from_config
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.central_acting import CentralActing, zero_prev_actions
+    from hammer.learning.numpy_policy import NumpyLocalPolicy, numpy_central, softmax
+    from hammer.learning.rollout import next_prev_actions
+    from hammer.learning.sampling import categorical_inverse_cdf
+    from hammer.local_agent.client import AgentSpec, LocalAgent
+    from hammer.serve.bundle import CENTRAL, LOCAL, load_bundle
+    from safetensors.numpy import load_file
+
+    b = load_bundle(bundle, check_config=False)
+    cfg, spec = b.config(), b.env_spec()
+    env = make_vec_env(cfg.env, cfg.n_agents, k, env_kwargs=cfg.env_kwargs)
+    view, acting = local_view_from_config(cfg, spec), CentralActing.from_config(cfg)
+    central = numpy_central(load_file(str(b.path / CENTRAL))) if acting.has_network else None
+    policy = NumpyLocalPolicy(load_file(str(b.path / LOCAL)))
+    agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i), policy, 0) for i in range(cfg.n_agents)]
+    rng = np.random.default_rng(seed)
+    half = lambda x: x.astype(np.float16).astype(np.float32)
+    obs, _ = env.reset(seed)
+    prev = zero_prev_actions(spec, k)
+    changed, total, worst_in, worst_out = 0, 0, 0.0, 0.0
+    for _ in range(steps):
+        msgs = central.message_mean(acting.global_state(obs, prev)) if central is not None else None
+        seen = view(obs)
+        actions = []
+        for i, agent in enumerate(agents):
+            o, m = seen[:, i], None if msgs is None else msgs[:, i]
+            out32 = policy.actor_out(agent.policy_input(o, m))
+            out16 = policy.actor_out(agent.policy_input(half(o), None if m is None else half(m)))
+            worst_in = max(worst_in, float(np.abs(half(o) - o).max()),
+                           0.0 if m is None else float(np.abs(half(m) - m).max()))
+            if spec.discrete:
+                u = rng.random(k)
+                a32 = categorical_inverse_cdf(softmax(out32), u)
+                a16 = categorical_inverse_cdf(softmax(out16), u)
+                changed += int((a32 != a16).sum())
+            else:
+                a32 = out32 + policy.std * rng.standard_normal(out32.shape).astype(np.float32)
+                worst_out = max(worst_out, float(np.abs(out16 - out32).max()))
+                changed += int((np.abs(out16 - out32) > 1e-3).any(axis=1).sum())
+            total += k
+            actions.append(a32)
+        acts = np.stack(actions, axis=1)
+        step = env.step(spec.env_action(acts))
+        prev = next_prev_actions(spec, acts, step).prev
+        obs = step.obs
+    env.close()
+    return {"steps": steps, "K": k, "actions": total, "changed": changed, "changed_fraction": changed / total,
+            "max_input_change": worst_in, **({} if spec.discrete else {"max_mean_change": worst_out})}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="hammer bench wire", description=__doc__.split("\n\n")[0])
     ap.add_argument("bundle", type=Path, nargs="?")
@@ -100,7 +158,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"         float16 (opt-in): obs {f16['local_obs']} B, msg {f16['central_msg']} B, agent link serving "
               f"{f16['agent_link_eval']:,} B ({f16['agent_link_eval'] / r['agent_link_min']:.2f}x), central link "
               f"{f16['central_link']:,} B ({f16['central_link'] / r['central_link_min']:.2f}x)")
-    write_json(a.out, {"dims": d, "rows": rows})
+    out = {"dims": d, "rows": rows}
+    if a.bundle is not None:
+        eff = out["float16_effect"] = half_effect(a.bundle)
+        print(f"float16 observations and messages, this team ({eff['steps']} steps, K={eff['K']}): "
+              f"{eff['changed']} of {eff['actions']:,} actions differ ({100 * eff['changed_fraction']:.3f}%), "
+              f"inputs moved by at most {eff['max_input_change']:.2g}")
+    write_json(a.out, out)
     return 0
 
 
