@@ -512,7 +512,8 @@ class Publisher:
         self._lock = threading.Lock()
         self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
         self.max_bytes: int | None = None  # a size cap other than the message type's (a large run's rollout chunk)
-        self.half = False  # float32 observations and messages as float16 on the wire (opt-in, codec.encode)
+        # float32 observations and messages as float16 on the wire (opt-in: codec.encode(half=True))
+        self.half = session.wire_float16
         self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
         self.sent_bytes = 0
         self.encode_s = 0.0  # wall time stamping + encoding, and in the put (fault layer + Zenoh)
@@ -569,6 +570,9 @@ class HammerSession:
         self.run_id = run_id
         self.transport = transport or TransportConfig()
         self.sender = sender or f"pid{os.getpid()}"
+        # Publishers made from now on send float32 observations and messages as float16 (opt-in,
+        # serving: RuntimeSettings.wire_float16; codec.encode(half=True)).
+        self.wire_float16 = False
         self.faults = FaultInjector(faults) if faults is not None and faults.enabled else None
         self._z: zenoh.Session | None = None
         self._pid: int | None = None

@@ -221,3 +221,32 @@ def test_round_trip_across_two_spawned_processes():
         finally:
             if echo.is_alive():
                 echo.terminate()
+
+
+def test_a_session_opted_into_float16_halves_observations_and_messages_only(pair):
+    """RuntimeSettings.wire_float16 (serving only): the publishers of such a session send float32
+    observations and messages as float16, read back as float32; everything else goes as it is."""
+    from hammer.runtime.settings import RuntimeSettings
+
+    a, b = pair
+    a.wire_float16 = True
+    sub = b.subscribe(b.keys.bench("half"))
+    pub = a.publisher(a.keys.bench("half"))
+    _settle()
+    sent = sample_messages()
+    for m in sent:
+        pub.publish(m)
+    for m in sent:
+        got = sub.get(5.0)
+        assert got is not None and type(got) is type(m)
+        for name, spec in type(m).ARRAYS.items():
+            x, y = getattr(m, name), getattr(got, name)
+            if x is None or x.dtype != np.float32 or ("float16", "float32") not in spec.wire:
+                assert x is None or (x.dtype == y.dtype and np.array_equal(x, y)), (m.TYPE, name)
+            else:
+                assert y.dtype == np.float32 and np.array_equal(y, x.astype(np.float16).astype(np.float32))
+        if m.TYPE in ("experience", "weights"):
+            _same_payload(m, got)
+    with pytest.raises(ValueError, match="wire_float16"):
+        RuntimeSettings(run_id="r", wire_float16=True)
+    assert RuntimeSettings(run_id="r", mode="eval", policy_dir="p", wire_float16=True).wire_float16

@@ -254,6 +254,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
+            s.wire_float16 = settings.wire_float16
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
                                    step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
                                    max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step),
@@ -285,6 +286,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     host = None
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
+            s.wire_float16 = settings.wire_float16
             s.declare_alive("env")
             host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
