@@ -104,8 +104,16 @@ def _array_items(node: Any) -> Any:
 # Messages
 # --------------------------------------------------------------------------------------------
 
-_ARANGE = np.arange(MAX_K + 1, dtype=np.int64)
-_ARANGE_BYTES = _ARANGE.tobytes()
+# env_idx is almost always 0..K-1: comparing its bytes with these proves "unique and >= 0" at once.
+_ARANGE_BYTES = np.arange(4096, dtype=np.int64).tobytes()
+
+
+def _is_range(a: np.ndarray) -> bool:
+    """Whether int64 array `a` is 0..K-1."""
+    k = a.shape[0]
+    if k <= 4096:
+        return _ARANGE_BYTES.startswith(a.tobytes())
+    return bool((a == np.arange(k)).all())
 
 
 def _env_idx(v: Any) -> np.ndarray:
@@ -114,7 +122,7 @@ def _env_idx(v: Any) -> np.ndarray:
     if t is int:  # 0..K-1 (msgspec bounded K)
         if not 0 <= v <= MAX_K:
             raise RangeError(f"K must be in [0, {MAX_K}]", "env_idx")
-        return _ARANGE[:v].copy()
+        return np.arange(v, dtype=np.int64)
     if t is np.ndarray:
         if v.dtype != np.int64:
             raise FieldError(f"env_idx must be int64, got {v.dtype}", "env_idx")
@@ -125,7 +133,7 @@ def _env_idx(v: Any) -> np.ndarray:
         a = np.array(v, dtype=np.int64) if v else empty_idx()
     else:
         raise FieldError(f"env_idx must be an int or a list of ints, got {t.__name__}", "env_idx")
-    if a.size and not _ARANGE_BYTES.startswith(a.tobytes()):
+    if a.size and not _is_range(a):
         idx = a.tolist()  # a Python set beats np.unique at K up to a few thousand
         if min(idx) < 0:
             raise RangeError("env indices must be >= 0", "env_idx")
@@ -136,9 +144,8 @@ def _env_idx(v: Any) -> np.ndarray:
 
 def env_idx_to_wire(a: np.ndarray) -> int | list[int]:
     """What env_idx puts on the wire: K when it is 0..K-1, else the list of indices."""
-    k = a.shape[0]
-    if k <= MAX_K and _ARANGE_BYTES.startswith(a.tobytes()):
-        return k
+    if a.shape[0] <= MAX_K and _is_range(a):
+        return a.shape[0]
     return a.tolist()
 
 
