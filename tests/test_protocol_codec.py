@@ -382,3 +382,15 @@ def test_hand_built_array_from_the_docs_decodes():
     assert struct.pack("<2f", 1.0, -2.0) == bytes.fromhex("0000803f000000c0")
     assert msgpack.unpackb(codec.encode(msg)) == wire
     assert codec.encode(msg).hex() == "980104 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
+
+
+def test_the_wire_path_imports_no_pydantic():
+    """The codec, the messages and their field types load without pydantic (the edge agent's memory,
+    issue 31): a typed msgspec Struct per message instead of a pydantic model."""
+    import subprocess
+    import sys
+
+    code = ("import sys, hammer.protocol.codec, hammer.protocol.binding, hammer.protocol.samples; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pydantic', 'pydantic_core')))")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.strip() == "[]", out
