@@ -405,10 +405,32 @@ def check_actions(action: np.ndarray, dims: Dims) -> None:
         expect("action", "action vector length", action.shape[1], dims.action_dim)
 
 
-def _finite_values(values: dict, field: str) -> None:
+_PLAIN = frozenset({int, float, bool, str, type(None)})
+
+
+def _scalars(values: Any, field: str) -> dict:
+    """A map of wire scalars, checked: finite floats; numpy scalars (a counter summed with numpy)
+    become Python ones, which is what msgpack carries. Anything else is refused at the sender."""
+    if type(values) is not dict:
+        raise FieldError(f"must be a map, got {type(values).__name__}", field)
+    out = values
     for name, x in values.items():
+        t = type(x)
+        if t not in _PLAIN:
+            if isinstance(x, bool | np.bool_):
+                x = bool(x)
+            elif isinstance(x, int | np.integer):
+                x = int(x)
+            elif isinstance(x, float | np.floating):
+                x = float(x)
+            else:
+                raise FieldError(f"{t.__name__} is not a wire scalar", f"{field}.{name}")
+            if out is values:
+                out = dict(values)
+            out[name] = x
         if type(x) is float and not np.isfinite(x):
             raise NonFiniteError("holds NaN or inf", f"{field}.{name}")
+    return out
 
 
 class ExperienceChunk(Message, tag=5, kw_only=True):
@@ -442,7 +464,7 @@ class ExperienceChunk(Message, tag=5, kw_only=True):
         if type(self.arrays) is not dict or len(self.arrays) > 64:
             raise FieldError("must be a map of at most 64 named arrays", "arrays")
         self.arrays = {name: ANY_ARRAY.take(a, f"arrays.{name}") for name, a in self.arrays.items()}
-        _finite_values(self.meta, "meta")
+        self.meta = _scalars(self.meta, "meta")
 
     def _check_dims(self, dims: Dims) -> None:
         layout = dims.rollout_layout()
@@ -489,7 +511,7 @@ class Control(Message, tag=7, kw_only=True):
 
     def __post_init__(self) -> None:
         self.env_idx = _env_idx(self.env_idx)
-        _finite_values(self.args, "args")
+        self.args = _scalars(self.args, "args")
 
 
 HeartbeatStatus = Literal["starting", "ready", "running", "paused", "stopping", "stopped", "error"]
@@ -513,8 +535,8 @@ class Heartbeat(Message, tag=8, kw_only=True):
 
     def __post_init__(self) -> None:
         self.env_idx = _env_idx(self.env_idx)
-        _finite_values(self.counters, "counters")
-        _finite_values(self.gauges, "gauges")
+        self.counters = _scalars(self.counters, "counters")
+        self.gauges = _scalars(self.gauges, "gauges")
 
 
 class Uplink(Message, tag=9, kw_only=True):

@@ -177,6 +177,8 @@ def mutated(draw, base: bytes) -> bytes:
             return base[:i]
         return base[:i] + draw(st.binary(min_size=1, max_size=8)) + base[i:]
     d = msgpack.unpackb(base, raw=False)  # [type tag, v, step, env_idx, sender, fields...]
+    if kind == "array" and not _array_paths(d):
+        kind = "field"  # a message without arrays (weights, control, heartbeat): replace a field instead
     if kind == "field":
         d[draw(st.integers(0, len(d) - 1))] = draw(_values)
     elif kind == "drop":

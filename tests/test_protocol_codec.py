@@ -394,3 +394,19 @@ def test_the_wire_path_imports_no_pydantic():
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pydantic', 'pydantic_core')))")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip() == "[]", out
+
+
+def test_numpy_scalars_in_maps_go_as_python_ones():
+    """A heartbeat's counters, a chunk's meta or a control's args may be summed with numpy: they
+    travel as msgpack ints and floats; what is no scalar at all is refused at the sender."""
+    from hammer.protocol.schemas import Heartbeat
+
+    hb = Heartbeat(role="env", pid=1, status="running", counters={"steps": np.int64(3), "busy_s": np.float64(0.5)},
+                   gauges={"policy_version": np.int32(-1), "ok": np.float32(2.5)})
+    back = codec.decode(codec.encode(hb), Heartbeat)
+    assert back.counters == {"steps": 3, "busy_s": 0.5} and back.gauges == {"policy_version": -1, "ok": 2.5}
+    assert type(back.counters["steps"]) is int and type(back.gauges["ok"]) is float
+    with pytest.raises(FieldError, match="counters.x"):
+        Heartbeat(role="env", pid=1, status="running", counters={"x": np.zeros(2)})
+    with pytest.raises(NonFiniteError, match="gauges.x"):
+        Heartbeat(role="env", pid=1, status="running", gauges={"x": np.float64("nan")})
