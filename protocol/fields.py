@@ -116,8 +116,14 @@ def array_from_wire(v: Any, field: str | None, allowed: frozenset[str] | None = 
     return np.frombuffer(data, dtype).reshape(shape).astype(_NATIVE[name], copy=True)
 
 
+try:  # the C function behind np.count_nonzero, without its Python dispatch (numpy >= 2): half the time of .all()
+    from numpy._core.multiarray import count_nonzero
+except ImportError:  # pragma: no cover - numpy 1.x
+    count_nonzero = np.count_nonzero
+
+
 def _finite(a: np.ndarray) -> bool:
-    return bool(np.isfinite(a).all())
+    return count_nonzero(np.isfinite(a)) == a.size
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ from hammer.protocol.fields import (
     NAME_RE,
     ArraySpec,
     MiB,
+    count_nonzero,
     empty_idx,
 )
 from hammer.protocol.rollout_layout import RolloutLayout
@@ -300,7 +301,7 @@ class GlobalState(Message, tag=2, kw_only=True):
 
 
 def _in_unit_range(m: np.ndarray) -> bool:
-    return not m.size or (float(m.min()) >= -1.0 and float(m.max()) <= 1.0)
+    return count_nonzero(np.abs(m) <= 1.0) == m.size  # NaN is refused before: finiteness
 
 
 class CentralMsg(Message, tag=3, kw_only=True):
