@@ -68,8 +68,8 @@ def test_bench_codec_cold_mode_runs(tmp_path):
 
 
 def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
-    """The baseline of the compact wire: per link, the encoded messages of one step add up, and the
-    minimum is the numbers alone (cn3 own-observation: 57 B an agent link, 171 B the central, at K=1)."""
+    """The compact wire: per link, the encoded messages of one step add up, and the minimum is the
+    numbers alone (cn3 own-observation: 57 B an agent link, 171 B the central, at K=1)."""
     out = tmp_path / "wire.json"
     r = CliRunner().invoke(app, ["bench", "wire", "--num-envs", "1,32", "--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -82,6 +82,11 @@ def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
         assert row["action"] > row["action_without_echoed_msg"]  # the echo is counted, and visible
         assert row["agent_link"] > row["agent_link_min"]
     assert rows[1]["agent_link_ratio"] > rows[32]["agent_link_ratio"]  # headers weigh most on one copy
+    # Issue 31: at one env copy a serving agent's link and the central link carry at most twice the
+    # numbers themselves (training adds the echoed message the rollout records).
+    assert rows[1]["agent_link_eval"] <= 2 * rows[1]["agent_link_min"], rows[1]
+    assert rows[1]["central_link"] <= 2 * rows[1]["central_link_min"], rows[1]
+    assert rows[32]["agent_link"] <= 1.5 * rows[32]["agent_link_min"], rows[32]
 
 
 def test_bench_peers_says_why_it_skips_without_jaxmarls_baselines(tmp_path):
