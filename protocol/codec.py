@@ -53,7 +53,7 @@ _NODEFAULT = object()
 _NIL_WHEN = {(LocalObs, "active"): True, (GlobalState, "active"): True, (Action, "fallback"): False}
 
 
-def _array(spec: ArraySpec, a: np.ndarray, half: bool) -> list:
+def _array(spec: ArraySpec, a: np.ndarray, half: bool, field: str) -> list:
     """The wire form of a field's array: ids as uint8 when they fit, float32 as float16 when the
     sender opted in (`half`) and the field accepts it."""
     if spec is ACTION and a.dtype == np.int64 and a.size and 0 <= a.min() and a.max() < 256:
@@ -62,7 +62,7 @@ def _array(spec: ArraySpec, a: np.ndarray, half: bool) -> list:
         with np.errstate(over="ignore"):
             h = a.astype("<f2")
         if a.size and not np.isfinite(h).all():
-            raise NonFiniteError("beyond float16's range (65504): send it as float32", None)
+            raise NonFiniteError("beyond float16's range (65504): send it as float32", field)
         return [_F16, list(a.shape), h.tobytes()]
     return array_to_wire(a)
 
@@ -113,7 +113,7 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
             if nil is not None and v.size and (v.all() if nil else not v.any()):
                 out.append(None)
             else:
-                out.append(_array(spec, v, half))
+                out.append(_array(spec, v, half, name))
     plan = _PLANS[cls]
     while len(out) > 1:  # the trailing fields at their default stay off the wire
         default = plan[len(out) - 2][2]

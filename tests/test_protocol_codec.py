@@ -280,7 +280,7 @@ def test_float16_is_opt_in_and_read_as_float32():
     assert back.msg.dtype == np.float32 and np.array_equal(back.msg, msg.msg.astype(np.float16).astype(np.float32))
     assert codec.decode(codec.encode(msg)).msg.tobytes() == msg.msg.tobytes()  # float32 by default, exactly
     far = LocalObs(env_idx=np.arange(1), agent=0, obs=np.array([[1e5]], np.float32))
-    with pytest.raises(NonFiniteError):
+    with pytest.raises(NonFiniteError, match="obs"):
         codec.encode(far, half=True)
     ids = codec.encode(MSGS[3], half=True)  # actions are never halved; ids stay ids
     assert codec.decode(ids).action.dtype == np.int64
