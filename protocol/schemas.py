@@ -59,12 +59,12 @@ from msgspec import Meta
 SCHEMA_VERSION = 4
 
 # Scalar wire types (msgspec checks them while decoding).
-NonNegInt = Annotated[int, Meta(ge=0, le=(1 << 63) - 1)]
+NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
 Name = Annotated[str, Meta(pattern=NAME_RE.pattern)]
 ArrayName = Annotated[str, Meta(pattern=ARRAY_NAME_PATTERN)]
 Scalar = None | bool | int | float | Annotated[str, Meta(max_length=256)]
 MAX_K = (1 << 16) - 1  # env copies in one message (env_idx sent as the count K)
-_ENV_IDX_WIRE = Annotated[int, Meta(ge=0, le=MAX_K)] | list[NonNegInt]
+_ENV_IDX_WIRE = Annotated[int, Meta(ge=0, le=MAX_K)] | list[Annotated[int, Meta(ge=0, le=(1 << 63) - 1)]]
 _WIRE_ARRAY = tuple[int, list[int], bytes]
 
 # Array fields: what each holds (and narrower wire dtypes it accepts).
