@@ -8,7 +8,7 @@ is well formed and passes validation: only the roles' bounds (runtime/bounds.py)
 from __future__ import annotations
 
 import numpy as np
-from hammer.protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
+from hammer.protocol.schemas import Action, CentralMsg, Control, GlobalState, LocalObs, Weights
 from hammer.protocol.session import HammerSession, TransportConfig
 from msgspec.structs import replace
 
@@ -34,10 +34,12 @@ class StallPeer(PeerThread):
             k = s.keys
             state_in = s.subscribe(k.state(), GlobalState)
             obs_in = [s.subscribe(k.obs(i), LocalObs) for i in range(2)]
-            state = obs0 = obs1 = None
-            while not self.stop_event.is_set() and (state is None or obs0 is None or obs1 is None):
+            msg_in = s.subscribe(k.msg(0), CentralMsg)  # its width: a training action echoes its message
+            state = obs0 = obs1 = msg0 = None
+            while not self.stop_event.is_set() and (state is None or obs0 is None or obs1 is None or msg0 is None):
                 state = state or state_in.get(timeout=0.1)
                 obs0, obs1 = obs0 or obs_in[0].get(timeout=0.05), obs1 or obs_in[1].get(timeout=0.05)
+                msg0 = msg0 or msg_in.get(timeout=0.05)
             if self.stop_event.is_set():
                 return
             now = max(state.step, obs0.step)
@@ -56,7 +58,8 @@ class StallPeer(PeerThread):
             env_idx = np.arange(len(obs0.env_idx), dtype=np.int64)
             for step in (now + 1000, HUGE_VERSION):  # never current in a run this short
                 self._send("future_action", lambda m: s.publish(k.act(0), m),
-                           Action(agent=0, step=step, env_idx=env_idx, action=np.zeros(len(env_idx), np.int64)))
+                           Action(agent=0, step=step, env_idx=env_idx, action=np.zeros(len(env_idx), np.int64),
+                                  msg=np.zeros((len(env_idx), msg0.msg.shape[1]), np.float32)))
             s.put_bytes(k.obs(2), b"\0" * (50 * 2**20))  # 50 MB where a LocalObs (cap 4 MiB) is expected
             self.sent["oversize"] = 1
             self.stop_event.wait(3.0)  # stay joined while the big payload is delivered
