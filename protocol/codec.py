@@ -21,7 +21,7 @@ from typing import Any
 
 import msgspec
 import numpy as np
-from hammer.protocol.dims import Dims
+from hammer.protocol.dims import Dims, min_max
 from hammer.protocol.errors import (
     DecodeError,
     FieldError,
@@ -31,7 +31,7 @@ from hammer.protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from hammer.protocol.fields import DTYPE_CODES, ArraySpec, array_to_wire
+from hammer.protocol.fields import DTYPE_CODES, ArraySpec, array_to_wire, count_nonzero
 from hammer.protocol.schemas import (
     ACTION,
     MESSAGE_TYPES,
@@ -56,8 +56,10 @@ _NIL_WHEN = {(LocalObs, "active"): True, (GlobalState, "active"): True, (Action,
 def _array(spec: ArraySpec, a: np.ndarray, half: bool, field: str) -> list:
     """The wire form of a field's array: ids as uint8 when they fit, float32 as float16 when the
     sender opted in (`half`) and the field accepts it."""
-    if spec is ACTION and a.dtype == np.int64 and a.size and 0 <= a.min() and a.max() < 256:
-        return [_U8, list(a.shape), a.astype(np.uint8).tobytes()]
+    if spec is ACTION and a.dtype == np.int64 and a.size:
+        lo, hi = min_max(a)  # a list's min and max below 1,024 ids: no numpy reduction machinery
+        if lo >= 0 and hi < 256:
+            return [_U8, list(a.shape), a.astype(np.uint8).tobytes()]
     if half and a.dtype == _F32 and ("float16", "float32") in spec.wire:
         with np.errstate(over="ignore"):
             h = a.astype("<f2")
@@ -110,7 +112,7 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
             out.append(None)
         else:
             _, spec, nil = conv
-            if nil is not None and v.size and (v.all() if nil else not v.any()):
+            if nil is not None and v.size and count_nonzero(v) == (v.size if nil else 0):
                 out.append(None)
             else:
                 out.append(_array(spec, v, half, name))
