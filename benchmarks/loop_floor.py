@@ -61,7 +61,7 @@ def _raw_step(data: bytes) -> int:
 def _sizes(k: int, n: int, d: int, m: int) -> tuple[dict, dict]:
     """(constructor kwargs, encoded size) per message kind of one vector step."""
     kw, size = {}, {}
-    stamp = {"run": "floor", "ts": time.time_ns(), "seq": 1, "sender": "floor"}
+    stamp = {"sender": "floor"}
     for label, cls, kwargs, _dims in loop_messages(k, n, d, m):
         if label in ("global_state", "local_obs", "central_msg", "action"):
             kw[label] = kwargs

@@ -154,15 +154,18 @@ def _wait_for(what: str, ok, timeout_s: float, procs: list[subprocess.Popen]) ->
 def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0, tag: str | None = None,
                timeout_s: float = 240, *, edge_python: Path | None = None, push: Path | None = None,
                central_ns: bool = True, baseline_steps_per_s: float | None = None,
-               runtime: tuple[str, ...] = ()) -> dict:
+               runtime: tuple[str, ...] = (), num_envs: int | None = None) -> dict:
     """One served run across namespaces; returns its figures (raises NetnsUnavailable where it cannot).
     edge_python: the local agents' interpreter (a torch-free venv); push: a bundle to push mid-run and
-    roll back; baseline_steps_per_s: the unlimited run's rate, for `keeps_up`."""
+    roll back; baseline_steps_per_s: the unlimited run's rate, for `keeps_up`; num_envs: serve K env
+    copies instead of the bundle's."""
     from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle)
     cfg, ep_len = b.config(), int(b.env_spec_data.get("max_steps") or 25)
     n, central = cfg.n_agents, central_ns and cfg.wiring.uses_central
+    k = num_envs or cfg.num_envs
+    k_args = [] if num_envs is None else ["--num-envs", str(num_envs)]
     tag = tag or str(os.getpid() % 100000)
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
@@ -181,15 +184,15 @@ def served_run(bundle: Path, work: Path, episodes: int = 16, rate_kbit: int = 0,
             external = ",".join([*map(str, range(n)), *(["central"] if central else [])])
             # Plain across namespaces on purpose (the bench measures the plain wire); --insecure says so.
             rt = [f"zenoh_config_file={inside}", "insecure=true", *(["trace=true"] if push else []), *runtime]
-            serve = procs.start(top.hub, [*py, "serve", str(bundle), "--episodes", str(episodes), "--external",
+            serve = procs.start(top.hub, [*py, "serve", str(bundle), *k_args, "--episodes", str(episodes), "--external",
                                           external, *(x for r in rt for x in ("--runtime", r)), "--run-dir", str(run),
                                           "--no-dashboard"], f"serve-{rate_kbit}.log")
-            edges = [procs.start(ns, [*edge_py, "local", "--bundle", str(bundle), "--agent", str(i), "--run-id",
+            edges = [procs.start(ns, [*edge_py, "local", "--bundle", str(bundle), *k_args, "--agent", str(i), "--run-id",
                                       run.name, "--insecure", "--zenoh-config",
                                       str(client_config(work / f"edge{i}.json5", f"tcp/{top.links[f'local-{i}'][1]}:{PORT}"))],
                                  f"local-{i}-{rate_kbit}.log", env=_edge_env(edge_python))
                      for i, ns in enumerate(top.agents)]
-            quarter = str(max(-(-episodes // cfg.num_envs) * ep_len // 4, 1))
+            quarter = str(max(-(-episodes // k) * ep_len // 4, 1))
             others = _start_central_and_driver(procs, top, run, py, push and [str(push), "--push-at", quarter,
                                                                              "--rollback-after", quarter],
                                                rate_kbit, inside, serve)
@@ -284,6 +287,7 @@ def main() -> None:
     ap.add_argument("--push", type=Path, help="a bundle to push mid-run, then roll back (through the CLI)")
     ap.add_argument("--runtime", action="append", default=[], help="RuntimeSettings FIELD=VALUE for the served run")
     ap.add_argument("--timeout", type=float, default=600)
+    ap.add_argument("--num-envs", type=int, help="serve K env copies (default: the bundle's)")
     a = ap.parse_args()
     import signal
 
@@ -292,7 +296,8 @@ def main() -> None:
     for rate in [int(x) for x in a.rates.split(",")]:
         try:
             r = served_run(a.bundle, a.work, a.episodes, rate, edge_python=a.edge_venv, push=a.push,
-                           baseline_steps_per_s=baseline, runtime=tuple(a.runtime), timeout_s=a.timeout)
+                           baseline_steps_per_s=baseline, runtime=tuple(a.runtime), timeout_s=a.timeout,
+                           num_envs=a.num_envs)
         except NetnsUnavailable as e:
             sys.exit(f"error: network namespaces unavailable here: {e}")
         if rate == 0 and r["completed"]:

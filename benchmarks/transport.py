@@ -1,7 +1,7 @@
 """`hammer bench transport` and `hammer bench codec`.
 
 `hammer bench codec`: build / encode / decode+validate time per message of the control loop
-(K=32 env copies, cn N=3 and N=5 sizes), fast path vs the pydantic reference in the same run.
+(K=32 env copies, cn N=3 and N=5 sizes), and a bare msgpack.unpackb of the same bytes.
 
 `hammer bench transport`: what the typed protocol costs over raw Zenoh bytes of the same size.
 
@@ -130,9 +130,9 @@ class BenchRow:
 
 
 def _codec_us(msg: Message) -> tuple[float, float]:
-    stamped = encode(msg, stamp={"run": "bench"})
+    stamped = encode(msg, stamp={"sender": "bench"})
     n = 2000
-    enc = min(timeit.repeat(lambda: encode(msg, stamp={"run": "bench"}), number=n, repeat=3)) / n * 1e6
+    enc = min(timeit.repeat(lambda: encode(msg, stamp={"sender": "bench"}), number=n, repeat=3)) / n * 1e6
     dec = min(timeit.repeat(lambda: decode(stamped, type(msg)), number=n, repeat=3)) / n * 1e6
     return enc, dec
 
@@ -159,7 +159,7 @@ def run_bench(rounds: int = 1000, flood: int = 5000, timeout: float = 60.0) -> l
             ping, rawping = s.publisher(k.bench("ping")), s.publisher(k.bench("rawping"))
             flood_pub, rawflood_pub = s.publisher(k.bench("flood")), s.publisher(k.bench("rawflood"))
             for name, msg in payloads():
-                size = len(encode(msg, stamp={"run": run_id, "ts": time.time_ns(), "sender": "bench"}))
+                size = len(encode(msg, stamp={"sender": "bench"}))
                 raw = os.urandom(size)
                 enc_us, dec_us = _codec_us(msg)
 
@@ -237,28 +237,20 @@ def rows_as_dicts(rows: list[BenchRow]) -> list[dict]:
 
 @dataclass
 class CodecRow:
-    """Microseconds per message; *_ref = pydantic reference path, *_fast = fast path."""
+    """Microseconds per message: build (validate), encode, decode (validate, + declared dims); and
+    `unpackb_us`, a bare untyped `msgpack.unpackb` of the same bytes (no checks at all), the floor
+    a typed decode is measured against."""
 
     payload: str
     bytes: int
-    build_ref_us: float
-    build_fast_us: float
-    encode_ref_us: float
-    encode_fast_us: float
-    decode_ref_us: float
-    decode_fast_us: float
+    build_us: float
+    encode_us: float
+    decode_us: float
+    unpackb_us: float
 
     @property
-    def total_ref_us(self) -> float:
-        return self.build_ref_us + self.encode_ref_us + self.decode_ref_us
-
-    @property
-    def total_fast_us(self) -> float:
-        return self.build_fast_us + self.encode_fast_us + self.decode_fast_us
-
-    @property
-    def speedup(self) -> float:
-        return self.total_ref_us / self.total_fast_us
+    def total_us(self) -> float:
+        return self.build_us + self.encode_us + self.decode_us
 
 
 def loop_messages(k: int = 32, n: int = 3, d: int = 18, m: int = 4, a: int = 5,
@@ -309,56 +301,49 @@ def _cold_us(fns: dict[str, object], calls: int) -> dict[str, float]:
 
 def codec_bench(k: int = 32, sizes: tuple[tuple[int, int, int], ...] = ((3, 18, 4), (5, 30, 8)),
                 number: int = 500, repeat: int = 7, cold: bool = False) -> list[CodecRow]:
-    """Fast path vs pydantic reference, per message of the control loop, for each (N, D, M).
-    Hot (default): best of `repeat` loops of `number` calls. cold: median CPU time of `number`
-    single calls, each after evicting the caches (what a woken-up role pays; several times more)."""
-    stamp = {"run": "bench", "ts": time.time_ns(), "seq": 1, "sender": "bench"}
+    """Build, encode and decode of each message of the control loop, for each (N, D, M), and a bare
+    msgpack.unpackb of the same bytes. Hot (default): best of `repeat` loops of `number` calls.
+    cold: median CPU time of `number` single calls, each after evicting the caches (what a woken-up
+    role pays; several times more)."""
+    import msgpack
+
+    stamp = {"sender": "bench"}
     rows = []
     for n, d, m in sizes:
         for label, cls, kw, dims in loop_messages(k, n, d, m):
             msg = cls(**kw)
             data = encode(msg, stamp=stamp)
-            if encode(msg, stamp=stamp, fast=False) != data:
-                raise RuntimeError(f"{label}: fast and reference encodings differ")
             fns = {
-                "build_ref": lambda cls=cls, kw=kw: cls.model_validate(kw),
-                "build_fast": lambda cls=cls, kw=kw: cls(**kw),
-                "encode_ref": lambda msg=msg: encode(msg, stamp=stamp, fast=False),
-                "encode_fast": lambda msg=msg: encode(msg, stamp=stamp),
-                "decode_ref": lambda c=cls, b=data, dm=dims: decode(b, c, dm, run="bench", fast=False),
-                "decode_fast": lambda c=cls, b=data, dm=dims: decode(b, c, dm, run="bench"),
+                "build": lambda cls=cls, kw=kw: cls(**kw),
+                "encode": lambda msg=msg: encode(msg, stamp=stamp),
+                "decode": lambda c=cls, b=data, dm=dims: decode(b, c, dm),
+                "unpackb": lambda b=data: msgpack.unpackb(b),
             }
             t = _cold_us(fns, number) if cold else _best_us(fns, number, repeat)
-            rows.append(CodecRow(f"{label} K={k} N={n} D={d} M={m}", len(data), t["build_ref"], t["build_fast"],
-                                 t["encode_ref"], t["encode_fast"], t["decode_ref"], t["decode_fast"]))
+            rows.append(CodecRow(f"{label} K={k} N={n} D={d} M={m}", len(data), t["build"], t["encode"],
+                                 t["decode"], t["unpackb"]))
     return rows
 
 
 def codec_rows_as_dicts(rows: list[CodecRow]) -> list[dict]:
-    return [dict(asdict(r), total_ref_us=r.total_ref_us, total_fast_us=r.total_fast_us, speedup=r.speedup)
-            for r in rows]
+    return [dict(asdict(r), total_us=r.total_us) for r in rows]
 
 
-def role_costs(rows: list[CodecRow], k: int, n: int) -> dict[str, tuple[float, float]]:
-    """Codec microseconds per vector step and role, (reference, fast), from the rows of one N:
-    env host builds+encodes the state, N local obs and decodes N actions;
-    the central agent decodes the state and builds+encodes N messages; a local agent decodes its
-    obs and message and builds+encodes its action."""
+def role_costs(rows: list[CodecRow], k: int, n: int) -> dict[str, float]:
+    """Codec microseconds per vector step and role from the rows of one N: the env host builds and
+    encodes the state and N local obs and decodes N actions; the central agent decodes the state and
+    builds and encodes N messages; a local agent decodes its obs and message and builds and encodes
+    its action."""
     by = {r.payload.split(f" K={k} ")[0]: r for r in rows if f" K={k} N={n} " in r.payload}
 
-    def send(name: str, ref: bool) -> float:
-        r = by[name]
-        return r.build_ref_us + r.encode_ref_us if ref else r.build_fast_us + r.encode_fast_us
+    def send(name: str) -> float:
+        return by[name].build_us + by[name].encode_us
 
-    def recv(name: str, ref: bool) -> float:
-        return by[name].decode_ref_us if ref else by[name].decode_fast_us
+    def recv(name: str) -> float:
+        return by[name].decode_us
 
-    def roles(ref: bool) -> dict[str, float]:
-        return {
-            "env host": send("global_state", ref) + n * send("local_obs", ref) + n * recv("action", ref),
-            "central agent": recv("global_state", ref) + n * send("central_msg", ref),
-            "local agent": recv("local_obs", ref) + recv("central_msg", ref) + send("action", ref),
-        }
-
-    ref, fast = roles(True), roles(False)
-    return {role: (ref[role], fast[role]) for role in ref}
+    return {
+        "env host": send("global_state") + n * send("local_obs") + n * recv("action"),
+        "central agent": recv("global_state") + n * send("central_msg"),
+        "local agent": recv("local_obs") + recv("central_msg") + send("action"),
+    }

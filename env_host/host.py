@@ -60,7 +60,7 @@ class EnvHost(Role):
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
                  act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
                  max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None,
-                 trace_max_mb: float = 512.0) -> None:
+                 trace_max_mb: float = 512.0, echo: bool = True) -> None:
         if (resume_from is None) != (resume_step is None):
             raise ValueError("resume_from and resume_step go together")
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
@@ -78,7 +78,7 @@ class EnvHost(Role):
             *(column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults"))]))
         keys, msg_dim = session.keys, self.wiring.msg_dim
         dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
-                    msg_dim=msg_dim or None)
+                    msg_dim=msg_dim or None, echo=echo)  # echo: each action carries its message (training, trace)
         self.collector = ActionCollector(session.subscribe(keys.act("*"), Action, dims), self.spec, self.k,
                                          msg_dim, act_deadline_s, self.step_log, reject=self.reject)
         self.links = self.collector.counters

@@ -156,8 +156,9 @@ class AgentSteps:
     `window`, `msg_window`, `step_log`, `action_pub`, `reject` and `progressed`."""
 
     def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
-                   start_step: int | None = None) -> None:
+                   start_step: int | None = None, echo: bool = True) -> None:
         self.spec = spec
+        self.echo = echo  # send back the message acted on (RuntimeSettings.echo: training, or a trace)
         self.agent = LocalAgent(spec)
         self.counts = LocalCounters()
         self.fallback = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
@@ -211,7 +212,8 @@ class AgentSteps:
         """Send this step's action (with the message it used) and count the step; `pub`: another
         publisher of the same key (a pool's non-express one, inside a burst)."""
         (pub or self.action_pub).publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
-                                       policy_version=max(self.agent.version, 0), fallback=fallback_mask, msg=msg))
+                                       policy_version=max(self.agent.version, 0), fallback=fallback_mask,
+                                       msg=msg if self.echo else None))
         self.last_step = obs.step
         self.counts.steps += 1
         self.step_log.add(obs.step, OBS_EVENTS["delivered"])
@@ -269,11 +271,11 @@ class LocalAgentClient(AgentSteps, Role):
                  msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
                  max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None) -> None:
+                 start_version: int | None = None, echo: bool = True) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, step_log_columns())
         super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
-        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step)
+        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step, echo)
         self.msg_deadline_s = msg_deadline_s
         self.stall_what = "observations"
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,

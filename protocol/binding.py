@@ -7,7 +7,8 @@ publishing on `agent/act/1` an action whose `agent` is 0, or a heartbeat on `ctl
 `role` is `env`. `check_key` is applied by every typed subscription to every message it delivers
 (protocol/session.py), so no receiver can forget it; a mismatch is a `KeyMismatchError`, counted
 under `rejected.key_mismatch` like any other bad message. A publisher stamps the sender its key
-implies (`sender_of`), so code never has to repeat what the key says.
+implies (`sender_of`) as an empty sender, which `check_key` fills in from the key: code never
+has to repeat what the key says, and the wire does not carry it.
 
 What each key says (keys under `hammer/<run>/`; `<pool>` is an agent pool `locals-<a>-<b>` or
 `locals-<i>_<j>_...` that serves the agent):
@@ -113,6 +114,8 @@ def check_key(msg, rel: str) -> None:
         raise _mismatch("agent", msg.agent, rel)
     if rule.role is not None and msg.role != rule.role:
         raise _mismatch("role", msg.role, rel)
-    if rule.sender is not None and msg.sender != rule.sender and not (
+    if rule.sender is not None and not msg.sender:
+        msg.sender = rule.sender  # sent empty: the sender its key implies (protocol.session stamps it so)
+    elif rule.sender is not None and msg.sender != rule.sender and not (
             rule.agent_pool is not None and rule.agent_pool in pool_agents(msg.sender)):
         raise _mismatch("sender", msg.sender, rel)

@@ -1,139 +1,153 @@
-"""The msgpack wire codec: message model <-> bytes, validating everything on the way in.
+"""The msgpack wire codec: message <-> bytes, validating everything on the way in.
 
-Layout (see docs/wire-format.md): one msgpack map per message, string keys = the model's field
-names, arrays as plain maps {"dtype", "shape", "data"}. No ext types and no pickle, so any
-msgpack library in any language can read and write it.
+Layout (docs/wire-format.md): one msgpack array per message, `[type tag, v, step, env_idx,
+sender, <the type's fields in order>]`, optional fields at their default left off the end;
+arrays as `[dtype code, shape, data]`. No ext types and no pickle, so any msgpack library in any
+language can read and write it.
 
 `decode` is the trust boundary: it never returns a message that failed a check, and every
 failure is a `ProtocolError` subclass naming the field, so a subscriber can count and skip it.
-The hot message types are validated by the hand-written fast path of `protocol.schemas` first;
-whatever it declines is validated by the pydantic models, which also produce every error.
+The version and the type tag are read first (the receiver's expected types, the type's size cap),
+then msgspec decodes the payload into the tag's Struct, checking every field's wire type, and the
+Struct's `__post_init__` checks its arrays (protocol/schemas.py). msgspec reports an error of its
+own as a `ValidationError` whose text ends with the path (`$[3]`: the third field after the tag);
+an error raised in `__post_init__` comes as its `__cause__`: both become the right ProtocolError.
 """
 
 from __future__ import annotations
 
-import threading
+import re
 from typing import Any
 
-import msgpack
+import msgspec
 import numpy as np
-from hammer.protocol.dims import Dims
+from hammer.protocol.dims import Dims, min_max
 from hammer.protocol.errors import (
-    REASON_TO_ERROR,
     DecodeError,
     FieldError,
     NonFiniteError,
     ProtocolError,
-    RunMismatchError,
     SizeError,
     TypeTagError,
     VersionError,
 )
-from hammer.protocol.fast_path import fast_from_wire
-from hammer.protocol.fields import NAME_OF, array_to_wire
-from hammer.protocol.schemas import MESSAGE_TYPES, SCHEMA_VERSION, Message
-from pydantic import BaseModel, ValidationError
+from hammer.protocol.fields import DTYPE_CODES, ArraySpec, array_to_wire, count_nonzero
+from hammer.protocol.schemas import (
+    ACTION,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    TAGS,
+    Action,
+    GlobalState,
+    LocalObs,
+    Message,
+    env_idx_to_wire,
+    fields_of,
+)
 
 Expected = type[Message] | tuple[type[Message], ...] | None
 
-
-_PLAIN = frozenset({int, str, bool, float, bytes, type(None)})
-
-
-def _to_wire(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return array_to_wire(value)
-    if isinstance(value, BaseModel):
-        return {name: _to_wire(getattr(value, name)) for name in _field_names(type(value))}
-    if isinstance(value, dict):
-        return {k: _to_wire(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_to_wire(v) for v in value]
-    return value
+_F32, _F16, _U8 = np.dtype("<f4"), DTYPE_CODES["float16"], DTYPE_CODES["uint8"]
+_NODEFAULT = object()
+# Optional bool arrays whose usual value is sent as nil: every agent active, no fallback.
+_NIL_WHEN = {(LocalObs, "active"): True, (GlobalState, "active"): True, (Action, "fallback"): False}
 
 
-_FIELDS: dict[type, tuple[str, ...]] = {}
+def _array(spec: ArraySpec, a: np.ndarray, half: bool, field: str) -> list:
+    """The wire form of a field's array: ids as uint8 when they fit, float32 as float16 when the
+    sender opted in (`half`) and the field accepts it."""
+    if spec is ACTION and a.dtype == np.int64 and a.size:
+        lo, hi = min_max(a)  # a list's min and max below 1,024 ids: no numpy reduction machinery
+        if lo >= 0 and hi < 256:
+            return [_U8, list(a.shape), a.astype(np.uint8).tobytes()]
+    if half and a.dtype == _F32 and ("float16", "float32") in spec.wire:
+        with np.errstate(over="ignore"):
+            h = a.astype("<f2")
+        if a.size and not np.isfinite(h).all():
+            raise NonFiniteError("beyond float16's range (65504): send it as float32", field)
+        return [_F16, list(a.shape), h.tobytes()]
+    return array_to_wire(a)
 
 
-def _field_names(cls: type[BaseModel]) -> tuple[str, ...]:
-    names = _FIELDS.get(cls)
-    if names is None:
-        names = _FIELDS[cls] = tuple(cls.model_fields)
-    return names
+def _plan(cls: type[Message]) -> list[tuple[str, Any, Any]]:
+    """(field, how its value goes on the wire, its wire default) for each field of `cls`, in order."""
+    plan = []
+    for f in msgspec.structs.fields(cls):
+        name = f.encode_name
+        if f.default is not msgspec.NODEFAULT:
+            default = f.default
+        elif f.default_factory is not msgspec.NODEFAULT:
+            default = f.default_factory()
+        else:
+            default = _NODEFAULT
+        if name == "env_idx":
+            conv, default = "env_idx", _NODEFAULT
+        elif name in cls.ARRAYS:
+            conv = ("array", cls.ARRAYS[name], _NIL_WHEN.get((cls, name)))
+        elif name == "arrays":
+            conv = "arrays"
+        else:
+            conv = None
+        plan.append((name, conv, default))
+    return plan
 
 
-def _wire_value(v: Any) -> Any:
-    """`_to_wire` with the common cases inlined (equal output, tested)."""
-    t = type(v)
-    if t in _PLAIN:
-        return v
-    if t is np.ndarray and (dtype := NAME_OF.get(v.dtype)) is not None:
-        # A whitelisted little-endian dtype: array_to_wire without its checks and lookups.
-        return {"dtype": dtype, "shape": list(v.shape), "data": v.tobytes()}
-    if t is list:
-        return [_wire_value(x) for x in v]
-    if isinstance(v, BaseModel):
-        values = v.__dict__
-        return {n: x if type(x := values[n]) in _PLAIN else _wire_value(x) for n in _field_names(t)}
-    return _to_wire(v)
+_PLANS = {cls: _plan(cls) for cls in MESSAGE_TYPES.values()}
 
 
-def to_wire_dict(msg: Message, stamp: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The msgpack-ready map of a message; `stamp` overrides header fields (run, ts, seq, sender)."""
-    values = msg.__dict__
-    d = {}
-    for name in _field_names(type(msg)):
-        v = values[name]
-        d[name] = v if type(v) in _PLAIN else _wire_value(v)
-    if stamp:
-        d.update(stamp)
-    return d
+def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = False) -> list:
+    """The msgpack-ready array of a message: its type tag, then every field's wire value, without the
+    optional ones at their default at the end. `stamp` overrides header fields (the sender)."""
+    cls = type(msg)
+    out: list[Any] = [cls.TAG]
+    for name, conv, _ in _PLANS[cls]:
+        v = getattr(msg, name) if not stamp or name not in stamp else stamp[name]
+        if conv is None:
+            out.append(v)
+        elif conv == "env_idx":
+            out.append(env_idx_to_wire(v))
+        elif conv == "arrays":
+            out.append({k: array_to_wire(a) for k, a in v.items()})
+        elif v is None:
+            out.append(None)
+        else:
+            _, spec, nil = conv
+            if nil is not None and v.size and count_nonzero(v) == (v.size if nil else 0):
+                out.append(None)
+            else:
+                out.append(_array(spec, v, half, name))
+    plan = _PLANS[cls]
+    while len(out) > 1:  # the trailing fields at their default stay off the wire
+        default = plan[len(out) - 2][2]
+        if default is _NODEFAULT or type(out[-1]) is not type(default) or out[-1] != default:
+            break
+        out.pop()
+    return out
 
 
-def to_wire_dict_reference(msg: Message, stamp: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The generic walk `to_wire_dict` must equal (kept for tests and `hammer bench codec`)."""
-    d = {}
-    for name in _field_names(type(msg)):
-        v = getattr(msg, name)
-        d[name] = v if type(v) in _PLAIN else _to_wire(v)
-    if stamp:
-        d.update(stamp)
-    return d
-
-
-_packers = threading.local()
-
-
-def _packb(obj: Any) -> bytes:
-    """msgpack.packb with one reused Packer per thread (a Packer is not thread-safe)."""
-    packer = getattr(_packers, "packer", None)
-    if packer is None:
-        packer = _packers.packer = msgpack.Packer(use_bin_type=True)
-    try:
-        return packer.pack(obj)
-    except BaseException:
-        _packers.packer = None  # never reuse a packer whose buffer an error may have left dirty
-        raise
+_encoder = msgspec.msgpack.Encoder()
 
 
 def encode(msg: Message, *, stamp: dict[str, Any] | None = None, max_bytes: int | None = None,
-           fast: bool = True) -> bytes:
+           half: bool = False) -> bytes:
     """Encode a validated message. Raises SizeError if it exceeds its type's cap (fail at the sender).
-    fast=False: the generic walk and a fresh packer (the reference, for tests and the bench)."""
+    stamp: header fields to set on the wire (the session stamps `sender`); half: float32
+    observations and messages as float16 (opt-in: half the bytes, 3 significant digits)."""
     if not isinstance(msg, Message):
         raise TypeTagError(f"can only encode protocol messages, got {type(msg).__name__}")
-    if fast:
-        data = _packb(to_wire_dict(msg, stamp))
-    else:
-        data = msgpack.packb(to_wire_dict_reference(msg, stamp), use_bin_type=True)
+    if stamp and not stamp.keys() <= _STAMPS:
+        raise TypeError(f"stamp sets only {sorted(_STAMPS)}, got {sorted(stamp)}")
+    data = _encoder.encode(to_wire(msg, stamp, half))
     cap = max_bytes if max_bytes is not None else type(msg).MAX_BYTES
     if len(data) > cap:
         raise SizeError(f"{type(msg).__name__} encodes to {len(data)} bytes, over the cap of {cap}")
     return data
 
 
+_STAMPS = frozenset({"sender", "step"})
 _ALL_TYPES = tuple(MESSAGE_TYPES.values())
 _ALL_CAP = max(t.MAX_BYTES for t in _ALL_TYPES)
+_DECODERS = {cls: msgspec.msgpack.Decoder(cls) for cls in _ALL_TYPES}
 
 
 def _expected_types(expected: Expected) -> tuple[type[Message], ...]:
@@ -144,29 +158,52 @@ def _expected_types(expected: Expected) -> tuple[type[Message], ...]:
     return tuple(expected)
 
 
-def _reject_ext(code: int, data: bytes) -> Any:
-    raise DecodeError(f"msgpack ext type {code} is not part of the wire format")
+_PATH = re.compile(r" - at `(?:key` in `)?\$\[(\d+)\]([^`]*)`$")
+_LENGTH = re.compile(r"Expected `array` of at (least|most) length \d+, got (\d+)$")
 
 
-def _from_validation_error(e: ValidationError) -> ProtocolError:
-    err = e.errors(include_url=False)[0]
-    ctx = err.get("ctx") or {}
-    loc = ".".join(str(p) for p in err["loc"])
-    field = ctx.get("field") or loc or None
-    if field and loc and loc != field and loc.startswith(field + "."):
-        field = loc  # keep the nested path, e.g. arrays.reward
-    kind = err["type"]
-    cls = REASON_TO_ERROR.get(kind)
-    if cls is None:
-        cls = NonFiniteError if kind == "finite_number" else FieldError
-    msg = ctx.get("msg") or err["msg"]
-    if cls is FieldError and kind not in ("field",):
-        got = err.get("input")
-        msg = f"{msg} (got {type(got).__name__})" if kind != "missing" else msg
-    more = e.error_count() - 1
-    if more:
-        msg += f" (+{more} more error{'s' if more > 1 else ''})"
-    return cls(msg, field)
+def _from_validation_error(e: msgspec.ValidationError, cls: type[Message]) -> ProtocolError:
+    """The ProtocolError of a msgspec ValidationError, naming the field."""
+    cause = e.__cause__
+    if isinstance(cause, ProtocolError):  # raised by a check in __post_init__
+        return cause
+    names = ("type", *fields_of(cls))
+    text = str(e)
+    if cause is not None:
+        return FieldError(str(cause), None)
+    if m := _PATH.search(text):
+        i = int(m[1])
+        field = names[i] if i < len(names) else None
+        if field in ("arrays", "meta", "counters", "gauges", "args") and "key" in text[m.start():]:
+            text = text[:m.start()] + " (a name)"
+        else:
+            text = text[:m.start()]
+        return FieldError(text, field)
+    if m := _LENGTH.search(text):
+        got = int(m[2])
+        if m[1] == "least":
+            return FieldError(f"missing (the message has {got - 1} of its fields)",
+                              names[got] if got < len(names) else None)
+        return FieldError(f"unknown: {got - len(names)} more fields than {cls.TYPE} has", None)
+    return FieldError(text, None)
+
+
+def _peek(data: bytes) -> tuple[Any, Any]:
+    """(type tag, v) of a payload: read from its first bytes when they are the usual small ints,
+    else from a generic decode (which also names a malformed payload)."""
+    b0 = data[0] if data else -1
+    i = 1 if 0x90 <= b0 <= 0x9F else 3 if b0 == 0xDC else 0
+    if i and len(data) > i + 1 and data[i] < 0x80 and data[i + 1] < 0x80:
+        return data[i], data[i + 1]
+    try:
+        obj = msgspec.msgpack.decode(data)
+    except Exception as e:  # noqa: BLE001 - msgspec.DecodeError, RecursionError, ...
+        raise DecodeError(f"not well-formed msgpack: {type(e).__name__}: {e}") from None
+    if not isinstance(obj, list):
+        raise DecodeError(f"top level must be an array, got {type(obj).__name__}")
+    if len(obj) < 2:
+        raise VersionError(f"missing schema version (an array of {len(obj)})", "v")
+    return obj[0], obj[1]
 
 
 def decode(
@@ -175,15 +212,11 @@ def decode(
     dims: Dims | None = None,
     *,
     max_bytes: int | None = None,
-    run: str | None = None,
-    fast: bool = True,
 ) -> Message:
     """Decode and validate one message.
 
     expected: the message type(s) accepted (None = any); dims: declared dimensions to check;
-    max_bytes: size cap overriding the per-type caps; run: reject messages of another run id;
-    fast=False: pydantic only (the reference the fast path is tested and benchmarked against).
-    Raises a ProtocolError subclass on any failure.
+    max_bytes: size cap overriding the per-type caps. Raises a ProtocolError subclass on any failure.
     """
     types = _expected_types(expected)
     if not isinstance(data, bytes):
@@ -201,40 +234,29 @@ def decode(
         cap = max(t.MAX_BYTES for t in types)
     if len(data) > cap:
         raise SizeError(f"payload of {len(data)} bytes is over the cap of {cap}")
-    try:
-        d = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, ext_hook=_reject_ext)
-    except ProtocolError:
-        raise
-    except Exception as e:  # noqa: BLE001 - msgpack raises ValueError, FormatError, StackError, ExtraData, TypeError...
-        raise DecodeError(f"not well-formed msgpack: {type(e).__name__}: {e}") from None
-    if not isinstance(d, dict):
-        raise DecodeError(f"top level must be a map, got {type(d).__name__}")
-
-    v = d.get("v")
+    tag, v = _peek(data)
     if type(v) is not int:
         raise VersionError(f"missing or non-integer schema version (got {v!r})", "v")
     if v != SCHEMA_VERSION:
         raise VersionError(f"schema version {v}, this code speaks {SCHEMA_VERSION}", "v")
-    tag = d.get("type")
-    cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
+    cls = TAGS.get(tag) if type(tag) is int else None
     if cls is None:
-        raise TypeTagError(f"unknown type tag {tag!r} (known: {', '.join(MESSAGE_TYPES)})", "type")
+        raise TypeTagError(f"unknown type tag {tag!r} (known: {', '.join(f'{c.TAG} {n}' for n, c in MESSAGE_TYPES.items())})",
+                           "type")
     if cls not in types:
-        raise TypeTagError(f"got {tag!r}, expected {' or '.join(t.TYPE for t in types)}", "type")
+        raise TypeTagError(f"got {cls.TYPE!r}, expected {' or '.join(t.TYPE for t in types)}", "type")
     if max_bytes is None and len(data) > cls.MAX_BYTES:
-        raise SizeError(f"{tag} payload of {len(data)} bytes is over its cap of {cls.MAX_BYTES}")
-
-    msg = fast_from_wire(cls, d) if fast else None
-    if msg is None:  # not a hot type, or the fast path declined: pydantic accepts it or names the error
-        try:
-            msg = cls.model_validate(d)
-        except ValidationError as e:
-            raise _from_validation_error(e) from None
-    if not msg.run:
-        raise FieldError("is empty: messages on the wire must carry their run id", "run")
-    if run is not None and msg.run != run:
-        raise RunMismatchError(f"message of run {msg.run!r} received by run {run!r}", "run")
+        raise SizeError(f"{cls.TYPE} payload of {len(data)} bytes is over its cap of {cls.MAX_BYTES}")
+    try:
+        msg = _DECODERS[cls].decode(data)
+    except msgspec.ValidationError as e:
+        raise _from_validation_error(e, cls) from None
+    except msgspec.DecodeError as e:
+        raise DecodeError(f"not well-formed msgpack: {e}") from None
+    except ProtocolError:
+        raise
+    except Exception as e:  # noqa: BLE001 - whatever a hostile payload provokes is a rejection, never a crash
+        raise FieldError(f"{type(e).__name__}: {e}", None) from None
     if dims is not None:
         msg.check_dims(dims)
     return msg
-

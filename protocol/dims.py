@@ -17,7 +17,8 @@ class Dims:
     msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
     discrete: whether actions are discrete ids (int64) or continuous vectors (float32);
     rollout_steps: T of an experience chunk. With all seven declared, experience chunks are
-    checked array by array against the rollout layout (`rollout_layout`).
+    checked array by array against the rollout layout (`rollout_layout`). echo: an action must
+    carry the message it acted on (an env host that trains records it; serving needs none).
     """
 
     num_envs: int | None = None
@@ -27,6 +28,7 @@ class Dims:
     action_dim: int | None = None
     discrete: bool | None = None
     rollout_steps: int | None = None
+    echo: bool | None = None
 
     @classmethod
     def from_layout(cls, layout: RolloutLayout) -> Dims:

@@ -77,33 +77,7 @@ class ChecksumError(ProtocolError):
     reason = "checksum"
 
 
-class RunMismatchError(ProtocolError):
-    """The message belongs to another run id than the receiving session's."""
-
-    reason = "run"
-
-
 class KeyMismatchError(ProtocolError):
     """The payload names another agent, role or sender than the key it came on (protocol/binding.py)."""
 
     reason = "key_mismatch"
-
-
-# Reasons used in pydantic custom errors raised by the schema validators, mapped back to classes.
-REASON_TO_ERROR: dict[str, type[ProtocolError]] = {
-    cls.reason: cls
-    for cls in (
-        SizeError,
-        DecodeError,
-        VersionError,
-        TypeTagError,
-        FieldError,
-        DTypeError,
-        ShapeError,
-        NonFiniteError,
-        RangeError,
-        ChecksumError,
-        RunMismatchError,
-        KeyMismatchError,
-    )
-}

@@ -19,10 +19,10 @@ from hammer.protocol.schemas import (
 K, N, D, M, A = 4, 3, 18, 4, 5
 
 
-def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
+def sample_messages(seed: int = 0) -> list[Message]:
     rng = np.random.default_rng(seed)
     idx = np.arange(K, dtype=np.int64)
-    h = {"run": run, "step": 7, "env_idx": idx, "ts": 123, "seq": 5, "sender": "tester"}
+    h = {"step": 7, "env_idx": idx, "sender": "tester"}
 
     def f32(*shape: int) -> np.ndarray:
         return rng.standard_normal(shape).astype(np.float32)
@@ -43,6 +43,8 @@ def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
         Weights.from_blob("central", 4, bytes(rng.integers(0, 256, 1000, dtype=np.uint8)), **h),
         Uplink(**h, agent=1, obs=f32(K, D), action=rng.integers(0, A, K)),
         Uplink(**h, agent=2, obs=f32(K, D)),
+        LocalObs(**{**h, "env_idx": np.array([5, 2], np.int64)}, agent=0, obs=f32(2, D), policy_version=1),
+        Action(**h, agent=2, action=np.array([0, 300, 2, 1]), msg=np.tanh(f32(K, M)), policy_version=1),
         Control(**h, command="stop", target="learner", args={"path": "runs/a", "every": 10}),
         Heartbeat(**h, role="env", pid=42, status="running", counters={"steps": 100, "busy_s": 950.5},
                   gauges={"policy_version": -1, "paper_metric_100": -15.2}),
@@ -52,7 +54,7 @@ def sample_messages(run: str = "run1", seed: int = 0) -> list[Message]:
 def assert_same(a: Message, b: Message) -> None:
     """Field-by-field equality, comparing arrays by dtype, shape and values."""
     assert type(a) is type(b)
-    for name in type(a).model_fields:
+    for name in type(a).__struct_fields__:
         x, y = getattr(a, name), getattr(b, name)
         if isinstance(x, np.ndarray):
             assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), name

@@ -1,12 +1,30 @@
-"""Pydantic models of every message the hammer roles exchange.
+"""Every message the hammer roles exchange, defined once, as msgspec Structs.
+
+Why msgspec (issue 31): the edge agent pays for every import, and the wire path should not need
+pydantic (importing the codec: 40.9 -> 35.0 MB RSS; pydantic now loads on the edge only for its
+configs, docs/deploy.md "Footprint"); the typed decode of a Struct checks every scalar in C in the
+same pass that parses the bytes, so a message is decoded and validated once, faster than schema 3's
+hand-written fast path (`hammer bench codec`). There is one definition per message: the Struct
+says the wire layout and the scalar checks (msgspec applies them while decoding: strict ints,
+bounds, lengths, patterns, literals, no unknown or missing fields, no ext types), and its
+`__post_init__` makes the checks msgspec cannot (arrays: dtype, rank, byte count, finiteness,
+shapes that must agree, the message range) with `protocol.fields.ArraySpec`. msgspec runs
+`__post_init__` both when code builds a message (`LocalObs(agent=0, obs=..., active=...)`) and when
+it decodes one, so a NaN or a wrong dtype is refused at the sender as well as at the receiver.
+`hammer protocol schema` is generated from these Structs (`json_schemas`).
 
 Why batched: encoding and decoding a message has a fixed Python cost far above that of its bytes
 (`hammer bench codec` prints it), so one message carries all K env copies of one vector step
 (arrays have a leading K axis), never one per copy.
 
-numpy arrays are plain `np.ndarray` fields (protocol/fields.py): code builds and reads messages
-with numpy directly. The hot types have a second, hand-written validator (protocol/fast_path.py)
-that accepts exactly what the models accept; their shape rules are registered at the end here.
+The wire form is compact (docs/wire-format.md, issue 31 part 2): a msgpack array, fields by
+position (`array_like`: no field names on the wire), first the type tag (a small int), then the
+header `v, step, env_idx, sender`, then the type's fields; optional fields left at their default
+at the end are not sent. The run id is the key's (`hammer/<run>/...`: a subscription covers only
+its own run), a receiver dates a message by its arrival (no send time), and the sender is empty
+where the key implies it (protocol/binding.py fills it in from the key; any other sender is
+checked against the key). `env_idx` goes as the int K when it is 0..K-1 (nearly always), else as
+a list of ints (msgpack ints are as narrow as their values).
 
 Array conventions (K = env copies in this message, N = agents, D = obs dim, M = message length,
 A = action vector length):
@@ -22,103 +40,142 @@ from __future__ import annotations
 import hashlib
 from typing import Annotated, Any, ClassVar, Literal
 
+import msgspec
 import numpy as np
 from hammer.protocol.dims import Dims, expect, min_max
-from hammer.protocol.errors import RangeError, ShapeError
-from hammer.protocol.fast_path import Decline, count_nonzero, fast_state, register, set_state
+from hammer.protocol.errors import ChecksumError, FieldError, NonFiniteError, RangeError, ShapeError
 from hammer.protocol.fields import (
+    ARRAY_DTYPES,
+    ARRAY_NAME_PATTERN,
     DEFAULT_MAX_BYTES,
     HEADER_BYTES,
     NAME_RE,
-    WIRE_DTYPES,
-    FiniteFloat,
+    ArraySpec,
     MiB,
-    Name,
-    NDArray,
-    NonNegFloat,
-    NonNegInt,
+    count_nonzero,
     empty_idx,
-    field_error,
 )
 from hammer.protocol.rollout_layout import RolloutLayout
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    Strict,
-    StrictBool,
-    StrictInt,
-    StrictStr,
-    field_validator,
-    model_validator,
-)
+from msgspec import Meta
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
+
+# Scalar wire types (msgspec checks them while decoding).
+NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
+Name = Annotated[str, Meta(pattern=NAME_RE.pattern)]
+ArrayName = Annotated[str, Meta(pattern=ARRAY_NAME_PATTERN)]
+Scalar = None | bool | int | float | Annotated[str, Meta(max_length=256)]
+MAX_K = (1 << 16) - 1  # env copies in one message (env_idx sent as the count K)
+_ENV_IDX_WIRE = Annotated[int, Meta(ge=0, le=MAX_K)] | list[Annotated[int, Meta(ge=0, le=(1 << 63) - 1)]]
+_WIRE_ARRAY = tuple[int, list[int], bytes]
+
+# Array fields: what each holds (and narrower wire dtypes it accepts).
+F32 = ("float32",)
+_HALF = (("float16", "float32"),)  # opt-in compact observations and messages: float16 on the wire, float32 read
+OBS2 = ArraySpec(F32, (2,), _HALF)
+OBS3 = ArraySpec(F32, (3,), _HALF)
+MSG2 = ArraySpec(F32, (2,), _HALF)
+BOOL1 = ArraySpec(("bool",), (1,))
+BOOL2 = ArraySpec(("bool",), (2,))
+# (K,) int64 ids (uint8 on the wire when every id fits) or (K, A) float32 vectors.
+ACTION = ArraySpec(("int64", "float32"), (1, 2), (("uint8", "int64"),))
+ANY_ARRAY = ArraySpec(ARRAY_DTYPES)
+
+
+def Arr(spec: ArraySpec, description: str) -> Any:
+    """The wire type of an array field, documented from its spec (for `hammer protocol schema`)."""
+    schema = spec.json_schema()
+    return Annotated[_WIRE_ARRAY, Meta(description=f"{description}; {schema.pop('description')}",
+                                        extra_json_schema={_ARRAY_ITEMS: schema["prefixItems"]})]
+
+
+_ARRAY_ITEMS = "x-array-items"  # set by `Arr`, put in place of msgspec's generic items by `json_schemas`
+
+
+def _array_items(node: Any) -> Any:
+    """The schema tree with each array field's items (dtype codes, shape, data) as its spec says."""
+    if isinstance(node, dict):
+        node = {k: _array_items(v) for k, v in node.items()}
+        if _ARRAY_ITEMS in node:
+            node["prefixItems"] = node.pop(_ARRAY_ITEMS)
+        return node
+    if isinstance(node, list):
+        return [_array_items(v) for v in node]
+    return node
 
 
 # Messages
 # --------------------------------------------------------------------------------------------
 
+# env_idx is almost always 0..K-1: comparing its bytes with these proves "unique and >= 0" at once.
+_ARANGE_BYTES = np.arange(4096, dtype=np.int64).tobytes()
 
-class Message(BaseModel):
+
+def _is_range(a: np.ndarray) -> bool:
+    """Whether int64 array `a` is 0..K-1."""
+    k = a.shape[0]
+    if k <= 4096:
+        return _ARANGE_BYTES.startswith(a.tobytes())
+    return bool((a == np.arange(k)).all())
+
+
+def _env_idx(v: Any) -> np.ndarray:
+    """env_idx from code (an int64 ndarray) or from the wire (K, or a list of indices): unique, >= 0."""
+    t = type(v)
+    if t is int:  # 0..K-1 (msgspec bounded K)
+        if not 0 <= v <= MAX_K:
+            raise RangeError(f"K must be in [0, {MAX_K}]", "env_idx")
+        return np.arange(v, dtype=np.int64)
+    if t is np.ndarray:
+        if v.dtype != np.int64:
+            raise FieldError(f"env_idx must be int64, got {v.dtype}", "env_idx")
+        if v.ndim != 1:
+            raise ShapeError(f"env_idx must be (K,), got shape {v.shape}", "env_idx")
+        a = v
+    elif t is list:
+        a = np.array(v, dtype=np.int64) if v else empty_idx()
+    else:
+        raise FieldError(f"env_idx must be an int or a list of ints, got {t.__name__}", "env_idx")
+    if a.size and not _is_range(a):
+        idx = a.tolist()  # a Python set beats np.unique at K up to a few thousand
+        if min(idx) < 0:
+            raise RangeError("env indices must be >= 0", "env_idx")
+        if len(set(idx)) != len(idx):
+            raise ShapeError("env indices must be unique", "env_idx")
+    return a
+
+
+def env_idx_to_wire(a: np.ndarray) -> int | list[int]:
+    """What env_idx puts on the wire: K when it is 0..K-1, else the list of indices."""
+    if a.shape[0] <= MAX_K and _is_range(a):
+        return a.shape[0]
+    return a.tolist()
+
+
+class Message(msgspec.Struct, array_like=True, forbid_unknown_fields=True):
     """Common header of every message.
 
-    `run`, `ts`, `seq` and `sender` are stamped by `HammerSession.publish`; code that builds a
-    message only sets `step` and `env_idx` (plus the payload).
+    `sender` is stamped by `HammerSession.publish` (empty where the key implies it); code that builds
+    a message only sets `step` and `env_idx` (plus the payload).
     """
 
-    # defer_build: a model's validator is built on its first pydantic validation, so a process builds only
-    # those it validates (the hot types mostly go through the fast path below; the edge agent never
-    # builds GlobalState or ExperienceChunk).
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=False, validate_default=False, defer_build=True)
-
     TYPE: ClassVar[str] = ""
+    TAG: ClassVar[int] = 0
     MAX_BYTES: ClassVar[int] = DEFAULT_MAX_BYTES
+    # Array fields: name -> (spec, wire nil means: None, or a fill "ones"/"zeros" of shape (K,)).
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
 
-    v: StrictInt = Field(SCHEMA_VERSION, description="schema version (SCHEMA_VERSION)")
-    type: StrictStr = Field(description="type tag")
-    run: Annotated[str, Strict(), Field(pattern=f"^$|{NAME_RE.pattern}")] = Field(
-        "", description="run id; empty only before publishing (the session stamps it)"
-    )
-    step: NonNegInt = Field(0, description="vector step")
-    env_idx: NDArray("int64", 1) = Field(
-        default_factory=empty_idx, description="(K,) indices of the env copies this message carries"
-    )
-    ts: NonNegInt = Field(0, description="send time, ns since the Unix epoch (stamped at publish)")
-    seq: NonNegInt = Field(0, description="sequence number of this sender on this key, from 0")
-    sender: Annotated[str, Strict(), Field(max_length=128)] = Field("", description="sender name")
+    v: Annotated[int, Meta(description="schema version (SCHEMA_VERSION)")] = SCHEMA_VERSION
+    step: Annotated[NonNegInt, Meta(description="vector step")] = 0
+    env_idx: Annotated[_ENV_IDX_WIRE, Meta(
+        description="the env copies this message carries: K (= 0..K-1), or the list of their indices (unique, >= 0)"
+    )] = msgspec.field(default_factory=empty_idx)
+    sender: Annotated[str, Meta(max_length=128, description="sender name; empty: the one its key implies")] = ""
 
-    def __init__(self, /, **data: Any) -> None:
-        # Hot types first try their hand-written validator (see "Fast path" at the end of this
-        # module); whatever it declines goes to pydantic, which accepts it or raises the reference
-        # error, so building a message behaves exactly as with pydantic alone, only faster.
-        state = fast_state(type(self), data)
-        if state is None:
-            super().__init__(**data)
-        else:
-            set_state(self, *state)
-
-    # Mark this __init__ as pydantic's base one, otherwise pydantic would route `model_validate`
-    # through it: `model_validate` must stay the pure pydantic reference the fast path is tested against.
-    __init__.__pydantic_base_init__ = True  # type: ignore[attr-defined]
-
-    @field_validator("v")
-    @classmethod
-    def _check_version(cls, v: int) -> int:
-        if v != SCHEMA_VERSION:
-            raise field_error("version", "v", f"schema version {v}, this code speaks {SCHEMA_VERSION}")
-        return v
-
-    @field_validator("env_idx")
-    @classmethod
-    def _check_env_idx(cls, a: np.ndarray) -> np.ndarray:
-        if a.size:
-            idx = a.tolist()  # a Python set beats np.unique at K up to a few thousand
-            if min(idx) < 0:
-                raise field_error("range", "env_idx", "env indices must be >= 0")
-            if len(set(idx)) != len(idx):
-                raise field_error("shape", "env_idx", "env indices must be unique")
-        return a
+    @property
+    def type(self) -> str:
+        """The type tag's name (`local_obs`, ...)."""
+        return self.TYPE
 
     @classmethod
     def cap_for_dims(cls, dims: Dims) -> int:
@@ -147,8 +204,11 @@ class Message(BaseModel):
         actual = a.shape
         if len(actual) != len(shape) or any(s is not None and s != n for s, n in zip(shape, actual)):
             want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + (",)" if len(shape) == 1 else ")")
-            raise field_error("shape", field, f"shape {a.shape} disagrees with the message, expected {want} "
-                                       f"(K={self.k} from env_idx)")
+            raise ShapeError(f"shape {a.shape} disagrees with the message, expected {want} (K={self.k} from env_idx)",
+                             field)
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
 
     def check_dims(self, dims: Dims) -> None:
         """Raise ShapeError/RangeError when the message disagrees with declared dimensions."""
@@ -167,15 +227,16 @@ class Message(BaseModel):
             raise RangeError(f"agent {agent} >= n_agents {dims.n_agents}", "agent")
 
 
-class LocalObs(Message):
+class LocalObs(Message, tag=1, kw_only=True):
     """Env host -> local agent `agent`: its observation in each env copy."""
 
     TYPE: ClassVar[str] = "local_obs"
-    type: Literal["local_obs"] = "local_obs"
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"obs": OBS2, "active": BOOL1}
     agent: NonNegInt
-    obs: NDArray("float32", 2) = Field(description="(K, D) float32")
-    active: NDArray("bool", 1) = Field(description="(K,) bool: the agent is present in that copy")
-    policy_version: NonNegInt = Field(0, description="policy version the agent must act with (on-policy sync)")
+    obs: Arr(OBS2, "(K, D) float32")
+    policy_version: Annotated[NonNegInt, Meta(
+        description="policy version the agent must act with (on-policy sync)")] = 0
+    active: Arr(BOOL1, "(K,) bool: the agent is present in that copy; nil: in every copy") | None = None
 
     @classmethod
     def _array_bytes(cls, dims: Dims) -> int | None:
@@ -183,30 +244,32 @@ class LocalObs(Message):
             return None
         return dims.num_envs * (8 + 4 * dims.obs_dim + 1)  # env_idx, obs, active
 
-    @model_validator(mode="after")
-    def _shapes(self) -> LocalObs:
-        k = self.k
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        k = idx.shape[0]
+        self.obs = OBS2.take(self.obs, "obs")
         self._need("obs", self.obs, (k, None))
-        self._need("active", self.active, (k,))
-        return self
+        if self.active is None:
+            self.active = np.ones(k, dtype=bool)
+        else:
+            self.active = BOOL1.take(self.active, "active")
+            self._need("active", self.active, (k,))
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
         expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
 
 
-class GlobalState(Message):
+class GlobalState(Message, tag=2, kw_only=True):
     """Env host -> central agent: all observations and every agent's previous action."""
 
     TYPE: ClassVar[str] = "global_state"
-    type: Literal["global_state"] = "global_state"
-    obs: NDArray("float32", 3) = Field(description="(K, N, D) float32")
-    prev_actions: NDArray("float32", 3) = Field(
-        description="(K, N, A) float32: continuous actions, or for discrete actions a one-hot "
-        "(A = n_actions) or the action id as a float (A = 1); zeros on the first step"
-    )
-    active: NDArray("bool", 2) = Field(description="(K, N) bool")
-    policy_version: NonNegInt = Field(0, description="policy version the central agent must use")
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"obs": OBS3, "prev_actions": OBS3, "active": BOOL2}
+    obs: Arr(OBS3, "(K, N, D) float32")
+    prev_actions: Arr(OBS3, "(K, N, A) float32: continuous actions, or for discrete actions a one-hot "
+                            "(A = n_actions) or the action id as a float (A = 1); zeros on the first step")
+    policy_version: Annotated[NonNegInt, Meta(description="policy version the central agent must use")] = 0
+    active: Arr(BOOL2, "(K, N) bool; nil: every agent in every copy") | None = None
 
     @classmethod
     def _array_bytes(cls, dims: Dims) -> int | None:
@@ -215,13 +278,19 @@ class GlobalState(Message):
             return None
         return k * (8 + n * (4 * d + 4 * max(a, 1) + 1))  # env_idx, obs, prev_actions, active
 
-    @model_validator(mode="after")
-    def _shapes(self) -> GlobalState:
-        k, n = self.k, self.obs.shape[1]
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        k = idx.shape[0]
+        self.obs = OBS3.take(self.obs, "obs")
+        n = self.obs.shape[1]
         self._need("obs", self.obs, (k, n, None))
+        self.prev_actions = OBS3.take(self.prev_actions, "prev_actions")
         self._need("prev_actions", self.prev_actions, (k, n, None))
-        self._need("active", self.active, (k, n))
-        return self
+        if self.active is None:
+            self.active = np.ones((k, n), dtype=bool)
+        else:
+            self.active = BOOL2.take(self.active, "active")
+            self._need("active", self.active, (k, n))
 
     def _check_dims(self, dims: Dims) -> None:
         expect("obs", "n_agents", self.obs.shape[1], dims.n_agents)
@@ -233,13 +302,17 @@ class GlobalState(Message):
                 raise ShapeError(f"last dim {a} does not fit action_dim {dims.action_dim}", "prev_actions")
 
 
-class CentralMsg(Message):
+def _in_unit_range(m: np.ndarray) -> bool:
+    return count_nonzero(np.abs(m) <= 1.0) == m.size  # NaN is refused before: finiteness
+
+
+class CentralMsg(Message, tag=3, kw_only=True):
     """Central agent -> local agent `agent`: its message vector in each env copy."""
 
     TYPE: ClassVar[str] = "central_msg"
-    type: Literal["central_msg"] = "central_msg"
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"msg": MSG2}
     agent: NonNegInt
-    msg: NDArray("float32", 2) = Field(description="(K, M) float32 in [-1, 1]")
+    msg: Arr(MSG2, "(K, M) float32 in [-1, 1]")
     policy_version: NonNegInt = 0
 
     @classmethod
@@ -248,34 +321,41 @@ class CentralMsg(Message):
             return None
         return dims.num_envs * (8 + 4 * dims.msg_dim)  # env_idx, msg
 
-    @model_validator(mode="after")
-    def _shapes(self) -> CentralMsg:
-        self._need("msg", self.msg, (self.k, None))
-        if self.msg.size and (self.msg.min() < -1.0 or self.msg.max() > 1.0):
-            raise field_error("range", "msg", "message values must lie in [-1, 1]")
-        return self
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        self.msg = MSG2.take(self.msg, "msg")
+        self._need("msg", self.msg, (idx.shape[0], None))
+        if not _in_unit_range(self.msg):
+            raise RangeError("message values must lie in [-1, 1]", "msg")
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
         expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
 
 
-class Action(Message):
-    """Local agent `agent` -> env host: its action in each env copy."""
+def _take_action(msg: Message, value: Any) -> np.ndarray:
+    a = ACTION.take(value, "action")
+    msg._need("action", a, (msg.k,) if a.dtype == np.int64 else (msg.k, None))
+    return a
+
+
+class Action(Message, tag=4, kw_only=True):
+    """Local agent `agent` -> env host: its action in each env copy.
+
+    `msg` echoes the message the agent acted on back to the env host, which records it in the
+    rollout (learning/rollout.py: the learner trains on what the agent saw). Only training needs it:
+    an agent serving (mode eval) leaves it out, and an env host that trains declares
+    `Dims(echo=True)`, so an action without it is refused there (`field`), not recorded as zeros."""
 
     TYPE: ClassVar[str] = "action"
-    type: Literal["action"] = "action"
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"action": ACTION, "fallback": BOOL1, "msg": MSG2}
     agent: NonNegInt
-    action: NDArray(("int64", "float32"), (1, 2)) = Field(
-        description="(K,) int64 action ids, or (K, A) float32 continuous actions"
-    )
-    policy_version: NonNegInt = 0
-    fallback: NDArray("bool", 1) | None = Field(
-        None, description="(K,) the central message was late and a fallback was used (None = all False)"
-    )
-    msg: NDArray("float32", 2) | None = Field(
-        None, description="(K, M) float32: the message the agent acted on (received or fallback)"
-    )
+    action: Arr(ACTION, "(K,) int64 action ids (uint8 on the wire when every id fits), "
+                        "or (K, A) float32 continuous actions")
+    policy_version: Annotated[NonNegInt, Meta(description="the version that acted")] = 0
+    fallback: Arr(BOOL1, "(K,) the central message was late and a fallback was used; nil: none was") | None = None
+    msg: Arr(MSG2, "(K, M) float32: the message the agent acted on (received or fallback), for the "
+                   "rollout; nil when the variant has no messages or the agent is not training") | None = None
 
     @classmethod
     def _array_bytes(cls, dims: Dims) -> int | None:
@@ -284,18 +364,18 @@ class Action(Message):
             return None
         return k * (8 + (8 if dims.discrete else 4 * a) + 1 + 4 * m)  # env_idx, action, fallback, msg
 
-    @model_validator(mode="after")
-    def _shapes(self) -> Action:
-        k = self.k
-        if self.action.dtype == np.int64:
-            self._need("action", self.action, (k,))
-        else:
-            self._need("action", self.action, (k, None))
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        k = idx.shape[0]
+        self.action = _take_action(self, self.action)
         if self.fallback is None:
             self.fallback = np.zeros(k, dtype=bool)
-        self._need("fallback", self.fallback, (k,))
-        self._need("msg", self.msg, (k, None))
-        return self
+        else:
+            self.fallback = BOOL1.take(self.fallback, "fallback")
+            self._need("fallback", self.fallback, (k,))
+        if self.msg is not None:
+            self.msg = MSG2.take(self.msg, "msg")
+            self._need("msg", self.msg, (k, None))
 
     @property
     def discrete(self) -> bool:
@@ -305,6 +385,8 @@ class Action(Message):
         self._check_agent(self.agent, dims)
         if self.msg is not None:
             expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
+        elif dims.echo and dims.msg_dim:
+            raise FieldError("missing: a training env host records the message each action used", "msg")
         check_actions(self.action, dims)
 
 
@@ -326,11 +408,35 @@ def check_actions(action: np.ndarray, dims: Dims) -> None:
         expect("action", "action vector length", action.shape[1], dims.action_dim)
 
 
-ArrayName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$")]
-Scalar = StrictBool | StrictInt | FiniteFloat | Annotated[str, Strict(), Field(max_length=256)] | None
+_PLAIN = frozenset({int, float, bool, str, type(None)})
 
 
-class ExperienceChunk(Message):
+def _scalars(values: Any, field: str) -> dict:
+    """A map of wire scalars, checked: finite floats; numpy scalars (a counter summed with numpy)
+    become Python ones, which is what msgpack carries. Anything else is refused at the sender."""
+    if type(values) is not dict:
+        raise FieldError(f"must be a map, got {type(values).__name__}", field)
+    out = values
+    for name, x in values.items():
+        t = type(x)
+        if t not in _PLAIN:
+            if isinstance(x, bool | np.bool_):
+                x = bool(x)
+            elif isinstance(x, int | np.integer):
+                x = int(x)
+            elif isinstance(x, float | np.floating):
+                x = float(x)
+            else:
+                raise FieldError(f"{t.__name__} is not a wire scalar", f"{field}.{name}")
+            if out is values:
+                out = dict(values)
+            out[name] = x
+        if type(x) is float and not np.isfinite(x):
+            raise NonFiniteError("holds NaN or inf", f"{field}.{name}")
+    return out
+
+
+class ExperienceChunk(Message, tag=5, kw_only=True):
     """An actor -> its learner: named arrays of experience tagged with the producing policy version.
 
     Role "team" (the env host): one rollout, the arrays of `rollout_layout.CHUNK`; role "central"
@@ -343,13 +449,11 @@ class ExperienceChunk(Message):
 
     TYPE: ClassVar[str] = "experience"
     MAX_BYTES: ClassVar[int] = 64 * MiB
-    type: Literal["experience"] = "experience"
+    RECORD_ROLE: ClassVar[str] = "central"
     role: Name
     policy_version: NonNegInt
-    arrays: dict[ArrayName, NDArray(tuple(WIRE_DTYPES))] = Field(max_length=64)
-    meta: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=64)
-
-    RECORD_ROLE: ClassVar[str] = "central"
+    arrays: Annotated[dict[ArrayName, Arr(ANY_ARRAY, "an array of the rollout layout")], Meta(max_length=64)]
+    meta: Annotated[dict[ArrayName, Scalar], Meta(max_length=64)] = msgspec.field(default_factory=dict)
 
     @classmethod
     def cap_for(cls, layout: RolloutLayout) -> int:
@@ -357,6 +461,13 @@ class ExperienceChunk(Message):
         of framing when they are larger (cn with N=50 agents: ~100 MB per update). Sender and learner
         both derive it from the run's layout, so a payload beyond it is still refused on arrival."""
         return max(cls.MAX_BYTES, layout.chunk_nbytes() + MiB)
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        if type(self.arrays) is not dict or len(self.arrays) > 64:
+            raise FieldError("must be a map of at most 64 named arrays", "arrays")
+        self.arrays = {name: ANY_ARRAY.take(a, f"arrays.{name}") for name, a in self.arrays.items()}
+        self.meta = _scalars(self.meta, "meta")
 
     def _check_dims(self, dims: Dims) -> None:
         layout = dims.rollout_layout()
@@ -368,23 +479,23 @@ class ExperienceChunk(Message):
             layout.check_chunk(self.arrays)
 
 
-class Weights(Message):
+class Weights(Message, tag=6, kw_only=True):
     """A learner -> actors: a policy version as a safetensors blob with its sha256."""
 
     TYPE: ClassVar[str] = "weights"
     MAX_BYTES: ClassVar[int] = 256 * MiB
-    type: Literal["weights"] = "weights"
     role: Name
     version: NonNegInt
+    blob: bytes
+    sha256: Annotated[str, Meta(pattern=r"^[0-9a-f]{64}$")]
     format: Literal["safetensors"] = "safetensors"
-    blob: Annotated[bytes, Strict()]
-    sha256: Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$")]
 
-    @model_validator(mode="after")
-    def _digest(self) -> Weights:
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        if type(self.blob) is not bytes:
+            raise FieldError(f"must be bytes, got {type(self.blob).__name__}", "blob")
         if hashlib.sha256(self.blob).hexdigest() != self.sha256:
-            raise field_error("checksum", "sha256", "sha256 of blob does not match (corrupted or truncated weights)")
-        return self
+            raise ChecksumError("sha256 of blob does not match (corrupted or truncated weights)", "sha256")
 
     @classmethod
     def from_blob(cls, role: str, version: int, blob: bytes, **header: Any) -> Weights:
@@ -392,55 +503,55 @@ class Weights(Message):
         return cls(role=role, version=version, blob=blob, sha256=hashlib.sha256(blob).hexdigest(), **header)
 
 
-# Only what something sends and something handles: the launcher and the env host end a run.
-ControlCommand = Literal["stop"]
-
-
-class Control(Message):
-    """Launcher -> roles: a command with small arguments."""
+class Control(Message, tag=7, kw_only=True):
+    """Launcher -> roles: a command with small arguments. Only what something sends and something
+    handles: `stop` (the launcher and the env host end a run)."""
 
     TYPE: ClassVar[str] = "control"
-    type: Literal["control"] = "control"
-    command: ControlCommand
-    target: Annotated[str, Strict(), Field(pattern=f"^\\*$|{NAME_RE.pattern}")] = Field(
-        "*", description="role name, or * for every role"
-    )
-    args: dict[ArrayName, Scalar] = Field(default_factory=dict, max_length=32)
+    command: Literal["stop"]
+    target: Annotated[str, Meta(pattern=f"^\\*$|{NAME_RE.pattern}", description="role name, or * for every role")] = "*"
+    args: Annotated[dict[ArrayName, Scalar], Meta(max_length=32)] = msgspec.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        self.args = _scalars(self.args, "args")
 
 
 HeartbeatStatus = Literal["starting", "ready", "running", "paused", "stopping", "stopped", "error"]
 
 
-class Heartbeat(Message):
+class Heartbeat(Message, tag=8, kw_only=True):
     """Any role -> launcher: alive, what it is doing, a few counters."""
 
     TYPE: ClassVar[str] = "heartbeat"
-    type: Literal["heartbeat"] = "heartbeat"
     role: Name
     pid: NonNegInt
     status: HeartbeatStatus
-    counters: dict[ArrayName, NonNegInt | NonNegFloat] = Field(
-        default_factory=dict, max_length=64,
-        description="totals since the process started: finite, >= 0, never falling for one role and pid "
-                    "(a receiver refuses a heartbeat whose counters fall)")
-    gauges: dict[ArrayName, StrictInt | FiniteFloat] = Field(
-        default_factory=dict, max_length=16,
-        description="current values that may move either way (policy version, latency percentiles, a running metric)")
-    detail: Annotated[str, Strict(), Field(max_length=1024)] = ""
+    counters: Annotated[dict[ArrayName, NonNegInt | Annotated[float, Meta(ge=0)]], Meta(
+        max_length=64, description="totals since the process started: finite, >= 0, never falling for one role "
+                                   "and pid (a receiver refuses a heartbeat whose counters fall)")] = msgspec.field(
+        default_factory=dict)
+    gauges: Annotated[dict[ArrayName, int | float], Meta(
+        max_length=16, description="current values that may move either way (policy version, latency percentiles, "
+                                   "a running metric)")] = msgspec.field(default_factory=dict)
+    detail: Annotated[str, Meta(max_length=1024)] = ""
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        self.counters = _scalars(self.counters, "counters")
+        self.gauges = _scalars(self.gauges, "gauges")
 
 
-class Uplink(Message):
+class Uplink(Message, tag=9, kw_only=True):
     """Robot `agent` -> central agent, in a fleet (docs/fleet.md): what the robot's own sensors saw
     and the action it took last, so the central agent can build its state without a simulator.
-    `seq` and `ts` (stamped at publish) order and date it; the central agent dates it by arrival."""
+    The central agent dates it by arrival."""
 
     TYPE: ClassVar[str] = "uplink"
-    type: Literal["uplink"] = "uplink"
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"obs": OBS2, "action": ACTION}
     agent: NonNegInt
-    obs: NDArray("float32", 2) = Field(description="(K, D) float32: the robot's observation")
-    action: NDArray(("int64", "float32"), (1, 2)) | None = Field(
-        None, description="(K,) int64 ids or (K, A) float32: the robot's previous action (None: none yet)"
-    )
+    obs: Arr(OBS2, "(K, D) float32: the robot's observation")
+    action: Arr(ACTION, "(K,) int64 ids or (K, A) float32: the robot's previous action (nil: none yet)") | None = None
 
     @classmethod
     def _array_bytes(cls, dims: Dims) -> int | None:
@@ -449,12 +560,12 @@ class Uplink(Message):
             return None
         return k * (8 + 4 * d + (8 if dims.discrete else 4 * a))  # env_idx, obs, action
 
-    @model_validator(mode="after")
-    def _shapes(self) -> Uplink:
-        self._need("obs", self.obs, (self.k, None))
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        self.obs = OBS2.take(self.obs, "obs")
+        self._need("obs", self.obs, (idx.shape[0], None))
         if self.action is not None:
-            self._need("action", self.action, (self.k,) if self.action.dtype == np.int64 else (self.k, None))
-        return self
+            self.action = _take_action(self, self.action)
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
@@ -467,47 +578,27 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat, Uplink)
 }
+for _cls in MESSAGE_TYPES.values():
+    _cls.TAG = _cls.__struct_config__.tag
+TAGS: dict[int, type[Message]] = {cls.TAG: cls for cls in MESSAGE_TYPES.values()}
+
+
+def fields_of(cls: type[Message]) -> tuple[str, ...]:
+    """The fields of a message type in wire order (after the type tag)."""
+    return cls.__struct_fields__
 
 
 def json_schemas() -> dict[str, Any]:
-    """JSON Schema (validation side) of every message type, keyed by type tag."""
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "messages": {tag: cls.model_json_schema() for tag, cls in MESSAGE_TYPES.items()},
-    }
-
-
-def _local_obs_shapes(v: dict, k: int) -> None:
-    if v["obs"].shape[0] != k or v["active"].shape[0] != k:
-        raise Decline
-
-
-def _global_state_shapes(v: dict, k: int) -> None:
-    obs, prev = v["obs"].shape, v["prev_actions"].shape
-    if obs[0] != k or prev[0] != k or prev[1] != obs[1] or v["active"].shape != obs[:2]:
-        raise Decline
-
-
-def _central_msg_shapes(v: dict, k: int) -> None:
-    m = v["msg"]
-    if m.shape[0] != k or count_nonzero(np.abs(m) <= 1.0) != m.size:
-        raise Decline
-
-
-def _action_shapes(v: dict, k: int) -> str | None:
-    a = v["action"]
-    if a.shape[0] != k or a.ndim != (1 if a.dtype == np.int64 else 2):
-        raise Decline
-    for name in ("fallback", "msg"):
-        x = v[name]
-        if x is not None and x.shape[0] != k:
-            raise Decline
-    if v["fallback"] is None:
-        v["fallback"] = np.zeros(k, dtype=bool)
-        return "fallback"
-    return None
-
-
-for _cls, _shapes in ((LocalObs, _local_obs_shapes), (GlobalState, _global_state_shapes),
-                      (CentralMsg, _central_msg_shapes), (Action, _action_shapes)):
-    register(_cls, _shapes)
+    """JSON Schema of every message type's wire form (a msgpack array: the type tag, then the
+    fields in order), keyed by type tag name; generated by msgspec from the Structs above."""
+    classes = tuple(MESSAGE_TYPES.values())
+    _refs, defs = msgspec.json.schema_components(classes, ref_template="#/$defs/{name}")
+    messages = {}
+    for cls in classes:
+        schema = dict(defs[cls.__name__])
+        schema["description"] = (cls.__doc__ or "").strip().split("\n\n")[0]
+        schema["fields"] = ["type tag", *fields_of(cls)]
+        schema["tag"] = cls.TAG
+        messages[cls.TYPE] = schema
+    others = {name: d for name, d in defs.items() if name not in {c.__name__ for c in classes}}
+    return _array_items({"schema_version": SCHEMA_VERSION, "messages": messages, "$defs": others})

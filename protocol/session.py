@@ -39,7 +39,7 @@ from hammer.protocol.binding import check_key, sender_of
 from hammer.protocol.codec import Expected, _expected_types, decode, encode
 from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.dims import Dims
-from hammer.protocol.errors import ProtocolError, RunMismatchError
+from hammer.protocol.errors import ProtocolError
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.keys import Keys
 from hammer.protocol.schemas import Message
@@ -339,8 +339,10 @@ class Subscription(_QueueSub):
         self.stats.received += 1
         t0 = time.perf_counter()
         try:
-            msg = decode(data, self.expected, self.dims, max_bytes=self.max_bytes, run=self.run)
-            check_key(msg, key[self._prefix_len:])
+            msg = decode(data, self.expected, max_bytes=self.max_bytes)
+            check_key(msg, key[self._prefix_len:])  # who it claims to be, before what it declares
+            if self.dims is not None:
+                msg.check_dims(self.dims)
         except ProtocolError as e:
             self.stats.decode_s += time.perf_counter() - t0
             self.stats.rejected[e.reason] += 1
@@ -509,18 +511,22 @@ class Publisher:
         self._session = session
         self._zpub = zpub
         self._rel = session.keys.relative(key)
-        self._sender = sender_of(self._rel) or session.sender  # what the key says, else the session's name
+        # The sender a key implies goes as "" (the receiver takes it from the key, protocol.binding);
+        # on a key that implies none (ctl/all, bench/...) the session's own name.
+        self._stamp = {"sender": "" if sender_of(self._rel) else session.sender}
         self._seq = itertools.count()
         self._lock = threading.Lock()
         self.faults = session.faults  # an agent pool gives each agent's publishers that agent's own injector
         self.max_bytes: int | None = None  # a size cap other than the message type's (a large run's rollout chunk)
+        # float32 observations and messages as float16 on the wire (opt-in: codec.encode(half=True))
+        self.half = session.wire_float16
         self.sent_msgs = 0  # payloads handed to the fault layer / Zenoh (hammer bench scale: messages per step)
         self.sent_bytes = 0
         self.encode_s = 0.0  # wall time stamping + encoding, and in the put (fault layer + Zenoh)
         self.put_s = 0.0
 
     def publish(self, msg: Message) -> int:
-        """Stamp run/ts/seq/sender (the sender the key implies, protocol.binding), encode and send;
+        """Stamp the sender (the one the key implies, protocol.binding), encode and send;
         returns the seq used."""
         t0 = time.perf_counter()
         seq, data = self.stamped(msg)
@@ -531,15 +537,13 @@ class Publisher:
         return seq
 
     def stamped(self, msg: Message) -> tuple[int, bytes]:
-        """(seq, bytes) of `msg` stamped as this key's next message (run, ts, seq, the sender the key
-        implies) and encoded: what `publish` sends, and what an answer to a query on this key carries."""
-        run = self._session.run_id
-        if msg.run and msg.run != run:
-            raise RunMismatchError(f"message built for run {msg.run!r} published by run {run!r}", "run")
+        """(seq, bytes) of `msg` stamped as this key's next message (the sender the key implies,
+        protocol.binding) and encoded: what `publish` sends, and what an answer to a query on this
+        key carries. seq counts this publisher's messages (kept here, not sent: a receiver orders
+        the step loop by `step`)."""
         with self._lock:
             seq = next(self._seq)
-        return seq, encode(msg, stamp={"run": run, "ts": time.time_ns(), "seq": seq, "sender": self._sender},
-                           max_bytes=self.max_bytes)
+        return seq, encode(msg, stamp=self._stamp, max_bytes=self.max_bytes, half=self.half)
 
     def put_bytes(self, data: bytes) -> None:
         self.sent_msgs += 1
@@ -572,6 +576,9 @@ class HammerSession:
         self.run_id = run_id
         self.transport = transport or TransportConfig()
         self.sender = sender or f"pid{os.getpid()}"
+        # Publishers made from now on send float32 observations and messages as float16 (opt-in,
+        # serving: RuntimeSettings.wire_float16; codec.encode(half=True)).
+        self.wire_float16 = False
         self.faults = FaultInjector(faults) if faults is not None and faults.enabled else None
         self._z: zenoh.Session | None = None
         self._pid: int | None = None

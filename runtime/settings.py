@@ -28,7 +28,7 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
            "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
-           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16")
+           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16", "wire_float16")
 
 
 def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
@@ -154,6 +154,10 @@ class RuntimeSettings(Model):
     weights_float16: bool = Field(
         False, description="eval: the policy server sends the weights as float16, half the bytes on every link "
                            "(the agents compute in float32; how many actions change: docs/deploy.md)")
+    wire_float16: bool = Field(
+        False, description="eval: observations, global states and central messages go on the wire as float16, "
+                           "half their bytes (read as float32; what it does to the actions: `hammer bench wire "
+                           "BUNDLE`); never in training, whose results must be float32 exactly")
     weights_republish_max_s: float = Field(
         16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
                                 "weights_republish_s for a fixed period")
@@ -162,6 +166,12 @@ class RuntimeSettings(Model):
     def _eval_needs_policy(self) -> RuntimeSettings:
         if self.mode == "eval" and not self.policy_dir:
             raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
+        return self
+
+    @model_validator(mode="after")
+    def _float16_only_serving(self) -> RuntimeSettings:
+        if self.wire_float16 and self.mode != "eval":
+            raise ValueError("wire_float16=true is for serving (mode=eval): a training run must see float32 exactly")
         return self
 
     @model_validator(mode="after")
@@ -256,6 +266,13 @@ class RuntimeSettings(Model):
         if self.zenoh_config_file:
             return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
         return self.link(TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen]))
+
+    @property
+    def echo(self) -> bool:
+        """Whether an action carries back the message it acted on: the env host records it in the
+        rollout (training) and in a trace; serving needs neither, and the message stays off the
+        wire (issue 31). The env host declares it (`Dims.echo`) and refuses an action without it."""
+        return self.mode == "train" or self.trace
 
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
                 identity_directory: Path | None = None) -> TransportConfig:

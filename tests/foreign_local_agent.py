@@ -28,8 +28,24 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 3
-DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?"}
+SCHEMA_VERSION = 4
+TAGS = {"local_obs": 1, "global_state": 2, "central_msg": 3, "action": 4, "experience": 5, "weights": 6,
+        "control": 7, "heartbeat": 8, "uplink": 9}
+HEADER = ("v", "step", "env_idx", "sender")
+# Each message's fields in wire order after the type tag, and the defaults of those that may be left off the end.
+FIELDS = {
+    "local_obs": (*HEADER, "agent", "obs", "policy_version", "active"),
+    "central_msg": (*HEADER, "agent", "msg", "policy_version"),
+    "action": (*HEADER, "agent", "action", "policy_version", "fallback", "msg"),
+    "weights": (*HEADER, "role", "version", "blob", "sha256", "format"),
+    "control": (*HEADER, "command", "target", "args"),
+    "heartbeat": (*HEADER, "role", "pid", "status", "counters", "gauges", "detail"),
+}
+DEFAULTS = {"policy_version": 0, "active": None, "fallback": None, "msg": None, "format": "safetensors",
+            "target": "*", "args": {}, "counters": {}, "gauges": {}, "detail": ""}
+CODES = {"bool": 0, "uint8": 1, "int32": 2, "int64": 3, "float16": 4, "float32": 5, "float64": 6}
+DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?",
+          "float16": "<f2"}
 ST_DTYPES = {"F32": "<f4", "F64": "<f8", "I64": "<i8", "I32": "<i4", "U8": "u1", "BOOL": "?"}
 LOCAL_STREAM = 1  # the randomness contract: local agent i draws from default_rng([seed, 1, i])
 STOP_SENDERS = ("launcher", "env")  # the only senders whose stop a role obeys
@@ -41,50 +57,63 @@ class Rejected(Exception):
 
 # ----- wire format --------------------------------------------------------------------------------
 def to_array(d: object, dtype: str, ndim: int) -> np.ndarray:
-    if not isinstance(d, dict) or set(d) != {"dtype", "shape", "data"} or d["dtype"] != dtype:
-        raise Rejected(f"expected a {dtype} array map")
-    shape = d["shape"]
+    """An array [dtype code, shape, data] of `dtype` (float32 fields may come as float16: read as float32)."""
+    if not isinstance(d, list) or len(d) != 3:
+        raise Rejected("expected an array [code, shape, data]")
+    code, shape, data = d
+    names = {CODES[dtype]: dtype} | ({CODES["float16"]: "float16"} if dtype == "float32" else {})
+    if code not in names:
+        raise Rejected(f"expected a {dtype} array")
     if not isinstance(shape, list) or len(shape) != ndim or not all(type(n) is int and n >= 0 for n in shape):
         raise Rejected(f"bad shape {shape!r}")
-    dt = np.dtype(DTYPES[dtype])
-    if not isinstance(d["data"], bytes) or len(d["data"]) != int(np.prod(shape)) * dt.itemsize:
+    dt = np.dtype(DTYPES[names[code]])
+    if not isinstance(data, bytes) or len(data) != int(np.prod(shape)) * dt.itemsize:
         raise Rejected("data length disagrees with the shape")
-    a = np.frombuffer(d["data"], dt).reshape(shape)
+    a = np.frombuffer(data, dt).reshape(shape).astype(DTYPES[dtype])
     if a.dtype.kind == "f" and not np.isfinite(a).all():
         raise Rejected("non-finite floats")
+    if a.dtype.kind == "b" and not set(data) <= {0, 1}:
+        raise Rejected("bool bytes other than 0 / 1")
     return a
 
 
-def from_array(a: np.ndarray, dtype: str) -> dict:
+def from_array(a: np.ndarray, dtype: str) -> list:
     a = np.ascontiguousarray(a, dtype=DTYPES[dtype])
-    return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+    return [CODES[dtype], list(a.shape), a.tobytes()]
 
 
-def parse(payload: bytes, run: str, tag: str) -> dict:
-    """The header checks every receiver makes; the message as a dict."""
+def parse(payload: bytes, tag: str) -> dict:
+    """The header checks every receiver makes; the message as a dict of its fields by name."""
     try:
         m = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except Exception as e:  # noqa: BLE001 - any malformed payload is rejected
         raise Rejected(f"not msgpack: {e}") from None
-    if not isinstance(m, dict) or m.get("v") != SCHEMA_VERSION or m.get("type") != tag or m.get("run") != run:
-        raise Rejected("wrong version, type or run")
-    if type(m.get("step")) is not int or m["step"] < 0:
-        raise Rejected("bad step")
-    m["env_idx"] = to_array(m.get("env_idx"), "int64", 1)
-    return m
+    fields = FIELDS[tag]
+    if not isinstance(m, list) or len(m) < 2 or m[0] != TAGS[tag] or m[1] != SCHEMA_VERSION:
+        raise Rejected("wrong version or type")
+    if len(m) - 1 > len(fields) or any(f not in DEFAULTS for f in fields[len(m) - 1:]):
+        raise Rejected("fields missing or too many")
+    d = {**{f: DEFAULTS[f] for f in fields[len(m) - 1:]}, **dict(zip(fields, m[1:]))}
+    if type(d["step"]) is not int or d["step"] < 0 or not isinstance(d["sender"], str):
+        raise Rejected("bad step or sender")
+    e = d["env_idx"]
+    if type(e) is int and e >= 0:  # K: the copies 0..K-1
+        d["env_idx"] = np.arange(e, dtype=np.int64)
+    elif isinstance(e, list) and all(type(i) is int and i >= 0 for i in e) and len(set(e)) == len(e):
+        d["env_idx"] = np.array(e, dtype=np.int64).reshape(-1)
+    else:
+        raise Rejected("bad env_idx")
+    return d
 
 
-class Stamper:
-    """The header of every message this agent sends: a sequence number per key from 0."""
+def env_idx_to_wire(env_idx: np.ndarray) -> int | list[int]:
+    k = len(env_idx)
+    return k if np.array_equal(env_idx, np.arange(k)) else [int(i) for i in env_idx]
 
-    def __init__(self, run: str, sender: str) -> None:
-        self.run, self.sender, self.seq = run, sender, {}
 
-    def header(self, key: str, tag: str, step: int, env_idx: np.ndarray) -> dict:
-        seq = self.seq.get(key, 0)
-        self.seq[key] = seq + 1
-        return {"v": SCHEMA_VERSION, "type": tag, "run": self.run, "step": step,
-                "env_idx": from_array(env_idx, "int64"), "ts": time.time_ns(), "seq": seq, "sender": self.sender}
+def header(tag: str, step: int, env_idx: np.ndarray) -> list:
+    """The type tag and header of every message this agent sends; sender "": the one its key implies."""
+    return [TAGS[tag], SCHEMA_VERSION, step, env_idx_to_wire(env_idx), ""]
 
 
 # ----- the policy ---------------------------------------------------------------------------------
@@ -145,7 +174,8 @@ class ForeignLocalAgent:
         self.pending, self.last_step = {}, -1
         self.counters = {"steps": 0, "msgs_on_time": 0, "msgs_late": 0, "msgs_duplicate": 0, "fallback_copies": 0,
                          "obs_stale": 0, "rejected": 0}
-        self.stamper = Stamper(self.run_id, self.name)
+        # The message it acted on goes back only when the env host records it (training, or a trace).
+        self.echo = rt.get("mode", "train") == "train" or rt.get("trace", False)
         self.stop = False
 
         conf = zenoh.Config()
@@ -184,11 +214,12 @@ class ForeignLocalAgent:
             except queue.Empty:
                 return None
             try:
-                m = parse(raw, self.run_id, tag)
+                m = parse(raw, tag)
             except Rejected:
                 self.counters["rejected"] += 1
                 continue
-            if all(m.get(k) == v for k, v in self.binding[name].items()):
+            # sender "": the one the key implies
+            if all(m.get(k) == v or (k == "sender" and m[k] == "") for k, v in self.binding[name].items()):
                 return m
             self.counters["rejected"] += 1
 
@@ -299,13 +330,12 @@ class ForeignLocalAgent:
             p /= p.sum(axis=1, keepdims=True)
             u = self.rng.random(k)
             action = np.minimum((np.cumsum(p, axis=1) <= u[:, None]).sum(axis=1), self.action_dim - 1)
-            wire_action = from_array(action, "int64")
+            wire_action = from_array(action, "uint8" if self.action_dim <= 256 else "int64")
         else:
             z = self.rng.standard_normal((k, self.action_dim))
             wire_action = from_array(out + np.exp(self.log_std) * z, "float32")
-        m = {**self.stamper.header(self.act_key, "action", step, env_idx), "agent": self.agent,
-             "action": wire_action, "policy_version": max(self.version, 0), "fallback": from_array(fallback, "bool"),
-             "msg": from_array(msg, "float32") if msg is not None else None}
+        m = [*header("action", step, env_idx), self.agent, wire_action, max(self.version, 0),
+             from_array(fallback, "bool"), from_array(msg, "float32") if msg is not None and self.echo else None]
         self.act_pub.put(msgpack.packb(m, use_bin_type=True))
         self.last_step = step
         self.counters["steps"] += 1
@@ -315,10 +345,8 @@ class ForeignLocalAgent:
         if not force and time.monotonic() - self.last_hb < 1.0:
             return
         self.last_hb = time.monotonic()
-        hb = {**self.stamper.header(self.hb_key, "heartbeat", 0, np.zeros(0, np.int64)), "role": self.name,
-              "pid": os.getpid(), "status": status, "counters": self.counters,
-              "gauges": {"policy_version": self.version},
-              "detail": "foreign client"}
+        hb = [*header("heartbeat", 0, np.zeros(0, np.int64)), self.name, os.getpid(), status, self.counters,
+              {"policy_version": self.version}, "foreign client"]
         self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
 
     def run(self) -> None:

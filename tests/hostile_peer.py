@@ -32,11 +32,13 @@ def zeroed(blob: bytes) -> bytes:
 
 class HostilePeer(PeerThread):
     def __init__(self, run_id: str, transport: TransportConfig, num_envs: int, agent: int = 0,
-                 templates: dict[str, bytes] | None = None) -> None:
+                 templates: dict[str, bytes] | None = None, msg_dim: int = 0) -> None:
         """`templates`: weights blobs of the run's architecture (the code is public), forged from
-        until real weights are read, so the forgery never waits on catching a publication."""
+        until real weights are read, so the forgery never waits on catching a publication; `msg_dim`:
+        the run's message length (a training action carries the message it acted on)."""
         super().__init__("hostile-peer")
         self.run_id, self.transport, self.k, self.agent = run_id, transport, num_envs, agent
+        self.echo = np.zeros((num_envs, msg_dim), np.float32) if msg_dim else None
         self.forged = {net: zeroed(blob) for net, blob in (templates or {}).items()}
         self.sent = {"answers": 0, "blind_actions": 0, "weights": 0, "control": 0}
         self.obs_seen = 0
@@ -56,7 +58,8 @@ class HostilePeer(PeerThread):
                 for o in obs.drain():
                     self.obs_seen += 1
                     act.publish(Action(agent=self.agent, step=o.step, env_idx=o.env_idx,
-                                       action=np.zeros(len(o.env_idx), np.int64), policy_version=o.policy_version))
+                                       action=np.zeros(len(o.env_idx), np.int64), policy_version=o.policy_version,
+                                       msg=None if self.echo is None else self.echo[:len(o.env_idx)]))
                     self.sent["answers"] += 1
                 for w in real_weights.drain():
                     if w.version > self.weights_seen:
@@ -72,7 +75,8 @@ class HostilePeer(PeerThread):
         """Actions for agent 0 at 50 guessed steps (the real agent's are the ones that count)."""
         env_idx = np.arange(self.k, dtype=np.int64)
         for step in range(guess, guess + 50):
-            act.publish(Action(agent=self.agent, step=step, env_idx=env_idx, action=np.zeros(self.k, np.int64)))
+            act.publish(Action(agent=self.agent, step=step, env_idx=env_idx, action=np.zeros(self.k, np.int64),
+                               msg=self.echo))
         self.sent["blind_actions"] += 50
         return (guess + 50) % 20_000
 
@@ -86,7 +90,6 @@ class HostilePeer(PeerThread):
 
     def _stops(self, s: HammerSession) -> None:
         for sender in FORGED_STOP_SENDERS:
-            data = encode(Control(command="stop"), stamp={"run": s.run_id, "ts": time.time_ns(),
-                                                          "seq": self.sent["control"], "sender": sender})
+            data = encode(Control(command="stop"), stamp={"sender": sender})
             s.put_bytes(s.keys.ctl("all"), data)
             self.sent["control"] += 1

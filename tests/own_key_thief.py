@@ -20,7 +20,7 @@ import time
 import msgpack
 import numpy as np
 from hammer.protocol.codec import encode
-from hammer.protocol.schemas import SCHEMA_VERSION, Action, LocalObs
+from hammer.protocol.schemas import SCHEMA_VERSION, Action, Heartbeat, LocalObs
 from hammer.protocol.session import HammerSession, TransportConfig
 
 from tests.peer_thread import PeerThread
@@ -31,10 +31,9 @@ FLOOD_PER_S = 25
 
 def raw_heartbeat(run: str, role: str, pid: int, counters: dict, sender: str = "local-1", seq: int = 0) -> bytes:
     """A heartbeat as bytes, built by hand: the schema would refuse to build one with negative counters."""
-    return msgpack.packb({"v": SCHEMA_VERSION, "type": "heartbeat", "run": run, "step": 0,
-                          "env_idx": {"dtype": "int64", "shape": [0], "data": b""}, "ts": time.time_ns(), "seq": seq,
-                          "sender": sender, "role": role, "pid": pid, "status": "running", "counters": counters,
-                          "gauges": {}, "detail": ""}, use_bin_type=True)
+    # [type tag (heartbeat), v, step, env_idx (K = 0), sender, role, pid, status, counters, gauges, detail]
+    return msgpack.packb([Heartbeat.TAG, SCHEMA_VERSION, 0, 0, sender, role, pid, "running", counters, {}, ""],
+                         use_bin_type=True)
 
 
 class OwnKeyThief(PeerThread):
@@ -82,7 +81,7 @@ class OwnKeyThief(PeerThread):
         # its own agent, but a header naming another sender
         act.put_bytes(encode(Action(agent=self.agent, step=o.step, env_idx=o.env_idx, action=zeros,
                                     policy_version=o.policy_version),
-                             stamp={"run": run, "ts": time.time_ns(), "seq": 0, "sender": "local-0"}))
+                             stamp={"sender": "local-0"}))
         self.sent["forged_sender_actions"] += 1
 
     def _heartbeats(self, hb, run: str, pid: int) -> None:

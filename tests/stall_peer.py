@@ -8,8 +8,9 @@ is well formed and passes validation: only the roles' bounds (runtime/bounds.py)
 from __future__ import annotations
 
 import numpy as np
-from hammer.protocol.schemas import Action, Control, GlobalState, LocalObs, Weights
+from hammer.protocol.schemas import Action, CentralMsg, Control, GlobalState, LocalObs, Weights
 from hammer.protocol.session import HammerSession, TransportConfig
+from msgspec.structs import replace
 
 from tests.peer_thread import PeerThread
 
@@ -33,21 +34,23 @@ class StallPeer(PeerThread):
             k = s.keys
             state_in = s.subscribe(k.state(), GlobalState)
             obs_in = [s.subscribe(k.obs(i), LocalObs) for i in range(2)]
-            state = obs0 = obs1 = None
-            while not self.stop_event.is_set() and (state is None or obs0 is None or obs1 is None):
+            msg_in = s.subscribe(k.msg(0), CentralMsg)  # its width: a training action echoes its message
+            state = obs0 = obs1 = msg0 = None
+            while not self.stop_event.is_set() and (state is None or obs0 is None or obs1 is None or msg0 is None):
                 state = state or state_in.get(timeout=0.1)
                 obs0, obs1 = obs0 or obs_in[0].get(timeout=0.05), obs1 or obs_in[1].get(timeout=0.05)
+                msg0 = msg0 or msg_in.get(timeout=0.05)
             if self.stop_event.is_set():
                 return
             now = max(state.step, obs0.step)
             junk = np.random.default_rng(0).bytes(4096)
             for i, o in enumerate((obs0, obs1)):
                 self._send(f"obs_step_local-{i}", lambda m, i=i: s.publish(k.obs(i), m),
-                           o.model_copy(update={"step": HUGE_OBS_STEP}))
-            self._send("state_step", lambda m: s.publish(k.state(), m), state.model_copy(update={"step": HUGE_STATE_STEP}))
+                           replace(o, step=HUGE_OBS_STEP))
+            self._send("state_step", lambda m: s.publish(k.state(), m), replace(state, step=HUGE_STATE_STEP))
             # a step inside the window, naming a policy version no learner has published
             self._send("obs_version", lambda m: s.publish(k.obs(0), m),
-                       obs0.model_copy(update={"step": now + 50, "policy_version": HUGE_VERSION}))
+                       replace(obs0, step=now + 50, policy_version=HUGE_VERSION))
             for net in ("local", "central"):
                 self._send(f"weights_{net}", lambda m, net=net: s.publish(k.weights(net), m),
                            Weights.from_blob(net, HUGE_VERSION, junk))
@@ -55,7 +58,8 @@ class StallPeer(PeerThread):
             env_idx = np.arange(len(obs0.env_idx), dtype=np.int64)
             for step in (now + 1000, HUGE_VERSION):  # never current in a run this short
                 self._send("future_action", lambda m: s.publish(k.act(0), m),
-                           Action(agent=0, step=step, env_idx=env_idx, action=np.zeros(len(env_idx), np.int64)))
+                           Action(agent=0, step=step, env_idx=env_idx, action=np.zeros(len(env_idx), np.int64),
+                                  msg=np.zeros((len(env_idx), msg0.msg.shape[1]), np.float32)))
             s.put_bytes(k.obs(2), b"\0" * (50 * 2**20))  # 50 MB where a LocalObs (cap 4 MiB) is expected
             self.sent["oversize"] = 1
             self.stop_event.wait(3.0)  # stay joined while the big payload is delivered

@@ -20,6 +20,7 @@ from hammer.protocol.samples import sample_messages
 from hammer.protocol.schemas import (
     Action,
     CentralMsg,
+    Control,
     ExperienceChunk,
     GlobalState,
     Heartbeat,
@@ -28,14 +29,15 @@ from hammer.protocol.schemas import (
 )
 from hammer.protocol.session import HammerSession, TransportConfig
 from hammer.runtime.heartbeats import HeartbeatLedger
+from msgspec.structs import replace
 
 K = 4
 
 
 def _msg(cls, sender: str, **fields):
     """A sample message of `cls` with its sender (as a session stamps it) and the given fields."""
-    m = next(m for m in sample_messages(run="r") if type(m) is cls)
-    return cls.model_validate({**m.model_dump(), "sender": sender, **fields})
+    m = next(m for m in sample_messages() if type(m) is cls)
+    return replace(m, sender=sender, **fields)
 
 
 @pytest.mark.parametrize(("key", "cls", "sender", "fields"), [
@@ -84,17 +86,28 @@ def test_a_payload_that_claims_more_than_its_key_is_refused(key, cls, sender, fi
     assert e.value.reason == "key_mismatch" and e.value.field == what
 
 
+def test_an_empty_sender_is_the_one_its_key_implies():
+    """A publisher sends the sender its key implies as "" (it is not repeated on the wire); the
+    receiver takes it from the key. On a key that implies none, "" stays "" (and obeys no stop)."""
+    m = _msg(Action, "", agent=1)
+    check_key(m, "agent/act/1")
+    assert m.sender == "local-1"
+    stop = Control(command="stop")
+    check_key(stop, "ctl/all")
+    assert stop.sender == ""
+
+
 def test_pool_names_cover_exactly_their_agents():
     assert pool_agents("locals-2-4") == {2, 3, 4} and pool_agents("locals-1_5") == {1, 5}
     assert pool_agents("local-1") == set() and pool_agents("locals-x") == set()
 
 
 def test_heartbeat_counters_are_non_negative_and_gauges_separate():
-    good = sample_messages(run="r")[-1]
+    good = sample_messages()[-1]
     assert isinstance(good, Heartbeat) and good.gauges["paper_metric_100"] < 0
     for bad in ({"decode": -6}, {"x": -0.5}, {"x": float("nan")}):
         with pytest.raises(ProtocolError):
-            decode(encode(good.model_copy(update={"counters": bad}), stamp={"run": "r"}), Heartbeat)
+            decode(encode(replace(good, counters=bad)), Heartbeat)
 
 
 @pytest.fixture()
@@ -140,10 +153,10 @@ def test_a_flood_on_one_key_is_refused_on_arrival_and_bounded(pair):
     acts = env.subscribe(env.keys.act("*"), Action, DIMS, maxsize=16)
     assert acts.cap is not None and acts.cap < 4096
     _settle()
-    big = encode(_action(1, 0), stamp={"run": "r", "sender": "local-1"}) + bytes(4 << 20)
+    big = encode(_action(1, 0), stamp={"sender": "local-1"}) + bytes(4 << 20)
     for _ in range(25):
         thief.put_bytes(thief.keys.act(1), big)
-    small = encode(_action(1, 0), stamp={"run": "r", "sender": "local-1"})
+    small = encode(_action(1, 0), stamp={"sender": "local-1"})
     for _ in range(200):
         thief.put_bytes(thief.keys.act(1), small)
     deadline = time.monotonic() + 5.0
@@ -163,7 +176,7 @@ def test_a_flood_on_one_key_is_refused_on_arrival_and_bounded(pair):
 
 
 def _hb(role: str, pid: int, **counters) -> Heartbeat:
-    return Heartbeat(role=role, pid=pid, status="running", counters=counters, sender=role, run="r")
+    return Heartbeat(role=role, pid=pid, status="running", counters=counters, sender=role)
 
 
 def test_the_ledger_refuses_counters_that_fall_and_pids_it_did_not_start():

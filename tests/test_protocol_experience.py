@@ -28,13 +28,13 @@ def _chunk_arrays(layout: RolloutLayout, seed: int = 0) -> dict[str, np.ndarray]
 
 
 def _chunk(layout: RolloutLayout, arrays: dict[str, np.ndarray] | None = None) -> ExperienceChunk:
-    return ExperienceChunk(run="r1", step=9, env_idx=np.arange(layout.k), role="team", policy_version=1,
+    return ExperienceChunk(step=9, env_idx=np.arange(layout.k), role="team", policy_version=1,
                            arrays=_chunk_arrays(layout) if arrays is None else arrays)
 
 
 def _record(layout: RolloutLayout, k: int | None = None) -> ExperienceChunk:
     k = layout.k if k is None else k
-    return ExperienceChunk(run="r1", step=9, env_idx=np.arange(k), role="central", policy_version=1,
+    return ExperienceChunk(step=9, env_idx=np.arange(k), role="central", policy_version=1,
                            arrays=RolloutLayout(**{**layout.__dict__, "k": k}).allocate(RECORD))
 
 

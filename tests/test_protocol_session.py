@@ -12,17 +12,17 @@ import pytest
 from hammer.benchmarks.transport import echo_main
 from hammer.protocol.codec import encode
 from hammer.protocol.dims import Dims
-from hammer.protocol.errors import RunMismatchError
+from hammer.protocol.fields import DTYPE_CODES
 from hammer.protocol.samples import sample_messages
-from hammer.protocol.schemas import SCHEMA_VERSION, Control, GlobalState, LocalObs, Message
+from hammer.protocol.schemas import SCHEMA_VERSION, Control, GlobalState, LocalObs, Message, fields_of
 from hammer.protocol.session import HammerSession, TransportConfig
 
-HEADER_STAMPS = {"run", "ts", "seq", "sender"}
+HEADER_STAMPS = {"sender"}
 
 
 def _same_payload(a: Message, b: Message) -> None:
     assert type(a) is type(b)
-    for name in type(a).model_fields:
+    for name in fields_of(type(a)):
         if name in HEADER_STAMPS:
             continue
         x, y = getattr(a, name), getattr(b, name)
@@ -54,15 +54,14 @@ def test_every_message_type_through_zenoh(pair):
     a, b = pair
     sub = b.subscribe(b.keys.bench("all"))
     _settle()
-    sent = sample_messages(run="")
+    sent = sample_messages()
     seqs = [a.publish(a.keys.bench("all"), m) for m in sent]
     got = [sub.get(5.0) for _ in sent]
     assert seqs == list(range(len(sent)))
     for m, g in zip(sent, got):
         assert g is not None
         _same_payload(m, g)
-        assert g.run == "r1" and g.sender == "env" and g.ts > 0
-    assert [g.seq for g in got] == seqs
+        assert g.sender == "env"  # a key that implies no sender: the session's name is sent
     assert sub.stats.delivered == len(sent) and sub.stats.rejected_total == 0
 
 
@@ -72,14 +71,16 @@ def test_bounded_queue_counts_overflow_and_keeps_the_oldest(pair):
     raw = b.subscribe_raw(b.keys.bench("bounded"), maxsize=5)
     free = b.subscribe_raw(b.keys.bench("bounded"))
     _settle()
-    seqs = [a.publish(a.keys.bench("bounded"), Control(command="stop")) for _ in range(10)]
+    targets = [f"role-{i}" for i in range(10)]
+    for t in targets:
+        a.publish(a.keys.bench("bounded"), Control(command="stop", target=t))
     deadline = time.monotonic() + 5.0
     while free.pending() < 10 and time.monotonic() < deadline:
         time.sleep(0.01)
     assert free.pending() == 10 and free.stats.overflow == 0
     assert typed.pending() == 3 and typed.stats.overflow == 7
     assert raw.pending() == 5 and raw.stats.overflow == 5
-    assert [m.seq for m in typed.drain()] == seqs[:3] and typed.get(0) is None
+    assert [m.target for m in typed.drain()] == targets[:3] and typed.get(0) is None
     assert len([raw.get(0) for _ in range(5)]) == 5 and raw.get(0) is None and raw.get(0.05) is None
     a.publish(a.keys.bench("bounded"), Control(command="stop"))  # room again once drained
     assert typed.get(5.0) is not None and typed.stats.overflow == 7
@@ -90,30 +91,32 @@ def test_malformed_input_is_counted_and_never_stops_delivery(pair):
     key = a.keys.state()
     sub = b.subscribe(b.keys.state(), GlobalState, Dims(n_agents=3, obs_dim=18), max_bytes=64 << 10)
     _settle()
-    good = sample_messages(run="r1")[1]
+    good = sample_messages()[1]
     valid = encode(good)
-    d = msgpack.unpackb(valid)
+    names = ("type", *fields_of(GlobalState))
+    full = [*msgpack.unpackb(valid), 0, [0, [4, 3], b"\x01" * 12]][:len(names)]  # with policy_version, active
+    d = dict(zip(names, full))
+    parts = {"dtype": 0, "shape": 1, "data": 2}
 
     def variant(**kv) -> bytes:
-        x = msgpack.unpackb(valid)
+        x = msgpack.unpackb(msgpack.packb(full))
         for k, v in kv.items():
             if "__" in k:
                 f, g = k.split("__")
-                x[f][g] = v
+                x[names.index(f)][parts[g]] = v
             else:
-                x[k] = v
+                x[names.index(k)] = v
         return msgpack.packb(x)
 
     bad = {
         "decode": [b"\x93\x01", valid[:-3], bytes(np.random.default_rng(0).integers(0, 256, 200, dtype=np.uint8))],
         "version": [variant(v=SCHEMA_VERSION + 1)],
-        "type": [encode(sample_messages(run="r1")[0])],  # a LocalObs where GlobalState is expected
-        "dtype": [variant(obs__dtype="float64", obs__data=d["obs"]["data"] * 2)],
+        "type": [encode(sample_messages()[0])],  # a LocalObs where GlobalState is expected
+        "dtype": [variant(obs__dtype=DTYPE_CODES["float64"], obs__data=d["obs"][2] * 2)],
         "shape": [variant(obs__shape=[4, 3, 9, 2]), variant(active__shape=[2, 6])],
         "nonfinite": [variant(obs__data=np.full((4, 3, 18), np.nan, np.float32).tobytes()),
                       variant(obs__data=np.full((4, 3, 18), -np.inf, np.float32).tobytes())],
         "size": [valid + bytes(70 << 10)],
-        "run": [encode(good, stamp={"run": "other"})],
         "field": [variant(step=-3)],
     }
     n_valid = 0
@@ -148,21 +151,19 @@ def test_two_runs_on_one_host_do_not_cross_talk():
         sub_a = same.subscribe(same.keys.obs("*"), LocalObs)
         sub_b = other.subscribe(other.keys.obs("*"), LocalObs)
         _settle()
-        lo = sample_messages(run="")[0]
+        lo = sample_messages()[0]
         for _ in range(5):
             hub.publish(hub.keys.obs(1), lo)
             other.publish(other.keys.obs(1), lo)
         got_a = [sub_a.get(2.0) for _ in range(5)]
         got_b = [sub_b.get(2.0) for _ in range(5)]
-        assert all(m is not None and m.run == "runA" and m.sender == hub.sender for m in got_a)
-        assert all(m is not None and m.run == "runB" for m in got_b)
+        assert all(m is not None and m.sender == hub.sender for m in got_a)
+        assert all(m is not None for m in got_b)
         time.sleep(0.2)
         assert sub_a.get(0) is None and sub_b.get(0) is None
         assert sub_a.stats.rejected_total == 0 and sub_b.stats.rejected_total == 0
         with pytest.raises(ValueError, match="not under this run"):
             hub.subscribe("hammer/runB/**")
-        with pytest.raises(RunMismatchError):
-            hub.publish(hub.keys.obs(0), sample_messages(run="runB")[0])
 
 
 def test_liveliness_tokens_appear_and_disappear(pair):
@@ -204,12 +205,12 @@ def test_round_trip_across_two_spawned_processes():
         try:
             ev = watch.get(30.0)
             assert ev is not None and ev.role == "echo" and ev.alive
-            for m in sample_messages(run=""):
+            for m in sample_messages():
                 s.publish(s.keys.bench("ping"), m)
                 back = pong.get(10.0)
                 assert back is not None, f"no echo of {m.TYPE}"
                 _same_payload(m, back)
-                assert back.sender == "echo" and back.run == "x2proc"
+                assert back.sender == "echo"
             assert pong.stats.rejected_total == 0
             s.put_bytes(s.keys.bench("quit"), b"q")
             echo.join(15)
@@ -220,3 +221,32 @@ def test_round_trip_across_two_spawned_processes():
         finally:
             if echo.is_alive():
                 echo.terminate()
+
+
+def test_a_session_opted_into_float16_halves_observations_and_messages_only(pair):
+    """RuntimeSettings.wire_float16 (serving only): the publishers of such a session send float32
+    observations and messages as float16, read back as float32; everything else goes as it is."""
+    from hammer.runtime.settings import RuntimeSettings
+
+    a, b = pair
+    a.wire_float16 = True
+    sub = b.subscribe(b.keys.bench("half"))
+    pub = a.publisher(a.keys.bench("half"))
+    _settle()
+    sent = sample_messages()
+    for m in sent:
+        pub.publish(m)
+    for m in sent:
+        got = sub.get(5.0)
+        assert got is not None and type(got) is type(m)
+        for name, spec in type(m).ARRAYS.items():
+            x, y = getattr(m, name), getattr(got, name)
+            if x is None or x.dtype != np.float32 or ("float16", "float32") not in spec.wire:
+                assert x is None or (x.dtype == y.dtype and np.array_equal(x, y)), (m.TYPE, name)
+            else:
+                assert y.dtype == np.float32 and np.array_equal(y, x.astype(np.float16).astype(np.float32))
+        if m.TYPE in ("experience", "weights"):
+            _same_payload(m, got)
+    with pytest.raises(ValueError, match="wire_float16"):
+        RuntimeSettings(run_id="r", wire_float16=True)
+    assert RuntimeSettings(run_id="r", mode="eval", policy_dir="p", wire_float16=True).wire_float16

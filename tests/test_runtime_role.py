@@ -214,8 +214,7 @@ def _stop_from(session: HammerSession, sender: str) -> None:
     """A stop command whose header names `sender` (plain profile: the header is whatever the peer writes)."""
     from hammer.protocol.codec import encode
 
-    data = encode(Control(command="stop"), stamp={"run": session.run_id, "ts": time.time_ns(), "seq": 0,
-                                                  "sender": sender})
+    data = encode(Control(command="stop"), stamp={"sender": sender})
     session.put_bytes(session.keys.ctl("all"), data)
 
 
@@ -395,3 +394,14 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_pa
     assert known_version(None) == 17 and known_version(30) == 30
     monkeypatch.setenv(RUN_VERSION_ENV, "-3")
     assert known_version(None) == 0
+
+
+def test_actions_echo_their_message_only_where_the_env_host_records_it():
+    """Training records the message each action used (the rollout), and so does a trace; serving
+    records neither, and the message stays off the wire (issue 31). Both ends read the same setting:
+    the env host requires the echo exactly where the agents send it."""
+    from hammer.runtime.settings import RuntimeSettings
+
+    assert RuntimeSettings(run_id="r").echo
+    assert not RuntimeSettings(run_id="r", mode="eval", policy_dir="p").echo
+    assert RuntimeSettings(run_id="r", mode="eval", policy_dir="p", trace=True).echo

@@ -23,10 +23,10 @@ def test_the_rollout_chunk_cap_grows_with_the_run_and_still_refuses_more():
     assert big.chunk_nbytes() == sum(a.nbytes for a in _chunk(big).values())
     cap = big.chunk_nbytes() + 1024  # a cap just above this chunk: what cap_for does for a chunk over 64 MiB
     data = encode(ExperienceChunk(step=3, env_idx=np.arange(4), role="team", policy_version=0, arrays=_chunk(big)),
-                  stamp={"run": "r", "ts": 1, "seq": 0, "sender": "env"}, max_bytes=cap + MiB)
-    assert decode(data, ExperienceChunk, Dims.from_layout(big), max_bytes=cap + MiB, run="r").arrays["obs"].shape[2] == 50
+                  stamp={"sender": "env"}, max_bytes=cap + MiB)
+    assert decode(data, ExperienceChunk, Dims.from_layout(big), max_bytes=cap + MiB).arrays["obs"].shape[2] == 50
     with pytest.raises(SizeError):
-        decode(data, ExperienceChunk, max_bytes=len(data) - 1, run="r")
+        decode(data, ExperienceChunk, max_bytes=len(data) - 1)
 
 
 def _chunk(layout: RolloutLayout) -> dict[str, np.ndarray]:

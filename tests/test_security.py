@@ -314,7 +314,8 @@ def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
 def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
     from tests.hostile_peer import HostilePeer
 
-    return HostilePeer(run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir))
+    return HostilePeer(run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir),
+                       msg_dim=cfg.wiring.msg_dim)
 
 
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):

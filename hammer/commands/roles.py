@@ -228,7 +228,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
                                   step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
                                   start_step=known_step(settings.resume_step),
-                                  start_version=known_version(settings.resume_from))
+                                  start_version=known_version(settings.resume_from), echo=settings.echo)
             pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
@@ -254,6 +254,7 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
         fail(str(e))
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
+            s.wire_float16 = settings.wire_float16
             server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
                                    step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
                                    max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step),
@@ -285,11 +286,12 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
     host = None
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
+            s.wire_float16 = settings.wire_float16
             s.declare_alive("env")
             host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
                            trace=settings.trace, max_policy_lag=settings.max_policy_lag,
                            resume_from=settings.resume_from, resume_step=settings.resume_step,
-                           trace_max_mb=settings.trace_max_mb)
+                           trace_max_mb=settings.trace_max_mb, echo=settings.echo)
             host.stall_warn_s = settings.stall_warn_s
             summary = host.run_eval() if settings.mode == "eval" else host.run_training()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
