@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-RSS_TARGET_MB, COLD_TARGET_S = 50.0, 1.0
+RSS_TARGET_MB, COLD_TARGET_S = 40.0, 0.5  # issue 31
 
 
 @dataclass
