@@ -39,7 +39,9 @@ def parse_outages(text: str) -> list[tuple[str, float, str]]:
     """`local-0:5,central:30@robot` -> [("local-0", 5.0, "hub"), ("central", 30.0, "robot")]: the link,
     how long it is down, and which end is taken down: `hub` (default), a cut beyond the robot (its own
     interface stays up, as when a switch or access point fails), or `robot`, its own interface (as
-    when it drives out of range)."""
+    when it drives out of range). `none`: no outage run (the baseline only)."""
+    if text.strip() == "none":
+        return []
     out = []
     for item in filter(None, (x.strip() for x in text.split(","))):
         spec, _, side = item.partition("@")
@@ -72,10 +74,11 @@ def _rates(timeline: list[dict], t0: float, t1: float) -> list[float] | None:
 
 def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], hz: float, tag: str,
               edge_python: Path | None = None, seconds: float | None = None,
-              neigh_retrans_ms: int | None = None) -> dict:
+              neigh_retrans_ms: int | None = None, rate_kbit: int = 0) -> dict:
     """One fleet across namespaces with `outages` one after another; returns its figures.
     `neigh_retrans_ms`: the kernel's neighbour (ARP) retransmission timer on the robots' and the
-    central agent's interfaces, 1000 ms unless set (see main's --neigh-retrans-ms)."""
+    central agent's interfaces, 1000 ms unless set (see main's --neigh-retrans-ms). `rate_kbit`: a tbf
+    on robot 0's link, both ways (0 = none; see main's --rate-kbit)."""
     from hammer.serve.bundle import load_bundle
 
     b = load_bundle(bundle)
@@ -88,7 +91,7 @@ def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], h
     common = ["--bundle", str(bundle), "--run-id", run.name, "--insecure"]
     procs = Procs(run)
     events: list[dict] = []
-    with topology(n, tag, central=True) as top:
+    with topology(n, tag, rate_kbit, central=True) as top:
         if neigh_retrans_ms is not None:
             for ns, dev in top.far.values():
                 subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-qw",
@@ -208,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--neigh-retrans-ms", type=int, help="The kernel's neighbour (ARP) retransmission timer "
                     "on the robots' and the central agent's interfaces (Linux default 1000 ms).")
     ap.add_argument("--baseline-s", type=float, default=30.0, help="Length of the run without outages.")
+    ap.add_argument("--rate-kbit", type=int, default=0, help="A tbf limit (kbit/s, both ways) on robot 0's link in "
+                    "both runs: does the loop keep its rate on a thin radio link (0 = none)?")
     ap.add_argument("--edge-venv", type=Path, help="The robots' interpreter (a torch-free venv: benchmarks/edge_venv.py).")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-fleet"))
     ap.add_argument("--out", type=Path, help="Write the JSON result here.")
@@ -234,17 +239,25 @@ def main(argv: list[str] | None = None) -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     tag = str(os.getpid() % 10000)
     try:
-        base = fleet_run(a.bundle, a.work, [], a.hz, f"{tag}b", a.edge_venv, seconds=a.baseline_s)
-        cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv, neigh_retrans_ms=a.neigh_retrans_ms)
+        base = fleet_run(a.bundle, a.work, [], a.hz, f"{tag}b", a.edge_venv, seconds=a.baseline_s,
+                         rate_kbit=a.rate_kbit)
+        cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv, neigh_retrans_ms=a.neigh_retrans_ms,
+                        rate_kbit=a.rate_kbit) if outages else None
     except NetnsUnavailable as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    result = {"bundle": str(a.bundle), "hz": a.hz, "neigh_retrans_ms": a.neigh_retrans_ms,
+    result = {"bundle": str(a.bundle), "hz": a.hz, "neigh_retrans_ms": a.neigh_retrans_ms, "rate_kbit": a.rate_kbit,
               "baseline": base["world"], "with_outages": cut}
-    b_metric, c_metric = base["world"].get("paper_metric_mean"), cut["world"].get("paper_metric_mean")
-    print(f"fleet at {a.hz:g} Hz, {base['world']['seconds']:.0f} s without outages: paper metric "
+    b_metric = base["world"].get("paper_metric_mean")
+    print(f"fleet at {a.hz:g} Hz{f', robot 0 at {a.rate_kbit} kbit/s' if a.rate_kbit else ''}, "
+          f"{base['world']['seconds']:.0f} s without outages: paper metric "
           f"{b_metric if b_metric is None else round(b_metric, 2)}, control Hz per robot "
-          f"{[r['control_hz'] for r in base['world']['robots'].values()]}")
+          f"{[r['control_hz'] for r in base['world']['robots'].values()]}, defaults per robot "
+          f"{[r['defaults'] for r in base['world']['robots'].values()]}")
+    if cut is None:
+        write_json(a.out, result)
+        return 0
+    c_metric = cut["world"].get("paper_metric_mean")
     for o in cut["outages"]:
         print(f"  {o['link']} down {o['seconds']:g} s ({o['side']} end): healthy robots {o['healthy_control_hz_during']} Hz during "
               f"({o['healthy_control_fraction_during']} of nominal), fresh messages "

@@ -455,7 +455,9 @@ def bench_fleet(
     outages: Annotated[str | None, typer.Option(
         help="links cut one after another, LINK:SECONDS with LINK local-<i> or central; LINK:SECONDS@robot takes "
              "the robot's own interface down instead of the hub's end (a cut beyond the robot); default "
-             "local-0:5,local-0:30,local-0:30@robot,central:5,central:30")] = None,
+             "local-0:5,local-0:30,local-0:30@robot,central:5,central:30; `none`: the run without outages only")] = None,
+    rate_kbit: Annotated[int, typer.Option(min=0, help="a tbf limit (kbit/s, both ways) on robot 0's link in both "
+                                                       "runs: does the loop keep its rate on a thin radio link? (0 = none)")] = 0,
     neigh_retrans_ms: Annotated[int | None, typer.Option(
         help="the kernel's neighbour (ARP) retransmission timer on the robots' and the central agent's "
              "interfaces (Linux default 1000 ms)")] = None,
@@ -472,7 +474,7 @@ def bench_fleet(
 
     code = main([str(bundle), "--hz", str(hz), *(["--outages", outages] if outages else []),
                  *(["--neigh-retrans-ms", str(neigh_retrans_ms)] if neigh_retrans_ms is not None else []),
-                 "--baseline-s", str(baseline_s),
+                 "--baseline-s", str(baseline_s), "--rate-kbit", str(rate_kbit),
                  *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else []),
                  *(["--soak-minutes", str(soak_minutes)] if soak_minutes else [])])
     if code:
