@@ -12,6 +12,7 @@ part against a baseline taken in the same run:
   security     `hammer up --secure` vs plain vs a flood on one agent's key    (benchmarks.security)
   edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
   seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
+  kernels      an update's layers alone (the arithmetic floor) vs the real loop (benchmarks.kernels)
   scale        cn N=3..50: train vs up vs up with agent pools, the floor      (benchmarks.scale)
   soak         a served team for N minutes: RSS per process, disk, growth    (benchmarks.soak)
 
@@ -288,6 +289,45 @@ def bench_seeds(
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps({"rows": rows, "grid": grid}, indent=2))
+        typer.echo(f"wrote {json_out}")
+
+
+@bench.command("kernels")
+def bench_kernels(
+    variants: Annotated[str, typer.Option(help="comma-separated cn3 variants: il, hammer (rl), hammer-backprop")] = "il",
+    updates: Annotated[int, typer.Option(min=1, help="timed updates of the real loop per row")] = 30,
+    repeats: Annotated[int, typer.Option(min=10, help="calls per timed kernel (best of three loops)")] = 300,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
+) -> None:
+    """The arithmetic floor of one cn3 training update, one core: every Linear layer's forward and
+    backward matmuls and tanh at the run's shapes (no Python, optimiser, loss or sampling), with the
+    env step, against the real update and collection, eager and compile=true. A rate target above
+    the floor's rate cannot be reached by removing overhead (docs/fast-envs.md)."""
+    from rich.table import Table
+
+    from hammer.benchmarks.kernels import measure
+    from hammer.console import table_console
+
+    known = {"il": ("il", "rl"), "hammer": ("hammer", "rl"), "hammer-rl": ("hammer", "rl"),
+             "hammer-backprop": ("hammer", "backprop")}
+    names = [v.strip() for v in variants.split(",") if v.strip()]
+    bad = [v for v in names if v not in known]
+    if bad:
+        fail(f"--variants: unknown {', '.join(bad)}; fix: one of {', '.join(known)}")
+    rows = [measure(known[v][0], c, updates, repeats, central_mode=known[v][1]) for v in names for c in (False, True)]
+    table = Table(title="hammer bench kernels (cn3, one core; ms per update of "
+                        f"{rows[0]['schedule']})")
+    for col in ("variant", "compile", "update", "floor", "collect", "env", "act floor", "env-steps/s",
+                "at the floor", "load"):
+        table.add_column(col, justify="left" if col == "variant" else "right")
+    for r in rows:
+        table.add_row(r["variant"], str(r["compile"]).lower(), f"{r['update_ms']:.1f}", f"{r['update_floor_ms']:.1f}",
+                      f"{r['collect_ms']:.1f}", f"{r['env_ms']:.1f}", f"{r['act_floor_ms']:.1f}",
+                      f"{r['env_steps_per_s']:,}", f"{r['floor_env_steps_per_s']:,}", f"{r['load_1min']:.2f}")
+    table_console().print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(rows, indent=2))
         typer.echo(f"wrote {json_out}")
 
 
