@@ -39,6 +39,10 @@ def _served(run_dir: Path) -> tuple[dict, dict]:
         rt = json.loads((run_dir / "runtime.json").read_text())
         cfg = json.loads((run_dir / "config.json").read_text())
     except FileNotFoundError:
+        if (run_dir / "fleet.json").is_file():
+            raise BundleError(f"{run_dir}: a realtime fleet (`hammer serve --realtime`) takes no pushes yet: each robot "
+                              "acts with the bundle it started with; fix: restart the fleet (or its robots) with the "
+                              "new bundle (docs/fleet.md)") from None
         raise BundleError(f"{run_dir}: no runtime.json/config.json; fix: pass the run directory `hammer serve` "
                           "printed") from None
     if rt.get("mode") != "eval":

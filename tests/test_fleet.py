@@ -175,6 +175,13 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     env_log = (run / "logs" / "env.log").read_text()
     assert "local-1 missing" in env_log and "local-1 rejoined" in env_log
     assert "local-0 missing" not in env_log and "local-2 missing" not in env_log
+    # a fleet takes no pushes yet (its robots act with the bundle they started with): said so plainly
+    from hammer.serve.bundle import BundleError
+    from hammer.serve.push import push
+
+    with pytest.raises(BundleError, match=r"realtime fleet .* takes no pushes yet.*fix: restart"):
+        push(bundle, run)
+    assert not (run / "pushes.json").exists()
 
 
 def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, tmp_path):
