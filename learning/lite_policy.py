@@ -78,22 +78,38 @@ def read_safetensors(blob: bytes) -> dict[str, tuple[tuple[int, ...], list[float
     return out
 
 
-def safetensors_names(path) -> set[str]:
-    """The tensor names of a safetensors file, from its header only (what `lite_supported` asks)."""
+def safetensors_shapes(path) -> dict[str, tuple[int, ...]]:
+    """Tensor name -> shape of a safetensors file, from its header only (never the payload, never
+    pickle, no numpy: what `lite_supported` and a bundle's check need, serve/bundle.py)."""
     with open(path, "rb") as f:
         head = f.read(8)
         if len(head) < 8:
-            raise LiteWeightsError(f"{path}: shorter than its 8-byte header length")
+            raise LiteWeightsError("shorter than its 8-byte header length")
         (n,) = struct.unpack("<Q", head)
         if n > MAX_HEADER:
-            raise LiteWeightsError(f"{path}: header length {n} over {MAX_HEADER}")
-        try:
-            header = json.loads(f.read(n).decode("utf-8"))
-        except (UnicodeDecodeError, ValueError) as e:
-            raise LiteWeightsError(f"{path}: header is not JSON: {e}") from None
+            raise LiteWeightsError(f"header length {n} over {MAX_HEADER}")
+        raw = f.read(n)
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as e:
+        raise LiteWeightsError(f"header is not JSON: {e}") from None
     if type(header) is not dict:
-        raise LiteWeightsError(f"{path}: header is not a map")
-    return set(header) - {"__metadata__"}
+        raise LiteWeightsError("header is not a map")
+    out = {}
+    for name, t in header.items():
+        if name == "__metadata__":
+            continue
+        shape = t.get("shape") if type(t) is dict else None
+        if type(shape) is not list or not all(type(d) is int and d >= 0 for d in shape) or "dtype" not in t \
+                or "data_offsets" not in t:
+            raise LiteWeightsError(f"tensor {name!r} is not {{dtype, shape, data_offsets}}")
+        out[name] = tuple(shape)
+    return out
+
+
+def safetensors_names(path) -> set[str]:
+    """The tensor names of a safetensors file, from its header only."""
+    return set(safetensors_shapes(path))
 
 
 def f32(values: list[float]) -> list[float]:

@@ -291,7 +291,9 @@ class ArraySpec:
             if name not in self.dtypes:
                 hint = f"; cast with .astype(np.{self.dtypes[0]})" if self.dtypes[0] != "bool" else ""
                 raise DTypeError(f"dtype {name} not allowed here, need one of {list(self.dtypes)}{hint}", field)
-        elif type(value) in (tuple, list):
+        elif type(value) in (tuple, list) or type(value) is WireArray:
+            if type(value) is WireArray:  # built before numpy was loaded (a lite process that loaded it since)
+                value = [DTYPE_CODES[value.dtype], list(value.shape), value.data]
             a = array_from_wire(value, field, self._allowed)
             name = CODE_NAMES[value[0]]
             widen = self._widen.get(name)

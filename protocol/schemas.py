@@ -156,6 +156,8 @@ def _env_idx(v: Any) -> Any:
         a = v
     elif t is list:
         a = np.array(v, dtype=np.int64) if v else empty_idx()
+    elif t is WireArray and v.dtype == "int64" and v.ndim == 1:  # built before numpy was loaded
+        a = np.array(v.tolist(), dtype=np.int64)
     else:
         raise FieldError(f"env_idx must be an int or a list of ints, got {t.__name__}", "env_idx")
     if a.size and not _is_range(a):

@@ -43,7 +43,7 @@ class JoinError(RuntimeError):
 def agent_spec(bundle, agent: int, seed: int | None):
     """(AgentSpec, num_envs) of agent `agent` from the manifest alone (no RunConfig; its values are
     checked on load, serve.bundle.check_manifest)."""
-    from hammer.local_agent.client import AgentSpec
+    from hammer.local_agent.steps import AgentSpec  # numpy-free (the lite agent never loads numpy)
 
     m, c = bundle.manifest, bundle.config_data
     env, w = m["env_spec"], bundle.wiring()
