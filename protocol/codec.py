@@ -21,7 +21,6 @@ import struct
 from typing import Any
 
 import msgspec
-from hammer.protocol import fields as _fields
 from hammer.protocol.dims import Dims, min_max
 from hammer.protocol.errors import (
     DecodeError,
@@ -51,6 +50,7 @@ Expected = type[Message] | tuple[type[Message], ...] | None
 _F16, _U8 = DTYPE_CODES["float16"], DTYPE_CODES["uint8"]
 np: Any = None  # numpy, bound with the first numpy array encoded (the lite edge agent has none: `_array_lite`)
 _F32: Any = None
+count_nonzero: Any = None  # numpy's C count_nonzero (fields.py), bound with numpy
 _NODEFAULT = object()
 # Optional bool arrays whose usual value is sent as nil: every agent active, no fallback.
 _NIL_WHEN = {(LocalObs, "active"): True, (GlobalState, "active"): True, (Action, "fallback"): False}
@@ -78,8 +78,8 @@ def _array(spec: ArraySpec, a: Any, half: bool, field: str) -> list:
 
 def _bind_numpy() -> None:
     global _F32
-    numpy_loaded(globals())
-    _F32 = np.dtype("<f4")
+    if numpy_loaded(globals()):
+        _F32 = np.dtype("<f4")
 
 
 def _array_lite(spec: ArraySpec, a: WireArray, half: bool, field: str) -> list:
@@ -96,13 +96,6 @@ def _array_lite(spec: ArraySpec, a: WireArray, half: bool, field: str) -> list:
             raise NonFiniteError("beyond float16's range (65504): send it as float32", field) from None
         return [_F16, list(a.shape), h]
     return array_to_wire(a)
-
-
-def _nonzero(a: Any) -> int:
-    """How many elements of a bool array are true."""
-    if type(a) is WireArray:
-        return len(a.data) - a.data.count(0)
-    return _fields.count_nonzero(a)
 
 
 def _plan(cls: type[Message]) -> list[tuple[str, Any, Any]]:
@@ -129,6 +122,9 @@ def _plan(cls: type[Message]) -> list[tuple[str, Any, Any]]:
 
 
 _PLANS = {cls: _plan(cls) for cls in MESSAGE_TYPES.values()}
+_bind_numpy()  # where numpy came first (every role but the lite edge agent); else with the first numpy array
+
+
 
 
 def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = False) -> list:
@@ -136,6 +132,8 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
     optional ones at their default at the end. `stamp` overrides header fields (the sender)."""
     cls = type(msg)
     out: list[Any] = [cls.TAG]
+    if np is None:  # numpy loaded since this module was (else the lite agent: WireArrays only)
+        _bind_numpy()
     for name, conv, _ in _PLANS[cls]:
         v = getattr(msg, name) if not stamp or name not in stamp else stamp[name]
         if conv is None:
@@ -148,7 +146,8 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
             out.append(None)
         else:
             _, spec, nil = conv
-            if nil is not None and v.size and _nonzero(v) == (v.size if nil else 0):
+            if nil is not None and v.size and (count_nonzero(v) if type(v) is not WireArray
+                                               else len(v.data) - v.data.count(0)) == (v.size if nil else 0):
                 out.append(None)
             else:
                 out.append(_array(spec, v, half, name))

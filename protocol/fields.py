@@ -294,8 +294,11 @@ class ArraySpec:
         elif type(value) in (tuple, list) or type(value) is WireArray:
             if type(value) is WireArray:  # built before numpy was loaded (a lite process that loaded it since)
                 value = [DTYPE_CODES[value.dtype], list(value.shape), value.data]
-            a = array_from_wire(value, field, self._allowed)
-            name = CODE_NAMES[value[0]]
+            name, shape, data = _checked_wire(value, field, self._allowed)  # array_from_wire, one call less
+            if _LITTLE:  # a copy into a bytearray: writable, native and does not pin the payload
+                a = np.frombuffer(bytearray(data), WIRE_DTYPES[name]).reshape(shape)
+            else:  # pragma: no cover - big-endian hosts
+                a = np.frombuffer(data, WIRE_DTYPES[name]).reshape(shape).astype(_NATIVE[name], copy=True)
             widen = self._widen.get(name)
             if widen is not None:
                 a = a.astype(WIRE_DTYPES[widen])

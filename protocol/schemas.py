@@ -382,10 +382,11 @@ class CentralMsg(Message, tag=3, kw_only=True):
 
 def _is_ids(a: Any) -> bool:
     """Whether an action array holds discrete ids (int64), not continuous vectors."""
+    if type(a) is not WireArray and np is not None:
+        return a.dtype == np.int64
     if type(a) is WireArray:
         return a.dtype == "int64"
-    if np is None:  # an ndarray passed in before any message was built here
-        numpy_loaded(globals())
+    numpy_loaded(globals())  # an ndarray passed in before any message was built here
     return a.dtype == np.int64
 
 
