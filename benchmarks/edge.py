@@ -5,11 +5,15 @@ the rest of the run on 127.0.0.1: a hub session that publishes the frozen policy
 server does), one observation and one central message per step, and waits for the agent's action
 before the next step (as the env host does). Cold start = process start to the first action
 received; RSS = the largest resident set sampled while it acts. Measured in the same run for the
-edge entry (`--bundle`, no run directory) and today's entry (`--run-dir` of a `hammer up` run).
+edge entry (`--bundle`, no run directory) and today's entry (`--run-dir` of a `hammer up` run), on
+one env copy by default (K=1, a robot: the edge entry then runs the lite agent, which never imports
+numpy, local_agent/lite.py), and the edge entry again with HAMMER_EDGE_NUMPY=1 (the numpy agent),
+so the table says what the lite agent saves.
 """
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -114,31 +118,39 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
                        step_ms_p50=float(np.median(lat) * 1e3))
 
 
-def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | None = None) -> dict:
-    """Both entries, alternated `repeats` times; the median of each figure per entry. python: the agents'
-    interpreter (e.g. a torch-free edge venv: its own install, so PYTHONPATH is dropped)."""
+EDGE, EDGE_NUMPY = "edge (hammer local --bundle)", "edge, numpy agent (HAMMER_EDGE_NUMPY=1)"
+
+
+def bench_edge(work: Path, act_s: float = 3.0, repeats: int = 2, python: Path | None = None,
+               num_envs: int = 1) -> dict:
+    """The entries, alternated `repeats` times; the median of each figure per entry. python: the agents'
+    interpreter (e.g. a torch-free edge venv: its own install, so PYTHONPATH is dropped). num_envs:
+    the team's env copies K (1: a robot; the edge entry then runs the lite agent)."""
     from hammer.benchmarks.edge_venv import clean_env
     from hammer.protocol.session import free_loopback_port
     from hammer.runtime.settings import RuntimeSettings
 
-    bundle, run, cfg, spec = make_team(work)
+    bundle, run, cfg, spec = make_team(work, overrides=(f"num_envs={num_envs}",))
     blob = (bundle.path / "local.safetensors").read_bytes()
     hammer = [str(python or sys.executable), "-P", "-m", "hammer", "local", "--agent", "0"]  # the edge entry with --bundle
-    runs: dict[str, list[EdgeFigures]] = {"run dir (hammer local --run-dir)": [], "edge (hammer local --bundle)": []}
+    runs: dict[str, list[EdgeFigures]] = {"run dir (hammer local --run-dir)": [], EDGE: [], EDGE_NUMPY: []}
+    base = clean_env() if python is not None else dict(os.environ)
+    base.pop("HAMMER_EDGE_NUMPY", None)
     for r in range(repeats):
-        for entry, done in runs.items():
+        for i, (entry, done) in enumerate(runs.items()):
             port = free_loopback_port()
-            run_id = f"bench-edge-{r}-{len(done)}-{'b' if 'bundle' in entry else 'r'}"
-            if "bundle" in entry:
+            run_id = f"bench-edge-{r}-{i}"
+            env = {**base, "HAMMER_EDGE_NUMPY": "1"} if entry == EDGE_NUMPY else base
+            if entry in (EDGE, EDGE_NUMPY):
                 cmd = [*hammer, "--bundle", str(bundle.path), "--run-id", run_id,
                        "--connect", f"tcp/127.0.0.1:{port}"]
             else:  # today's entry reads runtime.json: point it at this harness
                 RuntimeSettings(run_id=run_id, hub_port=port).save(run)
                 cmd = [*hammer, "--run-dir", str(run)]
-            f = measure(cmd, run_id, port, cfg, spec, blob, act_s, env=None if python is None else clean_env())
+            f = measure(cmd, run_id, port, cfg, spec, blob, act_s, env=env)
             f.entry = entry
             done.append(f)
     med = {e: {k: float(np.median([getattr(f, k) for f in fs])) for k in ("cold_start_s", "rss_mb", "step_ms_p50")}
            for e, fs in runs.items()}
     return {"median": med, "runs": [asdict(f) for fs in runs.values() for f in fs], "repeats": repeats,
-            "act_s": act_s, "targets": {"rss_mb": RSS_TARGET_MB, "cold_start_s": COLD_TARGET_S}}
+            "act_s": act_s, "num_envs": num_envs, "load": os.getloadavg(), "targets": {"rss_mb": RSS_TARGET_MB, "cold_start_s": COLD_TARGET_S}}

@@ -17,10 +17,10 @@ an error raised in `__post_init__` comes as its `__cause__`: both become the rig
 from __future__ import annotations
 
 import re
+import struct
 from typing import Any
 
 import msgspec
-import numpy as np
 from hammer.protocol.dims import Dims, min_max
 from hammer.protocol.errors import (
     DecodeError,
@@ -31,7 +31,7 @@ from hammer.protocol.errors import (
     TypeTagError,
     VersionError,
 )
-from hammer.protocol.fields import DTYPE_CODES, ArraySpec, array_to_wire, count_nonzero
+from hammer.protocol.fields import DTYPE_CODES, ArraySpec, WireArray, array_to_wire, numpy_loaded
 from hammer.protocol.schemas import (
     ACTION,
     MESSAGE_TYPES,
@@ -47,15 +47,22 @@ from hammer.protocol.schemas import (
 
 Expected = type[Message] | tuple[type[Message], ...] | None
 
-_F32, _F16, _U8 = np.dtype("<f4"), DTYPE_CODES["float16"], DTYPE_CODES["uint8"]
+_F16, _U8 = DTYPE_CODES["float16"], DTYPE_CODES["uint8"]
+np: Any = None  # numpy, bound with the first numpy array encoded (the lite edge agent has none: `_array_lite`)
+_F32: Any = None
+count_nonzero: Any = None  # numpy's C count_nonzero (fields.py), bound with numpy
 _NODEFAULT = object()
 # Optional bool arrays whose usual value is sent as nil: every agent active, no fallback.
 _NIL_WHEN = {(LocalObs, "active"): True, (GlobalState, "active"): True, (Action, "fallback"): False}
 
 
-def _array(spec: ArraySpec, a: np.ndarray, half: bool, field: str) -> list:
+def _array(spec: ArraySpec, a: Any, half: bool, field: str) -> list:
     """The wire form of a field's array: ids as uint8 when they fit, float32 as float16 when the
     sender opted in (`half`) and the field accepts it."""
+    if type(a) is WireArray:
+        return _array_lite(spec, a, half, field)
+    if np is None:
+        _bind_numpy()
     if spec is ACTION and a.dtype == np.int64 and a.size:
         lo, hi = min_max(a)  # a list's min and max below 1,024 ids: no numpy reduction machinery
         if lo >= 0 and hi < 256:
@@ -66,6 +73,28 @@ def _array(spec: ArraySpec, a: np.ndarray, half: bool, field: str) -> list:
         if a.size and not np.isfinite(h).all():
             raise NonFiniteError("beyond float16's range (65504): send it as float32", field)
         return [_F16, list(a.shape), h.tobytes()]
+    return array_to_wire(a)
+
+
+def _bind_numpy() -> None:
+    global _F32
+    if numpy_loaded(globals()):
+        _F32 = np.dtype("<f4")
+
+
+def _array_lite(spec: ArraySpec, a: WireArray, half: bool, field: str) -> list:
+    """`_array` of a WireArray (the lite edge agent): the same wire bytes numpy would write."""
+    if spec is ACTION and a.dtype == "int64" and a.size:
+        ids = a.tolist(flat=True)
+        if min(ids) >= 0 and max(ids) < 256:
+            return [_U8, list(a.shape), bytes(ids)]
+    if half and a.dtype == "float32" and ("float16", "float32") in spec.wire:
+        values = a.tolist(flat=True)
+        try:
+            h = struct.pack(f"<{len(values)}e", *values)
+        except OverflowError:
+            raise NonFiniteError("beyond float16's range (65504): send it as float32", field) from None
+        return [_F16, list(a.shape), h]
     return array_to_wire(a)
 
 
@@ -93,6 +122,9 @@ def _plan(cls: type[Message]) -> list[tuple[str, Any, Any]]:
 
 
 _PLANS = {cls: _plan(cls) for cls in MESSAGE_TYPES.values()}
+_bind_numpy()  # where numpy came first (every role but the lite edge agent); else with the first numpy array
+
+
 
 
 def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = False) -> list:
@@ -100,6 +132,8 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
     optional ones at their default at the end. `stamp` overrides header fields (the sender)."""
     cls = type(msg)
     out: list[Any] = [cls.TAG]
+    if np is None:  # numpy loaded since this module was (else the lite agent: WireArrays only)
+        _bind_numpy()
     for name, conv, _ in _PLANS[cls]:
         v = getattr(msg, name) if not stamp or name not in stamp else stamp[name]
         if conv is None:
@@ -112,7 +146,8 @@ def to_wire(msg: Message, stamp: dict[str, Any] | None = None, half: bool = Fals
             out.append(None)
         else:
             _, spec, nil = conv
-            if nil is not None and v.size and count_nonzero(v) == (v.size if nil else 0):
+            if nil is not None and v.size and (count_nonzero(v) if type(v) is not WireArray
+                                               else len(v.data) - v.data.count(0)) == (v.size if nil else 0):
                 out.append(None)
             else:
                 out.append(_array(spec, v, half, name))

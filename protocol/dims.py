@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from hammer.protocol.errors import ShapeError
-from hammer.protocol.rollout_layout import RolloutLayout
+
+if TYPE_CHECKING:  # numpy is not imported on the lite edge path (protocol/fields.py)
+    from hammer.protocol.rollout_layout import RolloutLayout
 
 
 @dataclass(frozen=True)
@@ -41,15 +43,17 @@ class Dims:
                  self.discrete)
         if any(x is None for x in sizes):
             return None
+        from hammer.protocol.rollout_layout import RolloutLayout
+
         return RolloutLayout(*sizes)
 
 
-def min_max(a: np.ndarray) -> tuple[int, int]:
+def min_max(a: Any) -> tuple[int, int]:
     """Min and max of a non-empty int array. Small arrays go through a list: a process that just
     woke up runs numpy's reduction machinery cache-cold, slower than a list's min and max at K=32
     (`hammer bench codec --cold`)."""
     if a.size <= 1024:
-        values = a.ravel().tolist()
+        values = a.ravel().tolist() if hasattr(a, "ravel") else a.tolist(flat=True)  # numpy's, or a WireArray
         return min(values), max(values)
     return int(a.min()), int(a.max())
 

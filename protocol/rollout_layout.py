@@ -20,10 +20,12 @@ Torch-free and free of the config: the protocol checks received chunks with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from hammer.protocol.errors import DTypeError, FieldError, ShapeError
+
+if TYPE_CHECKING:  # numpy is imported where a layout is used, not on the wire path (the lite edge agent)
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -123,7 +125,9 @@ class RolloutLayout:
 
     def chunk_nbytes(self) -> int:
         """The bytes of a chunk's arrays (without the message's framing): what sizes its cap."""
-        return sum(int(np.prod(self.shape(s))) * self.dtype(s).itemsize for s in CHUNK)
+        import math
+
+        return sum(math.prod(self.shape(s)) * self.dtype(s).itemsize for s in CHUNK)
 
     def chunk_steps(self) -> dict[str, np.ndarray]:
         """The per-step arrays of a chunk (leading T), which the env host fills as it steps."""
@@ -156,6 +160,8 @@ def resolve_shape(spec: ArraySpec, sizes: dict[str, int], action_shape: tuple[in
 
 
 def resolve_dtype(spec: ArraySpec, discrete: bool) -> np.dtype:
+    import numpy as np
+
     if spec.dtype == "action":
         return np.dtype(np.int64 if discrete else np.float32)
     return np.dtype(spec.dtype)
@@ -164,4 +170,6 @@ def resolve_dtype(spec: ArraySpec, discrete: bool) -> np.dtype:
 def allocate(specs: tuple[ArraySpec, ...], sizes: dict[str, int], action_shape: tuple[int, ...],
              discrete: bool) -> dict[str, np.ndarray]:
     """Name -> a new array of that spec, every element `spec.fill`."""
+    import numpy as np
+
     return {s.name: np.full(resolve_shape(s, sizes, action_shape), s.fill, resolve_dtype(s, discrete)) for s in specs}

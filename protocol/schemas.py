@@ -38,10 +38,12 @@ A = action vector length):
 from __future__ import annotations
 
 import hashlib
-from typing import Annotated, Any, ClassVar, Literal
+import math
+from array import array
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 import msgspec
-import numpy as np
+from hammer.protocol import fields as _fields
 from hammer.protocol.dims import Dims, expect, min_max
 from hammer.protocol.errors import ChecksumError, FieldError, NonFiniteError, RangeError, ShapeError
 from hammer.protocol.fields import (
@@ -52,11 +54,18 @@ from hammer.protocol.fields import (
     NAME_RE,
     ArraySpec,
     MiB,
-    count_nonzero,
+    WireArray,
     empty_idx,
+    numpy_loaded,
 )
-from hammer.protocol.rollout_layout import RolloutLayout
 from msgspec import Meta
+
+if TYPE_CHECKING:
+    from hammer.protocol.rollout_layout import RolloutLayout
+
+# numpy where this process has loaded it, bound by `numpy_loaded(globals())`: every role but the lite
+# edge agent, which keeps its arrays as `WireArray`s checked in pure Python (protocol/fields.py).
+np: Any = None
 
 SCHEMA_VERSION = 4
 
@@ -108,24 +117,37 @@ def _array_items(node: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 
 # env_idx is almost always 0..K-1: comparing its bytes with these proves "unique and >= 0" at once.
-_ARANGE_BYTES = np.arange(4096, dtype=np.int64).tobytes()
+_ARANGE_BYTES = array("q", range(4096)).tobytes()
 
 
-def _is_range(a: np.ndarray) -> bool:
+def _is_range(a: Any) -> bool:
     """Whether int64 array `a` is 0..K-1."""
     k = a.shape[0]
     if k <= 4096:
         return _ARANGE_BYTES.startswith(a.tobytes())
+    if type(a) is WireArray:
+        return a.tolist() == list(range(k))
     return bool((a == np.arange(k)).all())
 
 
-def _env_idx(v: Any) -> np.ndarray:
+def _bools(shape: tuple[int, ...], value: bool) -> Any:
+    """A bool array of `shape`, every element `value` (a field's default)."""
+    if np is None and not numpy_loaded(globals()):
+        return WireArray("bool", shape, (b"\x01" if value else b"\x00") * math.prod(shape))
+    return np.ones(shape, dtype=bool) if value else np.zeros(shape, dtype=bool)
+
+
+def _env_idx(v: Any) -> Any:
     """env_idx from code (an int64 ndarray) or from the wire (K, or a list of indices): unique, >= 0."""
     t = type(v)
     if t is int:  # 0..K-1 (msgspec bounded K)
         if not 0 <= v <= MAX_K:
             raise RangeError(f"K must be in [0, {MAX_K}]", "env_idx")
+        if np is None and not numpy_loaded(globals()):
+            return WireArray("int64", (v,), _ARANGE_BYTES[:8 * v] if v <= 4096 else array("q", range(v)).tobytes())
         return np.arange(v, dtype=np.int64)
+    if np is None and not numpy_loaded(globals()):
+        return _env_idx_lite(v, t)
     if t is np.ndarray:
         if v.dtype != np.int64:
             raise FieldError(f"env_idx must be int64, got {v.dtype}", "env_idx")
@@ -134,6 +156,8 @@ def _env_idx(v: Any) -> np.ndarray:
         a = v
     elif t is list:
         a = np.array(v, dtype=np.int64) if v else empty_idx()
+    elif t is WireArray and v.dtype == "int64" and v.ndim == 1:  # built before numpy was loaded
+        a = np.array(v.tolist(), dtype=np.int64)
     else:
         raise FieldError(f"env_idx must be an int or a list of ints, got {t.__name__}", "env_idx")
     if a.size and not _is_range(a):
@@ -145,7 +169,28 @@ def _env_idx(v: Any) -> np.ndarray:
     return a
 
 
-def env_idx_to_wire(a: np.ndarray) -> int | list[int]:
+def _env_idx_lite(v: Any, t: type) -> WireArray:
+    """`_env_idx` without numpy (v is not an int): the same checks, in the same order."""
+    if t is WireArray:
+        if v.dtype != "int64":
+            raise FieldError(f"env_idx must be int64, got {v.dtype}", "env_idx")
+        if v.ndim != 1:
+            raise ShapeError(f"env_idx must be (K,), got shape {v.shape}", "env_idx")
+        a = v
+    elif t is list:
+        a = WireArray.of("int64", (len(v),), v) if v else empty_idx()
+    else:
+        raise FieldError(f"env_idx must be an int or a list of ints, got {t.__name__}", "env_idx")
+    if a.size and not _is_range(a):
+        idx = a.tolist()
+        if min(idx) < 0:
+            raise RangeError("env indices must be >= 0", "env_idx")
+        if len(set(idx)) != len(idx):
+            raise ShapeError("env indices must be unique", "env_idx")
+    return a
+
+
+def env_idx_to_wire(a: Any) -> int | list[int]:
     """What env_idx puts on the wire: K when it is 0..K-1, else the list of indices."""
     if a.shape[0] <= MAX_K and _is_range(a):
         return a.shape[0]
@@ -250,7 +295,7 @@ class LocalObs(Message, tag=1, kw_only=True):
         self.obs = OBS2.take(self.obs, "obs")
         self._need("obs", self.obs, (k, None))
         if self.active is None:
-            self.active = np.ones(k, dtype=bool)
+            self.active = _bools((k,), True)
         else:
             self.active = BOOL1.take(self.active, "active")
             self._need("active", self.active, (k,))
@@ -287,7 +332,7 @@ class GlobalState(Message, tag=2, kw_only=True):
         self.prev_actions = OBS3.take(self.prev_actions, "prev_actions")
         self._need("prev_actions", self.prev_actions, (k, n, None))
         if self.active is None:
-            self.active = np.ones((k, n), dtype=bool)
+            self.active = _bools((k, n), True)
         else:
             self.active = BOOL2.take(self.active, "active")
             self._need("active", self.active, (k, n))
@@ -302,8 +347,10 @@ class GlobalState(Message, tag=2, kw_only=True):
                 raise ShapeError(f"last dim {a} does not fit action_dim {dims.action_dim}", "prev_actions")
 
 
-def _in_unit_range(m: np.ndarray) -> bool:
-    return count_nonzero(np.abs(m) <= 1.0) == m.size  # NaN is refused before: finiteness
+def _in_unit_range(m: Any) -> bool:
+    if type(m) is WireArray:
+        return all(-1.0 <= x <= 1.0 for x in m.tolist(flat=True))
+    return _fields.count_nonzero(np.abs(m) <= 1.0) == m.size  # NaN is refused before: finiteness
 
 
 class CentralMsg(Message, tag=3, kw_only=True):
@@ -333,9 +380,19 @@ class CentralMsg(Message, tag=3, kw_only=True):
         expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
 
 
-def _take_action(msg: Message, value: Any) -> np.ndarray:
+def _is_ids(a: Any) -> bool:
+    """Whether an action array holds discrete ids (int64), not continuous vectors."""
+    if type(a) is not WireArray and np is not None:
+        return a.dtype == np.int64
+    if type(a) is WireArray:
+        return a.dtype == "int64"
+    numpy_loaded(globals())  # an ndarray passed in before any message was built here
+    return a.dtype == np.int64
+
+
+def _take_action(msg: Message, value: Any) -> Any:
     a = ACTION.take(value, "action")
-    msg._need("action", a, (msg.k,) if a.dtype == np.int64 else (msg.k, None))
+    msg._need("action", a, (msg.k,) if _is_ids(a) else (msg.k, None))
     return a
 
 
@@ -369,7 +426,7 @@ class Action(Message, tag=4, kw_only=True):
         k = idx.shape[0]
         self.action = _take_action(self, self.action)
         if self.fallback is None:
-            self.fallback = np.zeros(k, dtype=bool)
+            self.fallback = _bools((k,), False)
         else:
             self.fallback = BOOL1.take(self.fallback, "fallback")
             self._need("fallback", self.fallback, (k,))
@@ -379,7 +436,7 @@ class Action(Message, tag=4, kw_only=True):
 
     @property
     def discrete(self) -> bool:
-        return self.action.dtype == np.int64
+        return _is_ids(self.action)
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
@@ -390,10 +447,10 @@ class Action(Message, tag=4, kw_only=True):
         check_actions(self.action, dims)
 
 
-def check_actions(action: np.ndarray, dims: Dims) -> None:
+def check_actions(action: Any, dims: Dims) -> None:
     """An `action` field against declared dims (an action's, an uplink's): ids or vectors as declared,
     ids within the action count, vectors of the declared length."""
-    discrete = action.dtype == np.int64
+    discrete = _is_ids(action)
     if dims.discrete is not None and dims.discrete != discrete:
         want = "(K,) int64 ids" if dims.discrete else "(K, A) float32 vectors"
         raise ShapeError(f"actions must be {want}, got {action.dtype} {action.shape}", "action")
@@ -420,18 +477,19 @@ def _scalars(values: Any, field: str) -> dict:
     for name, x in values.items():
         t = type(x)
         if t not in _PLAIN:
-            if isinstance(x, bool | np.bool_):
+            lib = np if np is not None or numpy_loaded(globals()) else None  # no numpy: no numpy scalars
+            if isinstance(x, bool) or (lib is not None and isinstance(x, lib.bool_)):
                 x = bool(x)
-            elif isinstance(x, int | np.integer):
+            elif isinstance(x, int) or (lib is not None and isinstance(x, lib.integer)):
                 x = int(x)
-            elif isinstance(x, float | np.floating):
+            elif isinstance(x, float) or (lib is not None and isinstance(x, lib.floating)):
                 x = float(x)
             else:
                 raise FieldError(f"{t.__name__} is not a wire scalar", f"{field}.{name}")
             if out is values:
                 out = dict(values)
             out[name] = x
-        if type(x) is float and not np.isfinite(x):
+        if type(x) is float and not math.isfinite(x):
             raise NonFiniteError("holds NaN or inf", f"{field}.{name}")
     return out
 
@@ -581,6 +639,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 for _cls in MESSAGE_TYPES.values():
     _cls.TAG = _cls.__struct_config__.tag
 TAGS: dict[int, type[Message]] = {cls.TAG: cls for cls in MESSAGE_TYPES.values()}
+numpy_loaded(globals())  # where numpy came first (every role but the lite edge agent): bound now
 
 
 def fields_of(cls: type[Message]) -> tuple[str, ...]:

@@ -113,11 +113,11 @@ def sha256(path: Path) -> str:
 
 
 def _weight_shapes(path: Path) -> dict[str, tuple[int, ...]]:
-    """Tensor shapes from the safetensors header only (never the payload, never pickle)."""
-    from safetensors import safe_open
+    """Tensor shapes from the safetensors header only (never the payload, never pickle; read in plain
+    Python: safetensors' own reader imports numpy, which the lite edge agent never loads)."""
+    from hammer.learning.lite_policy import safetensors_shapes
 
-    with safe_open(str(path), framework="numpy") as f:
-        return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118 - not a dict
+    return safetensors_shapes(path)
 
 
 def check_local_weights(shapes: dict[str, tuple[int, ...]], input_dim: int, env: dict, what: str) -> None:

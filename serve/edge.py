@@ -3,8 +3,11 @@ of `hammer local --bundle BUNDLE --agent I ...`, whose entry is hammer/commands/
 
 Why apart: an edge device pays for every import. The team's RunConfig (pydantic) is never built:
 the bundle's manifest holds what the agent needs (spaces, variant wiring, message length, seed,
-fallback), read with json, numpy and safetensors. What stays is the runtime itself: the protocol
-(pydantic message models, their fast path), the Zenoh session, `LocalAgentClient`.
+fallback), read with json. What stays is the runtime itself: the protocol (msgspec Structs), the
+Zenoh session, and the agent: `local_agent.lite.LiteLocalAgentClient` where it applies (discrete
+actions, an MLP policy, K=1: the usual robot), which never imports numpy (issue 31: numpy and
+numpy.random are ~24 MB of the 40 MB budget), else `LocalAgentClient` (numpy). `lite_choice` says
+which and why, and the agent logs it; HAMMER_EDGE_NUMPY=1 forces the numpy agent.
 
 The run's settings come from the bundle (fallback) and the run id, or from a copy of the served
 run's runtime.json (`--settings`), overridden by `--runtime FIELD=VALUE`. A secure run needs the
@@ -40,7 +43,7 @@ class JoinError(RuntimeError):
 def agent_spec(bundle, agent: int, seed: int | None):
     """(AgentSpec, num_envs) of agent `agent` from the manifest alone (no RunConfig; its values are
     checked on load, serve.bundle.check_manifest)."""
-    from hammer.local_agent.client import AgentSpec
+    from hammer.local_agent.steps import AgentSpec  # numpy-free (the lite agent never loads numpy)
 
     m, c = bundle.manifest, bundle.config_data
     env, w = m["env_spec"], bundle.wiring()
@@ -49,6 +52,25 @@ def agent_spec(bundle, agent: int, seed: int | None):
     return AgentSpec(agent=agent, n_agents=env["n_agents"], obs_dim=w.local_obs_dim(env["obs_dim"]),
                      msg_dim=w.msg_dim, discrete=env["discrete"], action_dim=env["action_dim"],
                      seed=c["seed"] if seed is None else seed, onehot=w.joint_obs), int(c["num_envs"])
+
+
+def lite_choice(spec, num_envs: int, weights: Path | None) -> str | None:
+    """None when the edge agent acts without numpy (`local_agent.lite`), else why it takes numpy:
+    continuous actions, a conv encoder, more than one env copy (a Python loop per copy), or asked to."""
+    if os.environ.get("HAMMER_EDGE_NUMPY", "") not in ("", "0"):
+        return "HAMMER_EDGE_NUMPY is set"
+    if not spec.discrete:
+        return "continuous actions"
+    if num_envs != 1:
+        return f"K={num_envs} env copies"
+    if weights is None:
+        return "no local.safetensors to look at"
+    from hammer.learning.lite_policy import LiteWeightsError, lite_supported, safetensors_names
+
+    try:
+        return lite_supported(safetensors_names(weights))
+    except (OSError, LiteWeightsError) as e:
+        return str(e)
 
 
 def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtime: list[str]):
@@ -267,19 +289,27 @@ def wait_for_run(session, settings, name: str, where: str, deadline: float | Non
 
 
 def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float = DEFAULT_CONNECT_RETRY_S,
-             stay: bool = False) -> None:
+             stay: bool = False, weights: Path | None = None) -> None:
     """Serve as an edge agent started by its own machine: reach the run (retrying for
     `connect_retry_s` s, 0 = forever), act until the run stops it; with `stay`, then wait for the
     run's next session (same run id) and join it, until SIGTERM or SIGINT, which end it cleanly
-    (the counters logged, exit 0). Raises JoinError (one line) when the run was never reached."""
+    (the counters logged, exit 0). Raises JoinError (one line) when the run was never reached.
+    `weights`: the bundle's local.safetensors (`lite_choice` reads its tensor names)."""
     import collections
     import signal
     import threading
 
-    from hammer.local_agent.client import LocalAgentClient
-
     log = logging.getLogger("hammer.local")
     name = f"local-{spec.agent}"
+    why_numpy = lite_choice(spec, num_envs, weights)
+    if why_numpy is None:
+        from hammer.local_agent.lite import LiteLocalAgentClient as LocalAgentClient
+
+        log.info("%s acts in plain Python, without numpy (lite agent: discrete MLP policy, K=1)", name)
+    else:
+        from hammer.local_agent.client import LocalAgentClient
+
+        log.info("%s acts with numpy (%s)", name, why_numpy)
     where = ", ".join(hub_endpoints(transport)) or "the run"
     stop = _Stop()
 

@@ -1,6 +1,8 @@
 """The edge entry (hammer/entry.py -> hammer/commands/edge.py -> serve/edge.py): `hammer local --bundle` starts without the CLI
 framework or the training config, takes the served run's runtime settings, and joins a secure run with
-only its three identity files (no run directory). Real processes, real Zenoh on 127.0.0.1."""
+only its three identity files (no run directory). Real processes, real Zenoh on 127.0.0.1. The served
+runs go twice: a team of 32 env copies (the numpy agent) and of one (K=1: the lite agent, which never
+imports numpy, local_agent/lite.py)."""
 
 from __future__ import annotations
 
@@ -27,6 +29,18 @@ pytestmark = pytest.mark.timeout(180)
 def team(tmp_path_factory):
     bundle, _, cfg, _ = make_team(tmp_path_factory.mktemp("team"))
     return bundle, cfg
+
+
+@pytest.fixture(scope="module")
+def team1(tmp_path_factory):
+    """The same team on one env copy: the edge agent acts without numpy."""
+    bundle, _, cfg, _ = make_team(tmp_path_factory.mktemp("team1"), overrides=("num_envs=1",))
+    return bundle, cfg
+
+
+# (team fixture, episodes of 25 steps giving 50 vector steps, what the edge agent logs about its acting)
+SERVED = {"k32-numpy": ("team", 64, "acts with numpy (K=32 env copies)"),
+          "k1-lite": ("team1", 2, "acts in plain Python, without numpy")}
 
 
 def test_the_edge_entry_loads_neither_the_cli_framework_nor_the_training_config(team):
@@ -125,8 +139,10 @@ def _join_when_ready(run, bundle, port, ids, out: dict, agent: int = 2) -> None:
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(team, tmp_path):
-    bundle, _ = team
+@pytest.mark.parametrize("served", SERVED)
+def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(served, request, tmp_path):
+    fixture, episodes, acting = SERVED[served]
+    bundle, _ = request.getfixturevalue(fixture)
     port = free_loopback_port()
     settings, _ = serve_settings(bundle, "secure-edge", runtime=[f"hub_port={port}", "secure=true"])
     run, out = tmp_path / "served", {}
@@ -134,20 +150,22 @@ def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(te
     (tmp_path / "edge").mkdir()
     joiner.start()
     try:
-        res = launch(bundle.config(episodes=64, msg_dropout=0.0), settings, run, external_agents=(2,))
+        res = launch(bundle.config(episodes=episodes, msg_dropout=0.0), settings, run, external_agents=(2,))
         joiner.join(timeout=30)
         text, _ = out["proc"].communicate(timeout=30)
     finally:
         joiner.join(timeout=30)
         if "proc" in out and out["proc"].poll() is None:
             out["proc"].kill()
-    assert res.summary["completed"] and res.summary["episodes"] == 64
+    assert res.summary["completed"] and res.summary["episodes"] == episodes
     assert out["proc"].returncode == 0, text
-    assert "tls/" in text and "'steps': 50," in text  # over TLS, every step of the run (64 episodes on 32 copies)
+    assert acting in text, text
+    assert "tls/" in text and "'steps': 50," in text  # over TLS, every step of the run (25-step episodes)
     assert res.links["local->env"]["defaults"] == 0
 
 
-def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, tmp_path):
+@pytest.mark.parametrize("served", SERVED)
+def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(served, request, tmp_path):
     """Issue 28 in the served profile: the real agent 1 on the edge entry with its three files, and a
     thief holding the same three files attacking through agent 1's own keys (tests/own_key_thief.py).
     The run completes with no default action, every attempt refused and named in the summary."""
@@ -156,7 +174,8 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, t
 
     from tests.own_key_thief import OwnKeyThief
 
-    bundle, _ = team
+    fixture, episodes, acting = SERVED[served]
+    bundle, _ = request.getfixturevalue(fixture)
     port = free_loopback_port()
     settings, _ = serve_settings(bundle, "secure-thief", runtime=[f"hub_port={port}", "secure=true",
                                                                   "msg_deadline_ms=5000", "act_deadline_ms=10000"])
@@ -174,7 +193,8 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, t
             thieves[0].start()
 
     try:
-        res = launch(bundle.config(episodes=64, msg_dropout=0.0), settings, run, chaos=chaos, external_agents=(1,))
+        res = launch(bundle.config(episodes=episodes, msg_dropout=0.0), settings, run, chaos=chaos,
+                     external_agents=(1,))
         joiner.join(timeout=30)
         text, _ = out["proc"].communicate(timeout=30)
     finally:
@@ -187,11 +207,57 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(team, t
     thief = thieves[0]
     assert thief.error is None, thief.error
     assert thief.obs_seen > 0 and all(n > 0 for n in thief.sent.values()), thief.sent
-    assert res.summary["completed"] and res.summary["episodes"] == 64
+    assert res.summary["completed"] and res.summary["episodes"] == episodes
     assert out["proc"].returncode == 0, text
+    assert acting in text, text
     assert res.links["local->env"]["defaults"] == 0 and res.links["local->env"]["duplicate"] == 0
     rejected = res.summary["rejected"]
     assert {"key_mismatch", "size"} <= rejected["env"].keys(), rejected
     # an external agent may come and go, but no more than 8 processes of it count; falling counters never
     assert {"key_mismatch", "field", "counters_fell", "heartbeat_processes"} <= rejected["launcher"].keys(), rejected
     assert res.summary["degraded"] is True
+
+
+def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(team1, tmp_path):
+    """Issue 31 part 4: the edge agent of a discrete K=1 team, from a signed bundle it checks with
+    --trust, acts every step of a served run and never maps numpy (its memory maps are read while it
+    acts, so an import anywhere on the acting path, lazy or not, would show)."""
+    from hammer.serve.bundle import export_bundle
+    from hammer.serve.signing import new_key
+
+    bundle, _ = team1
+    _, public = new_key(tmp_path / "keys" / "site")
+    signed = export_bundle(bundle.path.parent / "run", tmp_path / "signed", sign=tmp_path / "keys" / "site.key")
+    port = free_loopback_port()
+    settings, _ = serve_settings(signed, "lite-edge", runtime=[f"hub_port={port}"])
+    out: dict = {"maps": 0, "numpy": []}
+
+    def edge() -> None:
+        proc = out["proc"] = subprocess.Popen(
+            [sys.executable, "-m", "hammer", "local", "--bundle", str(signed.path), "--agent", "0", "--run-id",
+             settings.run_id, "--connect", f"tcp/127.0.0.1:{port}", "--trust", str(public)],
+            cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        while proc.poll() is None:
+            try:
+                maps = open(f"/proc/{proc.pid}/maps").read()  # noqa: SIM115 - read at once while it runs
+            except OSError:
+                break
+            out["maps"] += 1
+            out["numpy"] += [ln for ln in maps.splitlines() if "numpy" in ln][:3]
+            time.sleep(0.05)
+
+    watcher = threading.Thread(target=edge)
+    watcher.start()
+    try:
+        res = launch(signed.config(episodes=2, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(0,))
+        watcher.join(timeout=30)
+        text, _ = out["proc"].communicate(timeout=30)
+    finally:
+        if "proc" in out and out["proc"].poll() is None:
+            out["proc"].kill()
+        watcher.join(timeout=30)
+    assert res.summary["completed"] and res.summary["episodes"] == 2
+    assert out["proc"].returncode == 0, text
+    assert "acts in plain Python, without numpy" in text and "'steps': 50," in text, text
+    assert res.links["local->env"]["defaults"] == 0
+    assert out["maps"] >= 3 and out["numpy"] == [], out["numpy"]

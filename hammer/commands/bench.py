@@ -407,9 +407,12 @@ def bench_edge_command(
     python: Annotated[Path | None, typer.Option(
         help="The agents' interpreter, e.g. a torch-free edge venv (python -m hammer.benchmarks.edge_venv PATH); "
              "default this one.")] = None,
+    num_envs: Annotated[int, typer.Option(min=1, help="The team's env copies K (1: a robot, where the edge entry "
+                                                      "runs the lite agent without numpy).")] = 1,
 ) -> None:
     """An edge agent's footprint: RSS while acting and cold start (process start to first action), for
-    `hammer local --bundle` (no run directory) and today's `hammer local --run-dir`, in one run."""
+    `hammer local --bundle` (no run directory; with the numpy agent too) and today's `hammer local
+    --run-dir`, in one run."""
     import tempfile
 
     from rich.table import Table
@@ -420,9 +423,9 @@ def bench_edge_command(
     logging.basicConfig(level=logging.WARNING)
     with tempfile.TemporaryDirectory(prefix="hammer-bench-edge-") as work:
         load = os.getloadavg()[0]
-        r = bench_edge(Path(work), act_s, repeats, python)
+        r = bench_edge(Path(work), act_s, repeats, python, num_envs)
     tg = r["targets"]
-    t = Table(title=f"hammer bench edge (cn3 local agent, median of {repeats}, load {load:.1f}-"
+    t = Table(title=f"hammer bench edge (cn3 local agent, K={num_envs}, median of {repeats}, load {load:.1f}-"
                     f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores{', ' + str(python) if python else ''})")
     for col in ("entry", "RSS MB", "cold start s", "step p50 ms"):
         t.add_column(col, justify="left" if col == "entry" else "right")
@@ -430,7 +433,7 @@ def bench_edge_command(
         t.add_row(entry, f"{m['rss_mb']:.1f}", f"{m['cold_start_s']:.2f}", f"{m['step_ms_p50']:.2f}")
     edge = r["median"]["edge (hammer local --bundle)"]
     t.caption = (f"targets: RSS <= {tg['rss_mb']:.0f} MB ({'met' if edge['rss_mb'] <= tg['rss_mb'] else 'missed'}), "
-                 f"cold start <= {tg['cold_start_s']:.0f} s "
+                 f"cold start <= {tg['cold_start_s']:g} s "
                  f"({'met' if edge['cold_start_s'] <= tg['cold_start_s'] else 'missed'})")
     table_console().print(t)
     if json_out is not None:

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_process(f"local-{a.agent}")
     try:
         run_edge(*inputs, connect_retry_s=DEFAULT_CONNECT_RETRY_S if a.connect_retry_s is None else a.connect_retry_s,
-                 stay=a.stay)
+                 stay=a.stay, weights=a.bundle / "local.safetensors")
     except JoinError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
