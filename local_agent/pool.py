@@ -99,10 +99,12 @@ class PooledAgent(AgentSteps):
     def counters(self) -> dict[str, int | float]:
         weights = self.pool.weights
         self.counts.weights_loaded, self.counts.weights_wait_timeouts = weights.loaded, weights.wait_timeouts
-        return self.counts.as_dict()
+        # the shared intake's pull counters: reported once, by the first agent
+        return {**self.counts.as_dict(), **(weights.counters() if self is self.pool.members[0] else {})}
 
     def gauges(self) -> dict[str, int]:
-        return {"policy_version": self.agent.version}
+        """policy_held: the newest version the pool holds (the env host names a push only once held)."""
+        return {"policy_version": self.agent.version, "policy_held": self.pool.weights.known}
 
     def rejection_counters(self) -> dict[str, int]:
         """This agent's rejections: its subscriptions' and its own (the first agent: the pool's too)."""
@@ -152,7 +154,8 @@ class LocalAgentPool(Role):
                 self._route[m.messages] = (m, self.on_message)
         self.policies: dict[int, NumpyLocalPolicy] = {}  # version -> policy (the last few: a canary and its base)
         self.weights = WeightsIntake(session, "local", self._load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
+                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version,
+                                     on_held=lambda version: self.heartbeat_soon())
         self.forwards = self.stacked_forwards = 0  # forward calls, and those that served several agents at once
 
     def alive_names(self) -> list[str]:
@@ -235,6 +238,7 @@ class LocalAgentPool(Role):
                 m.waiting = None
                 pub = None if burst_express(j, len(inputs)) else m.action_pub_batched
                 m.publish_action(obs, m.agent.sample(out), msg, mask, pub)
+        self.weights.pump()  # a push's next chunk, asked for after the actions: one per burst on the link
 
     def _forward(self, xs: list[np.ndarray]) -> list[np.ndarray]:
         """The shared policy's output for each agent's input. Inputs of equal shape go through one
@@ -256,6 +260,7 @@ class LocalAgentPool(Role):
         """No policy yet: load the first one now, and say so at once (the env host may wait for it)."""
         if self.members[0].agent.version < 0 and self.weights.preload_oldest():
             self.heartbeat_soon()
+        self.weights.pump(idle=True)  # a push being pulled: its next chunk, on the slow idle timer
 
     def counters(self) -> dict[str, int]:
         return {"agents": len(self.members), "forwards": self.forwards, "stacked_forwards": self.stacked_forwards}
