@@ -117,6 +117,7 @@ class EnvHost(Role):
         self._pending: tuple[tuple, float] | None = None  # eval: versions to name once held, since when
         self.pushes_named = self.push_named_unheld = 0
         self.push_wait_s = 0.0  # the last push: published (announced) -> named
+        self.push_waits_s: list[float] = []  # every push's, in order (the summary)
 
     def counters(self) -> dict[str, int | float]:
         st = self.state
@@ -353,6 +354,7 @@ class EnvHost(Role):
                              versions.tolist(), lacking, waited, self.health.held.tolist())
         self.pushes_named += 1
         self.push_wait_s, self._pending = waited, None
+        self.push_waits_s.append(round(waited, 3))
         self.heartbeat_soon()
         return True
 
@@ -438,5 +440,5 @@ class EnvHost(Role):
             "time_s": {**{k: round(v, 3) for k, v in self.time_s.items()},
                        "rest": round(elapsed - sum(self.time_s.values()), 3)},
             **({"pushes": {"named": self.pushes_named, "named_unheld": self.push_named_unheld,
-                           "last_wait_s": round(self.push_wait_s, 3)}} if self.announce_in is not None else {}),
+                           "last_wait_s": round(self.push_wait_s, 3), "waits_s": self.push_waits_s[-32:]}} if self.announce_in is not None else {}),
         }

@@ -312,8 +312,8 @@ class LocalAgentClient(AgentSteps, Role):
             msg, fallback_mask = self.message_for(obs)
         else:
             msg, fallback_mask = None, np.zeros(obs.k, dtype=bool)
+        self.weights.pump()  # a push's next chunk: asked now, it crosses the link while the link has no step traffic
         self.publish_action(obs, self.agent.act(obs.obs, msg), msg, fallback_mask)
-        self.weights.pump()  # a push's next chunk, asked for only now: it shares the link with one step at most
 
     def message_for(self, obs: LocalObs) -> tuple[np.ndarray, np.ndarray]:
         """The message of each env copy of this step (waiting for it up to the deadline), and the

@@ -233,12 +233,12 @@ class LocalAgentPool(Role):
                 obs = m.waiting
                 msg, mask = m.settle_message(obs) if m.messages is not None else (None, np.zeros(obs.k, dtype=bool))
                 inputs.append((m, obs, msg, mask, m.agent.policy_input(obs.obs, msg)))
+            self.weights.pump()  # a push's next chunk: asked now, it crosses the link while it has no step traffic
             outs = self._forward([x[4] for x in inputs])
             for j, ((m, obs, msg, mask, _), out) in enumerate(zip(inputs, outs, strict=True)):
                 m.waiting = None
                 pub = None if burst_express(j, len(inputs)) else m.action_pub_batched
                 m.publish_action(obs, m.agent.sample(out), msg, mask, pub)
-        self.weights.pump()  # a push's next chunk, asked for after the actions: one per burst on the link
 
     def _forward(self, xs: list[np.ndarray]) -> list[np.ndarray]:
         """The shared policy's output for each agent's input. Inputs of equal shape go through one

@@ -15,9 +15,13 @@ Torch-free: the edge local agent uses it.
 
 A pushed version of the local policy comes as an announcement (WeightsAnnounce: size, sha256,
 each chunk's digest) that the agent pulls itself, one chunk per query, one query outstanding
-(`pump`, called after each action sent and on the idle timer): on a thin link at most one small
-chunk then waits in the kernel's queue ahead of a step's traffic, instead of the whole weights
-(docs/deploy.md, "A push on a thin link"). A chunk whose size or digest disagrees with the
+(`pump`, called once per step and on the idle timer): on a thin link at most one small chunk then
+waits in the kernel's queue ahead of a step's traffic, instead of the whole weights (docs/deploy.md,
+"A push on a thin link"). When in the step: once the step's observation and message are in,
+before the action goes out. The link down to the agent carries nothing more of this step then,
+and the next observation only leaves the env host after this action went up, so the chunk crosses
+while the link is idle; asked after the action, the chunk met the next observation and message in
+the queue and one step in three acted on a late message (measured at 256 kbit/s). A chunk whose size or digest disagrees with the
 announcement is refused and counted (`chunks_refused`) and asked again; the reassembled blob is
 checked against the announced sha256 before it is held. Bytes already held under the announced
 sha256 (a rollback to weights the agent had) are taken without a pull. The heartbeat's
@@ -218,9 +222,9 @@ class WeightsIntake:
     # ----- a push, pulled in chunks ---------------------------------------------------------------
     def pump(self, idle: bool = False) -> None:
         """Take announcements and chunk replies; ask for the next chunk of a pull in progress if none
-        is outstanding. Called after the agent sent a step's action (so the chunk's reply shares the
-        link with at most one step's traffic) and, `idle`, on the idle timer (then at most every
-        IDLE_PULL_EVERY_S)."""
+        is outstanding. Called once per step, when the step's inputs are in and before its action
+        goes out (the module docstring says why then), and, `idle`, on the idle timer (then at most
+        every IDLE_PULL_EVERY_S)."""
         if self._announces is None:
             return
         for a in self._announces.drain():

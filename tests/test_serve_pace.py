@@ -26,25 +26,33 @@ CHUNK = 1024
 
 
 @pytest.fixture(scope="module")
-def policies(tmp_path_factory):
-    """Two policy directories of the cn3 hammer shape: A (served first) and B (pushed), B's local
-    weights different bytes from A's."""
+def bundles(tmp_path_factory):
+    """Two bundles of the cn3 hammer shape: A (served first) and B (pushed), B's local weights
+    different bytes from A's (its central network A's)."""
+    import shutil
+
     import numpy as np
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir
     from hammer.learning.trainer import train
+    from hammer.serve.bundle import export_bundle
     from safetensors.numpy import load_file, save_file
 
     root = tmp_path_factory.mktemp("pace")
     cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=25", "epochs=1", "minibatches=1",
                                          "episodes=8", "seed=3"])
     train(cfg, RunDir.create(root / "a", cfg), tensorboard=False)
-    a, b = root / "a" / "final", root / "b"
-    b.mkdir()
-    w = load_file(str(a / "local.safetensors"))
-    save_file({k: (v + np.float32(0.5)).astype(v.dtype) for k, v in w.items()}, str(b / "local.safetensors"))
-    (b / "central.safetensors").write_bytes((a / "central.safetensors").read_bytes())
-    return a, b
+    shutil.copytree(root / "a", root / "b")
+    w = load_file(str(root / "b" / "final" / "local.safetensors"))
+    save_file({k: (v + np.float32(0.5)).astype(v.dtype) for k, v in w.items()},
+              str(root / "b" / "final" / "local.safetensors"))
+    return export_bundle(root / "a", root / "A"), export_bundle(root / "b", root / "B")
+
+
+@pytest.fixture(scope="module")
+def policies(bundles):
+    """The two bundles' directories (local.safetensors and central.safetensors each)."""
+    return bundles[0].path, bundles[1].path
 
 
 def _served(tmp_path, b):
@@ -200,3 +208,38 @@ def test_a_rollback_to_weights_held_needs_no_pull(policies, tmp_path):
         runner.join(timeout=10)
     finally:
         net.close()
+
+
+def test_a_push_no_agent_can_pull_is_named_after_the_timeout(bundles, tmp_path):
+    """Every announcement is lost (a fault drops them all): no agent pulls, so none reports holding
+    version 1. The env host names it after weights_name_timeout_s regardless (counted, logged);
+    the agents then ask for the current weights whole (the late joiner's query), and every agent
+    still switches at one step, with no action of the wrong version."""
+    import numpy as np
+    from hammer.deploy.up import launch
+    from hammer.protocol.fault_injection import FaultRule, FaultSpec
+    from hammer.serve.push import push
+    from hammer.serve.settings import serve_settings
+
+    a, b = bundles
+    cfg = a.config(episodes=1200, msg_dropout=0.0)
+    settings, _ = serve_settings(a, "pacelost", runtime=["trace=true", "weights_name_timeout_s=2"])
+    settings = settings.model_copy(update={"faults": FaultSpec(rules=[FaultRule(match="learn/local/announce",
+                                                                                drop=1.0)])})
+    run = tmp_path / "served"
+    done: list[int] = []
+
+    def update(sup, board) -> None:  # the launcher's tick: push once the run is stepping
+        env = board.heartbeats.get("env")
+        if not done and env is not None and int(env.counters.get("step", 0)) >= 100:
+            push(b.path, run)
+            done.append(1)
+
+    res = launch(cfg, settings, run, chaos=update)
+    assert res.summary["completed"] and done
+    pushes = json.loads((run / "env_summary.json").read_text())["pushes"]
+    assert pushes["named"] == 1 and pushes["named_unheld"] == 1 and pushes["last_wait_s"] >= 2.0, pushes
+    trace = dict(np.load(run / "trace.npz"))
+    versions = trace["versions"]
+    assert set(versions.tolist()) == {0, 1} and np.all(np.diff(versions) >= 0)  # one switch, every agent
+    assert res.summary["links"]["off_policy_actions"] == 0
