@@ -164,11 +164,11 @@ class RuntimeSettings(Model):
                                 "weights_republish_s for a fixed period")
 
     weights_chunk_bytes: int = Field(
-        1024, ge=0, le=65536,
+        512, ge=0, le=65536,
         description="eval: a pushed version reaches each local agent in chunks of this many bytes, each asked for by "
-                    "the agent after it sent a step's action (one outstanding per agent), so at most one chunk sits "
-                    "ahead of a link's step traffic (1024 B: 32 ms of a 256 kbit/s link); 0: the whole weights are "
-                    "published at once")
+                    "the agent once per step, before its action (one outstanding per agent), so at most one chunk sits "
+                    "ahead of a link's step traffic (512 B: 16 ms of a 256 kbit/s link; 1024 B left a few messages "
+                    "late there, docs/deploy.md); 0: the whole weights are published at once")
     weights_name_timeout_s: float = Field(
         20.0, gt=0, description="eval: the env host names a pushed version once every agent it is for holds it, or "
                                 "after this long regardless (counted as push_named_unheld, logged)")
@@ -178,7 +178,7 @@ class RuntimeSettings(Model):
     def _chunk_bytes(cls, v: int) -> int:
         if 0 < v < 64:
             raise ValueError(f"weights_chunk_bytes={v}: a chunk of under 64 B costs more in headers than it carries; "
-                             "fix: 64..65536 (1024 suits a 256 kbit/s link), or 0 to publish whole weights")
+                             "fix: 64..65536 (512 suits a 256 kbit/s link), or 0 to publish whole weights")
         return v
 
     @model_validator(mode="after")
