@@ -270,8 +270,9 @@ def update_check(run: Path, driver_log: Path) -> dict:
         return {"driver": driver, "error": "no trace.npz"}
     with np.load(trace_file) as t:
         steps, versions = t["steps"], t["versions"]
-    took = {f"{what}_took_steps": driver[f"{what}_named_at"] - driver[f"{what}_at"]
-            for what in ("push", "rollback") if f"{what}_named_at" in driver and f"{what}_at" in driver}
+    # From the driver's command to the first step acted with its version.
+    took = {f"{what}_took_steps": int(steps[np.argmax(versions >= v)]) - driver[f"{what}_at"]
+            for what, v in (("push", 1), ("rollback", 2)) if f"{what}_at" in driver and (versions >= v).any()}
     return {"driver": driver, **took, "steps_per_version": {int(v): int((versions == v).sum()) for v in np.unique(versions)},
             "versions_monotone": bool(np.all(np.diff(versions) >= 0)),
             "no_step_missed": bool(np.array_equal(steps, np.arange(steps[0], steps[0] + len(steps))))}

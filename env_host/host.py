@@ -131,7 +131,10 @@ class EnvHost(Role):
         running = float(np.mean(list(st.recent)[-100:])) if st.recent else 0.0
         return {"policy_version": self.weights_version, "paper_metric_100": running,
                 "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99)),
-                **({"push_wait_s": round(self.push_wait_s, 3)} if self.announce_in is not None else {})}
+                # eval: the version the steps name (the central one), once the agents hold it; policy_version
+                # is the newest published (what a restarted role's bound is measured from)
+                **({"push_wait_s": round(self.push_wait_s, 3), "named_version": self.rollout_version}
+                   if self.announce_in is not None else {})}
 
     # ----- training -----------------------------------------------------------------------------
     def run_training(self) -> dict:
