@@ -249,3 +249,30 @@ def test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout(bundle
     versions = trace["versions"]
     assert set(versions.tolist()) == {0, 1} and np.all(np.diff(versions) >= 0)  # one switch, every agent
     assert res.summary["links"]["off_policy_actions"] == 0
+
+
+def test_a_push_is_pulled_in_a_secure_run(bundles, tmp_path):
+    """Under the secure profile's access rules (protocol/access.py) the announcement reaches the
+    agents and the env host, each agent may ask for the chunks and only the policy server answers:
+    the push is named once every agent holds it, none by the timeout."""
+    import numpy as np
+    from hammer.deploy.up import launch
+    from hammer.serve.push import push
+    from hammer.serve.settings import serve_settings
+
+    a, b = bundles
+    settings, _ = serve_settings(a, "pacesecure", runtime=["trace=true", "secure=true"])
+    run = tmp_path / "served"
+    done: list[int] = []
+
+    def update(sup, board) -> None:
+        env = board.heartbeats.get("env")
+        if not done and env is not None and int(env.counters.get("step", 0)) >= 100:
+            push(b.path, run)
+            done.append(1)
+
+    res = launch(a.config(episodes=1200, msg_dropout=0.0), settings, run, chaos=update)
+    assert res.summary["completed"] and done
+    pushes = json.loads((run / "env_summary.json").read_text())["pushes"]
+    assert pushes["named"] == 1 and pushes["named_unheld"] == 0, pushes
+    assert set(np.load(run / "trace.npz")["versions"].tolist()) == {0, 1}
