@@ -248,7 +248,8 @@ def _figures(run: Path, work: Path, rate_kbit: int, code: int, edges, before: di
            "env_steps_per_s": rate, "step_p50_ms": summary.get("step_latency_ms_p50"),
            "step_p99_ms": summary.get("step_latency_ms_p99"), "default_actions": defaults,
            "msg_fallback_copies": fallbacks, "off_policy_actions": links.get("off_policy_actions"),
-           "baseline_env_steps_per_s": baseline, "keeps_up": keeps_up, "run_dir": str(run)}
+           "baseline_env_steps_per_s": baseline, "keeps_up": keeps_up, "run_dir": str(run),
+           "pushes": summary.get("pushes")}
     if pushed:
         out["updates"] = update_check(run, work / f"push-{rate_kbit}.log")
     return out
@@ -269,7 +270,10 @@ def update_check(run: Path, driver_log: Path) -> dict:
         return {"driver": driver, "error": "no trace.npz"}
     with np.load(trace_file) as t:
         steps, versions = t["steps"], t["versions"]
-    return {"driver": driver, "steps_per_version": {int(v): int((versions == v).sum()) for v in np.unique(versions)},
+    # From the driver's command to the first step acted with its version.
+    took = {f"{what}_took_steps": int(steps[np.argmax(versions >= v)]) - driver[f"{what}_at"]
+            for what, v in (("push", 1), ("rollback", 2)) if f"{what}_at" in driver and (versions >= v).any()}
+    return {"driver": driver, **took, "steps_per_version": {int(v): int((versions == v).sum()) for v in np.unique(versions)},
             "versions_monotone": bool(np.all(np.diff(versions) >= 0)),
             "no_step_missed": bool(np.array_equal(steps, np.arange(steps[0], steps[0] + len(steps))))}
 

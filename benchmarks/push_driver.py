@@ -46,7 +46,9 @@ def drive(run_dir: Path, bundle: Path, transport, push_at: int, rollback_after: 
             hb = beats.get(timeout=10)
             if hb is None:  # the run ended (or never stepped) before both updates were named
                 raise RuntimeError(f"no heartbeat of the env host for 10 s (so far: {report})")
-            step, version = int(hb.counters.get("step", 0)), int(hb.gauges.get("policy_version", 0))
+            # named_version: the version the steps name (a push is named once the agents hold it)
+            step, version = int(hb.counters.get("step", 0)), int(hb.gauges.get("named_version",
+                                                                               hb.gauges.get("policy_version", 0)))
             if "push_at" not in report and step >= push_at:
                 report.update(push_at=step, push=_cli("push", str(bundle), "--to", str(run_dir)))
             elif "push_at" in report and "push_named_at" not in report and version >= 1:

@@ -49,6 +49,7 @@ class AgentHealth:
         self.leaves = np.zeros(n_agents, np.int64)
         self.last_beat = [0.0] * n_agents
         self.silent = [False] * n_agents
+        self.held = np.full(n_agents, -1, np.int64)  # the newest policy version each agent holds (heartbeats)
         self.subs = [session.subscribe(session.keys.heartbeat(f"local-{i}"), Heartbeat) for i in range(n_agents)]
         self.last_write = 0.0
 
@@ -75,14 +76,23 @@ class AgentHealth:
         if now - self.last_write < WRITE_EVERY_S:
             return
         self.last_write = now
-        for i, sub in enumerate(self.subs):
-            for hb in sub.drain():
-                self.last_beat[i], self.silent[i] = now, False
-                self.rejected[i][hb.pid] = sum(int(v) for k, v in hb.counters.items() if k.startswith("rejected."))
+        self.beats(now)
+        for i in range(self.n):
             if self.last_beat[i] and not self.silent[i] and now - self.last_beat[i] > LEAVE_S:
                 self.leaves[i] += 1  # counted once per silence
                 self.silent[i] = True
         self.write(step, versions, central_version)
+
+    def beats(self, now: float | None = None) -> None:
+        """Take the agents' heartbeats that came: alive, rejections, and the version each holds
+        (`held`: its `policy_held` gauge, or for an agent without one the version it loaded)."""
+        now = time.monotonic() if now is None else now
+        for i, sub in enumerate(self.subs):
+            for hb in sub.drain():
+                self.last_beat[i], self.silent[i] = now, False
+                self.rejected[i][hb.pid] = sum(int(v) for k, v in hb.counters.items() if k.startswith("rejected."))
+                g = hb.gauges
+                self.held[i] = int(g.get("policy_held", g.get("policy_version", -1)))
 
     def write(self, step: int, versions: list[int], central_version: int) -> None:
         agents = [{"agent": i, "version": int(versions[i]), "actions": int(self.actions[i]),

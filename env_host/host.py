@@ -23,6 +23,10 @@ A served run names a version per agent: after `hammer push --canary` (serve/cana
 canary's agents get the new version in their LocalObs while the others and the central agent keep
 the base (runtime/pushes.py reads the history; a version is named only once its weights reached
 this host). It also writes each agent's health for the rollout's gates (env_host/health.py).
+A pushed version is named for the agents it is for only once each of them holds it (their
+heartbeats' `policy_held`: the agents pull a push in paced chunks, runtime/weights.py), so no step
+waits for weights still crossing a thin link; after `name_timeout_s` (RuntimeSettings
+`weights_name_timeout_s`) it is named regardless, counted as `push_named_unheld` and logged.
 """
 
 from __future__ import annotations
@@ -46,7 +50,15 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import env_reset_seed
 from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
-from hammer.protocol.schemas import Action, ExperienceChunk, GlobalState, Heartbeat, LocalObs, Weights
+from hammer.protocol.schemas import (
+    Action,
+    ExperienceChunk,
+    GlobalState,
+    Heartbeat,
+    LocalObs,
+    Weights,
+    WeightsAnnounce,
+)
 from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.pushes import HistoryError, assignment, read_pushes
 from hammer.runtime.role import Role, process_cpu_s
@@ -56,6 +68,7 @@ HISTORY_EVERY_S = 0.25  # a served run reads its update history (pushes.json) at
 
 class EnvHost(Role):
     heartbeat_every_s = 0.5
+    name_timeout_s = 20.0  # eval: a push is named this long after it was published even if not every agent holds it
 
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
                  act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
@@ -100,18 +113,28 @@ class EnvHost(Role):
         self.agent_versions: np.ndarray | None = None  # eval: each agent's version (a staged rollout)
         self.health: AgentHealth | None = None
         self._history_read, self._history_mtime, self._history_bad, self._named_for = 0.0, None, False, -2
+        self.announce_in = None  # eval: the policy server's announcements of pushed versions
+        self._pending: tuple[tuple, float] | None = None  # eval: versions to name once held, since when
+        self.pushes_named = self.push_named_unheld = 0
+        self.push_wait_s = 0.0  # the last push: published (announced) -> named
+        self.push_waits_s: list[float] = []  # every push's, in order (the summary)
 
     def counters(self) -> dict[str, int | float]:
         st = self.state
         return {**self.links.as_dict(), "episodes": st.episodes, "env_steps": st.env_steps, "step": st.step,
-                "update": st.update}
+                "update": st.update, **({"pushes_named": self.pushes_named, "push_named_unheld": self.push_named_unheld}
+                                        if self.announce_in is not None else {})}
 
     def gauges(self) -> dict[str, int | float]:
         st = self.state
         lat = np.array(st.step_latency_ms) if st.step_latency_ms else np.zeros(1)
         running = float(np.mean(list(st.recent)[-100:])) if st.recent else 0.0
         return {"policy_version": self.weights_version, "paper_metric_100": running,
-                "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99))}
+                "step_p50_ms": float(np.percentile(lat, 50)), "step_p99_ms": float(np.percentile(lat, 99)),
+                # eval: the version the steps name (the central one), once the agents hold it; policy_version
+                # is the newest published (what a restarted role's bound is measured from)
+                **({"push_wait_s": round(self.push_wait_s, 3), "named_version": self.rollout_version}
+                   if self.announce_in is not None else {})}
 
     # ----- training -----------------------------------------------------------------------------
     def run_training(self) -> dict:
@@ -258,6 +281,7 @@ class EnvHost(Role):
         prev = zero_prev_actions(self.spec, self.k)
         self.agent_versions = np.zeros(self.n, np.int64)
         self.health = AgentHealth(self.session, self.rd.path, self.n)
+        self.announce_in = self.session.subscribe(self.keys.weights_announce("local"), WeightsAnnounce)
         try:
             while not self.stop_requested():
                 self.heartbeat()
@@ -283,7 +307,7 @@ class EnvHost(Role):
         agent, or the canary's) and, once every agent is on it, by the global state (actors hold it
         until then). Which agents: the run's history (runtime/pushes.py), re-read when it changed;
         without a readable history every agent takes the newest version (a plain push)."""
-        for w in self.weights_in.drain():
+        for w in [*self.weights_in.drain(), *self.announce_in.drain()]:
             self.weights_version = max(self.weights_version, w.version)
         now = time.monotonic()
         if now - self._history_read < HISTORY_EVERY_S:
@@ -293,7 +317,7 @@ class EnvHost(Role):
             mtime = (self.rd.path / "pushes.json").stat().st_mtime_ns
         except FileNotFoundError:
             mtime = None
-        if mtime == self._history_mtime and self.weights_version == self._named_for:
+        if mtime == self._history_mtime and self.weights_version == self._named_for and self._pending is None:
             return
         self._history_mtime, self._named_for = mtime, self.weights_version
         try:
@@ -307,9 +331,35 @@ class EnvHost(Role):
             a.base = max(self.weights_version, self.rollout_version)
         versions = np.array([max(v, int(old)) for v, old in zip(a.agent_versions(self.n), self.agent_versions)])
         base = max(a.base, self.rollout_version)  # never back: a version once named stays named
-        if base != self.rollout_version or not np.array_equal(versions, self.agent_versions):
-            self.log.info("from step %d: central version %d, agents %s", self.state.step + 1, base, versions.tolist())
+        if base == self.rollout_version and np.array_equal(versions, self.agent_versions):
+            self._pending = None
+            return
+        if not self._all_hold(base, versions, now):
+            return
+        self.log.info("from step %d: central version %d, agents %s", self.state.step + 1, base, versions.tolist())
         self.rollout_version, self.agent_versions = base, versions
+
+    def _all_hold(self, base: int, versions: np.ndarray, now: float) -> bool:
+        """Whether to name `versions` now: every agent whose version changes holds its new one (its
+        heartbeat says so), or `name_timeout_s` passed since these versions were first due (then
+        counted as push_named_unheld and logged: those agents wait for the weights at that step)."""
+        due = (base, tuple(versions.tolist()))
+        if self._pending is None or self._pending[0] != due:
+            self._pending = (due, now)
+        self.health.beats(now)
+        lacking = [i for i in range(self.n) if versions[i] != self.agent_versions[i] and self.health.held[i] < versions[i]]
+        waited = now - self._pending[1]
+        if lacking and waited < self.name_timeout_s:
+            return False
+        if lacking:
+            self.push_named_unheld += 1
+            self.log.warning("naming versions %s although agents %s do not hold theirs after %.1f s (held: %s)",
+                             versions.tolist(), lacking, waited, self.health.held.tolist())
+        self.pushes_named += 1
+        self.push_wait_s, self._pending = waited, None
+        self.push_waits_s.append(round(waited, 3))
+        self.heartbeat_soon()
+        return True
 
     def _wait_actors_ready(self) -> bool:
         """Eval: start stepping only once the central agent and every local agent hold the policy
@@ -392,4 +442,6 @@ class EnvHost(Role):
             "links": self.links.as_dict(), "step": st.step, "completed": st.episodes >= cfg.episodes,
             "time_s": {**{k: round(v, 3) for k, v in self.time_s.items()},
                        "rest": round(elapsed - sum(self.time_s.values()), 3)},
+            **({"pushes": {"named": self.pushes_named, "named_unheld": self.push_named_unheld,
+                           "last_wait_s": round(self.push_wait_s, 3), "waits_s": self.push_waits_s[-32:]}} if self.announce_in is not None else {}),
         }

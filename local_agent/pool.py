@@ -99,10 +99,12 @@ class PooledAgent(AgentSteps):
     def counters(self) -> dict[str, int | float]:
         weights = self.pool.weights
         self.counts.weights_loaded, self.counts.weights_wait_timeouts = weights.loaded, weights.wait_timeouts
-        return self.counts.as_dict()
+        # the shared intake's pull counters: reported once, by the first agent
+        return {**self.counts.as_dict(), **(weights.counters() if self is self.pool.members[0] else {})}
 
     def gauges(self) -> dict[str, int]:
-        return {"policy_version": self.agent.version}
+        """policy_held: the newest version the pool holds (the env host names a push only once held)."""
+        return {"policy_version": self.agent.version, "policy_held": self.pool.weights.known}
 
     def rejection_counters(self) -> dict[str, int]:
         """This agent's rejections: its subscriptions' and its own (the first agent: the pool's too)."""
@@ -152,7 +154,8 @@ class LocalAgentPool(Role):
                 self._route[m.messages] = (m, self.on_message)
         self.policies: dict[int, NumpyLocalPolicy] = {}  # version -> policy (the last few: a canary and its base)
         self.weights = WeightsIntake(session, "local", self._load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
+                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version,
+                                     on_held=lambda version: self.heartbeat_soon())
         self.forwards = self.stacked_forwards = 0  # forward calls, and those that served several agents at once
 
     def alive_names(self) -> list[str]:
@@ -230,6 +233,7 @@ class LocalAgentPool(Role):
                 obs = m.waiting
                 msg, mask = m.settle_message(obs) if m.messages is not None else (None, np.zeros(obs.k, dtype=bool))
                 inputs.append((m, obs, msg, mask, m.agent.policy_input(obs.obs, msg)))
+            self.weights.pump()  # a push's next chunk: asked now, it crosses the link while it has no step traffic
             outs = self._forward([x[4] for x in inputs])
             for j, ((m, obs, msg, mask, _), out) in enumerate(zip(inputs, outs, strict=True)):
                 m.waiting = None
@@ -256,6 +260,7 @@ class LocalAgentPool(Role):
         """No policy yet: load the first one now, and say so at once (the env host may wait for it)."""
         if self.members[0].agent.version < 0 and self.weights.preload_oldest():
             self.heartbeat_soon()
+        self.weights.pump(idle=True)  # a push being pulled: its next chunk, on the slow idle timer
 
     def counters(self) -> dict[str, int]:
         return {"agents": len(self.members), "forwards": self.forwards, "stacked_forwards": self.stacked_forwards}

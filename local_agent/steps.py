@@ -170,15 +170,17 @@ class ClientCore(StepCore, Role):
         self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
         self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
         self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version)
+                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version,
+                                     on_held=lambda version: self.heartbeat_soon())
         self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
                                           step_log, "local->env")
 
     def counters(self) -> dict[str, int]:
-        return self.counts.as_dict()
+        return {**self.counts.as_dict(), **self.weights.counters()}
 
     def gauges(self) -> dict[str, int]:
-        return {"policy_version": self.agent.version}
+        """policy_held: the newest version this agent holds (the env host names a push only once held)."""
+        return {"policy_version": self.agent.version, "policy_held": self.weights.known}
 
     # ----- a step, in the order it flows ---------------------------------------------------------
     def on_obs(self, obs: LocalObs) -> None:
@@ -196,6 +198,7 @@ class ClientCore(StepCore, Role):
             msg, fallback_mask = self.message_for(obs)
         else:
             msg, fallback_mask = None, self.no_fallbacks(obs.k)
+        self.weights.pump()  # a push's next chunk: asked now, it crosses the link while the link has no step traffic
         self.act_on(obs, msg, fallback_mask)
 
     def message_for(self, obs: LocalObs) -> tuple[Any, Any]:
@@ -212,10 +215,12 @@ class ClientCore(StepCore, Role):
         return self.settle_message(obs)
 
     def on_idle(self) -> None:
-        """No policy yet: load the first one now, and say so at once (the env host may wait for it)."""
+        """No policy yet: load the first one now, and say so at once (the env host may wait for it).
+        A push being pulled: its next chunk, on the slow idle timer."""
         if self.agent.version < 0 and self.weights.preload_oldest():
             self.sync_weight_counters()
             self.heartbeat_soon()
+        self.weights.pump(idle=True)
 
     def sync_weight_counters(self) -> None:
         self.counts.weights_loaded, self.counts.weights_wait_timeouts = self.weights.loaded, self.weights.wait_timeouts

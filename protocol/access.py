@@ -66,13 +66,19 @@ def role_names(n_agents: int, uses_central: bool = True, pools: Pools = (), rout
             *(name for name, _ in pools), "learner", *([HUB] if router else [])]
 
 
+def agent_weights(keys: Keys) -> tuple[str, ...]:
+    """What a local agent receives of the policy: whole weights, a push's announcement, and the
+    chunks it asks for (a query on `learn/local/chunk`, answered by the policy server)."""
+    return keys.weights("local"), keys.weights_announce("local"), keys.weights_chunk("local")
+
+
 def pool_grant(keys: Keys, name: str, agents: tuple[int, ...]) -> Grant:
     """An agent pool (one process serving several local agents, local_agent/pool.py) may do exactly
     what its agents may do, together: their keys, their heartbeats and liveliness tokens, and no
     other agent's."""
     return Grant(
         publish=(*(keys.act(i) for i in agents), *(keys.heartbeat(f"local-{i}") for i in agents)),
-        subscribe=(*(keys.obs(i) for i in agents), *(keys.msg(i) for i in agents), keys.weights("local"),
+        subscribe=(*(keys.obs(i) for i in agents), *(keys.msg(i) for i in agents), *agent_weights(keys),
                    keys.ctl("all")),
         liveliness=tuple(keys.alive(f"local-{i}") for i in agents))
 
@@ -85,25 +91,27 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
         LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
         "env": Grant(
             publish=(keys.obs("*"), keys.state(), keys.exp("team"), keys.heartbeat("env")),
-            subscribe=(keys.act("*"), keys.weights("local"), keys.ctl("all"), keys.heartbeat("*")),
+            subscribe=(keys.act("*"), keys.weights("local"), keys.weights_announce("local"), keys.ctl("all"),
+                       keys.heartbeat("*")),
             liveliness=(keys.alive("env"),)),
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
             subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all")),
             liveliness=(keys.alive("central"),)),
         "learner": Grant(
-            publish=(keys.weights("local"), keys.weights("central"), keys.heartbeat("learner")),
+            publish=(keys.weights("local"), keys.weights("central"), keys.weights_announce("local"),
+                     keys.heartbeat("learner")),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
             # the policy server (the learner of a served run) answers a late joiner's query for the weights
             liveliness=(keys.alive("learner"),), watch_liveliness=True,
-            answers=(keys.weights("local"), keys.weights("central"))),
+            answers=(keys.weights("local"), keys.weights("central"), keys.weights_chunk("local"))),
     }
     if router:
         g[HUB] = Grant(relay=True)
     for i in range(n_agents):
         g[f"local-{i}"] = Grant(
             publish=(keys.act(i), keys.up(i), keys.heartbeat(f"local-{i}")),
-            subscribe=(keys.obs(i), keys.msg(i), keys.weights("local"), keys.ctl("all")),
+            subscribe=(keys.obs(i), keys.msg(i), *agent_weights(keys), keys.ctl("all")),
             liveliness=(keys.alive(f"local-{i}"),))
     for name, agents in pools:
         g[name] = pool_grant(keys, name, agents)

@@ -23,6 +23,8 @@ What each key says (keys under `hammer/<run>/`; `<pool>` is an agent pool `local
 | `learn/team/exp` | experience | role = team | env |
 | `learn/central/exp` | experience | role = central | central |
 | `learn/<net>/weights` | weights | role = net | learner |
+| `learn/<net>/announce` | weights_announce | role = net | learner |
+| `learn/<net>/chunk` | weights_chunk (a query's reply) | role = net | learner |
 | `ctl/hb/<r>` | heartbeat | role = r | r (an agent: also its pool) |
 | `ctl/all` | control | | any (a role obeys only the launcher's and the env host's stop) |
 
@@ -76,10 +78,10 @@ def rule_for(rel: str) -> Rule:
         return Rule(_AGENT_TYPES[head], agent=i, sender=head[0] if head[0] == "central" else "env")
     if parts == ["env", "state"]:
         return Rule("global_state", sender="env")
-    if parts[0] == "learn" and len(parts) == 3 and parts[2] in ("exp", "weights"):
+    if parts[0] == "learn" and len(parts) == 3 and parts[2] in _LEARN_TYPES:
         if parts[2] == "exp":
             return Rule("experience", role=parts[1], sender=_EXP_SENDER.get(parts[1], "env"))
-        return Rule("weights", role=parts[1], sender="learner")
+        return Rule(_LEARN_TYPES[parts[2]], role=parts[1], sender="learner")
     if head == ("ctl", "hb") and len(parts) == 3:
         agent = parts[2].removeprefix("local-")
         return Rule("heartbeat", role=parts[2], sender=parts[2],
@@ -92,6 +94,7 @@ def rule_for(rel: str) -> Rule:
 _AGENT_TYPES = {("env", "obs"): "local_obs", ("central", "msg"): "central_msg", ("agent", "act"): "action",
                 ("agent", "up"): "uplink"}
 _EXP_SENDER = {"team": "env", "central": "central"}
+_LEARN_TYPES = {"exp": "experience", "weights": "weights", "announce": "weights_announce", "chunk": "weights_chunk"}
 
 
 def sender_of(rel: str) -> str | None:

@@ -11,6 +11,8 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner: role "team" (env host's rollout),
                                         "central" (the central agent's per-step record)
   hammer/<run>/learn/<role>/weights     Weights from the learner: role "local" or "central"
+  hammer/<run>/learn/<role>/announce    WeightsAnnounce from the policy server: a pushed version to pull
+  hammer/<run>/learn/<role>/chunk       WeightsChunk: the policy server's reply to `chunk?v=<version>&i=<index>`
   hammer/<run>/ctl/<name>               Control: "all" is the one every role listens to (stop, target
                                         "*" or a role name); ctl/<role> is reserved, nothing subscribes
   hammer/<run>/ctl/hb/<role>            Heartbeat of one role
@@ -92,6 +94,12 @@ class Keys:
 
     def weights(self, role: str) -> str:
         return f"{self.prefix}/learn/{_name(role, 'role')}/weights"
+
+    def weights_announce(self, role: str) -> str:
+        return f"{self.prefix}/learn/{_name(role, 'role')}/announce"
+
+    def weights_chunk(self, role: str) -> str:
+        return f"{self.prefix}/learn/{_name(role, 'role')}/chunk"
 
     def ctl(self, name: str = "all") -> str:
         """Control channel: `ctl("all")` for broadcast commands, `ctl(role)` for one role."""

@@ -14,6 +14,8 @@ from hammer.protocol.schemas import (
     Message,
     Uplink,
     Weights,
+    WeightsAnnounce,
+    WeightsChunk,
 )
 
 K, N, D, M, A = 4, 3, 18, 4, 5
@@ -41,6 +43,8 @@ def sample_messages(seed: int = 0) -> list[Message]:
                                 "v64": rng.standard_normal(3), "i32": np.arange(3, dtype=np.int32)},
                         meta={"lr": 3e-4, "note": "x", "n": 3, "flag": True, "none": None}),
         Weights.from_blob("central", 4, bytes(rng.integers(0, 256, 1000, dtype=np.uint8)), **h),
+        WeightsAnnounce.of("local", 5, bytes(rng.integers(0, 256, 3000, dtype=np.uint8)), 1024, **h),
+        WeightsChunk(**h, role="local", version=5, index=2, data=bytes(rng.integers(0, 256, 952, dtype=np.uint8))),
         Uplink(**h, agent=1, obs=f32(K, D), action=rng.integers(0, A, K)),
         Uplink(**h, agent=2, obs=f32(K, D)),
         LocalObs(**{**h, "env_idx": np.array([5, 2], np.int64)}, agent=0, obs=f32(2, D), policy_version=1),

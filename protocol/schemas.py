@@ -67,7 +67,7 @@ if TYPE_CHECKING:
 # edge agent, which keeps its arrays as `WireArray`s checked in pure Python (protocol/fields.py).
 np: Any = None
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5  # 5: WeightsAnnounce and WeightsChunk (a push pulled in paced chunks)
 
 # Scalar wire types (msgspec checks them while decoding).
 NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
@@ -561,6 +561,85 @@ class Weights(Message, tag=6, kw_only=True):
         return cls(role=role, version=version, blob=blob, sha256=hashlib.sha256(blob).hexdigest(), **header)
 
 
+# A pushed version, pulled in chunks (WeightsAnnounce, WeightsChunk): the bounds of what an announcement may declare.
+MIN_CHUNK_BYTES = 64
+MAX_CHUNK_BYTES = 64 * 1024
+MAX_CHUNKS = 1 << 16
+CHUNK_DIGEST_BYTES = 8  # each chunk's digest in the announcement: the first 8 bytes of its sha256
+
+
+def chunk_digest(data: bytes) -> bytes:
+    """What an announcement lists for one chunk (the whole blob's sha256 is checked as well)."""
+    return hashlib.sha256(data).digest()[:CHUNK_DIGEST_BYTES]
+
+
+class WeightsAnnounce(Message, tag=10, kw_only=True):
+    """Policy server -> local agents: a pushed policy version exists; each agent pulls it in chunks.
+
+    Why not the weights themselves: on a thin link a 35 kB Weights message sits in the kernel's
+    queue ahead of the steps' traffic for a second (docs/deploy.md, "A push on a thin link"). The
+    announcement says what to fetch and how to check it: the blob's size and sha256, the chunk
+    size, and each chunk's digest (`chunk_digest`, 8 bytes per chunk), so a bad chunk is refused
+    on arrival, not only once the whole blob fails its sha256."""
+
+    TYPE: ClassVar[str] = "weights_announce"
+    MAX_BYTES: ClassVar[int] = HEADER_BYTES + MAX_CHUNKS * CHUNK_DIGEST_BYTES
+    role: Name
+    version: NonNegInt
+    size: Annotated[int, Meta(ge=1, le=256 * MiB, description="bytes of the whole blob")]
+    sha256: Annotated[str, Meta(pattern=r"^[0-9a-f]{64}$")]
+    chunk_bytes: Annotated[int, Meta(ge=MIN_CHUNK_BYTES, le=MAX_CHUNK_BYTES,
+                                     description="bytes of every chunk but the last")]
+    digests: Annotated[bytes, Meta(max_length=MAX_CHUNKS * CHUNK_DIGEST_BYTES, description=(
+        "the chunks' digests in order, 8 bytes each: the first 8 bytes of each chunk's sha256"))]
+    format: Literal["safetensors"] = "safetensors"
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        if type(self.digests) is not bytes:
+            raise FieldError(f"must be bytes, got {type(self.digests).__name__}", "digests")
+        n = -(-self.size // self.chunk_bytes)
+        if n > MAX_CHUNKS:
+            raise RangeError(f"{n} chunks of {self.chunk_bytes} B, over {MAX_CHUNKS}", "chunk_bytes")
+        if len(self.digests) != n * CHUNK_DIGEST_BYTES:
+            raise FieldError(f"{len(self.digests)} bytes for {n} chunks of {CHUNK_DIGEST_BYTES}", "digests")
+
+    @property
+    def chunks(self) -> int:
+        return len(self.digests) // CHUNK_DIGEST_BYTES
+
+    def digest(self, index: int) -> bytes:
+        return self.digests[index * CHUNK_DIGEST_BYTES:(index + 1) * CHUNK_DIGEST_BYTES]
+
+    def chunk_size(self, index: int) -> int:
+        """The bytes chunk `index` must hold (the last one: the rest)."""
+        return min(self.chunk_bytes, self.size - index * self.chunk_bytes)
+
+    @classmethod
+    def of(cls, role: str, version: int, blob: bytes, chunk_bytes: int, **header: Any) -> WeightsAnnounce:
+        """The announcement of `blob` cut into chunks of `chunk_bytes`."""
+        digests = b"".join(chunk_digest(blob[i:i + chunk_bytes]) for i in range(0, len(blob), chunk_bytes))
+        return cls(role=role, version=version, size=len(blob), sha256=hashlib.sha256(blob).hexdigest(),
+                   chunk_bytes=chunk_bytes, digests=digests, **header)
+
+
+class WeightsChunk(Message, tag=11, kw_only=True):
+    """Policy server -> one local agent, the reply to its query `learn/<net>/chunk?v=<version>&i=<index>`:
+    bytes [index * chunk_bytes, ...) of the announced version's blob (WeightsAnnounce)."""
+
+    TYPE: ClassVar[str] = "weights_chunk"
+    MAX_BYTES: ClassVar[int] = HEADER_BYTES + MAX_CHUNK_BYTES
+    role: Name
+    version: NonNegInt
+    index: Annotated[int, Meta(ge=0, lt=MAX_CHUNKS)]
+    data: Annotated[bytes, Meta(min_length=1, max_length=MAX_CHUNK_BYTES)]
+
+    def __post_init__(self) -> None:
+        self.env_idx = _env_idx(self.env_idx)
+        if type(self.data) is not bytes:
+            raise FieldError(f"must be bytes, got {type(self.data).__name__}", "data")
+
+
 class Control(Message, tag=7, kw_only=True):
     """Launcher -> roles: a command with small arguments. Only what something sends and something
     handles: `stop` (the launcher and the env host end a run)."""
@@ -634,7 +713,8 @@ class Uplink(Message, tag=9, kw_only=True):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat, Uplink)
+    for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat, Uplink,
+                WeightsAnnounce, WeightsChunk)
 }
 for _cls in MESSAGE_TYPES.values():
     _cls.TAG = _cls.__struct_config__.tag

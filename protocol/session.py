@@ -57,6 +57,15 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 BATCH_MIN = 5
 
 
+def query_parameters(text: str) -> dict[str, str]:
+    """A query's parameters (`v=3&i=0`) as a dict; nothing when they exceed what any hammer query
+    sends (8 pairs of 32 characters): the asker is not trusted to be small."""
+    pairs = [p.partition("=") for p in text.split("&") if p] if len(text) <= 8 * 66 else []
+    if len(pairs) > 8 or any(len(k) > 32 or len(v) > 32 for k, _, v in pairs):
+        return {}
+    return {k: v for k, _, v in pairs}
+
+
 def burst_express(j: int, n: int) -> bool:
     """Whether put j (0-based) of a burst of n puts is express (see BATCH_MIN)."""
     return n < BATCH_MIN or j == n - 1
@@ -692,34 +701,37 @@ class HammerSession:
 
     # ---- ask for the current message (queries) --------------------------------------------
 
-    def answer(self, key: str, current: Callable[[], Message | list[Message] | None]) -> None:
+    def answer(self, key: str, current: Callable[..., Message | list[Message] | None], *,
+               parameters: bool = False) -> None:
         """Answer every query on `key` (a Zenoh queryable) with `current()`, stamped as this session's
         publisher of `key` stamps (None: nothing to say yet; a list: one reply each, e.g. the two
         policy versions of a staged rollout). Why: a role that joins late asks for what it missed
         (the policy), so the copy crosses its own link only, instead of everyone receiving a
-        republish. `current` runs on a Zenoh thread: it must only hand over what it has."""
+        republish. `current` runs on a Zenoh thread: it must only hand over what it has.
+        parameters=True: `current(params)` gets the query's parameters (`key?v=3&i=0`) as a dict of
+        strings, untrusted (the asker chose them): at most 8, each name and value at most 32 characters."""
         pub = self.publisher(key)
 
         def on_query(query: zenoh.Query) -> None:
-            msgs = current()
+            msgs = current(query_parameters(str(query.parameters))) if parameters else current()
             for msg in msgs if isinstance(msgs, list) else [msgs]:
                 if msg is not None:
                     query.reply(key, pub.stamped(msg)[1])
 
         self._queryables.append(self.zenoh.declare_queryable(self._own(key), on_query))
 
-    def fetch(self, key: str, into: Subscription, timeout: float = 2.0) -> None:
+    def fetch(self, key: str, into: Subscription, timeout: float = 2.0, parameters: str = "") -> None:
         """Ask whoever answers `key` for its current message; returns at once. Each reply goes through
         `into`'s intake exactly as a published sample of its key would (size cap, queue bound, then
         decode, validation and key binding in the consumer's thread), so a reply is trusted no more
-        than a publication."""
+        than a publication. `parameters`: what to ask for (`v=3&i=0`: a chunk of a pushed version)."""
 
         def on_reply(reply: zenoh.Reply) -> None:
             ok = reply.ok
             if ok is not None:
                 into._on_sample(ok)
 
-        self.zenoh.get(self._own(key), on_reply, timeout=timeout)
+        self.zenoh.get(self._own(key) + (f"?{parameters}" if parameters else ""), on_reply, timeout=timeout)
 
     def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)

@@ -28,7 +28,8 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
            "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
-           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16", "wire_float16")
+           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16", "wire_float16",
+           "weights_chunk_bytes", "weights_name_timeout_s")
 
 
 def auto_agents_per_process(n_agents: int, cores: int | None = None) -> int:
@@ -161,6 +162,24 @@ class RuntimeSettings(Model):
     weights_republish_max_s: float = Field(
         16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
                                 "weights_republish_s for a fixed period")
+
+    weights_chunk_bytes: int = Field(
+        512, ge=0, le=65536,
+        description="eval: a pushed version reaches each local agent in chunks of this many bytes, each asked for by "
+                    "the agent once per step, before its action (one outstanding per agent), so at most one chunk sits "
+                    "ahead of a link's step traffic (512 B: 16 ms of a 256 kbit/s link; 1024 B left a few messages "
+                    "late there, docs/deploy.md); 0: the whole weights are published at once")
+    weights_name_timeout_s: float = Field(
+        20.0, gt=0, description="eval: the env host names a pushed version once every agent it is for holds it, or "
+                                "after this long regardless (counted as push_named_unheld, logged)")
+
+    @field_validator("weights_chunk_bytes")
+    @classmethod
+    def _chunk_bytes(cls, v: int) -> int:
+        if 0 < v < 64:
+            raise ValueError(f"weights_chunk_bytes={v}: a chunk of under 64 B costs more in headers than it carries; "
+                             "fix: 64..65536 (512 suits a 256 kbit/s link), or 0 to publish whole weights")
+        return v
 
     @model_validator(mode="after")
     def _eval_needs_policy(self) -> RuntimeSettings:

@@ -20,6 +20,16 @@ two versions are in use, so a query is answered with both (the base and the cana
 (re)joins mid-canary then holds the one its steps name, instead of the newest only, which would put
 an agent outside the canary on the canary's policy (runtime/weights.py loads the version a step
 names, or the newest below it).
+
+A pushed version of the local policy is not published whole when `chunk_bytes` > 0 (RuntimeSettings
+`weights_chunk_bytes`, the default): it is announced (WeightsAnnounce: size, sha256, each chunk's
+digest; repeated after 4, 8 and 16 s for who missed it: not sooner, since each copy crosses every
+thin link while the agents step, and an agent that missed it still gets the version, whole, when
+the env host names it after `weights_name_timeout_s`) and every local agent pulls its
+chunks by query (`learn/local/chunk?v=<version>&i=<index>`, `_answer_chunk`), one at a time, after
+its step's action (runtime/weights.py), so a push never puts more than one chunk ahead of a thin
+link's step traffic. The central agent's link is on the server side: it gets the whole weights.
+Version 0 and a late joiner's query are answered whole, as before.
 """
 
 from __future__ import annotations
@@ -27,9 +37,11 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from hammer.protocol.schemas import Weights
+from hammer.protocol.schemas import Weights, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession
 from hammer.runtime.role import Role
+
+ANNOUNCE_FIRST_S, ANNOUNCE_LAST_S = 4.0, 16.0  # an announcement is repeated after 4, 8 and 16 s (see the docstring)
 
 
 class PolicyDirError(FileNotFoundError):
@@ -56,8 +68,8 @@ class PolicyServer(Role):
 
     def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
                  republish_s: float = 0.0, run_dir: Path | None = None, republish_max_s: float | None = None,
-                 float16: bool = False) -> None:
-        self.float16 = float16
+                 float16: bool = False, chunk_bytes: int = 0) -> None:
+        self.float16, self.chunk_bytes = float16, chunk_bytes
         blobs = self._wire(policy_blobs(policy_dir, needs_central))  # a missing file fails before anything is declared
         super().__init__(session, "learner", report_faults=False)
         self.blobs, self.needs_central = blobs, needs_central
@@ -75,6 +87,13 @@ class PolicyServer(Role):
         self._by_version: dict[int, dict[str, bytes]] = {0: blobs}  # wire blobs published, for the canary's base
         for role in blobs:
             session.answer(self.keys.weights(role), lambda role=role: self._answer(role))
+        self.announces = self.chunks_answered = 0
+        self._announce: WeightsAnnounce | None = None  # the pushed local version, pulled in chunks
+        self._announce_at, self._announce_wait = 0.0, ANNOUNCE_FIRST_S
+        self._chunked: dict[int, bytes] = {}  # version -> the local blob its chunks are cut from (the last few)
+        if chunk_bytes > 0:
+            self.announce_pub = session.publisher(self.keys.weights_announce("local"))
+            session.answer(self.keys.weights_chunk("local"), self._answer_chunk, parameters=True)
 
     def _wire(self, blobs: dict[str, bytes]) -> dict[str, bytes]:
         """The blobs as sent: float16 tensors with `float16` (learning.numpy_policy.float16_blob)."""
@@ -91,9 +110,22 @@ class PolicyServer(Role):
         self.answered += bool(out)
         return out
 
+    def _answer_chunk(self, params: dict[str, str]) -> WeightsChunk | None:
+        """Chunk `i` of version `v` for the agent that asked (on a Zenoh thread; the parameters are
+        untrusted: anything but two small decimal numbers naming a chunk held gets no reply)."""
+        v, i = params.get("v", ""), params.get("i", "")
+        if not (v.isdecimal() and i.isdecimal() and len(v) <= 18 and len(i) <= 6):
+            return None
+        blob, n = self._chunked.get(int(v)), self.chunk_bytes
+        if blob is None or int(i) * n >= len(blob):
+            return None
+        self.chunks_answered += 1
+        return WeightsChunk(role="local", version=int(v), index=int(i), data=blob[int(i) * n:(int(i) + 1) * n])
+
     def counters(self) -> dict[str, int]:
         return {"frozen_publishes": self.published, "updates_rejected": self.updates_rejected,
-                "weights_answered": self.answered}
+                "weights_answered": self.answered, "weights_announced": self.announces,
+                "chunks_answered": self.chunks_answered}
 
     def gauges(self) -> dict[str, int]:
         return {"policy_version": self.version}
@@ -112,6 +144,11 @@ class PolicyServer(Role):
         if self.republish_s > 0 and time.monotonic() - self.last_publish >= self.period:
             self.publish()
             self.period = min(self.period * 2, self.republish_max_s)
+        if (self._announce is not None and self._announce_wait <= ANNOUNCE_LAST_S
+                and time.monotonic() - self._announce_at >= self._announce_wait):
+            self._announce_at, self._announce_wait = time.monotonic(), self._announce_wait * 2
+            self.announce_pub.publish(self._announce)  # for an agent that missed it (a few hundred bytes)
+            self.announces += 1
 
     def follow_history(self) -> None:
         """New entries in RUN/pushes.json: publish each new version (`_publish_entry`); a stage, a
@@ -152,6 +189,11 @@ class PolicyServer(Role):
             self.log.error("update to version %d rejected: %s", e["version"], err)
             return
         self.blobs, self.version = self._wire(blobs), e["version"]
+        if self.chunk_bytes > 0:
+            self._chunked = {**{v: b for v, b in self._chunked.items() if v >= self.version - 4},
+                             self.version: self.blobs["local"]}
+            self._announce = WeightsAnnounce.of("local", self.version, self.blobs["local"], self.chunk_bytes)
+            self._announce_at, self._announce_wait = time.monotonic(), ANNOUNCE_FIRST_S
         self._by_version = {**{v: b for v, b in self._by_version.items() if v >= self.version - 8},
                             self.version: self.blobs}
         self.log.info("%s: publishing version %d from %s", e.get("action", "push"), self.version, e["policy_dir"])
@@ -176,7 +218,11 @@ class PolicyServer(Role):
     def publish(self) -> None:
         self._current = {role: Weights.from_blob(role, self.version, blob) for role, blob in self.blobs.items()}
         for role, w in self._current.items():
-            self.pubs[role].publish(w)
+            if role == "local" and self._announce is not None and self._announce.version == self.version:
+                self.announce_pub.publish(self._announce)  # the agents pull it in chunks
+                self.announces += 1
+            else:
+                self.pubs[role].publish(w)
         self.published += 1
         self.last_publish = time.monotonic()
 

@@ -28,7 +28,7 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 TAGS = {"local_obs": 1, "global_state": 2, "central_msg": 3, "action": 4, "experience": 5, "weights": 6,
         "control": 7, "heartbeat": 8, "uplink": 9}
 HEADER = ("v", "step", "env_idx", "sender")

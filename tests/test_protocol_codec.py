@@ -375,13 +375,13 @@ def test_fuzz_structured_field_replacement(data, draw):
 
 def test_hand_built_array_from_the_docs_decodes():
     """A client in another language following docs/wire-format.md produces what we accept."""
-    wire = [1, 4, 12, 1, "", 1, [5, [1, 2], struct.pack("<2f", 1.0, -2.0)], 3]
+    wire = [1, 5, 12, 1, "", 1, [5, [1, 2], struct.pack("<2f", 1.0, -2.0)], 3]
     msg = codec.decode(msgpack.packb(wire, use_bin_type=True), LocalObs)
     assert msg.obs.tolist() == [[1.0, -2.0]] and msg.active.tolist() == [True] and msg.agent == 1
     assert msg.env_idx.tolist() == [0] and msg.policy_version == 3 and msg.step == 12
     assert struct.pack("<2f", 1.0, -2.0) == bytes.fromhex("0000803f000000c0")
     assert msgpack.unpackb(codec.encode(msg)) == wire
-    assert codec.encode(msg).hex() == "980104 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
+    assert codec.encode(msg).hex() == "980105 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
 
 
 def test_the_wire_path_imports_no_pydantic():

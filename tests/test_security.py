@@ -94,11 +94,17 @@ def test_role_table_follows_the_issue():
     assert g["local-1"].publish == (KEYS.act(1), KEYS.up(1), KEYS.heartbeat("local-1"))  # up: a fleet robot's uplink
     assert KEYS.up("*") in g["central"].subscribe and not any(KEYS.up("*") in x.subscribe for r, x in g.items()
                                                               if r != "central")
-    assert set(g["local-1"].subscribe) == {KEYS.obs(1), KEYS.msg(1), KEYS.weights("local"), KEYS.ctl("all")}
+    # a push's announcement and the chunks an agent asks for (a query on learn/local/chunk)
+    assert set(g["local-1"].subscribe) == {KEYS.obs(1), KEYS.msg(1), KEYS.weights("local"), KEYS.ctl("all"),
+                                           KEYS.weights_announce("local"), KEYS.weights_chunk("local")}
     publishers = {k: {r for r, x in g.items() if k in x.publish} for k in
-                  (KEYS.msg("*"), KEYS.weights("local"), KEYS.weights("central"), KEYS.ctl("all"))}
+                  (KEYS.msg("*"), KEYS.weights("local"), KEYS.weights("central"), KEYS.ctl("all"),
+                   KEYS.weights_announce("local"))}
     assert publishers == {KEYS.msg("*"): {"central"}, KEYS.weights("local"): {"learner"},
-                          KEYS.weights("central"): {"learner"}, KEYS.ctl("all"): {"launcher"}}
+                          KEYS.weights("central"): {"learner"}, KEYS.ctl("all"): {"launcher"},
+                          KEYS.weights_announce("local"): {"learner"}}
+    # only the policy server answers a chunk query: a stolen agent key cannot feed another agent's pull
+    assert {r for r, x in g.items() if KEYS.weights_chunk("local") in x.answers} == {"learner"}
     acl = access_control(KEYS, N)
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
     # no router, no relay: a run whose roles meet as peers has no hub identity and no rule for one

@@ -4,6 +4,7 @@ was acted with, and what the agents did, which is replayed with the bundles' wei
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -110,6 +111,9 @@ def test_push_and_rollback_switch_every_agent_at_one_step(bundles, tmp_path):
     assert np.all(np.diff(versions) >= 0) and set(versions.tolist()) == {0, 1, 2}
     assert (versions == 1).sum() > 50 and (versions == 2).sum() > 50
     assert [e["action"] for e in read_history(run)] == ["push", "rollback"]
+    # Both were named only once every agent held them (pulled in chunks; the rollback's bytes were held)
+    pushes = json.loads((run / "env_summary.json").read_text())["pushes"]
+    assert pushes["named"] == 2 and pushes["named_unheld"] == 0, pushes
     spec = a.env_spec()
     acted = trace["actions"]
     replay = _replay({0: a, 1: b, 2: a}, cfg, spec, trace)

@@ -293,6 +293,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
                            resume_from=settings.resume_from, resume_step=settings.resume_step,
                            trace_max_mb=settings.trace_max_mb, echo=settings.echo)
             host.stall_warn_s = settings.stall_warn_s
+            host.name_timeout_s = settings.weights_name_timeout_s
             summary = host.run_eval() if settings.mode == "eval" else host.run_training()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
                           else host.stop_reason or "ended before the budget", host.state.step, host.state.episodes)
@@ -342,7 +343,7 @@ def learner_command(run_dir: RunDirOpt,
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
                 PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network,
                              settings.weights_republish_s, run_dir, settings.weights_republish_max_s,
-                             float16=settings.weights_float16).run()
+                             float16=settings.weights_float16, chunk_bytes=settings.weights_chunk_bytes).run()
         except PolicyDirError as e:
             fail(str(e))
         except KeyboardInterrupt:
