@@ -6,6 +6,7 @@ imports numpy, local_agent/lite.py)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -261,3 +262,52 @@ def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(te
     assert "acts in plain Python, without numpy" in text and "'steps': 50," in text, text
     assert res.links["local->env"]["defaults"] == 0
     assert out["maps"] >= 3 and out["numpy"] == [], out["numpy"]
+
+
+def test_a_push_reaches_a_lite_edge_agent_in_chunks_and_is_named_once_held(team1, tmp_path):
+    """Issue 31 parts 3 and 4 together: a served run whose agent 0 is the lite edge agent (K=1, no
+    numpy) takes a push mid-run; the agent pulls the new weights in paced chunks like the numpy
+    agents, says it holds them, and the env host names the version for every agent only then."""
+    import numpy as np
+    from hammer.serve.bundle import export_bundle
+    from hammer.serve.push import push
+    from safetensors.numpy import load_file, save_file
+
+    bundle, _ = team1
+    src = tmp_path / "b-run"
+    shutil.copytree(bundle.path.parent / "run", src)
+    w = load_file(str(src / "final" / "local.safetensors"))
+    save_file({k: (v + np.float32(0.25)).astype(v.dtype) for k, v in w.items()}, str(src / "final" / "local.safetensors"))
+    b = export_bundle(src, tmp_path / "B")
+    port = free_loopback_port()
+    settings, _ = serve_settings(bundle, "lite-push", runtime=[f"hub_port={port}"])
+    run, out, pushed = tmp_path / "served", {}, []
+
+    def edge() -> None:
+        out["proc"] = subprocess.Popen(
+            [sys.executable, "-m", "hammer", "local", "--bundle", str(bundle.path), "--agent", "0", "--run-id",
+             settings.run_id, "--connect", f"tcp/127.0.0.1:{port}"],
+            cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def chaos(sup, board) -> None:  # push once the run is stepping
+        env = board.heartbeats.get("env")
+        if not pushed and env is not None and int(env.counters.get("step", 0)) >= 25:
+            push(b.path, run)
+            pushed.append(True)
+
+    starter = threading.Thread(target=edge)
+    starter.start()
+    try:
+        res = launch(bundle.config(episodes=24, msg_dropout=0.0), settings, run, chaos=chaos, external_agents=(0,))
+        starter.join(timeout=30)
+        text, _ = out["proc"].communicate(timeout=30)
+    finally:
+        starter.join(timeout=30)
+        if "proc" in out and out["proc"].poll() is None:
+            out["proc"].kill()
+    assert res.summary["completed"] and pushed
+    assert out["proc"].returncode == 0, text
+    assert "acts in plain Python, without numpy" in text, text
+    env_summary = json.loads((run / "env_summary.json").read_text())
+    assert env_summary["pushes"]["named"] == 1 and env_summary["pushes"]["named_unheld"] == 0, env_summary["pushes"]
+    assert res.links["local->env"]["defaults"] == 0
