@@ -2,7 +2,17 @@
 
 from __future__ import annotations
 
+import signal
+
 import pytest
+
+# Tests stop real processes with SIGINT (Ctrl-C, as a person would). A shell that starts a job in
+# the background (`make test &`, nohup) leaves SIGINT ignored, children inherit an ignored signal
+# across exec, and Python then never turns it into KeyboardInterrupt: those stops would silently not
+# happen. A handled signal is reset to the default at exec, so handling it here gives every child
+# the terminal's Ctrl-C again, whatever launched the suite.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

@@ -329,6 +329,14 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
     serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
                              cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
+        # "With `hammer serve ...` running": the robot starts once the fleet's central agent is up (on a
+        # loaded machine the launcher takes seconds, longer than the example's 3 s loop)
+        central_log = tmp_path / "runs" / "site-a" / "logs" / "central.log"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "central alive" not in (
+                central_log.read_text() if central_log.is_file() else ""):
+            assert serve.poll() is None, "hammer serve exited before its central agent was up"
+            time.sleep(0.1)
         r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=tmp_path, env=ENV,
                            capture_output=True, text=True, timeout=120, check=False)
         assert r.returncode == 0, r.stderr[-3000:]
