@@ -16,6 +16,12 @@ Messages go out at every tick to every robot (`central/msg/<i>`) through reliabl
 congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
 The message is stamped with the tick as its step, and the send time and sequence number as every
 message; the robot dates it by arrival.
+
+Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
+network whole (this role's link is on the server side), and this role loads it at its next tick
+(`WeightsIntake.take_newest`, never waiting): no step names versions in a fleet, so the central agent
+switches on its own, as each robot does. A (re)started central agent holding nothing from the run
+asks for the current version, as a late joiner of a served run does.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
 from hammer.runtime.presence import Presence
 from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 
 MISSING_RULE = "zeros"  # a missing robot's observation and action in the state
 
@@ -48,6 +55,10 @@ class FleetCentral(Role):
         self.acting = CentralActing.from_config(cfg)
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
         self.net = numpy_central(_safetensors(central_weights)) if self.acting.has_network else None
+        self.version, self.switches = 0, 0  # the bundle's network is the run's first version (0)
+        self.weights = (WeightsIntake(session, "central", self._load, timeout_s=0.0, reject=self._rejected)
+                        if self.acting.has_network else None)
+        self.weights_rejected = 0
         self.clock = Clock(hz)
         self.poll_s = min(self.poll_s, self.clock.period)
         self.obs = np.zeros((1, self.n, spec.obs_dim), np.float32)
@@ -64,10 +75,33 @@ class FleetCentral(Role):
     def counters(self) -> dict[str, int]:
         return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "msgs_sent": self.sent,
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
+                "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
                 **self.presence.counters()}
 
     def gauges(self) -> dict[str, int]:
-        return {"policy_version": 0, "robots_present": self.presence.present_count()}
+        held = self.version if self.weights is None else max(self.version, self.weights.known)
+        return {"policy_version": self.version, "policy_held": held, "robots_present": self.presence.present_count()}
+
+    def _load(self, blob: bytes, version: int) -> None:
+        """Act with the central network of `version` from the next tick on."""
+        self.net = numpy_central(_safetensors(blob))
+        if version != self.version:
+            self.log.info("central: acting with policy version %d (was %d)", version, self.version)
+            self.switches += 1
+            self.heartbeat_soon()
+        self.version = version
+
+    def _rejected(self, reason: str, what: str) -> None:
+        self.weights_rejected += 1
+        self.log.warning("rejected (%s): %s", reason, what)
+
+    def take_weights(self) -> None:
+        """The newest central network received, loaded now; nothing held from the run yet: ask."""
+        if self.weights is None:
+            return
+        if self.weights.known < 0:
+            self.weights.fetch()  # at most once every FETCH_EVERY_S
+        self.weights.take_newest()
 
     def poll(self, timeout: float) -> bool:
         """Serve a tick if one is due, on the uplinks that came until then."""
@@ -75,6 +109,7 @@ class FleetCentral(Role):
         if not self.clock.due(timeout):
             return False
         self.take_uplinks()  # what arrived while the clock slept is the freshest
+        self.take_weights()
         self.tick(time.monotonic())
         return True
 
