@@ -124,6 +124,8 @@ def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:
     from hammer.serve.settings import serve_settings
 
     settings, _ = serve_settings(b, run_id, runtime=["secure=true"] if plan.secure else [])
+    # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
+    settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
     settings.save(run_dir)
     cfg = b.config(num_envs=1, **({} if plan.seed is None else {"seed": plan.seed}))
     (run_dir / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
