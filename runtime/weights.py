@@ -171,6 +171,12 @@ class WeightsIntake:
                         self.network, need, self.timeout_s, self.version)
             return
 
+    def receive(self) -> int:
+        """Take what arrived without loading it; returns the newest version held and not loaded (-1: none)."""
+        for w in self._sub.drain():
+            self._offer(w)
+        return max(self._inbox.held, default=-1)
+
     def take_newest(self) -> bool:
         """Take what arrived and load the newest version held, never waiting (True: one was loaded).
         For a role with no step to name a version (a fleet's robots and central agent,
