@@ -16,6 +16,17 @@ Messages go out at every tick to every robot (`central/msg/<i>`) through reliabl
 congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
 The message is stamped with the tick as its step, and the send time and sequence number as every
 message; the robot dates it by arrival.
+
+Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
+network whole (this role's link is on the server side). No step names versions in a fleet: each
+robot switches as soon as it holds the pushed local policy (it pulls it in chunks, seconds on a
+paced link), and this role switches at a tick once every robot present holds it (their heartbeats'
+`policy_held`), or after `hold_timeout_s` (counted, logged). So while a push spreads, robots already
+on the new local policy act on the old central network's messages, which the push checked the new
+bundle declares it works with (serve/push.py), and no robot acts with the old local policy on the new
+central network's messages but one that is late past the timeout. Loading never waits. A (re)started
+central agent holding nothing from the run asks for the current version, as a late joiner of a
+served run does.
 """
 
 from __future__ import annotations
@@ -29,25 +40,36 @@ from hammer.learning.config import RunConfig
 from hammer.learning.numpy_policy import numpy_central
 from hammer.learning.sampling import ActingStreams
 from hammer.protocol.dims import Dims
-from hammer.protocol.schemas import CentralMsg, Uplink
+from hammer.protocol.schemas import CentralMsg, Heartbeat, Uplink
 from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
 from hammer.runtime.presence import Presence
 from hammer.runtime.role import Role
+from hammer.runtime.weights import WeightsIntake
 
 MISSING_RULE = "zeros"  # a missing robot's observation and action in the state
+HOLD_TIMEOUT_S = 20.0  # a pushed central network is taken this long after it came even if a robot lacks its local one
 
 
 class FleetCentral(Role):
     """Uplinks in, one message per robot out at `hz`; `central_weights`: the bundle's central.safetensors."""
 
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, central_weights: bytes | None,
-                 hz: float, missing_after_s: float) -> None:
+                 hz: float, missing_after_s: float, hold_timeout_s: float = HOLD_TIMEOUT_S) -> None:
         super().__init__(session, "central")
         self.cfg, self.spec, self.n = cfg, spec, cfg.n_agents
         self.acting = CentralActing.from_config(cfg)
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
         self.net = numpy_central(_safetensors(central_weights)) if self.acting.has_network else None
+        self.version, self.switches = 0, 0  # the bundle's network is the run's first version (0)
+        self.weights = (WeightsIntake(session, "central", self._load, timeout_s=0.0, reject=self._rejected)
+                        if self.acting.has_network else None)
+        self.weights_rejected = 0
+        self.hold_timeout_s, self.switched_unheld = hold_timeout_s, 0
+        self.held = np.full(self.n, -1, np.int64)  # each robot's newest version held (its heartbeat's policy_held)
+        self._due: tuple[int, float] | None = None  # a newer central version received, and since when
+        self.beats = ([session.subscribe(self.keys.heartbeat(f"local-{i}"), Heartbeat) for i in range(self.n)]
+                      if self.weights is not None else [])
         self.clock = Clock(hz)
         self.poll_s = min(self.poll_s, self.clock.period)
         self.obs = np.zeros((1, self.n, spec.obs_dim), np.float32)
@@ -64,10 +86,53 @@ class FleetCentral(Role):
     def counters(self) -> dict[str, int]:
         return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "msgs_sent": self.sent,
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
+                "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
+                "policy_switched_unheld": self.switched_unheld,
                 **self.presence.counters()}
 
     def gauges(self) -> dict[str, int]:
-        return {"policy_version": 0, "robots_present": self.presence.present_count()}
+        held = self.version if self.weights is None else max(self.version, self.weights.known)
+        return {"policy_version": self.version, "policy_held": held, "robots_present": self.presence.present_count()}
+
+    def _load(self, blob: bytes, version: int) -> None:
+        """Act with the central network of `version` from the next tick on."""
+        self.net = numpy_central(_safetensors(blob))
+        if version != self.version:
+            self.log.info("central: acting with policy version %d (was %d)", version, self.version)
+            self.switches += 1
+            self.heartbeat_soon()
+        self.version = version
+
+    def _rejected(self, reason: str, what: str) -> None:
+        self.weights_rejected += 1
+        self.log.warning("rejected (%s): %s", reason, what)
+
+    def take_weights(self, now: float) -> None:
+        """The newest central network received, loaded once every robot present holds its version
+        (or `hold_timeout_s` after it came); nothing held from the run yet: ask."""
+        if self.weights is None:
+            return
+        for i, sub in enumerate(self.beats):
+            for h in sub.drain():
+                self.held[i] = int(h.gauges.get("policy_held", h.gauges.get("policy_version", -1)))
+        if self.weights.known < 0:
+            self.weights.fetch()  # at most once every FETCH_EVERY_S
+        newest = self.weights.receive()
+        if newest <= self.version:  # the version acted with (a late joiner's first answer): no one to wait for
+            self.weights.take_newest()
+            return
+        if self._due is None or self._due[0] != newest:
+            self._due = (newest, now)
+        lacking = [f"local-{i}" for i in np.flatnonzero(self.presence.present & (self.held < newest))]
+        waited = now - self._due[1]
+        if lacking and waited < self.hold_timeout_s:
+            return
+        if lacking:
+            self.switched_unheld += 1
+            self.log.warning("central: taking policy version %d although %s do not hold it after %.1f s",
+                             newest, ", ".join(lacking), waited)
+        self._due = None
+        self.weights.take_newest()
 
     def poll(self, timeout: float) -> bool:
         """Serve a tick if one is due, on the uplinks that came until then."""
@@ -75,7 +140,9 @@ class FleetCentral(Role):
         if not self.clock.due(timeout):
             return False
         self.take_uplinks()  # what arrived while the clock slept is the freshest
-        self.tick(time.monotonic())
+        now = time.monotonic()
+        self.take_weights(now)
+        self.tick(now)
         return True
 
     def take_uplinks(self) -> None:

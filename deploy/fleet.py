@@ -12,6 +12,13 @@ The launcher opens the hub, starts the roles, restarts a robot or the central ag
 (not one that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires
 the `--chaos` events on time, and at the end (the world's episodes or seconds, Ctrl-C or SIGTERM)
 stops every role and writes summary.json.
+
+Hot updates: the launcher also runs the fleet's policy server (`hammer fleet-policy`, the
+`serve.policy_server.PolicyServer` of a lock-stepped served run) following RUN/pushes.json, and
+writes what `hammer push` / `hammer rollback` check a push against, as `hammer serve` does for a
+lock-stepped run: runtime.json (mode eval, the bundle as policy_dir), config.json and env_spec.json.
+Each robot and the central agent switch on their own once they hold a pushed version (docs/fleet.md);
+the launcher records every switch it sees in their heartbeats (summary.json: `version_switches`).
 """
 
 from __future__ import annotations
@@ -76,7 +83,8 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
                               "--run-dir", str(run_dir),
                               *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
-                              *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])])]
+                              *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])]),
+             RoleSpec("learner", ["fleet-policy", *common, "--run-dir", str(run_dir)], restart=True)]
     if uses_central:
         specs.append(RoleSpec("central", ["fleet-central", *common, "--hz", str(plan.hz),
                                           "--missing-after-s", str(plan.missing_after_s)], restart=True))
@@ -86,6 +94,42 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
         specs.append(RoleSpec(f"local-{i}", ["local", *common, "--agent", str(i), "--fleet",
                                              "--max-msg-age-s", str(plan.max_msg_age_s)], restart=True))
     return specs
+
+
+# What one fleet session leaves as its results; a new session in the same directory serves the bundle
+# given, so an earlier session's update history must not be followed again (deploy/up.py, SERVED_RESULTS).
+SESSION_RESULTS = ("summary.json", "world.json", "pushes.json", "policies")
+
+
+def _set_aside(run_dir: Path) -> Path | None:
+    """Move an earlier session's results to RUN/previous/<time>/ (None: there were none)."""
+    present = [run_dir / n for n in SESSION_RESULTS if (run_dir / n).exists()]
+    if not present:
+        return None
+    dest = run_dir / "previous" / time.strftime("%Y%m%d-%H%M%S")
+    while dest.exists():
+        dest = dest.with_name(dest.name + "x")
+    dest.mkdir(parents=True)
+    for p in present:
+        p.rename(dest / p.name)
+    log.info("the previous fleet session's results are in %s", dest)
+    return dest
+
+
+def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:
+    """runtime.json (mode eval, the bundle as policy version 0), config.json (the team at K = 1) and
+    env_spec.json: the files `hammer push` / `hammer rollback` (serve/push.py) check a push against
+    and the policy server reads, the same as a lock-stepped `hammer serve` writes."""
+    from hammer.runtime.settings import write_env_spec
+    from hammer.serve.settings import serve_settings
+
+    settings, _ = serve_settings(b, run_id, runtime=["secure=true"] if plan.secure else [])
+    # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
+    settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
+    settings.save(run_dir)
+    cfg = b.config(num_envs=1, **({} if plan.seed is None else {"seed": plan.seed}))
+    (run_dir / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
+    write_env_spec(run_dir, b.env_spec())
 
 
 def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
@@ -107,6 +151,8 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     run_id = run_dir.name
+    _set_aside(run_dir)
+    write_served_files(b, plan, run_dir, run_id)
     if plan.secure:
         from hammer.deploy.up import secure_identities
         from hammer.runtime.settings import RuntimeSettings
@@ -119,7 +165,8 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     (run_dir / "fleet.json").write_text(json.dumps({
         "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0], "plan": {**plan.__dict__, "bundle": str(plan.bundle)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs}}, indent=1))
-    board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs})
+    board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
+                            versions={}, switches={})
     sup = Supervisor(run_dir / "logs")
     stopped_by = None
     t0 = time.monotonic()
@@ -136,6 +183,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
             try:
                 while True:
                     for h in beats.drain():
+                        _note_version(board, h, time.monotonic() - t0)
                         board.heartbeats[h.role] = h
                     done = False
                     for rp in sup.poll():
@@ -169,6 +217,17 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
 
 
+def _note_version(board, h: Heartbeat, t: float) -> None:
+    """A robot's or the central agent's `policy_version` gauge changed: a switch, kept by name."""
+    if not (h.role.startswith("local-") or h.role == "central") or "policy_version" not in h.gauges:
+        return
+    v, before = int(h.gauges["policy_version"]), board.versions.get(h.role)
+    board.versions[h.role] = v
+    if before is not None and v != before:
+        board.switches.setdefault(h.role, []).append({"t_s": round(t, 2), "from": before, "to": v})
+        log.info("%s acts with policy version %d (was %d)", h.role, v, before)
+
+
 def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_absence_s: float) -> dict:
     """summary.json: the world's figures per robot with what each robot said of itself, and the
     outages by name (a robot missing longer than `max_absence_s` makes the run degraded, named)."""
@@ -179,14 +238,35 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
     for name, r in robots.items():
         edge = roles.get(name, {})
         r.update({k: edge.get("counters", {}).get(k) for k in ("acts", "msg_fresh", "msg_stale", "msg_none")})
-        r.update({k: edge.get("gauges", {}).get(k) for k in ("msg_age_p50_ms", "msg_age_p99_ms")})
+        r.update({k: edge.get("gauges", {}).get(k) for k in ("msg_age_p50_ms", "msg_age_p99_ms", "policy_version",
+                                                               "policy_held")})
+        r.update({k: edge.get("counters", {}).get(k) for k in ("policy_switches", "versions_pulled", "chunk_queries",
+                                                                 "chunks_refused", "weights_rejected")})
+        r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
     reasons = [f"{name} was missing {a['longest_absence_s']:.1f} s at most (> max_absence_s {max_absence_s:g} s; "
                f"{a['leaves']} time(s))" for name, a in absences.items() if a["longest_absence_s"] > max_absence_s]
     summary = {"completed": stopped_by is None and bool(world), "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
                "degraded": bool(reasons), "degraded_reasons": reasons, "absences": absences,
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
-               "central": roles.get("central", {}).get("counters", {}),
+               "central": {**roles.get("central", {}).get("counters", {}),
+                           **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()
+                              if k.startswith("policy_")},
+                           "version_switches": board.switches.get("central", [])},
+               "policy_server": {**roles.get("learner", {}).get("counters", {}),
+                                 **roles.get("learner", {}).get("gauges", {})},
+               "pushes": _pushes(run_dir),
                "restarts": board.restarts, "chaos": board.chaos_log}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def _pushes(run_dir: Path) -> list[dict]:
+    """The session's update history, in short: each entry's version, action and time."""
+    from hammer.runtime.pushes import HistoryError, read_pushes
+
+    try:
+        return [{k: e.get(k) for k in ("version", "action", "restores_version", "at") if k in e}
+                for e in read_pushes(run_dir)]
+    except HistoryError as e:
+        return [{"error": str(e)}]

@@ -96,7 +96,10 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
             liveliness=(keys.alive("env"),)),
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
-            subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all")),
+            # the agents' heartbeats: a fleet's central agent switches to a pushed version once the
+            # robots present hold it (their `policy_held`, central_agent/fleet.py)
+            subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all"),
+                       *(keys.heartbeat(f"local-{i}") for i in range(n_agents))),
             liveliness=(keys.alive("central"),)),
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.weights_announce("local"),

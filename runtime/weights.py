@@ -171,6 +171,28 @@ class WeightsIntake:
                         self.network, need, self.timeout_s, self.version)
             return
 
+    def receive(self) -> int:
+        """Take what arrived without loading it; returns the newest version held and not loaded (-1: none)."""
+        for w in self._sub.drain():
+            self._offer(w)
+        return max(self._inbox.held, default=-1)
+
+    def take_newest(self) -> bool:
+        """Take what arrived and load the newest version held, never waiting (True: one was loaded).
+        For a role with no step to name a version (a fleet's robots and central agent,
+        docs/fleet.md): each switches on its own as soon as it holds a newer version."""
+        for w in self._sub.drain():
+            self._offer(w)
+        if self._inbox.select(None):
+            self.loaded += 1
+            return True
+        return False
+
+    def remember(self, blob: bytes) -> None:
+        """Bytes this role already acts with (a robot's bundle): an announced version carrying them
+        (a rollback to them) is then held at once, with no pull over the link."""
+        self._remember(hashlib.sha256(blob).hexdigest(), blob)
+
     def _passed(self, need: int) -> bool:
         """A role holding no policy yet (just started or restarted) whose first steps name version
         `need` while only newer ones arrive: each version is published once (republished only to an

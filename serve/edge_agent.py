@@ -16,6 +16,16 @@ holding up the robot, and a message that arrives late is simply used by a later 
 A message's age is counted from its arrival here (no clock shared with the central agent is
 needed); only the newest message is held (`HammerSession.subscribe_latest`). Torch-free: the weights are the
 bundle's safetensors, run by numpy (`local_agent.client.LocalAgent`).
+
+Hot updates (`hammer push` / `hammer rollback` to a fleet, docs/fleet.md): the robot holds a
+`WeightsIntake` of the local network. Each `act` calls its `pump()` once: a pushed version is pulled
+in chunks, one small chunk asked for per act and at most one in flight, so the robot's own control
+loop paces what a push puts on its link. A realtime fleet has no step boundary at which all robots
+could switch together, so each robot switches on its own, at the first `act` after it holds the
+version (checked against the announcement's sha256); loading it is a parse of tens of kB, never a
+wait on the network. A robot that holds no version from the run yet (it just started, or restarted
+mid-run) asks for the current one (a query, at most once a second, answered whole), as a late
+joiner of a served run does.
 """
 
 from __future__ import annotations
@@ -44,6 +54,8 @@ class EdgeCounters:
     msgs_received: int = 0
     uplinks_sent: int = 0
     stale_periods: int = 0  # times the messages went stale (each a log line, as is their return)
+    policy_switches: int = 0  # times it began acting with another policy version (each a log line)
+    weights_rejected: int = 0  # weights or announcements refused (a version too far ahead)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -89,7 +101,10 @@ class EdgeAgent:
         self.obs_dim = int(env["obs_dim"])
         self.low, self.high = env.get("action_low"), env.get("action_high")
         self.core = LocalAgent(self.spec)
-        self.core.load_weights((b.path / LOCAL).read_bytes(), 0)
+        self._bundle_blob = (b.path / LOCAL).read_bytes()
+        self.core.load_weights(self._bundle_blob, 0)
+        self.policy_version = 0  # the version acted with: the bundle's is the run's first (0) until one arrives
+        self.switches: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=64)  # (time, from, to)
         self.fallback = MessageFallback(self.settings.fallback, self.settings.fallback_k, 1, self.spec.msg_dim)
         self.counts = EdgeCounters()
         self._env_idx = np.zeros(1, np.int64)
@@ -105,12 +120,54 @@ class EdgeAgent:
             self._msgs = self.session.subscribe_latest(
                 keys.msg(agent), CentralMsg, Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
             self._up = self.session.publisher(keys.up(agent), express=True, block=False)
+            self.weights = self._intake()
             self.session.declare_alive(self.name)
         except BaseException:
             self.session.close()
             raise
         log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
                  ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
+
+    def _intake(self):
+        """The local network's weights from the run's policy server. Nothing held from the run at
+        first (version -1): the first version received, a publication or the answer to this
+        robot's query, sets the reference a later version is bounded by (runtime.bounds), since a
+        robot started from a bundle does not know which version the run is at."""
+        from hammer.runtime.weights import WeightsIntake
+
+        def reject(reason: str, what: str) -> None:
+            self.counts.weights_rejected += 1
+            log.warning("%s: rejected (%s): %s", self.name, reason, what)
+
+        intake = WeightsIntake(self.session, "local", self._load, timeout_s=0.0, reject=reject)
+        intake.remember(self._bundle_blob)  # a rollback to the bundle's weights is held without a pull
+        return intake
+
+    def _load(self, blob: bytes, version: int) -> None:
+        """Act with `version` from the next forward on (a log line and a counter when it changes)."""
+        self.core.load_weights(blob, version)
+        if version != self.policy_version:
+            log.info("%s: acting with policy version %d (was %d)", self.name, version, self.policy_version)
+            self.switches.append((time.time(), self.policy_version, version))
+            self.counts.policy_switches += 1
+        self.policy_version = version
+
+    def _take_weights(self) -> None:
+        """Once per act: a push's next chunk (pump), then the newest version held, loaded at once.
+        A robot holding nothing from the run asks for the current version (the query returns at
+        once; its answer is taken by a later act)."""
+        w = self.weights
+        w.pump()
+        if w.known < 0:
+            w.fetch()  # at most once every FETCH_EVERY_S
+        w.take_newest()
+
+    def weight_gauges(self) -> dict[str, int]:
+        """The version it acts with and the newest it holds (the heartbeat's `policy_version`,
+        `policy_held`), the version being pulled (-1: none)."""
+        pulling = self.weights.pulling
+        return {"policy_version": self.policy_version, "policy_held": max(self.weights.known, self.policy_version),
+                "policy_pulling": -1 if pulling is None else pulling}
 
     def _open(self, session_type, retry_s: float):
         import zenoh
@@ -142,6 +199,7 @@ class EdgeAgent:
         o = o[None]
         self._uplink(o)
         msg = self.message()
+        self._take_weights()
         action = self.core.act(o, msg)[0]
         if not self.spec.discrete and self.low is not None:
             action = np.clip(action, self.low, self.high).astype(np.float32)
@@ -254,16 +312,19 @@ def robot_role(agent: EdgeAgent):
             return []  # the EdgeAgent declared it
 
         def counters(self) -> dict[str, int]:
-            return agent.counts.as_dict()
+            return {**agent.counts.as_dict(), **agent.weights.counters()}
 
         def gauges(self) -> dict[str, float]:
-            return {"policy_version": 0, **agent.age_gauges()}
+            return {**agent.weight_gauges(), **agent.age_gauges()}
 
         def poll(self, timeout: float) -> bool:
             if not self.sensors.wait(timeout):
                 return False
             for obs, t in self.sensors.take():
+                switches = agent.counts.policy_switches
                 action = agent.act(obs.obs[0])
+                if agent.counts.policy_switches != switches:
+                    self.heartbeat_soon()  # the launcher sees the switch now, not a heartbeat later
                 if self.last_act is not None and t - self.last_act > 1.0:  # the world was out of reach
                     self.log.warning("%s: observations again after %.2f s (central message %s)", agent.name,
                                      t - self.last_act, "fresh" if agent.last_fresh else "stale")

@@ -9,6 +9,13 @@ holds received weights until a step names them (runtime/weights.py), so all agen
 same step boundary and no step is acted on with two versions. A rollback is a new version N+1
 carrying the weights in effect before the latest push: same weights, same actions for the same
 observations and random draws.
+
+A realtime fleet (`hammer serve --realtime`, deploy/fleet.py) takes pushes and rollbacks too: its
+launcher writes the same files and runs the same policy server. It has no step to name a version
+at, so each robot and the central agent switch on their own once they hold it (docs/fleet.md);
+for a while some robots act with the new local policy on the old central network's messages, or
+the other way round, so a fleet push is paired-checked as a canary is (`check_central_pairing`),
+and a staged rollout (`--canary`) is refused: the fleet's world writes no health.json to gate on.
 """
 
 from __future__ import annotations
@@ -40,14 +47,19 @@ def _served(run_dir: Path) -> tuple[dict, dict]:
         cfg = json.loads((run_dir / "config.json").read_text())
     except FileNotFoundError:
         if (run_dir / "fleet.json").is_file():
-            raise BundleError(f"{run_dir}: a realtime fleet (`hammer serve --realtime`) takes no pushes yet: each robot "
-                              "acts with the bundle it started with; fix: restart the fleet (or its robots) with the "
-                              "new bundle (docs/fleet.md)") from None
+            raise BundleError(f"{run_dir}: a realtime fleet started without a policy server (by an older hammer) "
+                              "takes no pushes; fix: restart the fleet with this hammer, or its robots with the new "
+                              "bundle (docs/fleet.md)") from None
         raise BundleError(f"{run_dir}: no runtime.json/config.json; fix: pass the run directory `hammer serve` "
                           "printed") from None
     if rt.get("mode") != "eval":
         raise BundleError(f"{run_dir}: a training run (mode {rt.get('mode')}); fix: push to a run of `hammer serve`")
     return rt, cfg
+
+
+def is_fleet(run_dir: Path) -> bool:
+    """A realtime fleet's run directory (its launcher writes fleet.json)."""
+    return (Path(run_dir) / "fleet.json").is_file()
 
 
 def append_entry(run_dir: Path, entry: dict) -> dict:
@@ -87,6 +99,13 @@ def check_push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = (), a
                           f"serves {served.variant} with {served.wiring.msg_dim}; fix: push a team of the same variant")
     entries = read_history(run_dir)
     now = assignment(entries)
+    fleet = is_fleet(run_dir)
+    if fleet and agents is not None:
+        raise BundleError(f"{run_dir}: a realtime fleet takes no staged rollout (--canary) yet: its world writes no "
+                          "health.json for the gates; fix: push without --canary (each robot switches once it holds "
+                          "the version; `hammer rollback` returns), or stage it on a lock-stepped `hammer serve` run")
+    if fleet and served.wiring.has_central_network:
+        check_central_pairing(b, _version_dir(run_dir, entries, now.base), now.base, fleet=True)
     if now.canary is not None:
         raise BundleError(f"{run_dir}: a staged rollout of version {now.canary} is open (agents "
                           f"{sorted(now.canary_agents)}); fix: wait for its decision, or `hammer rollback {run_dir}`")
@@ -118,10 +137,17 @@ def works_with(b) -> list[str]:
     return [*([own] if own else []), *b.manifest.get("works_with_central", [])]
 
 
-def check_central_pairing(b, served_dir: Path, version: int) -> None:
+def check_central_pairing(b, served_dir: Path, version: int, fleet: bool = False) -> None:
     """A canary's local policy acts with the served central agent's messages (runtime/pushes.py):
-    refuse a local policy that does not declare that central network."""
+    refuse a local policy that does not declare that central network. `fleet`: a realtime fleet's
+    push, where each robot switches on its own, before or after the central agent does."""
     fp = central_fingerprint(served_dir)
+    if fp not in works_with(b) and fleet:
+        raise BundleError(f"{b.path}: its local policy does not declare the fleet's running central network "
+                          f"(version {version}, sha256 {fp[:12]}); in a realtime fleet each robot switches on its "
+                          "own, so robots on this local policy would act on that network's messages until the "
+                          f"central agent switches; fix: export the bundle with `--works-with {served_dir}` if it "
+                          "was trained against that central network, else restart the fleet with the new bundle")
     if fp not in works_with(b):
         raise BundleError(f"{b.path}: its local policy does not declare the served central network (version "
                           f"{version}, sha256 {fp[:12]}) and would be paired with it during the canary; fix: push "

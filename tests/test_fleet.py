@@ -175,13 +175,96 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     env_log = (run / "logs" / "env.log").read_text()
     assert "local-1 missing" in env_log and "local-1 rejoined" in env_log
     assert "local-0 missing" not in env_log and "local-2 missing" not in env_log
-    # a fleet takes no pushes yet (its robots act with the bundle they started with): said so plainly
-    from hammer.serve.bundle import BundleError
-    from hammer.serve.push import push
+    # the fleet's run directory holds what `hammer push` checks a push against, as a served run's does;
+    # no push came, so every robot acted with the bundle's version throughout
+    assert json.loads((run / "runtime.json").read_text())["mode"] == "eval"
+    assert (run / "config.json").is_file() and (run / "env_spec.json").is_file()
+    assert s["pushes"] == [] and s["policy_server"]["policy_version"] == 0
+    assert all(r["policy_version"] == 0 and r["version_switches"] == [] for r in robots.values()), robots
 
-    with pytest.raises(BundleError, match=r"realtime fleet .* takes no pushes yet.*fix: restart"):
-        push(bundle, run)
-    assert not (run / "pushes.json").exists()
+
+@pytest.fixture(scope="module")
+def team_b(bundle):
+    """Team B: the fleet's team with a random, sharp action head and another central message head (so
+    it acts and messages differently), exported declaring that its local policy works with the
+    fleet's central network (`--works-with`); and B alone, without that declaration."""
+    from hammer.serve.bundle import export_bundle
+    from safetensors.numpy import load_file, save_file
+
+    root = bundle.parent
+    shutil.copytree(root / "run", root / "run-b")
+    final = root / "run-b" / "final"
+    w = load_file(str(final / "local.safetensors"))
+    last = max(int(k.split(".")[2]) for k in w if k.startswith("actor.layers."))
+    head = f"actor.layers.{last}.weight"
+    w[head] = np.random.default_rng(0).normal(0.0, 3.0, w[head].shape).astype(np.float32)
+    save_file(w, str(final / "local.safetensors"))
+    c = load_file(str(final / "central.safetensors"))
+    c["head_weight"] = np.random.default_rng(1).normal(0.0, 1.0, c["head_weight"].shape).astype(np.float32)
+    save_file(c, str(final / "central.safetensors"))
+    paired = export_bundle(root / "run-b", root / "B", works_with=(root / "run" / "final",)).path
+    alone = export_bundle(root / "run-b", root / "B-alone").path
+    return paired, alone
+
+
+def test_a_fleet_takes_a_push_and_a_rollback_each_robot_on_its_own(bundle, team_b, tmp_path):
+    """`hammer push` to a running 20 Hz fleet, then `hammer rollback`: the policy server announces
+    each version, every robot pulls the push in chunks paced by its own acts and switches as soon as
+    it holds it (the rollback's bytes are the bundle's: held without a pull), the central agent takes
+    B's central network whole once every robot holds the push; no robot goes missing and the world keeps its rate. Then what a fleet
+    refuses: a staged rollout, and a local policy that does not declare the running central network."""
+    from hammer.serve.bundle import BundleError
+    from hammer.serve.push import push, rollback
+
+    paired, alone = team_b
+    run = tmp_path / "fleet-push"
+    members = ["local-0", "local-1", "local-2", "central"]
+    done: dict[str, float] = {}
+
+    def update(board, t: float) -> None:  # the launcher's tick: push ~2 s in, roll back ~3 s after all hold it
+        world = board.heartbeats.get("env")
+        if world is None or world.counters.get("ticks", 0) < 40:
+            return
+        if "push" not in done:
+            push(paired, run)
+            done["push"] = t
+        elif "all_1" not in done and all(board.versions.get(m) == 1 for m in members):
+            done["all_1"] = t
+        elif "all_1" in done and "rollback" not in done and t - done["all_1"] >= 3.0:
+            rollback(run)
+            done["rollback"] = t
+        elif "rollback" in done and "all_2" not in done and all(board.versions.get(m) == 2 for m in members):
+            done["all_2"] = t
+
+    plan = FleetPlan(bundle=bundle, hz=20, seconds=16, max_absence_s=5)
+    s = run_fleet(plan, run, on_tick=update)
+    assert s["completed"], s
+    assert list(done) == ["push", "all_1", "rollback", "all_2"], done
+    assert [p["action"] for p in s["pushes"]] == ["push", "rollback"] and s["pushes"][1]["restores_version"] == 0
+    assert s["policy_server"]["policy_version"] == 2 and s["policy_server"]["chunks_answered"] > 0
+    for name in members[:3]:
+        r = s["robots"][name]
+        assert [(x["from"], x["to"]) for x in r["version_switches"]] == [(0, 1), (1, 2)], (name, r)
+        assert r["policy_version"] == r["policy_held"] == 2 and r["policy_switches"] == 2, (name, r)
+        assert r["chunk_queries"] > 1 and r["chunks_refused"] == 0 and r["weights_rejected"] == 0, (name, r)
+        assert r["version_switches"][0]["t_s"] - done["push"] < 10.0, (name, r, done)  # 77 chunks, ~4 s at 20 Hz
+        assert r["defaults"] == 0, (name, r)
+    c = s["central"]
+    assert [(x["from"], x["to"]) for x in c["version_switches"]] == [(0, 1), (1, 2)] and c["policy_version"] == 2, c
+    assert c["policy_switched_unheld"] == 0, c  # it waited for the robots to hold each version ...
+    last_robot = max(s["robots"][m]["version_switches"][0]["t_s"] for m in members[:3])
+    assert c["version_switches"][0]["t_s"] >= last_robot, (c, s["robots"])  # ... so it switched after them
+    assert s["absences"] == {} and not s["degraded"], s["absences"]
+    world = s["world"]
+    assert world["ticks_skipped"] <= 0.02 * world["ticks"], world
+    assert all(f"acting with policy version {v}" in (run / "logs" / f"{m}.log").read_text()
+               for m in members for v in (1, 2))
+    # what a fleet refuses, in one line each
+    with pytest.raises(BundleError, match=r"realtime fleet takes no staged rollout \(--canary\).*fix: push without"):
+        push(paired, run, agents=[0])
+    with pytest.raises(BundleError, match=r"does not declare the fleet's running central network.*--works-with"):
+        push(alone, run)
+    assert len(json.loads((run / "pushes.json").read_text())) == 2
 
 
 def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, tmp_path):

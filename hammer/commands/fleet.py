@@ -1,5 +1,6 @@
-"""The role commands of a fleet (`hammer serve --realtime`): the realtime world and the fleet-fed
-central agent, one process each; the robots are `hammer local --bundle ... --fleet` (edge.py).
+"""The role commands of a fleet (`hammer serve --realtime`): the realtime world, the fleet-fed
+central agent and the fleet's policy server (hot updates: `hammer push`, `hammer rollback`), one
+process each; the robots are `hammer local --bundle ... --fleet` (edge.py).
 
 Hidden from `--help`: the launcher (deploy/fleet.py) starts them, and RUN/fleet.json holds the
 exact command of each, for a role that runs on another machine.
@@ -30,6 +31,7 @@ IdentityOpt = Annotated[Path | None, typer.Option("--identity", help="A secure f
 def register(app: typer.Typer) -> None:
     app.command("fleet-world", hidden=True)(world_command)
     app.command("fleet-central", hidden=True)(central_command)
+    app.command("fleet-policy", hidden=True)(policy_command)
 
 
 def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
@@ -102,5 +104,32 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     try:
         with HammerSession(run_id, transport, sender="central") as s:
             FleetCentral(s, cfg, b.env_spec(), blob, hz, missing_after_s).run()
+    except KeyboardInterrupt:
+        pass
+
+
+def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
+                   run_dir: Annotated[Path, typer.Option(help="The fleet's run directory: its runtime.json and the "
+                                                             "update history (pushes.json) it follows.")],
+                   connect: ConnectOpt = None, zenoh_config: ZenohOpt = None, seed: SeedOpt = None,
+                   insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
+    """The fleet's policy server: the bundle as version 0, then each version `hammer push` / `hammer
+    rollback` record in RUN/pushes.json (serve/policy_server.py, the class a lock-stepped served run uses)."""
+    setup_process("learner")
+    from hammer.protocol.session import HammerSession
+    from hammer.runtime.settings import RuntimeSettings
+    from hammer.serve.policy_server import PolicyDirError, PolicyServer
+
+    try:
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "learner")
+        settings = RuntimeSettings.load(run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        fail(str(e))
+    try:
+        with HammerSession(run_id, transport, sender="learner") as s:
+            PolicyServer(s, b.policy_dir, cfg.wiring.has_central_network, 0.0, run_dir,
+                         float16=settings.weights_float16, chunk_bytes=settings.weights_chunk_bytes).run()
+    except PolicyDirError as e:
+        fail(str(e))
     except KeyboardInterrupt:
         pass

@@ -214,7 +214,8 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                           f"episodes {int(c.get('episodes', 0))}  metric(100) {c.get('paper_metric_100', 0):.2f}"
                           + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
 
-    console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json)")
+    console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json; "
+                  f"hot update: hammer push BUNDLE --to {path}, hammer rollback {path})", soft_wrap=True)
     for i in robots:
         who = (f"--identity <a copy of ca.pem, local-{i}.pem, local-{i}.key from {path}/identity>" if secure
                else "")
@@ -301,7 +302,8 @@ def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
 
 def push_command(
     bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
-    to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve`.")],
+    to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve` (lock-stepped, or "
+                                                  "a fleet: --realtime).")],
     trust: Annotated[list[Path] | None, typer.Option(
         help="Push it only if this ed25519 public key (`hammer keygen`) signed it; repeatable.")] = None,
     canary: Annotated[str | None, typer.Option(
@@ -319,7 +321,8 @@ def push_command(
         help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
-    same step boundary (the first step that names it). The dashboard shows the version per role.
+    same step boundary (the first step that names it); in a fleet (--realtime) each robot switches on its own
+    once it holds the version (docs/fleet.md). The dashboard shows the version per role.
     With --canary: a staged rollout with health gates; Ctrl-C before the verdict rolls back."""
     from hammer.serve.bundle import BundleError
     from hammer.serve.push import push
