@@ -2,6 +2,7 @@
 
     hammer bench fleet BUNDLE [--hz 20] [--outages local-0:5,local-0:30,central:5,central:30] (root)
     hammer bench fleet BUNDLE --soak-minutes 60          (a fleet on loopback: RSS and disk over time)
+    hammer bench fleet BUNDLE --push B                   (a hot update mid-run: each robot's switch, rates)
 
 The hub namespace holds the Zenoh router (`hammer hub`) and the realtime world; the central agent
 and every robot (`hammer local --bundle ... --fleet`, the torch-free SDK path) run in namespaces of
@@ -74,8 +75,10 @@ def _rates(timeline: list[dict], t0: float, t1: float) -> list[float] | None:
 
 def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], hz: float, tag: str,
               edge_python: Path | None = None, seconds: float | None = None,
-              neigh_retrans_ms: int | None = None, rate_kbit: int = 0) -> dict:
-    """One fleet across namespaces with `outages` one after another; returns its figures.
+              neigh_retrans_ms: int | None = None, rate_kbit: int = 0, push: Path | None = None) -> dict:
+    """One fleet across namespaces with `outages` one after another; returns its figures. `push`: no
+    outages but a hot update to this bundle GAP_S into the run (the fleet's policy server runs in the
+    hub namespace; `hammer push` writes the history it follows), timed to each robot's switch.
     `neigh_retrans_ms`: the kernel's neighbour (ARP) retransmission timer on the robots' and the
     central agent's interfaces, 1000 ms unless set (see main's --neigh-retrans-ms). `rate_kbit`: a tbf
     on robot 0's link, both ways (0 = none; see main's --rate-kbit)."""
@@ -83,7 +86,7 @@ def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], h
 
     b = load_bundle(bundle)
     n = int(b.env_spec_data["n_agents"])
-    total = seconds or GAP_S + sum(s + GAP_S for _, s, _ in outages)
+    total = seconds or (3 * GAP_S if push else GAP_S + sum(s + GAP_S for _, s, _ in outages))
     run = work / f"fleet-{tag}"
     run.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-P", "-m", "hammer.cli"]
@@ -109,12 +112,23 @@ def fleet_run(bundle: Path, work: Path, outages: list[tuple[str, float, str]], h
                                           "--timeline", str(run / "timeline.jsonl")], "env.log")
             procs.start(top.central, [*py, "fleet-central", *common, "--hz", str(hz), "--zenoh-config",
                                       cfg("central", top.links["central"][1])], "central.log")
+            if push is not None:
+                from hammer.deploy.fleet import FleetPlan, write_served_files
+
+                write_served_files(b, FleetPlan(bundle=bundle, hz=hz), run, run.name)
+                procs.start(top.hub, [*py, "fleet-policy", *common, "--zenoh-config", cfg("policy", "127.0.0.1"),
+                                      "--run-dir", str(run)], "learner.log")
             for i, ns in enumerate(top.agents):
                 procs.start(ns, [*edge_py, "local", *common, "--agent", str(i), "--fleet", "--zenoh-config",
                                  cfg(f"local-{i}", top.links[f"local-{i}"][1])], f"local-{i}.log")
             _wait_for("the world's clock", lambda: b"world clock starts" in (run / "env.log").read_bytes(), 90,
                       [world])
             start = time.time()
+            if push is not None:
+                time.sleep(GAP_S)
+                events.append({"push": time.time(), "reply": subprocess.run(
+                    [*py, "push", str(push), "--to", str(run)], capture_output=True, text=True, timeout=120,
+                    check=False).stdout.strip()[-300:]})
             for link, secs, side in outages:
                 time.sleep(max(0.0, start + GAP_S - time.time()))
                 ns, dev = (top.hub, top.links[link][0]) if side == "hub" else top.far[link]
@@ -135,6 +149,9 @@ def _figures(run: Path, n: int, hz: float, events: list[dict]) -> dict:
     timeline = [json.loads(x) for x in (run / "timeline.jsonl").read_text().splitlines() if x.strip()]
     out = []
     for e in events:
+        if "push" in e:
+            out.append(_push_figures(run, n, hz, e, timeline))
+            continue
         cut = [int(e["link"].split("-")[1])] if e["link"] != "central" else []
         healthy = [i for i in range(n) if i not in cut]
         during, after = _rates(timeline, e["down"], e["up"]), _rates(timeline, e["up"] + 2, e["up"] + GAP_S - 1)
@@ -151,6 +168,19 @@ def _figures(run: Path, n: int, hz: float, events: list[dict]) -> dict:
             "fresh_messages_s_after_return": [None if t is None else round(t - e["up"], 2) for t in fresh_again],
             "world_hears_robot_s_after_return": [None if t is None else round(t - e["up"], 2) for t in heard]})
     return {"hz": hz, "world": world, "outages": out}
+
+
+def _push_figures(run: Path, n: int, hz: float, e: dict, timeline: list[dict]) -> dict:
+    """A push: when each robot began acting with the new version (its log line), and every robot's
+    control rate while the pulls ran (push to the last switch) against the seconds before the push."""
+    switched = [min((t for t in _log_times(run / f"local-{i}.log", "acting with policy version 1") if t >= e["push"]),
+                    default=None) for i in range(n)]
+    last = max((t for t in switched if t is not None), default=None)
+    during = None if last is None else _rates(timeline, e["push"], last)
+    before = _rates(timeline, e["push"] - GAP_S + 2, e["push"])
+    return {"push": e["reply"], "switch_s_after_push": [None if t is None else round(t - e["push"], 2) for t in switched],
+            "control_hz_before": before, "control_hz_during_pull": during,
+            "min_control_fraction_during_pull": None if during is None else round(min(during) / hz, 3)}
 
 
 def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 30.0) -> dict:
@@ -213,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--baseline-s", type=float, default=30.0, help="Length of the run without outages.")
     ap.add_argument("--rate-kbit", type=int, default=0, help="A tbf limit (kbit/s, both ways) on robot 0's link in "
                     "both runs: does the loop keep its rate on a thin radio link (0 = none)?")
+    ap.add_argument("--push", type=Path, help="Instead of outages: a hot update to this bundle 10 s into a 30 s "
+                    "run (it must declare it works with the served central version: hammer export --works-with).")
     ap.add_argument("--edge-venv", type=Path, help="The robots' interpreter (a torch-free venv: benchmarks/edge_venv.py).")
     ap.add_argument("--work", type=Path, default=Path("/tmp/hammer-bench-fleet"))
     ap.add_argument("--out", type=Path, help="Write the JSON result here.")
@@ -241,8 +273,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         base = fleet_run(a.bundle, a.work, [], a.hz, f"{tag}b", a.edge_venv, seconds=a.baseline_s,
                          rate_kbit=a.rate_kbit)
+        if a.push is not None:
+            outages = []
         cut = fleet_run(a.bundle, a.work, outages, a.hz, f"{tag}o", a.edge_venv, neigh_retrans_ms=a.neigh_retrans_ms,
-                        rate_kbit=a.rate_kbit) if outages else None
+                        rate_kbit=a.rate_kbit, push=a.push) if outages or a.push else None
     except NetnsUnavailable as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -259,12 +293,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     c_metric = cut["world"].get("paper_metric_mean")
     for o in cut["outages"]:
+        if "push" in o:
+            print(f"  push: robots switched {o['switch_s_after_push']} s after it; control Hz per robot "
+                  f"{o['control_hz_before']} before, {o['control_hz_during_pull']} while they pulled "
+                  f"({o['min_control_fraction_during_pull']} of nominal at the least)")
+            continue
         print(f"  {o['link']} down {o['seconds']:g} s ({o['side']} end): healthy robots {o['healthy_control_hz_during']} Hz during "
               f"({o['healthy_control_fraction_during']} of nominal), fresh messages "
               f"{o['fresh_messages_s_after_return']} s after the link returned, world hears the robot "
               f"{o['world_hears_robot_s_after_return']} s after")
     w = cut["world"]
-    print(f"  with outages: paper metric {w.get('paper_metric_mean') if c_metric is None else round(c_metric, 2)}, "
+    print(f"  with {'the push' if a.push else 'outages'}: paper metric {w.get('paper_metric_mean') if c_metric is None else round(c_metric, 2)}, "
           f"defaults per robot {[r['defaults'] for r in w['robots'].values()]}, ticks skipped {w['ticks_skipped']}")
     write_json(a.out, result)
     return 0

@@ -506,6 +506,9 @@ def bench_fleet(
              "interfaces (Linux default 1000 ms)")] = None,
     baseline_s: Annotated[float, typer.Option(help="length of the run without outages")] = 30.0,
     edge_venv: Annotated[Path | None, typer.Option(help="the robots' interpreter (a torch-free venv)")] = None,
+    push: Annotated[Path | None, typer.Option(help="instead of outages: a hot update to this bundle 10 s into a "
+                                                   "30 s run (exported with --works-with BUNDLE); each robot's "
+                                                   "switch and every robot's control rate while they pull")] = None,
     out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
     soak_minutes: Annotated[float | None, typer.Option(help="instead: a fleet on loopback this long, RSS per "
                                                            "process and disk every 30 s (no root)")] = None,
@@ -519,6 +522,7 @@ def bench_fleet(
                  *(["--neigh-retrans-ms", str(neigh_retrans_ms)] if neigh_retrans_ms is not None else []),
                  "--baseline-s", str(baseline_s), "--rate-kbit", str(rate_kbit),
                  *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else []),
+                 *(["--push", str(push)] if push else []),
                  *(["--soak-minutes", str(soak_minutes)] if soak_minutes else [])])
     if code:
         raise typer.Exit(code)
