@@ -103,17 +103,9 @@ SESSION_RESULTS = ("summary.json", "world.json", "pushes.json", "policies")
 
 def _set_aside(run_dir: Path) -> Path | None:
     """Move an earlier session's results to RUN/previous/<time>/ (None: there were none)."""
-    present = [run_dir / n for n in SESSION_RESULTS if (run_dir / n).exists()]
-    if not present:
-        return None
-    dest = run_dir / "previous" / time.strftime("%Y%m%d-%H%M%S")
-    while dest.exists():
-        dest = dest.with_name(dest.name + "x")
-    dest.mkdir(parents=True)
-    for p in present:
-        p.rename(dest / p.name)
-    log.info("the previous fleet session's results are in %s", dest)
-    return dest
+    from hammer.deploy.up import move_to_previous
+
+    return move_to_previous(run_dir, SESSION_RESULTS, "fleet")
 
 
 def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:

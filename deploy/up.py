@@ -182,14 +182,22 @@ def set_aside_served_session(run_dir: Path) -> Path | None:
         return None
     if not served or not (run_dir / "summary.json").exists():
         return None
-    present = [run_dir / n for n in SERVED_RESULTS if (run_dir / n).exists()]
+    return move_to_previous(run_dir, SERVED_RESULTS, "served")
+
+
+def move_to_previous(run_dir: Path, names: tuple[str, ...], what: str) -> Path | None:
+    """Move those of `names` that RUN holds to RUN/previous/<time>/ (None: it held none of them):
+    a served run's or a fleet's earlier session, kept rather than overwritten."""
+    present = [run_dir / n for n in names if (run_dir / n).exists()]
+    if not present:
+        return None
     dest = run_dir / "previous" / time.strftime("%Y%m%d-%H%M%S")
     while dest.exists():
         dest = dest.with_name(dest.name + "x")
     dest.mkdir(parents=True)
     for p in present:
         p.rename(dest / p.name)
-    log.info("the previous served session's results are in %s", dest)
+    log.info("the previous %s session's results are in %s", what, dest)
     return dest
 
 

@@ -305,13 +305,7 @@ class ArraySpec:
                 name = widen
         else:
             raise FieldError(f"expected a numpy array (or its wire form), got {type(value).__name__}", field)
-        if self._ndims is not None and a.ndim not in self._ndims:
-            raise ShapeError(f"needs {' or '.join(map(str, self.ndims))} dims, got shape {a.shape}", field)
-        if a.ndim > MAX_NDIM:
-            raise ShapeError(f"at most {MAX_NDIM} dims, got {a.ndim}", field)
-        if name in FLOAT_DTYPES and a.size and not _finite(a):
-            raise NonFiniteError("holds NaN or inf", field)
-        return a
+        return self._checked(a, name, field, _finite)
 
     def take_lite(self, value: Any, field: str) -> WireArray:
         """`take` without numpy, check for check: the array as a `WireArray`."""
@@ -330,11 +324,16 @@ class ArraySpec:
                 name = widen
         else:
             raise FieldError(f"expected a numpy array (or its wire form), got {type(value).__name__}", field)
+        return self._checked(a, name, field, _finite_values)
+
+    def _checked(self, a: Any, name: str, field: str, finite: Any) -> Any:
+        """The checks `take` and `take_lite` share, on a numpy array or a `WireArray` (`finite`: the
+        finiteness test of that kind): dims, then finite floats."""
         if self._ndims is not None and a.ndim not in self._ndims:
             raise ShapeError(f"needs {' or '.join(map(str, self.ndims))} dims, got shape {a.shape}", field)
         if a.ndim > MAX_NDIM:
             raise ShapeError(f"at most {MAX_NDIM} dims, got {a.ndim}", field)
-        if name in FLOAT_DTYPES and a.size and not _finite_values(a):
+        if name in FLOAT_DTYPES and a.size and not finite(a):
             raise NonFiniteError("holds NaN or inf", field)
         return a
 
