@@ -17,6 +17,7 @@ from hammer.envs.base import EnvSpec
 from hammer.envs.local_view import local_view_from_config
 from hammer.learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
 from hammer.learning.config import RunConfig
+from hammer.learning.fused_acting import FusedActing
 from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
 from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax, take_last
 from hammer.learning.run_env import check_env_fits
@@ -49,6 +50,17 @@ class Team:
         # What a local agent may see of the full observation (identity unless env_kwargs asks):
         # applied to every local-policy input here, never to the global state.
         self.local_view = local_view_from_config(cfg, spec)
+        self.fused = FusedActing(self) if cfg.compile else None
+
+    def act(self, obs: np.ndarray, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0
+            ) -> tuple[CentralOut, np.ndarray, np.ndarray, np.ndarray]:
+        """One vector step of the whole team: the central messages, then every local agent's
+        (action, logp, value) on them. compile=true: one compiled graph (`learning.fused_acting`);
+        otherwise `central_messages` then `local_act`."""
+        if self.fused is not None:
+            return self.fused.act(obs, state, streams, dropout)
+        c = self.central_messages(state, streams, dropout)
+        return (c, *self.local_act(obs, c.sent, streams))
 
     @property
     def central_rl(self) -> bool:

@@ -183,8 +183,7 @@ class Trainer:
         self.writer.begin()
         for t in range(cfg.rollout_steps):
             state = team.global_state(obs, prev, self.vector_step)
-            c = team.central_messages(state, streams, cfg.msg_dropout)
-            action, logp, value = team.local_act(obs, c.sent, streams)
+            c, action, logp, value = team.act(obs, state, streams, cfg.msg_dropout)
             st = self.env.step(team.env_action(action))
             obs, prev, spent = self._record(t, obs, prev, state, c, action, logp, value, st)
             if spent:
