@@ -101,9 +101,9 @@ class RunConfig(BaseModel):
                             "learner; seed batches (`--seeds`) keep their own per-minibatch graph")
     device: str = Field(
         "cpu", pattern=r"^(cpu|cuda(:[0-9]+)?)$",
-        description="where the networks, optimiser state and PPO update run: cpu | cuda | cuda:N. The envs and "
-                    "the acting draws stay numpy on the host (one host-device copy each way per vector step); "
-                    "cpu results are bit-identical to before the field existed")
+        description="where the networks, their optimiser state and the PPO update live: cpu | cuda | cuda:N. "
+                    "The envs and the acting draws stay numpy on the host (a host-device round trip around each "
+                    "acting forward pass); `--resume RUN --set device=...` moves a run (docs/learning.md)")
     out: str = Field("runs", description="root directory for run directories")
     checkpoint_every: int = Field(50, ge=1, description="updates between checkpoints")
 
