@@ -75,6 +75,22 @@ def test_seed_batch_names_its_device(tmp_path: Path, variant: str, mode: str) ->
     assert [s["episodes"] for s in summaries] == [12, 12]
 
 
+MW = ["num_envs=2", "rollout_steps=60", "checkpoint_every=1", "epochs=2", "device=cpu", "variant=hammer",
+      "episodes=4"]
+
+
+def test_gaussian_actions_masked_losses_and_the_set_network_name_their_device(tmp_path: Path) -> None:
+    """Multiwalker (continuous actions, walkers dropping out, seeds of a batch finishing apart) alone
+    and as a seed batch, and cn3 with the attention central network."""
+    mw = [merge_config("mw3", overrides=[*MW, f"seed={s}"]) for s in (0, 1)]
+    cn_set = _cfg("hammer", "rl", 12, ["central_net=set"])
+    with default_device_meta():
+        assert train(mw[0], RunDir.create(tmp_path / "mw", mw[0]), tensorboard=False)["episodes"] == 4
+        dirs = [RunDir.create(tmp_path / f"mw-b{c.seed}", c) for c in mw]
+        assert [s["episodes"] for s in train_seeds(mw, dirs, tensorboard=False)] == [4, 4]
+        assert train(cn_set, RunDir.create(tmp_path / "set", cn_set), tensorboard=False)["episodes"] == 12
+
+
 @pytest.mark.slow
 def test_compiled_update_names_its_device(tmp_path: Path) -> None:
     """compile=true: the Adam state the compiled step creates, and the graph's inputs (~30 s: one compile)."""
