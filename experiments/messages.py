@@ -346,13 +346,14 @@ def cut_drops(actor: TeamActor, seeds: list[int], episodes: int, uncut: np.ndarr
 def initial_central_weights(cfg) -> dict[str, np.ndarray]:
     """The central agent's weights before training: `learning.team.Team` builds the networks right after
     `torch.manual_seed(cfg.seed)`, so building it again gives the run's exact initialisation (its
-    checkpoint 0; tests/test_messages.py compares)."""
+    checkpoint 0; tests/test_messages.py compares). On the CPU whatever device the run trained on: the
+    networks are initialised there in any case, and the analysis machine may have no GPU."""
     from hammer.envs.registry import make_vec_env
     from hammer.learning.team import Team
 
     env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None)
     try:
-        return Team(cfg, env.spec).central.export_numpy()
+        return Team(cfg.model_copy(update={"device": "cpu"}), env.spec).central.export_numpy()
     finally:
         env.close()
 

@@ -91,7 +91,7 @@ class CompiledUpdate:
             graph = ("epoch", sizes, masks, keys)
             with _skip_guards(graph in self.compiled):
                 stats = self.epoch(params, exp_avgs, exp_avg_sqs, steps, keys, fields,
-                                   torch.from_numpy(np.concatenate(parts)), sizes, masks)
+                                   torch.from_numpy(np.concatenate(parts)).to(fields[0].device), sizes, masks)
             self.compiled.add(graph)
             if epoch == self.epochs - 1:
                 for st in stats:
@@ -163,7 +163,7 @@ def adam_state(opt: PPOUpdater) -> tuple[list[torch.Tensor], list[torch.Tensor],
     group = optimizer.param_groups[0]
     for p in opt.params:
         if p not in optimizer.state:
-            optimizer.state[p] = {"step": torch.zeros((), dtype=torch.float32),
+            optimizer.state[p] = {"step": torch.zeros((), dtype=torch.float32, device=p.device),
                                   "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
                                   "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
     if len(optimizer.param_groups) != 1 or group["amsgrad"] or group["weight_decay"] or group["maximize"]:

@@ -99,6 +99,11 @@ class RunConfig(BaseModel):
                             "whole epoch (its shuffle and every minibatch step: one call per epoch, updates ~15-25% "
                             "faster, but ~4x the compile; pays in long runs and benchmarks). Solo runs and `hammer up`'s "
                             "learner; seed batches (`--seeds`) keep their own per-minibatch graph")
+    device: str = Field(
+        "cpu", pattern=r"^(cpu|cuda(:[0-9]+)?)$",
+        description="where the networks, their optimiser state and the PPO update live: cpu | cuda | cuda:N. "
+                    "The envs and the acting draws stay numpy on the host (a host-device round trip around each "
+                    "acting forward pass); `--resume RUN --set device=...` moves a run (docs/learning.md)")
     out: str = Field("runs", description="root directory for run directories")
     checkpoint_every: int = Field(50, ge=1, description="updates between checkpoints")
 
@@ -148,6 +153,7 @@ _FIXES = {
     "missing_window": "use a number of vector steps >= 1, e.g. --set missing_window=20",
     "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
     "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
+    "device": "use cpu, cuda or cuda:N, e.g. --set device=cuda",
 }
 
 

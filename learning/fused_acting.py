@@ -59,13 +59,12 @@ class FusedActing:
             c_draw = np.zeros((k, n, m), dtype=np.float32)
         keep = streams.dropout_keep(k, n, dropout) if m else np.ones((k, n), dtype=bool)
         l_draw = streams.local_uniforms(k) if team.discrete else streams.local_normals(k, team.act_dim)
-        args = [torch.from_numpy(np.ascontiguousarray(a)) for a in
-                (team.local_view(obs), state, c_draw, keep, l_draw)]
+        args = [team.tensor(np.ascontiguousarray(a)) for a in (team.local_view(obs), state, c_draw, keep, l_draw)]
         key = tuple((a.shape, a.dtype) for a in args)
         with torch.no_grad(), _skip_guards(key in self.seen):
             out = self.graph(*args)
         self.seen.add(key)
-        sent, mean, raw, c_logp, c_value, action, logp, value = (t.numpy() for t in out)
+        sent, mean, raw, c_logp, c_value, action, logp, value = (team.host(t) for t in out)
         return CentralOut(sent, mean, raw, c_logp, c_value, keep), action, logp, value
 
     def _act(self, obs: torch.Tensor, state: torch.Tensor, c_draw: torch.Tensor, keep: torch.Tensor,
@@ -73,7 +72,7 @@ class FusedActing:
         """One vector step after the draws, written to be traced into one graph."""
         team = self.team
         k, n = obs.shape[:2]
-        zeros = torch.zeros(k, n)
+        zeros = torch.zeros(k, n, device=obs.device)
         c_logp = c_value = zeros
         if self.random:
             mean = raw = sent = c_draw

@@ -1,4 +1,5 @@
-"""An Adam step that calls torch's fused CPU Adam kernel directly.
+"""An Adam step that calls torch's fused Adam kernel directly (the CPU one, or the CUDA one for
+parameters on a GPU: `RunConfig.device`).
 
 The networks are tiny and a PPO update makes epochs × minibatches optimiser steps per network, so
 per-call overhead, not arithmetic, is the cost, and most of `Adam(fused=True).step()` is Python

@@ -58,7 +58,8 @@ class TeamLearner:
                             if self.team.central is not None else None)
         self.buf = RolloutBuffer(cfg.rollout_steps, cfg.num_envs, cfg.n_agents, spec.obs_dim,
                                  self.team.state_dim, self.team.msg_dim, spec.action_shape, spec.discrete)
-        self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std))[: self.team.msg_dim]
+        self._msg_log_std = torch.full((max(self.team.msg_dim, 1),), math.log(cfg.msg_std),
+                                       device=self.team.device)[: self.team.msg_dim]
         self.updaters = [opt for opt in (self.local_opt, self.central_opt) if opt is not None]
         self.compiled_update = (CompiledUpdate(self.team, self.losses, self.updaters, cfg.epochs, cfg.minibatches,
                                               cfg.compile_scope)
@@ -101,7 +102,7 @@ class TeamLearner:
         adv, ret = gae(buf.rewards, buf.values, nv, buf.terminated, dones, cfg.gamma, cfg.gae_lambda, buf.active)
 
         def flat(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a.reshape(buf.t * buf.k, *a.shape[2:])))
+            return team.tensor(np.ascontiguousarray(a.reshape(buf.t * buf.k, *a.shape[2:])))
 
         b = {"obs": flat(team.local_view(buf.obs)), "state": flat(buf.state), "msg": flat(buf.msg), "keep": flat(buf.keep),
              "act": flat(buf.actions), "logp": flat(buf.logp), "adv": flat(adv), "ret": flat(ret),
@@ -166,7 +167,7 @@ class TeamLearner:
         order. Every field is gathered once in the epoch's shuffled row order, so a minibatch is a
         contiguous slice (a view) instead of one gather per field per minibatch."""
         parts = minibatch_indices(self.buf.t * self.buf.k, self.cfg.minibatches, rng)
-        perm = torch.from_numpy(np.concatenate(parts))
+        perm = self.team.tensor(np.concatenate(parts))
         yield from minibatch_slices({k: v.index_select(0, perm) for k, v in b.items()}, [len(p) for p in parts])
 
     def learn(self, obs: np.ndarray, prev: np.ndarray, update: int, step: int | None = None) -> dict[str, float]:

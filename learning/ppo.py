@@ -171,7 +171,7 @@ class PPOUpdater:
         as a 0-d tensor."""
         params = [p for p in self.params if p.grad is not None]
         if not params:
-            return torch.zeros(())
+            return torch.zeros((), device=self.params[0].device)
         return clip_and_step(self.optimizer, params, [p.grad for p in params], self.max_grad_norm)
 
 

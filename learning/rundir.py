@@ -34,7 +34,8 @@ CSV_HEADER = ["episode", "env_steps", "paper_metric", "team_return", "length", "
 
 
 def optimizer_to_tensors(opt: torch.optim.Optimizer, prefix: str) -> tuple[dict[str, torch.Tensor], dict]:
-    """Split an optimiser state dict into tensors (safetensors) and JSON-able hyper-parameters."""
+    """Split an optimiser state dict into tensors (safetensors) and JSON-able hyper-parameters, on the
+    host whatever the training device (a checkpoint resumes on any device)."""
     import torch
 
     sd = opt.state_dict()
@@ -42,7 +43,7 @@ def optimizer_to_tensors(opt: torch.optim.Optimizer, prefix: str) -> tuple[dict[
     for pid, st in sd["state"].items():
         keys[str(pid)] = sorted(st)
         for name, val in st.items():
-            tensors[f"{prefix}/{pid}/{name}"] = torch.as_tensor(val).detach().clone().contiguous()
+            tensors[f"{prefix}/{pid}/{name}"] = torch.as_tensor(val, device="cpu").detach().clone().contiguous()
     return tensors, {"param_groups": sd["param_groups"], "state_keys": keys}
 
 
@@ -157,12 +158,13 @@ class RunDir:
                         keep: int = 3) -> Path:
         """Atomic-ish: the JSON (which marks a checkpoint as complete) is written last, and both
         reach the disk first (fsync), so a machine that dies cannot leave a JSON vouching for a
-        lost tensor file."""
+        lost tensor file. Tensors are written from the host: a run trained on a GPU resumes on the CPU
+        and back (loading copies them onto the trainer's device: `load_state_dict`)."""
         from safetensors.torch import save_file
 
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         stem = self.ckpt_dir / f"ckpt_{update:07d}"
-        save_file({k: v.contiguous() for k, v in tensors.items()}, str(stem) + ".safetensors")
+        save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, str(stem) + ".safetensors")
         fsync_file(Path(str(stem) + ".safetensors"))
         tmp = Path(str(stem) + ".json.tmp")
         tmp.write_text(json.dumps(meta))

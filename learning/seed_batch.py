@@ -160,16 +160,19 @@ class SeedBatch:
         if lead.central is not None:
             mean, values = self._central_fwd(self.params, all_states)
         outs = []
+        if mean is not None:  # one copy to the host for every seed's sampling
+            mean, values = lead.host(mean), (None if values is None else lead.host(values))
         for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
-            mean_s = None if mean is None else (lambda _st, s=s: mean[s].numpy())
-            values_s = None if values is None else (lambda _st, s=s: values[s].numpy())
+            mean_s = None if mean is None else (lambda _st, s=s: mean[s])
+            values_s = None if values is None else (lambda _st, s=s: values[s])
             outs.append(tr.team.acting.messages(states[i], tr.streams, tr.cfg.msg_dropout, mean_s, values_s))
         sent = self._stack_all(live, [c.sent for c in outs])
         all_obs = self._stack_all(live, [self.trainers[s].team.local_view(obs[s]) for s in live])  # what locals see
 
         out, value = self._local_fwd(self.params, all_obs, sent)
+        out, value = lead.host(out), lead.host(value)
         for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
-            action, logp, v = tr.team.sample_local(out[s].numpy(), value[s].numpy(), tr.streams)
+            action, logp, v = tr.team.sample_local(out[s], value[s], tr.streams)
             st = tr.env.step(tr.team.env_action(action))
             obs[s], prev[s], spent = tr._record(t, obs[s], prev[s], states[i], outs[i], action, logp, v, st)
             if spent:
@@ -205,11 +208,12 @@ class SeedBatch:
 
     def _stack_all(self, live: list[int], arrays: list[np.ndarray]) -> torch.Tensor:
         """(S, ...) tensor of the live seeds' arrays; finished seeds' slices are zeros."""
+        team = self.trainers[0].team
         if len(live) == self.n_seeds:
-            return torch.from_numpy(np.stack(arrays))
+            return team.tensor(np.stack(arrays))
         full = np.zeros((self.n_seeds, *arrays[0].shape), dtype=arrays[0].dtype)
         full[live] = np.stack(arrays)
-        return torch.from_numpy(full)
+        return team.tensor(full)
 
     # ----- the update ---------------------------------------------------------------------------
     def _learn(self, obs: list[np.ndarray], prev: list[np.ndarray], update: int) -> list[dict[str, float]]:
@@ -227,7 +231,7 @@ class SeedBatch:
         for epoch in range(cfg.epochs):
             last = epoch == cfg.epochs - 1
             parts = [minibatch_indices(rows, cfg.minibatches, rng) for rng in rngs]
-            perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
+            perm = lead.team.tensor((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
             shuffled = {k: v.index_select(0, perm).reshape(self.n_seeds, rows, *v.shape[1:]) for k, v in big.items()}
             for mb in minibatch_slices(shuffled, [len(p) for p in parts[0]], dim=1):
                 stats = self._step(mb, masks, last)

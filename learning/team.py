@@ -16,7 +16,7 @@ import torch
 from hammer.envs.base import EnvSpec
 from hammer.envs.local_view import local_view_from_config
 from hammer.learning.central_acting import CentralActing, CentralOut, encode_actions, zero_prev_actions
-from hammer.learning.config import RunConfig
+from hammer.learning.config import ConfigError, RunConfig
 from hammer.learning.fused_acting import FusedActing
 from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
 from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax, take_last
@@ -24,10 +24,26 @@ from hammer.learning.run_env import check_env_fits
 from hammer.learning.sampling import ActingStreams, categorical_inverse_cdf
 
 
+def torch_device(cfg: RunConfig) -> torch.device:
+    """The device of `cfg.device`, refused up front where torch cannot use it: a run asked for a GPU
+    must not silently train on the CPU, nor fail half-built at its first tensor."""
+    dev = torch.device(cfg.device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"config field 'device': device={cfg.device}: torch sees no CUDA device "
+                              "(torch.cuda.is_available() is False; this torch build is CPU-only or no GPU is "
+                              "visible); fix: --set device=cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"config field 'device': device={cfg.device}: torch sees only "
+                              f"{torch.cuda.device_count()} CUDA device(s); fix: --set device=cuda:0")
+    return dev
+
+
 class Team:
     """Networks + variant wiring; numpy in, numpy out on the acting path."""
 
     def __init__(self, cfg: RunConfig, spec: EnvSpec) -> None:
+        self.device = torch_device(cfg)
         torch.manual_seed(cfg.seed)
         self.cfg, self.spec = cfg, spec
         self.n, self.obs_dim = spec.n_agents, spec.obs_dim
@@ -39,13 +55,19 @@ class Team:
         self.local_in_dim = self.wiring.local_input_dim(self.obs_dim)
         image = tuple(cfg.obs_conv) if cfg.obs_conv else None
         check_env_fits(cfg, spec)
-        self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
-                                 cfg.critic_hidden, cfg.log_std_init, image=image)
-        self.central: CentralAgent | SetCentralAgent | None = None
-        if self.wiring.has_central_network:
-            self.central = make_central(self.wiring, self.obs_dim, self.act_dim if cfg.use_prev_actions else 0,
-                                        cfg.central_hidden, cfg.critic_hidden)
-        self._eye = torch.eye(self.n)
+        # Built and initialised on the CPU, then moved: one seed gives the same initial weights on
+        # every device (the CPU and CUDA generators differ).
+        with torch.device("cpu"):
+            self.local = LocalPolicy(self.local_in_dim, self.act_dim, self.discrete, cfg.actor_hidden,
+                                     cfg.critic_hidden, cfg.log_std_init, image=image)
+            self.central: CentralAgent | SetCentralAgent | None = None
+            if self.wiring.has_central_network:
+                self.central = make_central(self.wiring, self.obs_dim, self.act_dim if cfg.use_prev_actions else 0,
+                                            cfg.central_hidden, cfg.critic_hidden)
+        self.local.to(self.device)
+        if self.central is not None:
+            self.central.to(self.device)
+        self._eye = torch.eye(self.n, device=self.device)
         self.acting = CentralActing.from_config(cfg)
         # What a local agent may see of the full observation (identity unless env_kwargs asks):
         # applied to every local-policy input here, never to the global state.
@@ -82,12 +104,22 @@ class Team:
             present = self.acting.training_presence(step, np.arange(obs.shape[0]) if env_idx is None else env_idx)
         return self.acting.global_state(obs, prev_actions, present)
 
+    # ----- host <-> device ----------------------------------------------------------------------
+    def tensor(self, a: np.ndarray) -> torch.Tensor:
+        """A host array as a tensor on the team's device (no copy on the CPU)."""
+        return torch.from_numpy(a).to(self.device)
+
+    @staticmethod
+    def host(t: torch.Tensor) -> np.ndarray:
+        """A tensor as a host array (no copy on the CPU): envs and acting draws are numpy."""
+        return t.detach().cpu().numpy()
+
     # ----- central agent ------------------------------------------------------------------------
     def _message_mean(self, state: np.ndarray) -> np.ndarray:
-        return self.central.message_mean(torch.from_numpy(state)).numpy()
+        return self.host(self.central.message_mean(self.tensor(state)))
 
     def _values(self, state: np.ndarray) -> np.ndarray:
-        return self.central.values(torch.from_numpy(state)).numpy()
+        return self.host(self.central.values(self.tensor(state)))
 
     @torch.inference_mode()
     def central_messages(self, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0) -> CentralOut:
@@ -129,8 +161,8 @@ class Team:
         Discrete: int64 (K, N) sampled by inverse CDF. Continuous: float32 (K, N, A) unclipped
         Gaussian sample (its logp is what PPO trains; `env_action` clips it for the env).
         """
-        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
-        return self.sample_local(self.local.actor_out(x).numpy(), self.local.value(x).numpy(), streams)
+        x = self.local_input(self.tensor(self.local_view(obs)), self.tensor(msg))
+        return self.sample_local(self.host(self.local.actor_out(x)), self.host(self.local.value(x)), streams)
 
     def sample_local(self, out: np.ndarray, value: np.ndarray, streams: ActingStreams
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -144,7 +176,7 @@ class Team:
             logp = np.log(take_last(probs, action)).astype(np.float32)
             return action, logp, value
         z = streams.local_normals(k, self.act_dim)
-        log_std = self.local.log_std.detach().numpy()
+        log_std = self.host(self.local.log_std)
         action = (out + np.exp(log_std) * z).astype(np.float32)
         return action, gaussian_logp_of_draw(z, log_std), value
 
@@ -152,20 +184,20 @@ class Team:
     def local_evaluate(self, obs: np.ndarray, msg: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(logp, value) of given actions, computed as `local_act` computes them: the distributed
         learner uses this to rebuild exactly the trainer's rollout from remote actions."""
-        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
-        out = self.local.actor_out(x).numpy()
-        value = self.local.value(x).numpy()
+        x = self.local_input(self.tensor(self.local_view(obs)), self.tensor(msg))
+        out = self.host(self.local.actor_out(x))
+        value = self.host(self.local.value(x))
         if self.discrete:
             probs = softmax(out)
             return np.log(take_last(probs, action)).astype(np.float32), value
-        log_std = self.local.log_std.detach().numpy()
+        log_std = self.host(self.local.log_std)
         z = (action - out) / np.exp(log_std)  # the Gaussian draw behind the action (to float precision)
         return gaussian_logp_of_draw(z, log_std), value
 
     @torch.inference_mode()
     def local_values(self, obs: np.ndarray, msg: np.ndarray) -> np.ndarray:
-        x = self.local_input(torch.from_numpy(self.local_view(obs)), torch.from_numpy(msg))
-        return self.local.value(x).numpy()
+        x = self.local_input(self.tensor(self.local_view(obs)), self.tensor(msg))
+        return self.host(self.local.value(x))
 
     def env_action(self, action: np.ndarray) -> np.ndarray:
         return self.spec.env_action(action)

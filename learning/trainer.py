@@ -30,6 +30,7 @@ from hammer.learning.rollout import RolloutWriter
 from hammer.learning.run_env import make_env
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import ActingStreams, env_reset_seed
+from hammer.learning.team import torch_device
 
 
 @dataclass
@@ -49,6 +50,7 @@ class Trainer:
                  on_progress: Callable[[Progress], None] | None = None, tensorboard: bool = True) -> None:
         torch.set_num_threads(cfg.torch_threads)
         self.cfg, self.rd, self.on_progress = cfg, run_dir, on_progress
+        torch_device(cfg)  # an unusable device fails before the envs (maybe processes) start
         self.env = env if env is not None else make_env(cfg)
         if self.env.spec.n_agents != cfg.n_agents or self.env.num_envs != cfg.num_envs:
             raise ValueError("env does not match the config's n_agents/num_envs")

@@ -96,6 +96,8 @@ def test_the_untrained_reference_is_the_runs_own_initialisation(runs):
     ckpt = load_file(str(runs["backprop"] / "checkpoints/ckpt_0000000.safetensors"))
     init = initial_central_weights(cfg)
     assert init and all(np.array_equal(v, ckpt[f"central/{k}"]) for k, v in init.items())
+    on_gpu = initial_central_weights(cfg.model_copy(update={"device": "cuda"}))  # a GPU run, analysed anywhere
+    assert all(np.array_equal(v, on_gpu[k]) for k, v in init.items())
     final = load_file(str(runs["backprop"] / "final/central.safetensors"))
     assert not all(np.array_equal(v, final[k]) for k, v in init.items())  # training moved it
 

@@ -59,7 +59,9 @@ def _check_env(cfg) -> None:
     from hammer.envs.registry import EnvConfigError
     from hammer.learning.config import ConfigError
     from hammer.learning.run_env import check_env_fits, make_env
+    from hammer.learning.team import torch_device
 
+    torch_device(cfg)  # and a device torch cannot use
     try:
         env = make_env(cfg)
     except EnvConfigError as e:

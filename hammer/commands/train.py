@@ -32,7 +32,9 @@ def train_command(
     out: Annotated[str | None, typer.Option(help="root directory for run directories")] = None,
     name: Annotated[str | None, typer.Option(help="run directory name under --out")] = None,
     run_dir: Annotated[Path | None, typer.Option(help="exact run directory (overrides --out/--name)")] = None,
-    resume: Annotated[Path | None, typer.Option(help="continue this run directory from its last checkpoint")] = None,
+    resume: Annotated[Path | None, typer.Option(
+        help="continue this run directory from its last checkpoint (only --episodes and --set device=... may "
+             "change)")] = None,
     branch: Annotated[Path | None, typer.Option(
         help="continue a copy of this run from its last checkpoint into --run-dir, with --set/--seed/--episodes "
              "changes (e.g. --set ent_coef=0.01): what would have happened from there with another setting. "
@@ -44,7 +46,7 @@ def train_command(
              "--resume or --branch")] = None,
 ) -> None:
     """Train a HAMMER team (or a baseline) in-process; writes a run directory."""
-    from hammer.learning.config import ConfigError, build_config, merge_config
+    from hammer.learning.config import ConfigError, merge_config
     from hammer.learning.rundir import RunDir
 
     if variant in ("hammer-rl", "hammer-backprop"):  # as `hammer sweep --variants` spells them
@@ -76,16 +78,19 @@ def train_command(
                 raise ConfigError(f"--branch: '{changed[0]}' cannot change on a branch (the checkpoint's networks, "
                                   f"buffers or random streams are built on it); fix: drop that --set, or start a new run")
         elif resume is not None:
-            if any(v is not None for v in (preset, variant, central_mode, seed, config, set_)):
-                raise ConfigError("--resume: only --episodes may be changed when resuming; fix: drop the other options")
+            # where a run trains is not what it computes: a GPU run may continue on the CPU and back
+            moved = [s for s in set_ or [] if s.split("=", 1)[0].strip() == "device"]
+            if any(v is not None for v in (preset, variant, central_mode, seed, config)) or len(moved) != len(set_ or []):
+                raise ConfigError("--resume: only --episodes (and --set device=...) may be changed when resuming; "
+                                  "fix: drop the other options")
             if (resume / "runtime.json").is_file():  # checked before RunDir.open or any write
                 raise ConfigError(f"--resume '{resume}': a `hammer up` run (it has runtime.json); fix: continue it "
                                   f"with `hammer up --resume {resume}`")
             rd, cfg = RunDir.open(resume)
             if rd.latest_checkpoint() is None:
                 raise ConfigError(f"--resume '{resume}': no checkpoint yet; fix: start it again with --run-dir")
-            if episodes is not None:
-                cfg = build_config({**cfg.model_dump(), "episodes": episodes})
+            if episodes is not None or moved:
+                cfg = merge_config(None, None, moved, {"episodes": episodes}, base=cfg.model_dump(mode="json"))
         else:
             extra = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes,
                      "out": out}
@@ -94,13 +99,16 @@ def train_command(
             cfg = merge_config(preset, config, set_ or [], extra)
         from hammer.envs.registry import EnvConfigError
         from hammer.learning.run_env import check_env_fits, make_env
+        from hammer.learning.team import torch_device
+
+        torch_device(cfg)  # a device torch cannot use fails before any env or file exists
 
         try:  # build the env first so a bad env name/kwarg fails before any file is written
             env = make_env(cfg)
             check_env_fits(cfg, env.spec)
         except EnvConfigError as e:
             raise ConfigError(str(e)) from None
-        if resume is not None and episodes is not None:
+        if resume is not None and (episodes is not None or moved):
             rd.write_config(cfg)  # only now that the env, the config and the checkpoint are known good
         if resume is None:
             path = run_dir if run_dir is not None else Path(cfg.out) / (name or cfg.run_name())
