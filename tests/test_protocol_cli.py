@@ -96,3 +96,11 @@ def test_bench_peers_says_why_it_skips_without_jaxmarls_baselines(tmp_path):
     r = CliRunner().invoke(app, ["bench", "peers", "--jaxmarl-repo", str(tmp_path), "--jax-venv", str(venv)])
     assert r.exit_code == 0 and "skipped" in r.output and "FLAIROx/JaxMARL" in r.output, r.output
     assert not venv.exists()
+
+
+def test_bench_peers_names_an_unknown_schedule_and_the_choices(tmp_path):
+    r = CliRunner().invoke(app, ["bench", "peers", "--jaxmarl-repo", str(tmp_path), "--jax-venv", str(tmp_path / "v"),
+                                 "--hammer-schedules", "cn3,k9000"])
+    assert r.exit_code != 0
+    text = r.output + str(r.exception or "")
+    assert "k9000" in text and "jaxmarl-ppo-k256" in text, text

@@ -96,6 +96,9 @@ def bench_peers(
     out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
     hammer_set: Annotated[list[str] | None, typer.Option(help="more config for hammer's run, KEY=VALUE "
                                                                "(repeatable), e.g. compile_scope=epoch")] = None,
+    hammer_schedules: Annotated[str, typer.Option(help="hammer's runs, comma-separated: cn3 (the matched schedule), "
+                                                       "jaxmarl (JaxMARL's defaults exactly), jaxmarl-ppo-kK (its "
+                                                       "PPO settings over K = 64, 128 or 256 env copies, 2,048 samples an update)")] = "cn3",
 ) -> None:
     """hammer's training rate against JaxMARL's IPPO-FF on MPE simple spread, one core each, one after
     the other: at hammer's cn3 schedule and at JaxMARL's defaults; compile times and the end of both
@@ -104,7 +107,8 @@ def bench_peers(
 
     code = main([*(["--jaxmarl-repo", str(jaxmarl_repo)] if jaxmarl_repo else []), "--jax-venv", str(jax_venv),
                  "--env-steps", str(env_steps), *(["--out", str(out)] if out else []),
-                 *(x for kv in hammer_set or [] for x in ("--hammer-set", kv))])
+                 *(x for kv in hammer_set or [] for x in ("--hammer-set", kv)),
+                 "--hammer-schedules", hammer_schedules])
     if code:
         raise typer.Exit(code)
 
