@@ -10,9 +10,9 @@ change must reach the compiled graph, which skips its guards after the first cal
 import numpy as np
 import pytest
 import torch
-from hammer.envs.registry import make_vec_env
 from hammer.learning.central_acting import encode_actions
 from hammer.learning.config import merge_config
+from hammer.learning.run_env import make_env
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.team import Team
 
@@ -21,7 +21,7 @@ FIELDS = ("sent", "mean", "raw", "logp", "value", "keep")
 
 def _act_side_by_side(cfg, steps: int = 12, perturb_at: int | None = None) -> int:
     """Both teams act for `steps` vector steps; returns how many agent-steps the checks covered."""
-    env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs, env_kwargs=cfg.env_kwargs)
+    env = make_env(cfg)
     eager, fused = Team(cfg, env.spec), Team(cfg.model_copy(update={"compile": True}), env.spec)
     assert eager.fused is None and fused.fused is not None
     s_eager, s_fused = ActingStreams(cfg.seed, cfg.n_agents), ActingStreams(cfg.seed, cfg.n_agents)
@@ -80,3 +80,12 @@ def test_fused_acting_with_continuous_actions():
     cfg = merge_config("cn3", extra={"variant": "hammer", "central_mode": "rl", "env": "cn-mpe2",
                                      "env_kwargs": {"continuous_actions": True}}, overrides=["num_envs=4"])
     _act_side_by_side(cfg, steps=6)
+
+
+def test_fused_acting_with_a_conv_encoder_on_images():
+    """Pistonball's frames (grey, 16x16) through the conv stems of the actor and the critic."""
+    cfg = merge_config("cn3", overrides=[
+        "env=pettingzoo.butterfly.pistonball_v6:parallel_env", "n_agents=3", "env_kwargs.n_pistons=3",
+        "env_kwargs.max_cycles=20", "env_adapters=[gray,resize:16x16,flatten]", "obs_conv=[16, 16, 1]",
+        "num_envs=2", "variant=hammer", "central_mode=rl"])
+    _act_side_by_side(cfg, steps=4)
