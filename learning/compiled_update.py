@@ -37,6 +37,18 @@ Minibatches = Callable[[dict[str, torch.Tensor], np.random.Generator], Iterator[
 # of Python, which is a large part of a call at these sizes.
 COMPILE_OPTIONS = {"cpp_wrapper": True}
 SKIP_GUARDS = True
+# Each compiled learner or team in a process adds one graph to the same code object (dynamo guards
+# on the instance), and dynamo refuses a ninth by default (`recompile_limit` 8; with fullgraph, a
+# hard error): a notebook or script that trains many runs in one process, or a test session, would
+# fail at its ninth. `allow_many_graphs` raises the limit up to dynamo's accumulated one.
+MANY_GRAPHS = 256
+
+
+def allow_many_graphs() -> None:
+    import torch._dynamo.config as dynamo_config
+
+    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, MANY_GRAPHS)
+    dynamo_config.accumulated_recompile_limit = max(dynamo_config.accumulated_recompile_limit, MANY_GRAPHS)
 
 
 class CompiledUpdate:
@@ -47,6 +59,7 @@ class CompiledUpdate:
 
     def __init__(self, team: Team, losses: Losses, updaters: list[PPOUpdater], epochs: int,
                  minibatches: int, scope: str = "step") -> None:
+        allow_many_graphs()
         self.nets = _Nets(team, losses)
         self.updaters, self.epochs, self.minibatches = updaters, epochs, minibatches
         self.scope = scope  # RunConfig.compile_scope: one graph per minibatch step, or per epoch

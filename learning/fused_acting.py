@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 from hammer.learning.central_acting import CentralOut
-from hammer.learning.compiled_update import COMPILE_OPTIONS, SKIP_GUARDS
+from hammer.learning.compiled_update import COMPILE_OPTIONS, SKIP_GUARDS, allow_many_graphs
 from hammer.learning.numpy_policy import LOG_2PI
 from hammer.learning.sampling import ActingStreams
 
@@ -43,6 +43,7 @@ class FusedActing:
         self.m, self.rl, self.random = team.msg_dim, w.central_rl, w.random_messages
         self.net = w.has_central_network
         self.log_msg_std = math.log(team.acting.msg_std)
+        allow_many_graphs()
         self.graph = torch.compile(self._act, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
         self.seen: set[tuple] = set()
 

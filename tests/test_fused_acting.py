@@ -89,3 +89,18 @@ def test_fused_acting_with_a_conv_encoder_on_images():
         "env_kwargs.max_cycles=20", "env_adapters=[gray,resize:16x16,flatten]", "obs_conv=[16, 16, 1]",
         "num_envs=2", "variant=hammer", "central_mode=rl"])
     _act_side_by_side(cfg, steps=4)
+
+
+def test_many_compiled_teams_in_one_process():
+    """Dynamo keeps 8 graphs per code object by default and, with fullgraph, fails at a ninth: a
+    script training many compiled runs of different shapes in one process (or this test session)
+    must not stop there. Ten team sizes, ten graphs of the one acting function."""
+    for k in range(1, 11):
+        cfg = merge_config("cn3", extra={"variant": "il"}, overrides=[f"num_envs={k}", "compile=true"])
+        env = make_env(cfg)
+        obs, _ = env.reset(0)
+        team = Team(cfg, env.spec)
+        _, action, _, _ = team.act(obs, team.global_state(obs, team.zero_prev_actions(k)),
+                                   ActingStreams(0, cfg.n_agents))
+        assert action.shape == (k, 3)
+        env.close()
