@@ -81,7 +81,7 @@ class CompiledUpdate:
             return self._learn_epochs(b, keys, rows, masks, rng, params, exp_avgs, exp_avg_sqs, steps)
         graphs = {(len(part), masks, keys) for part in np.array_split(np.arange(rows), self.minibatches)}
         total = UpdateStats()
-        with _skip_guards(graphs <= self.compiled):
+        with skip_guards(graphs <= self.compiled):
             for epoch in range(self.epochs):
                 last = epoch == self.epochs - 1
                 for mb in minibatches(b, rng):
@@ -102,7 +102,7 @@ class CompiledUpdate:
             parts = minibatch_indices(rows, self.minibatches, rng)
             sizes = tuple(len(p) for p in parts)
             graph = ("epoch", sizes, masks, keys)
-            with _skip_guards(graph in self.compiled):
+            with skip_guards(graph in self.compiled):
                 stats = self.epoch(params, exp_avgs, exp_avg_sqs, steps, keys, fields,
                                    torch.from_numpy(np.concatenate(parts)).to(fields[0].device), sizes, masks)
             self.compiled.add(graph)
@@ -217,8 +217,9 @@ def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list
     return [g * coef for g in grads], norm
 
 
-def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
-    """Once every step graph an update needs exists, dynamo need not re-check their guards (every
+def skip_guards(seen: bool) -> contextlib.AbstractContextManager:
+    """Once every step graph an update needs exists (or the acting graph for these input shapes,
+    `learning.fused_acting`), dynamo need not re-check their guards (every
     tensor argument and the config) on every call, a noticeable part of a compiled update. Under
     this stance dynamo would run a stale graph if a Python value the trace read had changed, so
     the key holds every such value that can change between calls (minibatch size, `Masks`, the

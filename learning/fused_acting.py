@@ -19,14 +19,13 @@ tests/test_fused_acting.py checks the two agree step by step for every variant.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from hammer.learning.central_acting import CentralOut
-from hammer.learning.compiled_update import COMPILE_OPTIONS, SKIP_GUARDS, allow_many_graphs
+from hammer.learning.compiled_update import COMPILE_OPTIONS, allow_many_graphs, skip_guards
 from hammer.learning.numpy_policy import LOG_2PI
 from hammer.learning.sampling import ActingStreams
 
@@ -62,7 +61,7 @@ class FusedActing:
         l_draw = streams.local_uniforms(k) if team.discrete else streams.local_normals(k, team.act_dim)
         args = [team.tensor(np.ascontiguousarray(a)) for a in (team.local_view(obs), state, c_draw, keep, l_draw)]
         key = tuple((a.shape, a.dtype) for a in args)
-        with torch.no_grad(), _skip_guards(key in self.seen):
+        with torch.no_grad(), skip_guards(key in self.seen):
             out = self.graph(*args)
         self.seen.add(key)
         sent, mean, raw, c_logp, c_value, action, logp, value = (team.host(t) for t in out)
@@ -105,11 +104,3 @@ class FusedActing:
             logp = (-0.5 * l_draw.pow(2) - log_std.double() - 0.5 * LOG_2PI).sum(-1).float()
         return sent, mean, raw, c_logp, c_value, action, logp, value
 
-
-def _skip_guards(seen: bool) -> contextlib.AbstractContextManager:
-    """As `compiled_update._skip_guards`: once the graph for these input shapes and dtypes exists,
-    nothing a guard checks can change between calls (the network shapes and the config are fixed
-    for a team's life; parameters are graph inputs, read afresh on every call)."""
-    if seen and SKIP_GUARDS:
-        return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
-    return contextlib.nullcontext()
