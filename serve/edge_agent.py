@@ -64,8 +64,8 @@ class EdgeCounters:
 class EdgeAgent:
     """Agent `agent` of the team in `bundle`, joined to run `run_id` (`act`, `run`, `close`).
 
-    Transport as `hammer local --bundle`: `connect` (a peer reaching the run's hub), or
-    `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
+    Transport: `connect` (the fleet's router: the robot is a Zenoh client of it, which no other
+    process ever dials), or `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
     run; `insecure` to accept plain traffic beyond loopback. `max_msg_age_s`: the oldest central
     message acted on; `fallback`: the team's own (from the bundle) unless given (zeros, last, last_k).
     `connect_retry_s`: how long to keep trying to open a client session whose router is not up yet
@@ -95,7 +95,7 @@ class EdgeAgent:
         env = b.env_spec_data
         self.settings = edge_settings(b, run_id, None, [*runtime, *([f"fallback={fallback}"] if fallback else [])])
         self.transport = edge_transport(self.settings, f"local-{agent}", self.spec.n_agents, connect, zenoh_config,
-                                        identity, insecure)
+                                        identity, insecure, client=True)
         self.agent, self.max_msg_age_s = agent, max_msg_age_s
         self.name = f"local-{agent}"
         self.obs_dim = int(env["obs_dim"])
