@@ -195,6 +195,7 @@ class Fleet:
             time.sleep(0.5)
         timeline = _timeline(self.run)
         during = _rates(timeline, down, up)
+        before = _rates(timeline, down - GAP_S + 2, down)  # the same robots with no link down: the load's share
         healthy = [i for i in range(self.n) if i not in cut]
         hz_during = None if during is None else {f"local-{i}": during[i] for i in healthy}
         worst = [v for r in b.values() for v in r.values()]
@@ -202,6 +203,8 @@ class Fleet:
                 "up": round(up, 3), "load1": round(load, 2), "healthy_hz_during": hz_during,
                 "healthy_min_fraction": (None if not healthy or during is None else
                                          round(min(during[i] for i in healthy) / self.hz, 3)),
+                "healthy_min_fraction_before": (None if not healthy or before is None else
+                                                round(min(before[i] for i in healthy) / self.hz, 3)),
                 "back_s": b, "back_max_s": None if None in worst else max(worst), "stranded": None in worst}
 
     def link_use(self, seconds: float) -> dict:
@@ -368,7 +371,8 @@ def trial_line(t: dict) -> str:
     backs = "; ".join(f"{r}: robot {b['robot']}, world {b['world']}, central {b['central']} s"
                       for r, b in t["back_s"].items())
     return (f"{t['kind']:4} {t['seconds']:5g} s  #{t['trial']:<2} cut {','.join(t['cut'])}  healthy "
-            f"{t['healthy_min_fraction']} of rate  back {backs}  load {t['load1']}  "
+            f"{t['healthy_min_fraction']} of rate (before the cut {t.get('healthy_min_fraction_before')})  back "
+            f"{backs}  load {t['load1']}  "
             f"{'ok' if trial_ok(t) else 'FAILS the contract'}")
 
 

@@ -94,8 +94,12 @@ RECONNECT = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_facto
 # a lease under 1.4 s a cut link is either back by the retransmission at ~1.4 s or made anew. And
 # one attempt to open a link is given up after FLEET_OPEN_TIMEOUT_MS (Zenoh: 10 s): an attempt
 # started while the link was down has lost its SYN, whose retransmission comes 1 s, then 3 s later.
+# The next attempt follows FLEET_RECONNECT_MAX_MS later (hammer's other runs: 500 ms), so one is
+# under way when the robot's kernel next resolves the router's address (ARP, once a second by
+# default while it cannot): what is left of a robot's return after a long cut is that timer's.
 FLEET_LEASE_MS = 1200
 FLEET_OPEN_TIMEOUT_MS = 500
+FLEET_RECONNECT_MAX_MS = 100
 
 
 def free_loopback_port() -> int:

@@ -23,6 +23,7 @@ from hammer.protocol.fault_injection import FaultSpec
 from hammer.protocol.session import (
     FLEET_LEASE_MS,
     FLEET_OPEN_TIMEOUT_MS,
+    FLEET_RECONNECT_MAX_MS,
     TransportConfig,
     is_loopback_endpoint,
     loopback_endpoint,
@@ -150,7 +151,7 @@ class RuntimeSettings(Model):
                                   "long and tried again (None: Zenoh's 10 s; a fleet's: 0.5 s, docs/fleet.md)")
     reconnect_max_s: float = Field(
         0.5, ge=0.1, description="the longest wait between tries to reach a lost hub or router (from 0.1 s, "
-                                 "doubling; Zenoh's own default backs off to 4 s)")
+                                 "doubling; Zenoh's own default backs off to 4 s; a fleet's: 0.1 s)")
     log_max_mb: float = Field(
         10.0, gt=0, description="size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated "
                                 "(<role>.log.1, .2; older ones are deleted)")
@@ -267,8 +268,9 @@ class RuntimeSettings(Model):
     def link(self, transport: TransportConfig, fleet: bool = False) -> TransportConfig:
         """`transport` with this run's lease, open timeout and reconnect period (`zenoh_lease_s`,
         `zenoh_open_timeout_s`, `reconnect_max_s`); a Zenoh config file keeps its own retry periods
-        unless `reconnect_max_s` is set here. `fleet`: a fleet's link, whose unset lease and open
-        timeout are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS)."""
+        unless `reconnect_max_s` is set here. `fleet`: a fleet's link, whose unset lease, open timeout
+        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS,
+        FLEET_RECONNECT_MAX_MS)."""
         update: dict = {}
         if self.zenoh_lease_s is not None:
             update["lease_ms"] = round(self.zenoh_lease_s * 1000)
@@ -278,7 +280,9 @@ class RuntimeSettings(Model):
             update["open_timeout_ms"] = round(self.zenoh_open_timeout_s * 1000)
         elif fleet:
             update["open_timeout_ms"] = FLEET_OPEN_TIMEOUT_MS
-        if "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
+        if fleet and "reconnect_max_s" not in self.model_fields_set:
+            update["reconnect_max_ms"] = FLEET_RECONNECT_MAX_MS
+        elif "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
             update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
         return TransportConfig.model_validate({**transport.model_dump(exclude_unset=True), **update})
 

@@ -488,6 +488,17 @@ def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
     assert json.loads(s3.transport().to_zenoh().get_json("connect/retry"))["period_max_ms"] == 1000
     with pytest.raises(ValidationError, match="reconnect_max_s"):
         RuntimeSettings(run_id="r", reconnect_max_s=0.01)
+    # a fleet's links (a robot, a role: clients of the router) take the fleet's defaults unless given
+    fleet = RuntimeSettings(run_id="r").transport_to("tcp/127.0.0.1:7447", client=True).to_zenoh()
+    assert json.loads(fleet.get_json("mode")) == "client"
+    assert json.loads(fleet.get_json("transport/link/tx/lease")) == 1200
+    assert json.loads(fleet.get_json("transport/unicast/open_timeout")) == 500
+    assert json.loads(fleet.get_json("connect/retry"))["period_max_ms"] == 100
+    given = RuntimeSettings(run_id="r", zenoh_lease_s=3, zenoh_open_timeout_s=2, reconnect_max_s=0.3)
+    c = given.transport_to("tcp/127.0.0.1:7447", client=True).to_zenoh()
+    assert [json.loads(c.get_json(k)) for k in ("transport/link/tx/lease", "transport/unicast/open_timeout")] == \
+        [3000, 2000] and json.loads(c.get_json("connect/retry"))["period_max_ms"] == 300
+    assert json.loads(s.transport().to_zenoh().get_json("transport/unicast/open_timeout")) == 10000  # not a fleet
 
 
 def test_the_fleet_soak_bench_samples_every_process(bundle, tmp_path, capsys):
