@@ -433,6 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     except NetnsUnavailable as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if not r["trials"]:
+        write_json(a.out, r)
+        return 0
     print(f"\nevery trial ({'secure' if r['secure'] else 'plain'}, {a.hz:g} Hz; contract: healthy >= "
           f"{CONTRACT['healthy_fraction']} of rate, back <= {CONTRACT['back_s']} s):")
     for t in r["trials"]:
