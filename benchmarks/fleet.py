@@ -60,16 +60,43 @@ def parse_trials(text: str) -> list[tuple[str, float, int]]:
     return out
 
 
-def _log_times(path: Path, pattern: str) -> list[float]:
-    """Wall times (s since the epoch) of the log lines of `path` that contain `pattern`."""
-    times = []
+def _log_lines(path: Path, pattern: str) -> list[tuple[float, str]]:
+    """(wall time in s since the epoch, line) of the log lines of `path` that contain `pattern`."""
+    out = []
     if not path.is_file():
-        return times
+        return out
     for line in path.read_text(errors="replace").splitlines():
         m = LOG_TIME.match(line)
         if m and pattern in line:
-            times.append(datetime.datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp())
-    return times
+            out.append((datetime.datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp(), line))
+    return out
+
+
+def _log_times(path: Path, pattern: str) -> list[float]:
+    """Wall times (s since the epoch) of the log lines of `path` that contain `pattern`."""
+    return [t for t, _ in _log_lines(path, pattern)]
+
+
+def robot_back(log: Path, seconds: float, down: float, up: float) -> float | None:
+    """Seconds from `up` until the robot acted on a fresh central message again (None: not yet, or not
+    within GAP_S, when the next trial's lines would begin). Its first act after a gap over 1 s is
+    logged with the message's freshness; a shorter cut shows only as a stale period beginning by
+    1.5 s after the return (else 0.0: the messages never went stale)."""
+    acts = [(t, line) for t, line in _log_lines(log, "observations again after") if down <= t <= up + GAP_S]
+    if acts:
+        t, line = acts[0]
+        if "(central message fresh)" in line:
+            return round(max(0.0, t - up), 2)
+        start = t
+    elif seconds >= 1.0:
+        return None
+    else:
+        stale = [t for t in _log_times(log, "central messages stale") if down <= t <= up + 1.5]
+        if not stale:
+            return 0.0
+        start = stale[0]
+    fresh = min((t for t in _log_times(log, "fresh central messages again") if t >= start), default=None)
+    return None if fresh is None else round(max(0.0, fresh - up), 2)
 
 
 def _timeline(run: Path) -> list[dict]:
@@ -171,17 +198,9 @@ class Fleet:
         subprocess.run(["ip", "-n", ns, "link", "set", dev, "up"], check=True, timeout=10)
         up = time.time()
 
-        def robot_back(i: int) -> float | None:
-            # acting again (a gap over 1 s is logged), and on a fresh central message (if they went stale)
-            log = self.log(f"local-{i}")
-            acts = _back_after(log, None if seconds >= 1.0 else "observations again after", "observations again after",
-                               down, up)
-            fresh = _back_after(log, "central messages stale", "fresh central messages again", down, up)
-            return None if acts is None or fresh is None else max(acts, fresh)
-
         def back() -> dict:
             return {f"local-{i}": {
-                "robot": robot_back(i),
+                "robot": robot_back(self.log(f"local-{i}"), seconds, down, up),
                 "world": _back_after(self.log("env"), f"local-{i} missing", f"local-{i} rejoined", down, up),
                 "central": _back_after(self.log("central"), f"local-{i} missing", f"local-{i} rejoined", down, up)}
                 for i in cut}
