@@ -501,6 +501,29 @@ def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
     assert json.loads(s.transport().to_zenoh().get_json("transport/unicast/open_timeout")) == 10000  # not a fleet
 
 
+def test_a_fleet_takes_its_settings_from_the_command_line_and_refuses_bad_ones_in_one_line(bundle, tmp_path):
+    """`hammer serve --realtime` takes `--runtime`: the bounds go to the plan, the link settings to
+    every role's command and the printed robot command, a bad item is one line naming the field."""
+    from hammer.cli import app
+    from hammer.deploy.fleet import apply_runtime, robot_command, role_specs
+    from typer.testing import CliRunner
+
+    plan = apply_runtime(FleetPlan(bundle=bundle, hub_port=7447, external=[1], listen=["tcp/0.0.0.0:7500"]),
+                         ["hold_s=1.5", "zenoh_lease_s=3", "weights_chunk_bytes=1024"])
+    assert plan.hold_s == 1.5 and plan.runtime == ["zenoh_lease_s=3", "weights_chunk_bytes=1024"]
+    cmd = robot_command(plan, 1, tmp_path / "site-a")
+    assert "--connect 'tcp/<this host>:7500' --insecure --runtime zenoh_lease_s=3 --fleet" in cmd, cmd
+    world = role_specs(plan, "site-a", "tcp/127.0.0.1:7447", 3, True, tmp_path)[0].args
+    assert world[world.index("--runtime") + 1] == "zenoh_lease_s=3" and world[world.index("--hold-s") + 1] == "1.5"
+    for item, says in (("zenoh_lease_s=0.1", "zenoh_lease_s: Input should be greater than or equal to 0.5"),
+                       ("hold_s=abc", "hold_s takes seconds"), ("hub_port=5", "set by --listen"),
+                       ("nosuch=1", "nosuch: Extra inputs")):
+        res = CliRunner().invoke(app, ["serve", str(bundle), "--realtime", "20", "--seconds", "2", "--runtime", item,
+                                       "--run-dir", str(tmp_path / "never")])
+        assert res.exit_code == 2 and says in res.output and len(res.output.strip().splitlines()) == 1, res.output
+    assert not (tmp_path / "never").exists()
+
+
 def test_the_fleet_soak_bench_samples_every_process(bundle, tmp_path, capsys):
     from hammer.benchmarks.fleet import main
 

@@ -189,9 +189,9 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
-    from hammer.deploy.fleet import FleetPlan, apply_runtime, robot_command, run_fleet
+    from hammer.deploy.fleet import FleetPlan, apply_runtime, fleet_settings, robot_command, run_fleet
     from hammer.protocol.session import free_loopback_port
-    from hammer.serve.bundle import BundleError
+    from hammer.serve.bundle import BundleError, load_bundle
 
     refused = ((fault, "--fault (link faults are a lock-stepped run's; cut a link instead: hammer bench fleet)"),
                (num_envs, "--num-envs (a fleet is one world, K=1)"))
@@ -206,15 +206,17 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
                      seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
                      insecure=insecure, timeline=timeline)
+    plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
     try:
         apply_runtime(plan, list(runtime or []))
         for item in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
             if item.partition("=")[0] in ("hub_port", "hub_listen", "zenoh_config_file", "secure_hub"):
                 raise ValueError(f"--runtime {item!r}: a fleet's router is set by --listen (and --secure); "
                                  "fix: leave it out")
-    except ValueError as e:
+        plan.check()
+        fleet_settings(load_bundle(bundle), plan, path.name)  # a bad --runtime value: one line, before anything
+    except (BundleError, ValueError) as e:
         fail(str(e))
-    plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
     last = [0.0]
 
     def tick(board, t: float) -> None:
