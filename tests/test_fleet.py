@@ -504,9 +504,10 @@ def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
 def test_a_fleet_takes_its_settings_from_the_command_line_and_refuses_bad_ones_in_one_line(bundle, tmp_path):
     """`hammer serve --realtime` takes `--runtime`: the bounds go to the plan, the link settings to
     every role's command and the printed robot command, a bad item is one line naming the field."""
-    from hammer.cli import app
     from hammer.deploy.fleet import apply_runtime, robot_command, role_specs
     from typer.testing import CliRunner
+
+    from hammer.cli import app
 
     plan = apply_runtime(FleetPlan(bundle=bundle, hub_port=7447, external=[1], listen=["tcp/0.0.0.0:7500"]),
                          ["hold_s=1.5", "zenoh_lease_s=3", "weights_chunk_bytes=1024"])
