@@ -19,7 +19,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from hammer.learning.lite_policy import LiteLocalPolicy, categorical_inverse_cdf, softmax
+from hammer.learning.categorical import draw
+from hammer.learning.lite_policy import LiteLocalPolicy
 from hammer.learning.pcg64 import LOCAL_STREAM, lite_stream
 from hammer.local_agent.steps import MSG_EVENTS, AgentSpec, ClientCore, StepCore
 from hammer.protocol.fields import WireArray
@@ -69,10 +70,10 @@ class LiteLocalAgent:
         """One action id per env copy, from the rows of its observation and message (float32 values)."""
         if self.policy is None:
             raise RuntimeError("no policy weights loaded yet")
-        probs = [softmax(self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else [])))
-                 for j, row in enumerate(obs)]
+        logits = [self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else []))
+                  for j, row in enumerate(obs)]
         u = self.rng.random(len(obs))  # after the forward, as the numpy agent draws
-        return [categorical_inverse_cdf(p, x) for p, x in zip(probs, u)]
+        return [draw(z, x) for z, x in zip(logits, u)]
 
 
 class LiteSteps(StepCore):
