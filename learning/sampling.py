@@ -51,13 +51,15 @@ def categorical_draw(logits: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.
     CDF values, and a row closer than that is drawn by the exact softmax in plain Python (rare:
     about 1e-8 of the draws). The returned probabilities are numpy's."""
     probs = softmax(logits)
-    cdf = np.cumsum(probs, axis=-1)
-    gap = cdf[..., :-1] - u[..., None]  # the last CDF value never decides (the index is clipped)
-    idx = np.minimum((gap <= 0).sum(axis=-1), probs.shape[-1] - 1).astype(np.int64)
-    if gap.size and not np.abs(gap).min() >= categorical.MARGIN:  # `not >=`: a nan row goes exact too
-        rows = ~(np.abs(gap) >= categorical.MARGIN).all(axis=-1)
-        flat_logits, flat_u = np.asarray(logits)[rows], u[rows]
-        idx[rows] = [categorical.draw(row, x) for row, x in zip(flat_logits.tolist(), flat_u.tolist())]
+    # cdf - u for all CDF values but the last (the action counts those at or below u; the last
+    # would only count past A - 1, which the index is clipped to anyway)
+    gap = np.cumsum(probs[..., :-1], axis=-1)
+    gap -= u[..., None]
+    idx = (gap <= 0).sum(axis=-1).astype(np.int64, copy=False)
+    near = np.abs(gap, out=gap)
+    if near.size and not near.min() >= categorical.MARGIN:  # `not >=`: a nan row is drawn exactly too
+        rows = ~(near >= categorical.MARGIN).all(axis=-1)
+        idx[rows] = [categorical.draw(row, x) for row, x in zip(np.asarray(logits)[rows].tolist(), u[rows].tolist())]
     return idx, probs
 
 
