@@ -49,10 +49,9 @@ def exp_nonpositive(x: float) -> float:
     """e^x for x <= 0 (what a softmax needs after subtracting the row's maximum), within 1 ulp,
     from +, -, *, / only; nan stays nan. Positive x is outside its range (it would overflow the
     scaling below)."""
-    if x != x:
+    if math.isnan(x):
         return x
-    if x < _LOW:
-        x = _LOW
+    x = max(x, _LOW)
     k = (x * _INV_LN2 + _ROUND) - _ROUND
     hi = x - k * _LN2_HI
     lo = k * _LN2_LO

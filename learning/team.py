@@ -25,7 +25,6 @@ from hammer.learning.numpy_policy import gaussian_logp_of_draw, numpy_central, s
 from hammer.learning.run_env import check_env_fits
 from hammer.learning.sampling import ActingStreams, categorical_draw
 
-
 # (message_mean, values): state (K, S) -> (K, N, M) message means, (K, N) central values
 _CentralForward = tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]]
 

@@ -89,8 +89,8 @@ print(json.dumps(out))
 
 
 def _run(code: str, env: dict[str, str], *args: str) -> dict:
-    r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=240, cwd=ROOT,
-                       env={**ENV, **env})
+    r = subprocess.run([sys.executable, "-c", code, *args], check=False, capture_output=True, text=True, timeout=240,
+                       cwd=ROOT, env={**ENV, **env})
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads(r.stdout.strip().splitlines()[-1])
 
