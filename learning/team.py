@@ -134,7 +134,7 @@ class Team:
         a difference into a different update now and then (tests/test_exactness.py). On a GPU the
         torch forward runs on the device."""
         if self.device.type == "cpu":
-            net = numpy_central({name: t.detach().numpy() for name, t in self._central_tensors})
+            net = numpy_central({name: t.detach().cpu().numpy() for name, t in self._central_tensors})
             return net.message_mean, net.values
         return (lambda s: self.host(self.central.message_mean(self.tensor(s))),
                 lambda s: self.host(self.central.values(self.tensor(s))))
