@@ -32,7 +32,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 
+from hammer.deploy.fleet_verdict import fleet_verdict
 from hammer.deploy.supervisor import RoleSpec, Supervisor
+from hammer.deploy.up import stop_on_signals
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
@@ -162,11 +164,10 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     sup = Supervisor(run_dir / "logs")
     stopped_by = None
     t0 = time.monotonic()
-
-    def on_term(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, on_term)
+    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
+    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+    stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
+    stopping = stop_on.__enter__()
     try:
         with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
             beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
@@ -197,15 +198,19 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
                     if on_tick is not None:
                         on_tick(board, time.monotonic() - t0)
                     time.sleep(0.1)
-            except KeyboardInterrupt:
-                stopped_by = "interrupted (Ctrl-C or SIGTERM)"
+            except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
+                stopped_by = getattr(e, "signal_name", "SIGINT")
+            stopping["ending"] = True  # a repeated signal must not cut the stop broadcast or the summary short
             hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
             time.sleep(0.2)
             for h in beats.drain():
                 board.heartbeats[h.role] = h
+    except KeyboardInterrupt as e:  # before the roles were up
+        stopped_by = getattr(e, "signal_name", "SIGINT")
     finally:
+        stopping["ending"] = True
         sup.stop_all()
-        signal.signal(signal.SIGTERM, previous)
+        stop_on.__exit__(None, None, None)
     return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
 
 
@@ -236,10 +241,13 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                                                                  "chunks_refused", "weights_rejected")})
         r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
-    reasons = [f"{name} was missing {a['longest_absence_s']:.1f} s at most (> max_absence_s {max_absence_s:g} s; "
-               f"{a['leaves']} time(s))" for name, a in absences.items() if a["longest_absence_s"] > max_absence_s]
-    summary = {"completed": stopped_by is None and bool(world), "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
-               "degraded": bool(reasons), "degraded_reasons": reasons, "absences": absences,
+    central = roles.get("central", {}).get("counters", {})
+    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, central, max_absence_s)
+    summary = {"completed": stopped_by is None and bool(world), "interrupted": stopped_by in ("SIGTERM", "SIGINT"),
+               "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
+               "degraded": bool(verdict["reasons"]), "degraded_reasons": verdict["reasons"], "absences": absences,
+               "central_absences": verdict["central_absences"], "rejections": verdict["rejections"],
+               "rejected_on": verdict["rejected_on"],
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
                "central": {**roles.get("central", {}).get("counters", {}),
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()

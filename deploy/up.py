@@ -313,13 +313,13 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     stop the run as Ctrl-C does and then return what ran (`UpResult.stopped_by`; a served run's
     summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure."""
     run_dir = Path(run_dir)
-    with _stop_on(stop_signals) as stopping:
+    with stop_on_signals(stop_signals) as stopping:
         return _launch(cfg, settings, run_dir, on_tick, chaos, resume, external_agents, external_help or {},
                        stopping)
 
 
 @contextmanager
-def _stop_on(signals: tuple[int, ...]):
+def stop_on_signals(signals: tuple[int, ...]):
     """While launching: each of `signals` raises Stopped once; later ones (and any after the run is
     ending, `stopping["ending"]`) are logged and ignored, so the stop broadcast and the summary
     are not cut short by a service manager repeating its signal."""

@@ -76,7 +76,8 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     world = None
     try:
         with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
-            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline)
+            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline,
+                                  msg_dim=cfg.msg_dim)
             world.run()
     except KeyboardInterrupt:
         pass
