@@ -62,6 +62,7 @@ class FleetPlan:
     secure: bool = False  # mutual TLS with the run's identities (RUN/identity/) and per-role access rules
     insecure: bool = False  # accept plain traffic beyond loopback (on a network you trust)
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
+    site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
     def check(self) -> None:
         for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
@@ -71,6 +72,8 @@ class FleetPlan:
             raise ValueError("a fleet run needs an end: seconds or episodes")
         if self.secure and self.insecure:
             raise ValueError("secure and insecure contradict each other: pass one of --secure, --insecure")
+        if self.site is not None and not self.secure:
+            raise ValueError("--site: a site's identities are for a secure fleet (fix: add --secure)")
 
 
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
@@ -152,12 +155,13 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
         from hammer.runtime.settings import RuntimeSettings
 
         hub_transport = secure_identities(n, RuntimeSettings(run_id=run_id, secure=True), run_dir, hub_transport,
-                                          fresh=True)
+                                          fresh=True, site=plan.site)
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
     (run_dir / "fleet.json").write_text(json.dumps({
-        "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0], "plan": {**plan.__dict__, "bundle": str(plan.bundle)},
+        "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0], "plan": {**plan.__dict__, "bundle": str(plan.bundle),
+                                                                                     "site": plan.site and str(plan.site)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs}}, indent=1))
     board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
                             versions={}, switches={})

@@ -576,17 +576,23 @@ class Launcher:
         self.own_rejections = self.rejection_counters(hub)
 
 
-def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
+def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,
+                      site: Path | None = None):
     """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
     RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
     RUN/access_control.json, the rules every process applies (a client in another language inserts
-    it into its Zenoh config; docs/wire-format.md). Returns the launcher's own secured transport."""
+    it into its Zenoh config; docs/wire-format.md). With `site` (a fleet's `--site`): the identities
+    come from the site instead (protocol.identity: the robots' kept ones, the server roles' from its
+    CA), so a restarted fleet admits the robots it admitted before. Returns the launcher's own
+    secured transport."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
-    from hammer.protocol.identity import create_identities, has_identities, identity_dir
+    from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
 
     roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub)
-    if fresh or not has_identities(identity_dir(run_dir), roles):
+    if site is not None:
+        site_run_identities(site, identity_dir(run_dir), roles)
+    elif fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
     rules = access_control(Keys(settings.run_id), n_agents, settings.pools(n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
