@@ -38,6 +38,7 @@ from hammer.deploy.up import stop_on_signals
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.protocol.transport_log import refused_counts, watch_refused
 from hammer.runtime.settings import refuse_plain_beyond_loopback
 
 log = logging.getLogger("hammer.fleet")
@@ -170,6 +171,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     t0 = time.monotonic()
     # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
     # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+    watch_refused()  # strangers turned away at the hub's TLS handshake: counted for the verdict
     stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
     stopping = stop_on.__enter__()
     try:
@@ -246,12 +248,16 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
         r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
     central = roles.get("central", {}).get("counters", {})
-    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, central, max_absence_s)
+    refused = {role: {k.split(".", 1)[1]: int(v) for k, v in r.get("counters", {}).items() if k.startswith("refused.")}
+               for role, r in roles.items() if not role.startswith("local-")}
+    refused["launcher"] = refused_counts()
+    refused = {role: {**r, "total": sum(r.values())} for role, r in refused.items() if r}
+    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, central, max_absence_s, refused)
     summary = {"completed": stopped_by is None and bool(world), "interrupted": stopped_by in ("SIGTERM", "SIGINT"),
                "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
                "degraded": bool(verdict["reasons"]), "degraded_reasons": verdict["reasons"], "absences": absences,
                "central_absences": verdict["central_absences"], "rejections": verdict["rejections"],
-               "rejected_on": verdict["rejected_on"],
+               "rejected_on": verdict["rejected_on"], "refused_connections": refused,
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
                "central": {**roles.get("central", {}).get("counters", {}),
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()

@@ -53,3 +53,65 @@ def test_sigterm_ends_a_fleet_no_robot_joined_as_interrupted_and_degraded(bundle
     assert any(r.startswith("no robot joined the fleet") for r in s["degraded_reasons"]), s["degraded_reasons"]
     assert {n for n, a in s["absences"].items() if a.get("never_joined")} == {"local-0", "local-1", "local-2"}
     assert "degraded: no robot joined" in out, out[-2000:]
+
+
+def _serve(bundle, run, site, port, seconds, log):
+    return subprocess.Popen([*CLI, "serve", str(bundle), "--realtime", "20", "--seconds", str(seconds), "--external", "1",
+                             "--listen", f"tcp/127.0.0.1:{port}", "--secure", "--site", str(site), "--run-dir", str(run)],
+                            env=ENV, stdout=log, stderr=subprocess.STDOUT)
+
+
+def test_a_stay_robot_with_a_site_identity_rejoins_a_restarted_fleet_and_a_revoked_one_cannot(bundle, tmp_path):
+    """A site made once (`hammer site init`, `hammer site issue ... local-1`); robot 1 started once
+    with `--fleet --stay` and its copy of the site's three files. The fleet is served, stopped, and
+    served again on the same run directory: robot 1 joins both sessions with no file copied, then
+    exits 0 on SIGTERM. After `hammer site revoke ... local-1`, a third session refuses it at the
+    TLS handshake: the robot never joins, the verdict names it and the refused connections."""
+    import shutil
+
+    from hammer.protocol.session import free_loopback_port
+
+    site, run, port = tmp_path / "site", tmp_path / "runs" / "site-a", free_loopback_port()
+    for args in (["init", str(site)], ["issue", str(site), "local-1"]):
+        r = subprocess.run([*CLI, "site", *args], env=ENV, capture_output=True, text=True, timeout=60, check=False)
+        assert r.returncode == 0, r.stderr
+    assert oct((site / "ca.key").stat().st_mode & 0o777) == "0o600"
+    robot_id = tmp_path / "robot" / "identity"  # the robot's own copy, made once
+    shutil.copytree(site / "robots" / "local-1", robot_id)
+    robot_log = open(tmp_path / "robot.log", "w")  # noqa: SIM115 - closed below
+    robot = subprocess.Popen([sys.executable, "-P", "-m", "hammer", "local", "--bundle", str(bundle), "--agent", "1", "--run-id", run.name, "--connect",
+                              f"tcp/127.0.0.1:{port}", "--identity", str(robot_id), "--fleet", "--stay"],
+                             env=ENV, stdout=robot_log, stderr=subprocess.STDOUT)
+    summaries = []
+    try:
+        for session in range(2):
+            with open(tmp_path / f"serve{session}.log", "w") as log:
+                serve = _serve(bundle, run, site, port, 8, log)
+                assert serve.wait(150) == 0, (tmp_path / f"serve{session}.log").read_text()[-2000:]
+            summaries.append(json.loads((run / "summary.json").read_text()))
+            assert robot.poll() is None, (tmp_path / "robot.log").read_text()[-2000:]  # outlived the session
+        r = subprocess.run([*CLI, "site", "revoke", str(site), "local-1"], env=ENV, capture_output=True, text=True,
+                           timeout=60, check=False)
+        assert r.returncode == 0, r.stderr
+        with open(tmp_path / "serve2.log", "w") as log:
+            serve = _serve(bundle, run, site, port, 8, log)
+            assert serve.wait(150) == 0, (tmp_path / "serve2.log").read_text()[-2000:]
+        summaries.append(json.loads((run / "summary.json").read_text()))
+    finally:
+        robot.send_signal(signal.SIGTERM)
+        code = robot.wait(30)
+        robot_log.close()
+    for s in summaries[:2]:
+        one = s["robots"]["local-1"]
+        assert one["fresh"] > 0 and one["msg_fresh"] > 0, one  # it acted, on the team's messages, in each session
+        assert "local-1" not in s["absences"] or not s["absences"]["local-1"].get("never_joined"), s["absences"]
+    assert code == 0, (tmp_path / "robot.log").read_text()[-2000:]
+    assert "staying for the next one" in (tmp_path / "robot.log").read_text()
+    revoked = summaries[2]
+    assert revoked["robots"]["local-1"]["fresh"] == 0 and revoked["absences"]["local-1"]["never_joined"], revoked
+    assert revoked["degraded"]
+    # the revoked robot kept dialling: refused at the handshake, counted and named, not a link failure
+    refused = sum(r.get("tls_certificate", 0) for r in revoked["refused_connections"].values())
+    assert refused > 0, revoked["refused_connections"]
+    assert any("connections refused" in r for r in revoked["degraded_reasons"]), revoked["degraded_reasons"]
+    assert not any("connections refused" in r for s in summaries[:2] for r in s["degraded_reasons"])

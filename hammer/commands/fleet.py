@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, fail
+from hammer.protocol.transport_log import watch_refused
 from hammer.runtime.process import setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
@@ -65,6 +66,7 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
+    watch_refused()
     from hammer.env_host.world import RealtimeWorld
     from hammer.learning.run_env import make_env
     from hammer.protocol.session import HammerSession
@@ -93,6 +95,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                     seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
+    watch_refused()
     from hammer.central_agent.fleet import FleetCentral
     from hammer.protocol.session import HammerSession
     from hammer.serve.bundle import CENTRAL
