@@ -115,3 +115,38 @@ def test_a_stay_robot_with_a_site_identity_rejoins_a_restarted_fleet_and_a_revok
     assert refused > 0, revoked["refused_connections"]
     assert any("connections refused" in r for r in revoked["degraded_reasons"]), revoked["degraded_reasons"]
     assert not any("connections refused" in r for s in summaries[:2] for r in s["degraded_reasons"])
+
+
+def test_a_robot_without_stay_that_hears_no_fleet_exits_after_its_bound(bundle):
+    """A robot out of range when the stop was sent (here: no fleet at all) does not wait for ever:
+    after --connect-retry-s with nothing from its fleet it exits 1 with one line saying so."""
+    from hammer.protocol.session import free_loopback_port
+
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer", "local", "--bundle", str(bundle), "--agent", "0",
+                        "--run-id", "gone", "--connect", f"tcp/127.0.0.1:{free_loopback_port()}", "--fleet",
+                        "--connect-retry-s", "3"], env=ENV, capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert "error: local-0 lost the fleet: nothing from it for 3 s" in r.stderr.splitlines()[-1], r.stderr[-2000:]
+    assert time.monotonic() - t0 < 30
+
+
+def test_the_verdict_names_a_robot_the_central_agent_lost_while_the_world_heard_it():
+    """What the central agent's heartbeat says of a robot (its longest absence, whether it ever joined)
+    against the world's view: a robot the world heard throughout but the central agent lost for 40 s
+    is a degraded reason of its own; one the central never heard is too; refusals on a robot's keys
+    name that robot."""
+    from hammer.deploy.fleet_verdict import fleet_verdict
+
+    names = ["local-0", "local-1", "local-2"]
+    absences = {"local-2": {"leaves": 1, "longest_absence_s": 2.0, "missing_at_end": False}}
+    central = {"local_1.absent_max_s": 40.0, "local_1.joined": 1, "local_2.absent_max_s": 2.5, "local_2.joined": 1,
+               "local_0.absent_max_s": 60.0, "local_0.joined": 0, "rejected.size": 7, "local_2.rejected.size": 7}
+    v = fleet_verdict(names, absences, {"rejected": {}}, central, 10.0)
+    text = "\n".join(v["reasons"])
+    assert "the central agent lost local-1 for 40.0 s" in text, text
+    assert "the central agent never heard from local-0" in text, text
+    assert "7 payloads refused on local-2's own keys (central: size 7)" in text, text
+    assert "other payloads" not in text  # every refusal is on local-2's keys
+    quiet = fleet_verdict(names, {}, {}, {"local_1.absent_max_s": 3.0, "local_1.joined": 1}, 10.0)
+    assert quiet["reasons"] == []
