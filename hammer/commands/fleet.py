@@ -16,7 +16,7 @@ import typer
 
 from hammer.commands.common import InsecureOpt, fail
 from hammer.protocol.transport_log import watch_refused
-from hammer.runtime.process import setup_process
+from hammer.runtime.process import return_large_blocks, setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
 RunIdOpt = Annotated[str, typer.Option("--run-id", help="The fleet's run id.")]
@@ -67,6 +67,7 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     watch_refused()
+    return_large_blocks()
     from hammer.env_host.world import RealtimeWorld
     from hammer.learning.run_env import make_env
     from hammer.protocol.session import HammerSession
@@ -96,6 +97,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
     watch_refused()
+    return_large_blocks()
     from hammer.central_agent.fleet import FleetCentral
     from hammer.protocol.session import HammerSession
     from hammer.serve.bundle import CENTRAL
