@@ -75,6 +75,10 @@ class FleetPlan:
             raise ValueError("secure and insecure contradict each other: pass one of --secure, --insecure")
         if self.site is not None and not self.secure:
             raise ValueError("--site: a site's identities are for a secure fleet (fix: add --secure)")
+        if self.site is not None:
+            from hammer.protocol.identity import site_ca
+
+            site_ca(self.site)  # before anything is written: one line naming `hammer site init`
 
 
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
