@@ -251,17 +251,12 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                                                                  "chunks_refused", "weights_rejected")})
         r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
-    central = roles.get("central", {}).get("counters", {})
-    refused = {role: {k.split(".", 1)[1]: int(v) for k, v in r.get("counters", {}).items() if k.startswith("refused.")}
-               for role, r in roles.items() if not role.startswith("local-")}
-    refused["launcher"] = refused_counts()
-    refused = {role: {**r, "total": sum(r.values())} for role, r in refused.items() if r}
-    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, central, max_absence_s, refused)
+    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, roles, max_absence_s, refused_counts())
     summary = {"completed": stopped_by is None and bool(world), "interrupted": stopped_by in ("SIGTERM", "SIGINT"),
                "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
                "degraded": bool(verdict["reasons"]), "degraded_reasons": verdict["reasons"], "absences": absences,
                "central_absences": verdict["central_absences"], "rejections": verdict["rejections"],
-               "rejected_on": verdict["rejected_on"], "refused_connections": refused,
+               "rejected_on": verdict["rejected_on"], "refused_connections": verdict["refused_connections"],
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
                "central": {**roles.get("central", {}).get("counters", {}),
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()

@@ -46,10 +46,22 @@ def _fmt(reasons: dict[str, int]) -> str:
     return ", ".join(f"{r} {n:,}" for r, n in sorted(reasons.items(), key=lambda x: -x[1]))
 
 
-def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, central_counters: dict,
-                  max_absence_s: float, refused_connections: dict[str, dict] | None = None) -> dict:
-    """{reasons, central_absences, rejections, rejected_on}: the degraded reasons (empty: not
-    degraded) and what they were judged from, for summary.json."""
+def refused_connections(roles: dict[str, dict], launcher: dict[str, int]) -> dict[str, dict[str, int]]:
+    """Per process that counts them (the launcher's hub, and the roles' `refused.<reason>` heartbeat
+    counters), the connections Zenoh refused, by reason, with their `total`."""
+    out = {role: {k.split(".", 1)[1]: int(v) for k, v in r.get("counters", {}).items() if k.startswith("refused.")}
+           for role, r in roles.items()}
+    out["launcher"] = dict(launcher)
+    return {role: {**r, "total": sum(r.values())} for role, r in sorted(out.items()) if r}
+
+
+def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, roles: dict[str, dict],
+                  max_absence_s: float, launcher_refused: dict[str, int] | None = None) -> dict:
+    """{reasons, central_absences, rejections, rejected_on, refused_connections}: the degraded reasons
+    (empty: not degraded) and what they were judged from, for summary.json. `roles`: each role's last
+    heartbeat ({role: {"counters": ..., "gauges": ...}}); `world`: the world's report (world.json)."""
+    central_counters = roles.get("central", {}).get("counters", {})
+    refused = refused_connections(roles, launcher_refused or {})
     reasons: list[str] = []
     rejected_on: dict[str, dict[str, dict[str, int]]] = {}
     for name, r in world.get("rejected_on", {}).items():
@@ -91,17 +103,18 @@ def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, cent
         reasons.append(f"{flooded[name]:,} payloads refused on {name}'s own keys ({what}): sent by a holder of "
                        f"{name}'s key (stolen?) or a faulty {name}, not a link failure{missing}")
 
-    rejections = {"env": world.get("rejected", {}), "central": _role_rejections(central_counters)}
-    rejections = {role: r for role, r in rejections.items() if r}
+    # every role's refusals (the world's from its report, which outlives its last heartbeat)
+    rejections = {role: _role_rejections(r.get("counters", {})) for role, r in roles.items()}
+    rejections["env"] = world.get("rejected") or rejections.get("env", {})
+    rejections = {role: r for role, r in sorted(rejections.items()) if r}
     on_keys = {role: sum(r.get(role, {}).get(reason, 0) for r in rejected_on.values() for reason in r.get(role, {}))
                for role in ("env", "central")}
     other = {role: n for role, r in rejections.items() if (n := sum(r.values()) - on_keys.get(role, 0)) > 0}
     if other:
         reasons.append(f"{sum(other.values()):,} other payloads refused (" + "; ".join(
             f"{role}: {_fmt(rejections[role])}" for role in sorted(other)) + ")")
-    for role, refused in sorted((refused_connections or {}).items()):
-        if refused.get("total"):
-            reasons.append(f"{refused['total']:,} connections refused by {role} ("
-                           + _fmt({k: v for k, v in refused.items() if k != "total"})
-                           + "): strangers or revoked identities tried to join, not a link failure")
-    return {"reasons": reasons, "central_absences": central, "rejections": rejections, "rejected_on": rejected_on}
+    for role, r in refused.items():
+        reasons.append(f"{r['total']:,} connections refused by {role} (" + _fmt({k: v for k, v in r.items() if k != "total"})
+                       + "): strangers or revoked identities tried to join, not a link failure")
+    return {"reasons": reasons, "central_absences": central, "rejections": rejections, "rejected_on": rejected_on,
+            "refused_connections": refused}

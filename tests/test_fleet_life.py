@@ -142,11 +142,20 @@ def test_the_verdict_names_a_robot_the_central_agent_lost_while_the_world_heard_
     absences = {"local-2": {"leaves": 1, "longest_absence_s": 2.0, "missing_at_end": False}}
     central = {"local_1.absent_max_s": 40.0, "local_1.joined": 1, "local_2.absent_max_s": 2.5, "local_2.joined": 1,
                "local_0.absent_max_s": 60.0, "local_0.joined": 0, "rejected.size": 7, "local_2.rejected.size": 7}
-    v = fleet_verdict(names, absences, {"rejected": {}}, central, 10.0)
+    v = fleet_verdict(names, absences, {"rejected": {}}, {"central": {"counters": central}}, 10.0)
     text = "\n".join(v["reasons"])
     assert "the central agent lost local-1 for 40.0 s" in text, text
     assert "the central agent never heard from local-0" in text, text
     assert "7 payloads refused on local-2's own keys (central: size 7)" in text, text
     assert "other payloads" not in text  # every refusal is on local-2's keys
-    quiet = fleet_verdict(names, {}, {}, {"local_1.absent_max_s": 3.0, "local_1.joined": 1}, 10.0)
+    quiet = fleet_verdict(names, {}, {}, {"central": {"counters": {"local_1.absent_max_s": 3.0, "local_1.joined": 1}}},
+                          10.0)
     assert quiet["reasons"] == []
+    # a robot's own refusals (e.g. forged messages reaching it) are every role's, named; strangers too
+    robot = fleet_verdict(names, {}, {}, {"local-2": {"counters": {"rejected.version": 3}},
+                                          "env": {"counters": {"refused.tls_plain": 2}}}, 10.0, {"tls_certificate": 5})
+    assert robot["rejections"] == {"local-2": {"version": 3}}
+    assert robot["refused_connections"] == {"env": {"tls_plain": 2, "total": 2},
+                                            "launcher": {"tls_certificate": 5, "total": 5}}
+    assert any("3 other payloads refused (local-2: version 3)" in r for r in robot["reasons"]), robot["reasons"]
+    assert any("5 connections refused by launcher" in r for r in robot["reasons"]), robot["reasons"]
