@@ -34,15 +34,24 @@ def _wait_for(path, text: str, proc: subprocess.Popen, timeout: float = 90.0) ->
 
 
 def test_sigterm_ends_a_fleet_no_robot_joined_as_interrupted_and_degraded(bundle, tmp_path):
-    """Every robot external and none started (the README's fleet before its robot runs): SIGTERM to
-    `hammer serve --realtime` stops it with exit 0 and a summary that says it was interrupted by
-    SIGTERM and is degraded because no robot joined, each robot named as never joined."""
+    """Every robot external and none started (the README's fleet before its robot runs), a secure
+    fleet a stranger knocks on with plain bytes: SIGTERM to `hammer serve --realtime` stops it with
+    exit 0 and a summary that says it was interrupted by SIGTERM and is degraded because no robot
+    joined, each robot named as never joined, and the stranger's connections counted as refused."""
+    import socket
+
     run = tmp_path / "site"
     serve = subprocess.Popen([*CLI, "serve", str(bundle), "--realtime", "20", "--seconds", "60", "--external", "0,1,2",
-                              "--run-dir", str(run)], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                              "--secure", "--run-dir", str(run)], env=ENV, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT)
     try:
         _wait_for(run / "logs" / "central.log", "central alive", serve)
-        time.sleep(3)
+        host, port = json.loads((run / "fleet.json").read_text())["hub"].split("/", 1)[1].rsplit(":", 1)
+        for _ in range(3):
+            with socket.create_connection((host, int(port)), timeout=5) as stranger:
+                stranger.sendall(b"GET / HTTP/1.0\r\n\r\n")
+                time.sleep(0.3)
+        time.sleep(2)
     finally:
         serve.send_signal(signal.SIGTERM)
         out = serve.communicate(timeout=90)[0].decode()
@@ -53,6 +62,8 @@ def test_sigterm_ends_a_fleet_no_robot_joined_as_interrupted_and_degraded(bundle
     assert any(r.startswith("no robot joined the fleet") for r in s["degraded_reasons"]), s["degraded_reasons"]
     assert {n for n, a in s["absences"].items() if a.get("never_joined")} == {"local-0", "local-1", "local-2"}
     assert "degraded: no robot joined" in out, out[-2000:]
+    assert s["refused_connections"]["launcher"]["tls_plain"] == 3, s["refused_connections"]
+    assert any(r.startswith("3 connections refused by launcher (tls_plain 3)") for r in s["degraded_reasons"])
 
 
 def _serve(bundle, run, site, port, seconds, log):
