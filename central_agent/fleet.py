@@ -43,7 +43,7 @@ from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import CentralMsg, Heartbeat, Uplink
 from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
-from hammer.runtime.presence import Presence
+from hammer.runtime.presence import Presence, flat_member_rejections, rejections_by_member
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
 
@@ -88,7 +88,10 @@ class FleetCentral(Role):
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
                 "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
                 "policy_switched_unheld": self.switched_unheld,
-                **self.presence.counters()}
+                # per robot, the 8 longest absent and the 8 largest refusals: a heartbeat holds 64 counters
+                **self.presence.counters(), **self.presence.member_counters(limit=8),
+                **flat_member_rejections(rejections_by_member(self.session.rejections_by_key(), self.presence.names),
+                                         limit=8)}
 
     def gauges(self) -> dict[str, int]:
         held = self.version if self.weights is None else max(self.version, self.weights.known)

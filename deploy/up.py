@@ -313,13 +313,13 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     stop the run as Ctrl-C does and then return what ran (`UpResult.stopped_by`; a served run's
     summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure."""
     run_dir = Path(run_dir)
-    with _stop_on(stop_signals) as stopping:
+    with stop_on_signals(stop_signals) as stopping:
         return _launch(cfg, settings, run_dir, on_tick, chaos, resume, external_agents, external_help or {},
                        stopping)
 
 
 @contextmanager
-def _stop_on(signals: tuple[int, ...]):
+def stop_on_signals(signals: tuple[int, ...]):
     """While launching: each of `signals` raises Stopped once; later ones (and any after the run is
     ending, `stopping["ending"]`) are logged and ignored, so the stop broadcast and the summary
     are not cut short by a service manager repeating its signal."""
@@ -576,17 +576,23 @@ class Launcher:
         self.own_rejections = self.rejection_counters(hub)
 
 
-def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool):
+def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,
+                      site: Path | None = None):
     """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
     RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
     RUN/access_control.json, the rules every process applies (a client in another language inserts
-    it into its Zenoh config; docs/wire-format.md). Returns the launcher's own secured transport."""
+    it into its Zenoh config; docs/wire-format.md). With `site` (a fleet's `--site`): the identities
+    come from the site instead (protocol.identity: the robots' kept ones, the server roles' from its
+    CA), so a restarted fleet admits the robots it admitted before. Returns the launcher's own
+    secured transport."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
-    from hammer.protocol.identity import create_identities, has_identities, identity_dir
+    from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
 
     roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub)
-    if fresh or not has_identities(identity_dir(run_dir), roles):
+    if site is not None:
+        site_run_identities(site, identity_dir(run_dir), roles)
+    elif fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
     rules = access_control(Keys(settings.run_id), n_agents, settings.pools(n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))

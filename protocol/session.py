@@ -219,6 +219,7 @@ class TransportConfig(Model):
 
 
 QUEUE_DEPTH = 256  # payloads held per key by default before the newest are dropped (see _QueueSub)
+KEYS_TRACKED = 64  # (key, reason) pairs a subscription tallies its refusals under (SubscriptionStats.by_key)
 
 
 @dataclass
@@ -233,6 +234,18 @@ class SubscriptionStats:
     overflow: int = 0
     decode_s: float = 0.0  # wall time in decode + validation (hammer bench scale: where a step's time goes)
     rejected: collections.Counter = field(default_factory=collections.Counter)
+    # refusals (overflow included) per (key, reason): which robot's keys a flood or a forgery came on,
+    # so a verdict can name the key that was attacked; at most KEYS_TRACKED keys, the rest as "*"
+    by_key: collections.Counter = field(default_factory=collections.Counter)
+
+    def refused(self, key: str, reason: str) -> None:
+        if reason == "overflow":
+            self.overflow += 1
+        else:
+            self.rejected[reason] += 1
+        if (key, reason) not in self.by_key and len(self.by_key) >= KEYS_TRACKED:
+            key = "*"  # a wildcard subscription may see keys without end in a plain run: the tally stays bounded
+        self.by_key[(key, reason)] += 1
 
     @property
     def rejected_total(self) -> int:
@@ -267,7 +280,7 @@ class _QueueSub:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
-            self.stats.rejected["size"] += 1  # Counter update on one key: atomic enough under the GIL
+            self.stats.refused(str(sample.key_expr), "size")  # Counter updates: atomic enough under the GIL
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
             return
@@ -278,7 +291,7 @@ class _QueueSub:
                 if not full:
                     self._pending[key] += 1
             if full:
-                self.stats.overflow += 1
+                self.stats.refused(key, "overflow")
                 if self.stats.overflow <= 10 or self.stats.overflow % 1000 == 0:
                     log.warning("queue of %s full (%d): dropped the newest payload (#%d)", key, self._maxsize,
                                 self.stats.overflow)
@@ -354,7 +367,7 @@ class Subscription(_QueueSub):
                 msg.check_dims(self.dims)
         except ProtocolError as e:
             self.stats.decode_s += time.perf_counter() - t0
-            self.stats.rejected[e.reason] += 1
+            self.stats.refused(key, e.reason)
             n = self.stats.rejected[e.reason]
             if n <= 10 or n % 1000 == 0:
                 log.warning("rejected message #%d (%s) on %s: %s%s", n, e.reason, self.key_expr, e,
@@ -412,7 +425,7 @@ class LatestSubscription(Subscription):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
-            self.stats.rejected["size"] += 1
+            self.stats.refused(str(sample.key_expr), "size")
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
             return
@@ -776,6 +789,18 @@ class HammerSession:
                 if stats.overflow:
                     total["overflow"] += stats.overflow
         return dict(total)
+
+    def rejections_by_key(self) -> dict[str, dict[str, int]]:
+        """Payloads this session's subscriptions refused, per key (without the run's prefix) and
+        reason: {"agent/act/1": {"size": 12}}; keys beyond what a subscription tallies as "*"."""
+        out: dict[str, collections.Counter[str]] = {}
+        skip = len(self.keys.prefix) + 1
+        for sub in self._subs:
+            stats = getattr(sub, "stats", None)
+            if isinstance(sub, Subscription) and stats is not None:
+                for (key, reason), n in list(stats.by_key.items()):
+                    out.setdefault(key[skip:] if key != "*" else key, collections.Counter())[reason] += n
+        return {k: dict(v) for k, v in out.items()}
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}

@@ -133,7 +133,10 @@ class Role:
 
     def rejection_counters(self) -> dict[str, int]:
         """Every rejection of this process by reason: the role's own and its subscriptions'."""
-        return rejection_counters(self.session.rejection_counts(), self.rejected)
+        from hammer.protocol.transport_log import refused_counts
+
+        return {**rejection_counters(self.session.rejection_counts(), self.rejected),
+                **{f"refused.{r}": n for r, n in refused_counts().items()}}  # strangers Zenoh turned away
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         """What the fault layer did to this role's publishes (an agent pool: each agent's own)."""

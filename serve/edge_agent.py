@@ -290,10 +290,18 @@ def fleet_check(bundle) -> None:
                          "observation of all agents, which no robot has; a fleet runs il or hammer teams")
 
 
-def robot_role(agent: EdgeAgent):
+def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None = None):
     """The robot of a simulated fleet as a role process (`hammer local --bundle ... --fleet`): its
     sensors are the realtime world's observation for it (`env/obs/<i>`), its actuator the world's
-    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters."""
+    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters.
+
+    Losing the fleet (a cut link, a server restarted or stopped): the robot waits, acting on nothing
+    (a simulated robot's sensors are the world's). Its Zenoh session keeps dialling the hub, so it acts
+    again on the first observation once the fleet is back. `stay=False`: a stop from the launcher ends
+    it, and so does hearing nothing for `lost_exit_s` (a robot out of range when the stop was sent
+    must not wait for ever): `stop_reason` then starts with "lost". `stay=True`: a service; a stop
+    ends only the fleet's session, the robot waits for the next (a restarted `hammer serve` on the
+    same run directory) and rejoins on its own; only SIGTERM or Ctrl-C end it."""
     from hammer.protocol.dims import Dims
     from hammer.protocol.schemas import Action, LocalObs
     from hammer.runtime.role import Role
@@ -307,6 +315,26 @@ def robot_role(agent: EdgeAgent):
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"
             self.last_act: float | None = None
+            self.idle_exit_s = None if stay else lost_exit_s
+            self.sessions_ended = 0
+
+        def stop_requested(self) -> bool:
+            if not super().stop_requested():
+                return False
+            if not stay:
+                return True
+            self.sessions_ended += 1
+            self.log.info("%s: the fleet's session ended (%s); staying for the next one (--stay)", agent.name,
+                          self.stop_reason)
+            self.stop_reason = None
+            self.heartbeat_soon()
+            return False
+
+        def on_stop(self) -> None:
+            if self.stop_reason is not None and self.stop_reason.startswith("no input"):
+                self.stop_reason = (f"lost the fleet: nothing from it for {self.idle_exit_s:g} s (out of range when it "
+                                    "stopped, or its server is gone); exiting (--stay waits for it instead)")
+                self.log.warning("%s %s", agent.name, self.stop_reason)
 
         def alive_names(self) -> list[str]:
             return []  # the EdgeAgent declared it

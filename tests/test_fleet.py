@@ -295,11 +295,17 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
             k = s.keys
             msgs = {i: s.subscribe(k.msg(i), CentralMsg) for i in (0, 1)}
             up0, act0 = s.publisher(k.up(0), block=False), s.publisher(k.act(0), block=False)
+            # its own robot's keys: the access rules let it, only the receivers' bounds stop it
+            flood = [s.publisher(key, reliable=False) for key in (k.up(1), k.act(1))]
+            big = bytes(4 << 20)
             one = np.zeros(1, np.int64)
             end = time.monotonic() + 6
             while time.monotonic() < end:
                 up0.publish(Uplink(agent=0, env_idx=one, obs=np.ones((1, obs_dim), np.float32), action=one))
                 act0.publish(Action(step=0, env_idx=one, agent=0, action=one, fallback=np.array([False])))
+                if out["sent"] % 10 == 0:
+                    for p in flood:
+                        p.put_bytes(big)
                 out["sent"] += 1
                 for i in (0, 1):
                     got[i] += len(msgs[i].drain())
@@ -319,6 +325,13 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
     assert robots["local-1"]["fresh"] > 0 and robots["local-1"]["msg_fresh"] > 0
     assert s["world"]["presence"]["robot_joins"] == n - 1, s["world"]  # the world never heard robot 0 ...
     assert s["central"]["robot_joins"] == n - 1, s["central"]  # ... nor did the central agent
+    # the verdict names what happened: robot 0 never joined; robot 1's keys carried a flood its
+    # thief sent (refused by size at both receivers), which no one should read as a link failure
+    reasons = s["degraded_reasons"]
+    assert s["degraded"] and any(r.startswith("local-0 never joined") for r in reasons), reasons
+    assert s["rejected_on"]["local-1"]["env"]["size"] > 0 and s["rejected_on"]["local-1"]["central"]["size"] > 0, s
+    assert any("refused on local-1's own keys" in r and "stolen" in r for r in reasons), reasons
+    assert "local-0" in s["absences"] and s["absences"]["local-0"]["never_joined"]
 
 
 def test_the_docs_secure_fleet_commands_join_a_robot_from_another_namespace(bundle, tmp_path):
@@ -429,7 +442,7 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
         out = serve.communicate(timeout=60)[0].decode()
     assert serve.returncode == 0, out[-2000:]
     s = json.loads((tmp_path / "runs" / "site-a" / "summary.json").read_text())
-    assert s["stopped_by"].startswith("interrupted") and "local-0" not in s["restarts"]
+    assert s["interrupted"] is True and s["stopped_by"] == "SIGTERM" and "local-0" not in s["restarts"]
 
 
 def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):

@@ -121,6 +121,9 @@ def serve_command(
                       "agent fed by the robots' uplinks, one torch-free process per robot; K=1.")] = None,
     seconds: Annotated[float | None, typer.Option(
         min=1, help="--realtime: run this long (default: until --episodes episodes).")] = None,
+    site: Annotated[Path | None, typer.Option(
+        help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
+             "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`.
@@ -138,8 +141,10 @@ def serve_command(
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs)
+                     secure, insecure, listen, num_envs, site)
         return
+    if site is not None:
+        fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
     if seconds is not None:
         fail("--seconds needs --realtime HZ (a lock-stepped served run ends after --episodes)")
     try:
@@ -183,7 +188,7 @@ def serve_command(
 
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
-                 insecure: bool, listen, num_envs: int | None) -> None:
+                 insecure: bool, listen, num_envs: int | None, site: Path | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
     from hammer.deploy.fleet import FleetPlan, run_fleet
     from hammer.serve.bundle import BundleError
@@ -201,7 +206,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
                      seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
-                     insecure=insecure)
+                     insecure=insecure, site=site)
     last = [0.0]
 
     def tick(board, t: float) -> None:
@@ -217,13 +222,13 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json; "
                   f"hot update: hammer push BUNDLE --to {path}, hammer rollback {path})", soft_wrap=True)
     for i in robots:
-        who = (f"--identity <a copy of ca.pem, local-{i}.pem, local-{i}.key from {path}/identity>" if secure
-               else "")
+        who = ("" if not secure else f"--identity <a copy of {site}/robots/local-{i}/>" if site is not None
+               else f"--identity <a copy of ca.pem, local-{i}.pem, local-{i}.key from {path}/identity>")
         console.print(f"waiting for robot {i}: hammer local --bundle {bundle} --agent {i} --run-id {path.name} "
                       f"--connect <this run's hub> {who} --fleet (or hammer.edge.EdgeAgent)", soft_wrap=True)
     try:
         s = run_fleet(plan, path, on_tick=tick)
-    except (BundleError, ValueError) as e:
+    except (BundleError, ValueError) as e:  # SiteError is a ValueError: one line naming the fix
         fail(str(e))
     w = s["world"]
     console.print(f"{'done' if s['completed'] else 'stopped: ' + str(s['stopped_by'])}: {w.get('ticks', 0)} ticks in "
