@@ -200,6 +200,7 @@ messages: $(STAMP)
 TEAMS = $(foreach s,$(4),$(1)-s$(s)=$(A)/$(3)/cn3-$(2)-env_kwargs_observe_others=false-s$(s))
 OWN_TEAMS = $(call TEAMS,$(1),$(2),cn3-ownobs,0 1 2 3 4) $(call TEAMS,$(1),$(2),cn3-ownobs-rep,5 6 7 8 9)
 FAULTS_EVAL := --delays-ms 0 --seeds 2 --episodes 500 --parallel 1
+# Ctrl-C stops it (what finished is written); `make faults-ownobs` again continues where it stopped.
 faults-ownobs: $(STAMP)
 	$(H) faults sweep $(call OWN_TEAMS,hammer,hammer-rl) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer
 	$(H) faults sweep $(call OWN_TEAMS,il,il) --drops 0 $(FAULTS_EVAL) --out runs/faults-ownobs/il
