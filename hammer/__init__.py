@@ -6,7 +6,18 @@ on first use, so importing any part of hammer (every module imports this package
 nothing, and an edge device that never calls them never loads them.
 """
 
+import os as _os
+
 __version__ = "0.1.0"
+
+# Installed (a wheel, or the editable install's static link tree, pyproject's package-dir) this folder
+# holds every part, `hammer/protocol/...`. In the repository itself it holds only the modules above and
+# the parts are the folders beside it; when the repository's root comes first on sys.path (pytest, or
+# `python -m hammer` run there) this folder is `hammer`, and its parts are found beside it.
+if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "protocol")):
+    _root = _os.path.dirname(_os.path.dirname(__file__))
+    if _os.path.isfile(_os.path.join(_root, "pyproject.toml")):
+        __path__.append(_root)
 
 __all__ = ["Bundle", "BundleError", "ConfigError", "RunConfig", "TrainResult", "UpResult", "config", "export",
            "load_bundle", "serve_bundle", "train", "up"]
