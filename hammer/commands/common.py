@@ -8,8 +8,6 @@ from typing import Annotated, NoReturn
 
 import typer
 
-from hammer.commands.edge import CONNECT_RETRY_HELP, NUM_ENVS_HELP, STAY_HELP
-
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
 ZenohCfgOpt = Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (router/client/TLS deployments).")]
@@ -23,10 +21,6 @@ ListenOpt = Annotated[list[str] | None, typer.Option(
     "--listen", help="Also listen on this endpoint for agents on other machines, e.g. tcp/192.0.2.1:7447 (this "
                      "machine's address they reach, a fixed port; repeatable); the run's own roles stay on loopback. "
                      "Beyond loopback it needs --secure or --insecure.")]
-# `hammer local --bundle` under the typer app (`python -m hammer.cli local --bundle`): the edge entry's options.
-ConnectRetryOpt = Annotated[float | None, typer.Option(min=0, help=f"With --bundle: {CONNECT_RETRY_HELP}")]
-StayOpt = Annotated[bool, typer.Option(help=f"With --bundle: {STAY_HELP}")]
-EdgeNumEnvsOpt = Annotated[int | None, typer.Option(min=1, help=f"With --bundle: {NUM_ENVS_HELP}")]
 
 
 def fail(msg: str, code: int = 2) -> NoReturn:

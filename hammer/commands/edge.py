@@ -51,6 +51,18 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def options_help() -> str:
+    """Every option of `parser()` as `--name VALUE: help`, one paragraph each (the full CLI's
+    `hammer local --help` shows them: one definition, two front ends)."""
+    out = []
+    for a in parser()._actions:
+        if not a.option_strings or a.help == argparse.SUPPRESS or "--help" in a.option_strings:
+            continue
+        value = "" if a.nargs == 0 else f" {a.metavar or a.dest.upper()}"
+        out.append(f"{', '.join(a.option_strings)}{value}{' (required)' if a.required else ''}: {a.help}")
+    return "\n\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     """`hammer local --bundle ...` without the CLI framework; returns the exit code (2: a usage error,
     1: the run was not reached in time)."""

@@ -41,7 +41,9 @@ def register(app: typer.Typer) -> None:
     app.command("up")(up_command)
     app.command("env-host")(roles.env_host_command)
     app.command("central")(roles.central_command)
-    app.command("local")(roles.local_command)
+    # `hammer local --bundle` is parsed by hammer/commands/edge.py alone (entry.py sends it there): its
+    # options are listed in this command's help from that one definition
+    app.command("local", epilog=roles.local_epilog())(roles.local_command)
     app.command("learner")(roles.learner_command)
 
 

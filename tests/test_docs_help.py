@@ -1,0 +1,93 @@
+"""The docs and `--help` say what the code does: every `hammer ...` command line in README.md and
+docs/*.md uses only options that command's `--help` lists, and the figures the help and docs quote
+(defaults, the schema version) are the code's."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from functools import cache
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from hammer.cli import app
+from tests.runtime_helpers import ENV, ROOT
+
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def _command_lines(text: str) -> list[str]:
+    """Every `hammer ...` command line: in code blocks (continued lines joined) and in inline code."""
+    text = re.sub(r"\\\n\s*", " ", text)
+    return [m.group(1) for m in re.finditer(r"(?:^|[`$(]\s*|\n\s*)(hammer\s[^`\n|;&)#]*)", text)]
+
+
+@cache
+def _root():
+    return typer.main.get_command(app)
+
+
+def _resolve(tokens: list[str]) -> tuple[str, ...]:
+    """The command path a command line names (`hammer bench soak ...` -> ("bench", "soak"))."""
+    cmd, path = _root(), []
+    for t in tokens:
+        sub = getattr(cmd, "commands", {}).get(t)
+        if sub is None:
+            break
+        cmd, path = sub, [*path, t]
+    return tuple(path)
+
+
+@cache
+def _help(path: tuple[str, ...]) -> str:
+    r = CliRunner().invoke(app, [*path, "--help"], terminal_width=240, env={"COLUMNS": "240"})
+    assert r.exit_code == 0, r.output
+    return r.output
+
+
+def _doc_options() -> list[tuple[str, tuple[str, ...], str, str]]:
+    """(doc, command path, option, line) for every option a doc passes to a command."""
+    out = []
+    for doc in DOCS:
+        for line in _command_lines(doc.read_text()):
+            tokens = line.split()[1:]
+            path = _resolve(tokens)
+            if not path:
+                continue
+            for t in tokens:
+                name = t.split("=")[0].rstrip(".,:'\"")
+                if re.fullmatch(r"--[a-z0-9][a-z0-9-]*", name):
+                    out.append((doc.name, path, name, line))
+    return out
+
+
+def test_every_option_the_docs_pass_to_a_command_is_in_that_commands_help():
+    found = _doc_options()
+    assert len(found) > 300 and any(p == ("local",) and o == "--fleet" for _, p, o, _ in found)  # the scan works
+    missing = [f"{doc}: hammer {' '.join(path)} {opt} (in: {line.strip()[:90]})" for doc, path, opt, line in found
+               if not re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", _help(path))]
+    assert not missing, "\n".join(missing)
+
+
+def test_hammer_local_help_lists_every_option_of_the_edge_agent():
+    """`hammer local --bundle` is parsed by hammer/commands/edge.py alone; the full CLI's help lists its
+    options from that parser (the console script, as a user runs it)."""
+    from hammer.commands.edge import parser
+
+    r = subprocess.run([sys.executable, "-m", "hammer", "local", "--help"], capture_output=True, text=True,
+                       env={**ENV, "COLUMNS": "200"}, check=True, timeout=60)
+    options = [o for a in parser()._actions for o in a.option_strings if a.help != "==SUPPRESS=="]
+    assert "--fleet" in options and "--max-msg-age-s" in options
+    assert [o for o in options if o not in r.stdout] == []
+    assert "--run-dir" in r.stdout and "--agents" in r.stdout  # the role of a `hammer up` run
+
+
+@pytest.mark.parametrize("argv", [["-m", "hammer"], ["-m", "hammer.cli"]])
+def test_both_entry_points_send_local_bundle_to_the_one_edge_parser(argv, tmp_path):
+    r = subprocess.run([sys.executable, *argv, "local", "--bundle", str(tmp_path / "nothing"), "--agent", "0",
+                        "--fleet", "--max-msg-age-s", "0.2"], capture_output=True, text=True, env=ENV, timeout=60,
+                       check=False)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nothing" in r.stderr, r.stderr
