@@ -10,14 +10,16 @@ import os as _os
 
 __version__ = "0.1.0"
 
-# Installed (a wheel, or the editable install's static link tree, pyproject's package-dir) this folder
-# holds every part, `hammer/protocol/...`. In the repository itself it holds only the modules above and
-# the parts are the folders beside it; when the repository's root comes first on sys.path (pytest, or
-# `python -m hammer` run there) this folder is `hammer`, and its parts are found beside it.
-if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "protocol")):
-    _root = _os.path.dirname(_os.path.dirname(__file__))
-    if _os.path.isfile(_os.path.join(_root, "pyproject.toml")):
-        __path__.append(_root)
+# Installed from a wheel this folder holds every part, `hammer/protocol/...` (pyproject's package-dir).
+# In the repository it holds only the modules above, and the parts are the folders beside it: run from
+# the repository's root (pytest, `python -m hammer` there) or through the editable install's link tree
+# (build/__editable__.*, which links this file), the parts are taken from the checkout itself, so a
+# module added there is found at once.
+_here = _os.path.dirname(_os.path.realpath(__file__))
+_root = _os.path.dirname(_here)
+if not _os.path.isdir(_os.path.join(_here, "protocol")) and _os.path.isfile(_os.path.join(_root, "pyproject.toml")):
+    __path__[:] = [_here, _root]
+del _here, _root
 
 __all__ = ["Bundle", "BundleError", "ConfigError", "RunConfig", "TrainResult", "UpResult", "config", "export",
            "load_bundle", "serve_bundle", "train", "up"]

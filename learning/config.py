@@ -157,6 +157,16 @@ _FIXES = {
 }
 
 
+def fields_help() -> str:
+    """Every RunConfig field with its default and description, one paragraph each: the second half of
+    `hammer train --help` and `hammer up --help` (generated here, so it cannot drift from the model)."""
+    out = []
+    for name, f in RunConfig.model_fields.items():
+        default = f.get_default(call_default_factory=True)
+        out.append(f"{name} = {default!r}: {f.description or ''}".rstrip(": "))
+    return "\n\n".join(out)
+
+
 def _format_error(err: ValidationError) -> str:
     parts = []
     for e in err.errors():

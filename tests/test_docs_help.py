@@ -91,3 +91,56 @@ def test_both_entry_points_send_local_bundle_to_the_one_edge_parser(argv, tmp_pa
                         "--fleet", "--max-msg-age-s", "0.2"], capture_output=True, text=True, env=ENV, timeout=60,
                        check=False)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nothing" in r.stderr, r.stderr
+
+
+def _help_text(*args: str) -> str:
+    r = subprocess.run([sys.executable, "-m", "hammer", *args, "--help"], capture_output=True, text=True,
+                       env={**ENV, "COLUMNS": "200"}, check=True, timeout=60)
+    return " ".join(r.stdout.split())  # wrapped lines joined
+
+
+def test_a_misspelled_config_field_points_at_help_that_lists_every_field(tmp_path):
+    from hammer.learning.config import RunConfig
+
+    r = subprocess.run([sys.executable, "-m", "hammer", "train", "--preset", "cn3", "--set", "qqq_zzz=1",
+                        "--run-dir", str(tmp_path / "r")], capture_output=True, text=True, env=ENV, timeout=60,
+                       check=False)
+    assert r.returncode == 2 and "see `hammer train --help` for the fields" in r.stderr, r.stderr
+    for command in ("train", "up"):
+        text = _help_text(command)
+        missing = [n for n, f in RunConfig.model_fields.items()
+                   if f"{n} = {f.get_default(call_default_factory=True)!r}" not in text]
+        assert not missing, (command, missing)
+
+
+def test_push_help_quotes_the_gates_defaults():
+    from hammer.serve.canary import Gate
+
+    text = _help_text("push")
+    gate = Gate()
+    assert f"default {gate.window_episodes})" in text and "default 48" not in text
+    for name in ("metric_drop", "default_rate", "fallback_rate", "latency_ms", "timeout_s"):
+        assert f"{name} ({getattr(gate, name):g})" in text, name
+
+
+def test_readme_examples_name_paths_a_clone_has_and_change_what_they_say():
+    from hammer.learning.config import merge_config
+    from hammer.learning.presets import PRESETS
+
+    lines = _command_lines((ROOT / "README.md").read_text())
+    for command in ("dose", "messages"):
+        line = next(ln for ln in lines if _resolve(ln.split()[1:]) == (command,))
+        paths = [t for t in line.split()[2:] if not t.startswith("-") and "/" in t and not t.startswith("msgs")]
+        assert paths and all((ROOT / p).is_dir() for p in paths), line
+    branch = next(ln for ln in lines if "--branch" in ln and "--set" in ln)
+    key, _, value = branch.split("--set", 1)[1].split()[0].partition("=")
+    same = [p for p in PRESETS if str(getattr(merge_config(p), key)) == value]
+    assert not same, f"{branch}: {key}={value} is already the default of {same}"
+
+
+def test_deploy_md_quotes_the_schema_version_the_code_speaks():
+    from hammer.protocol.schemas import SCHEMA_VERSION
+
+    text = " ".join((ROOT / "docs" / "deploy.md").read_text().split())
+    quoted = re.search(r"The messages are msgspec Structs \(schema (\d+)", text)
+    assert quoted and int(quoted.group(1)) == SCHEMA_VERSION

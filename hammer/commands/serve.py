@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
+from hammer.serve.gate_defaults import GATE_DEFAULTS
 
 
 def register(app: typer.Typer) -> None:
@@ -300,6 +301,11 @@ def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
     return out, roles
 
 
+def _gate_defaults() -> str:
+    return ", ".join(f"{k} ({v:g})" if isinstance(v, float) else f"{k} ({v})" for k, v in GATE_DEFAULTS.items()
+                     if k != "window_episodes") + "."
+
+
 def push_command(
     bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
     to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve` (lock-stepped, or "
@@ -314,11 +320,11 @@ def push_command(
         help="With --canary: agents per stage, counts or percentages, ending at 100%, e.g. 1,50%,100% "
              "(default: the canary, then everyone).")] = None,
     gate: Annotated[list[str] | None, typer.Option(
-        help="With --canary: limits, NAME=VALUE[,...], repeatable: metric (paper_metric | team_return), "
-             "metric_drop (0.15), metric_z (2: standard errors), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
-             "crashes (0), timeout_s (600).")] = None,
+        help="With --canary: limits, NAME=VALUE[,...], repeatable; each with its default: " + _gate_defaults()
+             + " metric is paper_metric or team_return; metric_z counts standard errors.")] = None,
     window_episodes: Annotated[int | None, typer.Option(
-        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
+        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default "
+             f"{GATE_DEFAULTS['window_episodes']}).")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
     same step boundary (the first step that names it); in a fleet (--realtime) each robot switches on its own

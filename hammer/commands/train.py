@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import fail
+from hammer.commands.common import ConfigFieldsHelp, fail
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
@@ -37,7 +37,7 @@ def train_command(
              "change)")] = None,
     branch: Annotated[Path | None, typer.Option(
         help="continue a copy of this run from its last checkpoint into --run-dir, with --set/--seed/--episodes "
-             "changes (e.g. --set ent_coef=0.01): what would have happened from there with another setting. "
+             "changes (e.g. --set ent_coef=0.02): what would have happened from there with another setting. "
              "The original is not touched.")] = None,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
     seeds: Annotated[str | None, typer.Option(
@@ -66,7 +66,7 @@ def train_command(
             if resume is not None or run_dir is None or any(v is not None for v in (preset, variant, central_mode,
                                                                                      config)):
                 raise ConfigError("--branch: needs --run-dir for the new run and takes only --set, --seed and "
-                                  "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.01")
+                                  "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.02")
             if (branch / "runtime.json").is_file():
                 raise ConfigError(f"--branch '{branch}': a `hammer up` run (it has runtime.json); fix: branch a "
                                   "`hammer train` run, or continue this one with `hammer up --resume`")
@@ -199,4 +199,4 @@ def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
 
 def register(app: typer.Typer) -> None:
     """Add this package's commands to the top-level app."""
-    app.command("train")(train_command)
+    app.command("train", cls=ConfigFieldsHelp)(train_command)

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import InsecureOpt, SecureOpt, fail
+from hammer.commands.common import ConfigFieldsHelp, InsecureOpt, SecureOpt, fail
 
 
 def settings_error(err: Exception, flag: str = "--runtime") -> str:
@@ -38,7 +38,7 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
 def register(app: typer.Typer) -> None:
     from hammer.commands import roles
 
-    app.command("up")(up_command)
+    app.command("up", cls=ConfigFieldsHelp)(up_command)
     app.command("env-host")(roles.env_host_command)
     app.command("central")(roles.central_command)
     # `hammer local --bundle` is parsed by hammer/commands/edge.py alone (entry.py sends it there): its
