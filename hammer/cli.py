@@ -64,11 +64,10 @@ def main() -> None:
     """Run the CLI; a command that needs the training install, used on an edge install, fails in one line."""
     import sys
 
-    from hammer.entry import is_edge
+    from hammer.commands.edge import is_edge
+    from hammer.commands.edge import main as edge
 
     if is_edge(sys.argv[1:]):  # `python -m hammer.cli local --bundle ...`: the edge entry, as the console script
-        from hammer.commands.edge import main as edge
-
         sys.exit(edge(sys.argv[2:]))
     try:
         app()

@@ -19,6 +19,12 @@ STAY_HELP = ("Be a service: after the run stops, wait for its next session (a re
 NUM_ENVS_HELP = "The served run's env copies K, when `hammer serve --num-envs` changed them (default the bundle's)."
 
 
+def is_edge(argv: list[str]) -> bool:
+    """`local` with `--bundle`: the command line this module parses (the console script and
+    `python -m hammer.cli` send it here)."""
+    return argv[:1] == ["local"] and any(a == "--bundle" or a.startswith("--bundle=") for a in argv)
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hammer local", description="An edge local agent joining a run with only "
                                  "a bundle (made by `hammer export`): acts on its observation + central message.")
