@@ -378,9 +378,10 @@ def rollback_command(
 ) -> None:
     """Return a served team to the policy in effect before its latest push (served as a new version)."""
     from hammer.serve.bundle import BundleError
-    from hammer.serve.push import rollback
+    from hammer.serve.push import refuse_stopped, rollback
 
     try:
+        refuse_stopped(run, "rollback")
         e = rollback(run)
     except (BundleError, ValueError, OSError) as err:
         fail(str(err))
