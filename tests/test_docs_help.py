@@ -144,3 +144,12 @@ def test_deploy_md_quotes_the_schema_version_the_code_speaks():
     text = " ".join((ROOT / "docs" / "deploy.md").read_text().split())
     quoted = re.search(r"The messages are msgspec Structs \(schema (\d+)", text)
     assert quoted and int(quoted.group(1)) == SCHEMA_VERSION
+
+
+def test_every_bench_writes_into_runs_bench_unless_told_to_publish():
+    bench = _root().commands["bench"]
+    params = [(name, p) for name, cmd in [("bench", bench), *bench.commands.items()] for p in cmd.params]
+    dirs = {name: p.default for name, p in params if p.name == "json_dir"}
+    assert "soak" in dirs and "scale" in dirs, dirs
+    assert {n: d for n, d in dirs.items() if d != "runs/bench"} == {}
+    assert [(n, p.name, p.default) for n, p in params if str(p.default or "").startswith("docs")] == []
