@@ -410,7 +410,10 @@ def play_command(
 
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
     try:
-        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps, stills)
+        b = load_bundle(bundle)
+        typer.echo(f"playing {episodes} episode{'s' if episodes > 1 else ''} of {bundle} (at most {max_steps} steps "
+                   "each; every frame is drawn, a warehouse episode takes about a minute) ...", err=True)
+        r = play(b, out, episodes, seed, max_steps, fps, stills, progress=lambda line: typer.echo(line, err=True))
     except (BundleError, PlayError) as e:
         fail(str(e))
     typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "
