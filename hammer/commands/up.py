@@ -271,6 +271,10 @@ def up_command(
     if faults is not None:
         try:
             rt["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
+        except yaml.YAMLError as e:
+            from hammer.learning.config import yaml_error_text
+
+            fail(f"--faults {faults}{yaml_error_text(e)}; fix the syntax there")
         except Exception as e:  # noqa: BLE001 - report any parse/validation problem in one line
             fail(f"--faults {faults}: {str(e).splitlines()[0]}")
     try:
