@@ -49,9 +49,7 @@ def register(app: typer.Typer) -> None:
 
 def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
-    from rich.table import Table
-
-    from hammer.faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
+    from hammer.faults.links import COUNTERS_NOTE, collect_role_counters, link_table
     from hammer.faults.spec import LinkFault
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
@@ -59,22 +57,56 @@ def _links_table(board, cfg, settings):
                           "custom rules" if settings.faults and settings.faults.enabled else "none")
     if settings.chaos:
         title += f" | chaos: {', '.join(settings.chaos)}"
-    t = Table(title=title, show_header=True, expand=False)
-    t.add_column("link")
-    for col in COLUMNS:
-        t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    notes = []
-    for link, row in link_table(roles, cfg.n_agents, cfg.wiring.uses_central).items():
-        t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
-        if row.get("unreported"):
-            notes.append(f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted "
-                         "or between heartbeats)")
+    rows = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
+    notes = [f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted or between "
+             "heartbeats)" for link, row in rows.items() if row.get("unreported")]
     if board.chaos_log:
         notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
                                                  for e in board.chaos_log[-3:]))
-    t.caption = "\n".join([COUNTERS_NOTE, *notes])
-    return t
+    return LinksView(title, rows, "\n".join([COUNTERS_NOTE, *notes]))
+
+
+class LinksView:
+    """The links table: a row per link and a column per counter where the terminal is wide enough for
+    its ten columns, else turned (a column per link, a row per counter), so that no link name or count is
+    cut to `env-…` in an 80-column terminal. Decided at each render, from the width there is."""
+
+    def __init__(self, title: str, rows: dict[str, dict[str, int]], caption: str) -> None:
+        self.title, self.rows, self.caption = title, rows, caption
+
+    def wide(self):
+        from rich.table import Table
+
+        from hammer.faults.links import COLUMNS
+
+        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
+        t.add_column("link", no_wrap=True)
+        for col in COLUMNS:
+            t.add_column(col, justify="right", no_wrap=True)
+        for link, row in self.rows.items():
+            t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+        return t
+
+    def turned(self):
+        from rich.table import Table
+
+        from hammer.faults.links import COLUMNS
+
+        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
+        t.add_column("counter", no_wrap=True)
+        for link in self.rows:
+            t.add_column(link, justify="right", no_wrap=True)
+        for col in COLUMNS:
+            t.add_row(col, *(f"{row[col]:,}" for row in self.rows.values()))
+        return t
+
+    def __rich_console__(self, console, options):
+        from rich.measure import Measurement
+
+        wide = self.wide()
+        natural = Measurement.get(console, options.update_width(10_000), wide).maximum  # its width uncut
+        yield wide if natural <= options.max_width else self.turned()
 
 
 def _eta(board, cfg, rate: dict) -> str:
