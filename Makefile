@@ -15,8 +15,8 @@ STAMP := $(VENV)/.installed
 # The editable install is strict: a static tree of links to the checkout (build/__editable__.*/hammer/...,
 # pyproject's package-dir laid out) on sys.path, not an import hook, so a folder named `hammer` in the
 # current folder (the clone itself, seen from the folder that holds it) cannot shadow it, and editors
-# follow `hammer.*`. An edit shows at once; a module added or removed needs the tree made again, which
-# $(LINKS) does whenever a package folder's entries change.
+# follow `hammer.*`. hammer/__init__.py takes the parts from the checkout's folders, so an edit or a new
+# module is found at once; $(LINKS) makes the tree again (for editors) when a package folder's entries change.
 STRICT := --config-settings editable_mode=strict
 LINKS := $(VENV)/.linked
 PKG_DIRS := $(patsubst %/__init__.py,%,$(wildcard */__init__.py */*/__init__.py))
