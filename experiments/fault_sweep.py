@@ -190,7 +190,8 @@ def grid(teams: dict[str, Path], il: Path | None, drops: list[float], delays_ms:
 
 def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: float, parallel: int = 2,
               progress: Callable[[PointResult, int, int], None] | None = None,
-              note: Callable[[str], None] | None = None, stop_signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> SweepOutcome:
+              note: Callable[[str], None] | None = None,
+              stop_signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> SweepOutcome:
     """Run every point not finished yet (`parallel` launches at a time: most of a faulty point is
     waiting on deadlines, not computing) and write sweep.csv / sweep.md / sweep.png of every finished
     point into `out`. Resumable: a point finished by an earlier run into `out` is taken from its
