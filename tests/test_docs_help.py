@@ -153,3 +153,35 @@ def test_every_bench_writes_into_runs_bench_unless_told_to_publish():
     assert "soak" in dirs and "scale" in dirs, dirs
     assert {n: d for n, d in dirs.items() if d != "runs/bench"} == {}
     assert [(n, p.name, p.default) for n, p in params if str(p.default or "").startswith("docs")] == []
+
+
+def test_every_default_a_help_text_quotes_is_the_codes():
+    """`default N` in an option's help is the option's default, or, where the option defaults to None
+    and the code decides, what the code decides (the table below); a figure of the OS is not ours."""
+    from hammer.commands.edge import parser
+    from hammer.serve.canary import Gate
+    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S
+
+    decided = {("push", "window_episodes"): Gate().window_episodes,
+               ("local --bundle", "connect_retry_s"): DEFAULT_CONNECT_RETRY_S}
+
+    def commands(cmd, path):
+        for name, sub in getattr(cmd, "commands", {}).items():
+            yield from commands(sub, (*path, name))
+        if not hasattr(cmd, "commands"):
+            yield " ".join(path), [(p.name, p.help or "", p.default) for p in cmd.params]
+
+    options = [*commands(_root(), ()), ("local --bundle", [(a.dest, a.help or "", a.default) for a in parser()._actions])]
+    quoted, wrong = 0, []
+    for command, params in options:
+        for name, text, default in params:
+            for m in re.finditer(r"(\w+ )?[Dd]efault:? (-?\d[\d.,]*)", text):
+                if m.group(1) == "Linux ":
+                    continue
+                quoted += 1
+                value = float(m.group(2).rstrip(".,").replace(",", ""))
+                code = decided.get((command, name), default)
+                if not isinstance(code, int | float) or float(code) != value:
+                    wrong.append(f"hammer {command} --{name.replace('_', '-')}: help says default {m.group(2)}, "
+                                 f"the code {code!r}")
+    assert quoted >= 3 and not wrong, wrong
