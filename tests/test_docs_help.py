@@ -158,9 +158,10 @@ def test_every_bench_writes_into_runs_bench_unless_told_to_publish():
 def test_every_default_a_help_text_quotes_is_the_codes():
     """`default N` in an option's help is the option's default, or, where the option defaults to None
     and the code decides, what the code decides (the table below); a figure of the OS is not ours."""
-    from hammer.commands.edge import parser
     from hammer.serve.canary import Gate
     from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S
+
+    from hammer.commands.edge import parser
 
     decided = {("push", "window_episodes"): Gate().window_episodes,
                ("local --bundle", "connect_retry_s"): DEFAULT_CONNECT_RETRY_S}
