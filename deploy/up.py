@@ -301,7 +301,7 @@ def _tail(path: Path, lines: int = 3) -> str:
 
 def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False,
            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None,
-           stop_signals: tuple[int, ...] = ()) -> UpResult:
+           stop_signals: tuple[int, ...] = (), stop=None) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
     `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
@@ -311,11 +311,16 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     `external_help`: the command to show for an external role instead of `hammer <role> --run-dir`
     (`hammer serve` shows the bundle's edge command). `stop_signals` (main thread only): signals that
     stop the run as Ctrl-C does and then return what ran (`UpResult.stopped_by`; a served run's
-    summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure."""
+    summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure.
+    `stop()` (any thread): asked every launcher tick, startup included; a signal name returned stops
+    the run as that signal would (a launch in a worker thread, where signals cannot reach it: the
+    runs of `hammer faults sweep`); before anything started it raises Stopped."""
     run_dir = Path(run_dir)
+    if stop is not None and (by := stop()):
+        raise Stopped(by)
     with stop_on_signals(stop_signals) as stopping:
         return _launch(cfg, settings, run_dir, on_tick, chaos, resume, external_agents, external_help or {},
-                       stopping)
+                       stopping, stop)
 
 
 @contextmanager
@@ -346,7 +351,7 @@ def stop_on_signals(signals: tuple[int, ...]):
 
 
 def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resume: bool,
-            external_agents: tuple[int, ...], external_help: dict[str, str], stopping: dict) -> UpResult:
+            external_agents: tuple[int, ...], external_help: dict[str, str], stopping: dict, stop=None) -> UpResult:
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
     if external_agents:
@@ -376,7 +381,7 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
         raise UpError(str(e)) from None
     if settings.secure:
         hub_transport = secure_identities(cfg.n_agents, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings)
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings, stop)
     stopped_by = None
     try:
         with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
@@ -423,7 +428,9 @@ class Launcher:
     tick_s = 0.25
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
-                 chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None) -> None:
+                 chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None,
+                 stop=None) -> None:
+        self.stop = stop  # launch's `stop`: asked every tick
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.settings = settings or RuntimeSettings(run_id="-")
         self.on_tick, self.chaos = on_tick, chaos
@@ -478,6 +485,7 @@ class Launcher:
         names = self.alive_expected if names is None else names
         deadline = time.monotonic() + self.startup_timeout_s
         while not names <= self.board.alive:
+            self.check_stop()
             self.on_liveliness()
             for rp in self.sup.poll():
                 raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
@@ -490,7 +498,12 @@ class Launcher:
             time.sleep(0.05)
         log.info("all %d roles alive after %.1fs", len(self.names), time.monotonic() - self.t_start)
 
+    def check_stop(self) -> None:
+        if self.stop is not None and (by := self.stop()):
+            raise Stopped(by)
+
     def tick(self) -> None:
+        self.check_stop()
         self.on_liveliness()
         for h in self.heartbeats.drain():
             self.on_heartbeat(h)

@@ -64,6 +64,11 @@ def main() -> None:
     """Run the CLI; a command that needs the training install, used on an edge install, fails in one line."""
     import sys
 
+    from hammer.commands.edge import is_edge
+    from hammer.commands.edge import main as edge
+
+    if is_edge(sys.argv[1:]):  # `python -m hammer.cli local --bundle ...`: the edge entry, as the console script
+        sys.exit(edge(sys.argv[2:]))
     try:
         app()
     except ModuleNotFoundError as e:

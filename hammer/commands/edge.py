@@ -21,6 +21,12 @@ STAY_HELP = ("Be a service: after the run stops, wait for its next session (a re
 NUM_ENVS_HELP = "The served run's env copies K, when `hammer serve --num-envs` changed them (default the bundle's)."
 
 
+def is_edge(argv: list[str]) -> bool:
+    """`local` with `--bundle`: the command line this module parses (the console script and
+    `python -m hammer.cli` send it here)."""
+    return argv[:1] == ["local"] and any(a == "--bundle" or a.startswith("--bundle=") for a in argv)
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hammer local", description="An edge local agent joining a run with only "
                                  "a bundle (made by `hammer export`): acts on its observation + central message.")
@@ -51,6 +57,18 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--num-envs", type=int, metavar="K", help=NUM_ENVS_HELP)
     ap.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)  # refused with a bundle, in one line
     return ap
+
+
+def options_help() -> str:
+    """Every option of `parser()` as `--name VALUE: help`, one paragraph each (the full CLI's
+    `hammer local --help` shows them: one definition, two front ends)."""
+    out = []
+    for a in parser()._actions:
+        if not a.option_strings or a.help == argparse.SUPPRESS or "--help" in a.option_strings:
+            continue
+        value = "" if a.nargs == 0 else f" {a.metavar or a.dest.upper()}"
+        out.append(f"{', '.join(a.option_strings)}{value}{' (required)' if a.required else ''}: {a.help}")
+    return "\n\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:

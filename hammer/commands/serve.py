@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
+from hammer.serve.gate_defaults import GATE_DEFAULTS
 
 
 def register(app: typer.Typer) -> None:
@@ -305,6 +306,11 @@ def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
     return out, roles
 
 
+def _gate_defaults() -> str:
+    return ", ".join(f"{k} ({v:g})" if isinstance(v, float) else f"{k} ({v})" for k, v in GATE_DEFAULTS.items()
+                     if k != "window_episodes") + "."
+
+
 def push_command(
     bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
     to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve` (lock-stepped, or "
@@ -319,11 +325,11 @@ def push_command(
         help="With --canary: agents per stage, counts or percentages, ending at 100%, e.g. 1,50%,100% "
              "(default: the canary, then everyone).")] = None,
     gate: Annotated[list[str] | None, typer.Option(
-        help="With --canary: limits, NAME=VALUE[,...], repeatable: metric (paper_metric | team_return), "
-             "metric_drop (0.15), metric_z (2: standard errors), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
-             "crashes (0), timeout_s (600).")] = None,
+        help="With --canary: limits, NAME=VALUE[,...], repeatable; each with its default: " + _gate_defaults()
+             + " metric is paper_metric or team_return; metric_z counts standard errors.")] = None,
     window_episodes: Annotated[int | None, typer.Option(
-        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
+        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default "
+             f"{GATE_DEFAULTS['window_episodes']}).")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
     same step boundary (the first step that names it); in a fleet (--realtime) each robot switches on its own
@@ -377,9 +383,10 @@ def rollback_command(
 ) -> None:
     """Return a served team to the policy in effect before its latest push (served as a new version)."""
     from hammer.serve.bundle import BundleError
-    from hammer.serve.push import rollback
+    from hammer.serve.push import refuse_stopped, rollback
 
     try:
+        refuse_stopped(run, "rollback")
         e = rollback(run)
     except (BundleError, ValueError, OSError) as err:
         fail(str(err))
@@ -408,7 +415,10 @@ def play_command(
 
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
     try:
-        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps, stills)
+        b = load_bundle(bundle)
+        typer.echo(f"playing {episodes} episode{'s' if episodes > 1 else ''} of {bundle} (at most {max_steps} steps "
+                   "each; every frame is drawn, a warehouse episode takes about a minute) ...", err=True)
+        r = play(b, out, episodes, seed, max_steps, fps, stills, progress=lambda line: typer.echo(line, err=True))
     except (BundleError, PlayError) as e:
         fail(str(e))
     typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "
