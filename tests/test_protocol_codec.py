@@ -301,6 +301,16 @@ def test_the_echoed_message_is_required_only_where_declared():
     codec.decode(codec.encode(without), Action, Dims(num_envs=4, msg_dim=0, echo=True))  # no messages at all
 
 
+@pytest.mark.parametrize("extra", [1, 2])
+def test_extra_elements_are_counted_without_the_type_tag(extra):
+    """A message with `extra` elements more than its type has is refused naming that count (the type
+    tag is not one of the fields)."""
+    for msg in (MSGS[-3], MSGS[0]):
+        wire = msgpack.unpackb(codec.encode(msg))
+        with pytest.raises(FieldError, match=rf"unknown: {extra} more element\(s\) than {msg.TYPE} has"):
+            codec.decode(msgpack.packb([*wire, *([None] * extra)]), type(msg))
+
+
 def test_keys_and_run_ids():
     k = Keys("exp-1.a_b")
     assert k.obs(2) == "hammer/exp-1.a_b/env/obs/2"
