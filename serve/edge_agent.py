@@ -246,10 +246,11 @@ class EdgeAgent:
                                 action=prev))
         self.counts.uplinks_sent += 1
 
-    def age_gauges(self) -> dict[str, float]:
-        """p50 / p99 age (ms) of the newest central message at the latest acts."""
+    def age_gauges(self) -> dict[str, float | None]:
+        """p50 / p99 age (ms) of the newest central message at the latest acts (stale ones included):
+        both keys always, None while no message has been received."""
         if not self.ages:
-            return {}
+            return {"msg_age_p50_ms": None, "msg_age_p99_ms": None}
         p50, p99 = np.percentile(np.fromiter(self.ages, float), [50, 99]) * 1e3
         return {"msg_age_p50_ms": round(float(p50), 2), "msg_age_p99_ms": round(float(p99), 2)}
 
@@ -315,7 +316,8 @@ def robot_role(agent: EdgeAgent):
             return {**agent.counts.as_dict(), **agent.weights.counters()}
 
         def gauges(self) -> dict[str, float]:
-            return {**agent.weight_gauges(), **agent.age_gauges()}
+            ages = {k: v for k, v in agent.age_gauges().items() if v is not None}  # a gauge is a number: none yet, unsent
+            return {**agent.weight_gauges(), **ages}
 
         def poll(self, timeout: float) -> bool:
             if not self.sensors.wait(timeout):
@@ -331,6 +333,7 @@ def robot_role(agent: EdgeAgent):
                 self.last_act = t
                 self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
                                              action=action.reshape(1, *action.shape[0:]),
+                                             policy_version=agent.policy_version,
                                              fallback=np.array([not agent.last_fresh])))
                 self.progressed()
             return True

@@ -432,6 +432,23 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
     assert s["stopped_by"].startswith("interrupted") and "local-0" not in s["restarts"]
 
 
+def test_the_readme_robot_example_runs_with_no_fleet_at_all(bundle, tmp_path):
+    """The same README block with nothing listening at its endpoint (a robot started before its fleet):
+    it acts on the fallback all along and its last line prints, with no message age to report."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("### On a robot"):]
+    code = re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
+    shutil.copytree(bundle, tmp_path / "bundles" / "lib-cn3")
+    code = code.replace("7447", str(free_loopback_port())) + \
+        "print(robot.age_gauges(), robot.counts.msg_none, robot.counts.acts)\n"
+    r = subprocess.run([sys.executable, "-P", "-c", code], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                       timeout=120, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    first, last = r.stdout.strip().splitlines()
+    assert first.split() == ["False", "False"]
+    assert last == "{'msg_age_p50_ms': None, 'msg_age_p99_ms': None} 60 60"
+
+
 def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
     """`zenoh_lease_s` and `reconnect_max_s` reach the Zenoh config of every session a run builds; a
     --zenoh-config file keeps its own retry periods unless one is set; a bad value names the field."""
