@@ -200,9 +200,16 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
             except KeyboardInterrupt:
                 stopped_by = "interrupted (Ctrl-C or SIGTERM)"
             hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
-            time.sleep(0.2)
-            for h in beats.drain():
-                board.heartbeats[h.role] = h
+            # each role's last heartbeat (status stopped) holds its final counters: wait for them a while
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:
+                for h in beats.drain():
+                    _note_version(board, h, time.monotonic() - t0)
+                    board.heartbeats[h.role] = h
+                started = {s.name for s in specs}
+                if all(h.status == "stopped" or (n in started and not sup.alive(n)) for n, h in board.heartbeats.items()):
+                    break
+                time.sleep(0.05)
     finally:
         sup.stop_all()
         signal.signal(signal.SIGTERM, previous)

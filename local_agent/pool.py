@@ -45,7 +45,7 @@ from hammer.protocol.ranges import parse_indices
 from hammer.protocol.schemas import CentralMsg, Heartbeat, LocalObs
 from hammer.protocol.session import HammerSession, Inbox, burst_express, io_counters
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
-from hammer.runtime.role import Role
+from hammer.runtime.role import Role, final_heartbeat_publisher
 from hammer.runtime.weights import WeightsIntake
 
 
@@ -269,13 +269,13 @@ class LocalAgentPool(Role):
         """One heartbeat per agent, as a single-agent process sends it (the launcher, the env host's
         eval start and the link table read `local-<i>`), and each agent's step log flushed."""
         now = time.monotonic()
-        if now - self._last_heartbeat <= self.heartbeat_every_s:
+        if status != "stopped" and now - self._last_heartbeat <= self.heartbeat_every_s:
             return
         self._last_heartbeat = now
         detail = self.stall_detail()
         for m in self.members:
             counters = {**m.counters(), **m.rejection_counters(), **m.fault_counters()}
-            m.heartbeat_pub.publish(Heartbeat(role=m.name, pid=os.getpid(), status=status,
+            final_heartbeat_publisher(self.session, m.name, m.heartbeat_pub, status).publish(Heartbeat(role=m.name, pid=os.getpid(), status=status,
                                               counters=dict(list(counters.items())[:64]), gauges=m.gauges(),
                                               detail=detail))
             m.step_log.flush()

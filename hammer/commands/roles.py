@@ -305,6 +305,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
+            host.heartbeat("stopped")
             # The run is over: tell everyone (roles started by hand have no launcher to stop them). In a
             # secure run the access rules keep control to the launcher, which stops everyone as this exits.
             from hammer.protocol.schemas import Control
