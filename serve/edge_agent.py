@@ -109,6 +109,7 @@ class EdgeAgent:
         self.counts = EdgeCounters()
         self._env_idx = np.zeros(1, np.int64)
         self._prev: np.ndarray | None = None  # the last action taken, for the uplink
+        self.last_msg: np.ndarray | None = None  # (1, M) the message the last act used (received or fallback)
         self._msg: np.ndarray | None = None  # the newest central message held ...
         self._msg_t = 0.0  # ... and when it arrived (monotonic)
         self.last_fresh = False
@@ -198,7 +199,7 @@ class EdgeAgent:
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
         o = o[None]
         self._uplink(o)
-        msg = self.message()
+        msg = self.last_msg = self.message()
         self._take_weights()
         action = self.core.act(o, msg)[0]
         if not self.spec.discrete and self.low is not None:
@@ -334,7 +335,8 @@ def robot_role(agent: EdgeAgent):
                 self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
                                              action=action.reshape(1, *action.shape[0:]),
                                              policy_version=agent.policy_version,
-                                             fallback=np.array([not agent.last_fresh])))
+                                             fallback=np.array([not agent.last_fresh]),
+                                             msg=agent.last_msg if obs.echo and agent.spec.msg_dim else None))
                 self.progressed()
             return True
 

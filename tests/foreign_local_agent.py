@@ -28,20 +28,20 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 TAGS = {"local_obs": 1, "global_state": 2, "central_msg": 3, "action": 4, "experience": 5, "weights": 6,
         "control": 7, "heartbeat": 8, "uplink": 9}
 HEADER = ("v", "step", "env_idx", "sender")
 # Each message's fields in wire order after the type tag, and the defaults of those that may be left off the end.
 FIELDS = {
-    "local_obs": (*HEADER, "agent", "obs", "policy_version", "active"),
+    "local_obs": (*HEADER, "agent", "obs", "policy_version", "echo", "active"),
     "central_msg": (*HEADER, "agent", "msg", "policy_version"),
     "action": (*HEADER, "agent", "action", "policy_version", "fallback", "msg"),
     "weights": (*HEADER, "role", "version", "blob", "sha256", "format"),
     "control": (*HEADER, "command", "target", "args"),
     "heartbeat": (*HEADER, "role", "pid", "status", "counters", "gauges", "detail"),
 }
-DEFAULTS = {"policy_version": 0, "active": None, "fallback": None, "msg": None, "format": "safetensors",
+DEFAULTS = {"policy_version": 0, "echo": False, "active": None, "fallback": None, "msg": None, "format": "safetensors",
             "target": "*", "args": {}, "counters": {}, "gauges": {}, "detail": ""}
 CODES = {"bool": 0, "uint8": 1, "int32": 2, "int64": 3, "float16": 4, "float32": 5, "float64": 6}
 DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?",
@@ -174,8 +174,6 @@ class ForeignLocalAgent:
         self.pending, self.last_step = {}, -1
         self.counters = {"steps": 0, "msgs_on_time": 0, "msgs_late": 0, "msgs_duplicate": 0, "fallback_copies": 0,
                          "obs_stale": 0, "rejected": 0}
-        # The message it acted on goes back only when the env host records it (training, or a trace).
-        self.echo = rt.get("mode", "train") == "train" or rt.get("trace", False)
         self.stop = False
 
         conf = zenoh.Config()
@@ -335,7 +333,7 @@ class ForeignLocalAgent:
             z = self.rng.standard_normal((k, self.action_dim))
             wire_action = from_array(out + np.exp(self.log_std) * z, "float32")
         m = [*header("action", step, env_idx), self.agent, wire_action, max(self.version, 0),
-             from_array(fallback, "bool"), from_array(msg, "float32") if msg is not None and self.echo else None]
+             from_array(fallback, "bool"), from_array(msg, "float32") if msg is not None and o["echo"] is True else None]
         self.act_pub.put(msgpack.packb(m, use_bin_type=True))
         self.last_step = step
         self.counters["steps"] += 1
