@@ -207,7 +207,8 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
                     _note_version(board, h, time.monotonic() - t0)
                     board.heartbeats[h.role] = h
                 started = {s.name for s in specs}
-                if all(h.status == "stopped" or (n in started and not sup.alive(n)) for n, h in board.heartbeats.items()):
+                if all(h.status == "stopped" or (n in started and not sup.alive(n))
+                       for n, h in board.heartbeats.items()):
                     break
                 time.sleep(0.05)
     finally:

@@ -569,7 +569,8 @@ class Launcher:
         except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
             log.debug("could not broadcast stop: %s", e)
         deadline = time.monotonic() + 10.0
-        while (any(self.sup.alive(n) for n in self.names) or self.externals_running()) and time.monotonic() < deadline:
+        while ((any(self.sup.alive(n) for n in self.names) or self.externals_running())
+               and time.monotonic() < deadline):
             self.sup.poll()
             self.take_last_heartbeats()
             time.sleep(0.1)

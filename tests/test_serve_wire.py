@@ -58,8 +58,9 @@ def test_an_edge_agent_started_as_printed_sends_compact_actions_and_every_role_s
             acts = s.subscribe_raw(s.keys.act("1"), maxsize=100_000)
             records = s.subscribe_raw(s.keys.exp("central"), maxsize=100_000)
             beats = s.subscribe(s.keys.heartbeat("*"), Heartbeat, maxsize=100_000)
-            edge = subprocess.Popen([sys.executable, "-m", "hammer", *args[1:]], cwd=ROOT, env=ENV,
-                                    stdout=subprocess.DEVNULL, stderr=open(tmp_path / "edge.log", "w"))
+            with open(tmp_path / "edge.log", "w") as log:  # the child keeps its own copy of the descriptor
+                edge = subprocess.Popen([sys.executable, "-m", "hammer", *args[1:]], cwd=ROOT, env=ENV,
+                                        stdout=subprocess.DEVNULL, stderr=log)
             assert serve.wait(240) == 0, "".join(lines)[-3000:]
             assert edge.wait(60) == 0, (tmp_path / "edge.log").read_text()[-3000:]
             sizes = []
