@@ -228,7 +228,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
                                   step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
                                   start_step=known_step(settings.resume_step),
-                                  start_version=known_version(settings.resume_from), echo=settings.echo)
+                                  start_version=known_version(settings.resume_from))
             pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
