@@ -14,8 +14,8 @@ leaves (goes missing) and rejoins are log lines with its name and a counter, and
 
 Messages go out at every tick to every robot (`central/msg/<i>`) through reliable publishers with
 congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
-The message is stamped with the tick as its step, and the send time and sequence number as every
-message; the robot dates it by arrival.
+The message is stamped with the tick as its step (from 0 at this role's start); the wire carries no
+send time or sequence number, so the robot dates it by arrival and takes the newest.
 
 Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
 network whole (this role's link is on the server side). No step names versions in a fleet: each

@@ -212,9 +212,17 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
                 stopped_by = getattr(e, "signal_name", "SIGINT")
             stopping["ending"] = True  # a repeated signal must not cut the stop broadcast or the summary short
             hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
-            time.sleep(0.2)
-            for h in beats.drain():
-                board.heartbeats[h.role] = h
+            # each role's last heartbeat (status stopped) holds its final counters: wait for them a while
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:
+                for h in beats.drain():
+                    _note_version(board, h, time.monotonic() - t0)
+                    board.heartbeats[h.role] = h
+                started = {s.name for s in specs}
+                if all(h.status == "stopped" or (n in started and not sup.alive(n))
+                       for n, h in board.heartbeats.items()):
+                    break
+                time.sleep(0.05)
     except KeyboardInterrupt as e:  # before the roles were up
         stopped_by = getattr(e, "signal_name", "SIGINT")
     finally:

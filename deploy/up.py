@@ -582,11 +582,27 @@ class Launcher:
         except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
             log.debug("could not broadcast stop: %s", e)
         deadline = time.monotonic() + 10.0
-        while any(self.sup.alive(n) for n in self.names) and time.monotonic() < deadline:
+        while ((any(self.sup.alive(n) for n in self.names) or self.externals_running())
+               and time.monotonic() < deadline):
             self.sup.poll()
+            self.take_last_heartbeats()
             time.sleep(0.1)
         self.sup.stop_all()
+        self.take_last_heartbeats()
         self.own_rejections = self.rejection_counters(hub)
+
+    def take_last_heartbeats(self) -> None:
+        """The heartbeats that came while the roles stopped: each role's last (`stopped`) carries its
+        final counters, all a role started elsewhere leaves the run directory (links.json)."""
+        for h in self.heartbeats.drain():
+            self.on_heartbeat(h)
+        for ev in self.watch.drain():
+            (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
+
+    def externals_running(self) -> bool:
+        """A role started elsewhere that is still up and has not sent its last heartbeat yet."""
+        return any(n in self.board.alive and getattr(self.board.heartbeats.get(n), "status", None) != "stopped"
+                   for n in self.external)
 
 
 def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,

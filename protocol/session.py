@@ -55,6 +55,7 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 # flushes: the loop floor of many agents falls, that of three does not (`hammer bench loop-floor`,
 # figures in docs/scale.md). Shorter bursts stay express.
 BATCH_MIN = 5
+DECLARED_KEYS_ENV = "HAMMER_DECLARED_KEYS"  # a directory: each session writes the keys it declared there at close
 
 
 def query_parameters(text: str) -> dict[str, str]:
@@ -609,6 +610,10 @@ class HammerSession:
         self._tokens: list[Any] = []
         self._queryables: list[Any] = []
         self._lock = threading.Lock()
+        # What this session declared: (publish | subscribe | query | answer | alive | watch, key expression).
+        # With HAMMER_DECLARED_KEYS=DIR each session writes it to DIR at close: an audit of what a run's
+        # processes use against its access rules (tests/test_key_table.py; docs/security.md).
+        self.declared: set[tuple[str, str]] = set()
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -632,6 +637,7 @@ class HammerSession:
         """Flush the fault layer, undeclare everything and close the Zenoh session."""
         if self._z is None:
             return
+        self._write_declared()
         if self.faults is not None:
             self.faults.close()
         for s in self._subs:
@@ -646,6 +652,17 @@ class HammerSession:
         self._publishers.clear()
         self._z.close()
         self._z = None
+
+    def _write_declared(self) -> None:
+        directory = os.environ.get(DECLARED_KEYS_ENV)
+        if not directory:
+            return
+        try:
+            path = Path(directory) / f"{self.sender}-{os.getpid()}-{id(self)}.json"
+            path.write_text(json.dumps({"sender": self.sender, "run": self.run_id,
+                                        "declared": sorted(self.declared)}))
+        except OSError as e:  # an audit aid: never what stops a role
+            log.warning("could not write the declared keys to %s: %s", directory, e)
 
     @property
     def zenoh(self) -> zenoh.Session:
@@ -670,6 +687,7 @@ class HammerSession:
         what counts and a dead link must never hold up the sender (a fleet's control streams:
         with BLOCK, one robot's cut link backs up into the publisher and stalls everyone)."""
         self._own(key)
+        self.declared.add(("publish", key))
         block = reliable if block is None else block
         with self._lock:
             pub = self._publishers.get((key, reliable, express, block))
@@ -700,6 +718,7 @@ class HammerSession:
         0: unbounded (only for a consumer that never falls behind by design).
         inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
         sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -708,6 +727,7 @@ class HammerSession:
                          max_bytes: int | None = None) -> LatestSubscription:
         """The newest valid message of each key on `key_expr` with its arrival time (`take()`)."""
         sub = LatestSubscription(self._own(key_expr), expected, dims, self.run_id, max_bytes)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -723,7 +743,11 @@ class HammerSession:
         republish. `current` runs on a Zenoh thread: it must only hand over what it has.
         parameters=True: `current(params)` gets the query's parameters (`key?v=3&i=0`) as a dict of
         strings, untrusted (the asker chose them): at most 8, each name and value at most 32 characters."""
-        pub = self.publisher(key)
+        published = ("publish", key) in self.declared
+        pub = self.publisher(key)  # its stamp only: a reply is not a publication
+        if not published:
+            self.declared.discard(("publish", key))
+        self.declared.add(("answer", key))
 
         def on_query(query: zenoh.Query) -> None:
             msgs = current(query_parameters(str(query.parameters))) if parameters else current()
@@ -744,10 +768,12 @@ class HammerSession:
             if ok is not None:
                 into._on_sample(ok)
 
+        self.declared.add(("query", key))
         self.zenoh.get(self._own(key) + (f"?{parameters}" if parameters else ""), on_reply, timeout=timeout)
 
     def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -758,12 +784,14 @@ class HammerSession:
         """Declare this process's liveliness token `hammer/<run>/alive/<role>`. It disappears
         when undeclared, when the session closes, or when the process dies."""
         token = self.zenoh.liveliness().declare_token(self.keys.alive(role))
+        self.declared.add(("alive", self.keys.alive(role)))
         self._tokens.append(token)
         return token
 
     def watch_alive(self, history: bool = True) -> LivelinessWatch:
         """Events for every role of this run going alive / dead (history: also those already alive)."""
         watch = LivelinessWatch(self.keys)
+        self.declared.add(("watch", self.keys.alive("**")))
         watch._zsub = self.zenoh.liveliness().declare_subscriber(
             self.keys.alive("**"), watch._on_sample, history=history
         )
@@ -772,6 +800,7 @@ class HammerSession:
 
     def alive_roles(self, timeout: float = 1.0) -> set[str]:
         """Roles of this run whose liveliness token is currently declared."""
+        self.declared.add(("watch", self.keys.alive("**")))
         replies = self.zenoh.liveliness().get(self.keys.alive("**"), timeout=timeout)
         roles = set()
         for reply in replies:

@@ -109,6 +109,7 @@ class EdgeAgent:
         self.counts = EdgeCounters()
         self._env_idx = np.zeros(1, np.int64)
         self._prev: np.ndarray | None = None  # the last action taken, for the uplink
+        self.last_msg: np.ndarray | None = None  # (1, M) the message the last act used (received or fallback)
         self._msg: np.ndarray | None = None  # the newest central message held ...
         self._msg_t = 0.0  # ... and when it arrived (monotonic)
         self.last_fresh = False
@@ -198,7 +199,7 @@ class EdgeAgent:
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
         o = o[None]
         self._uplink(o)
-        msg = self.message()
+        msg = self.last_msg = self.message()
         self._take_weights()
         action = self.core.act(o, msg)[0]
         if not self.spec.discrete and self.low is not None:
@@ -246,10 +247,11 @@ class EdgeAgent:
                                 action=prev))
         self.counts.uplinks_sent += 1
 
-    def age_gauges(self) -> dict[str, float]:
-        """p50 / p99 age (ms) of the newest central message at the latest acts."""
+    def age_gauges(self) -> dict[str, float | None]:
+        """p50 / p99 age (ms) of the newest central message at the latest acts (stale ones included):
+        both keys always, None while no message has been received."""
         if not self.ages:
-            return {}
+            return {"msg_age_p50_ms": None, "msg_age_p99_ms": None}
         p50, p99 = np.percentile(np.fromiter(self.ages, float), [50, 99]) * 1e3
         return {"msg_age_p50_ms": round(float(p50), 2), "msg_age_p99_ms": round(float(p99), 2)}
 
@@ -343,7 +345,8 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
             return {**agent.counts.as_dict(), **agent.weights.counters()}
 
         def gauges(self) -> dict[str, float]:
-            return {**agent.weight_gauges(), **agent.age_gauges()}
+            ages = {k: v for k, v in agent.age_gauges().items() if v is not None}  # a gauge is a number: none yet, unsent
+            return {**agent.weight_gauges(), **ages}
 
         def poll(self, timeout: float) -> bool:
             if not self.sensors.wait(timeout):
@@ -359,7 +362,9 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
                 self.last_act = t
                 self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
                                              action=action.reshape(1, *action.shape[0:]),
-                                             fallback=np.array([not agent.last_fresh])))
+                                             policy_version=agent.policy_version,
+                                             fallback=np.array([not agent.last_fresh]),
+                                             msg=agent.last_msg if obs.echo and agent.spec.msg_dim else None))
                 self.progressed()
             return True
 

@@ -183,7 +183,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
                                   step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
                                   start_step=known_step(settings.resume_step),
-                                  start_version=known_version(settings.resume_from), echo=settings.echo)
+                                  start_version=known_version(settings.resume_from))
             pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
@@ -260,6 +260,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
+            host.heartbeat("stopped")
             # The run is over: tell everyone (roles started by hand have no launcher to stop them). In a
             # secure run the access rules keep control to the launcher, which stops everyone as this exits.
             from hammer.protocol.schemas import Control
