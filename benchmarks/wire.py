@@ -60,16 +60,20 @@ def step_sizes(d: dict, k: int) -> dict:
     gs = GlobalState(**h, obs=rng.standard_normal((k, n, dd)).astype(np.float32), prev_actions=prev,
                      active=np.ones((k, n), bool), policy_version=3)
     local_obs, central_msg, action, state = size(lo), size(cm), size(ac), size(gs)
+    # a training run's observation asks for the message back (LocalObs.echo) where there are messages
+    local_obs_training = size(LocalObs(**h, agent=0, obs=obs, active=np.ones(k, bool), policy_version=3,
+                                       echo=bool(m)))
     action_no_echo = size(Action(**h, agent=0, action=act, policy_version=3))
     half = {"local_obs": size(lo, True), "central_msg": size(cm, True), "action": size(ac, True),
             "global_state": size(gs, True)}
     act_min = 1 if d["discrete"] else 4 * a
-    agent_link = local_obs + central_msg + action
+    agent_link = local_obs_training + central_msg + action
     agent_link_eval = local_obs + central_msg + action_no_echo
     central_link = state + n * central_msg
     agent_min = k * (4 * (dd + m) + act_min)
     central_min = k * n * (4 * (dd + m) + act_min)
-    return {"K": k, "local_obs": local_obs, "central_msg": central_msg, "action": action,
+    return {"K": k, "local_obs": local_obs, "local_obs_training": local_obs_training, "central_msg": central_msg,
+            "action": action,
             "action_without_echoed_msg": action_no_echo, "global_state": state,
             "agent_link": agent_link, "agent_link_min": agent_min, "agent_link_ratio": round(agent_link / agent_min, 2),
             "agent_link_eval": agent_link_eval, "agent_link_eval_ratio": round(agent_link_eval / agent_min, 2),

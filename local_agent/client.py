@@ -114,8 +114,8 @@ class AgentSteps(StepCore):
     A subclass provides `step_log`, `action_pub`, `reject` and `progressed`."""
 
     def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
-                   start_step: int | None = None, echo: bool = True) -> None:
-        self.init_core(spec, step_window, start_step, echo)
+                   start_step: int | None = None) -> None:
+        self.init_core(spec, step_window, start_step)
         self.agent = LocalAgent(spec)
         self.fallback = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
 

@@ -80,8 +80,8 @@ class LiteSteps(StepCore):
     """`client.AgentSteps` on lists: the message of each copy, received or a fallback."""
 
     def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
-                   start_step: int | None = None, echo: bool = True) -> None:
-        self.init_core(spec, step_window, start_step, echo)
+                   start_step: int | None = None) -> None:
+        self.init_core(spec, step_window, start_step)
         self.agent = LiteLocalAgent(spec)
         self.fallback = LiteMessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
 
@@ -136,7 +136,7 @@ class LiteLocalAgentClient(LiteSteps, ClientCore):
         k, m = obs.k, self.spec.msg_dim
         actions = self.agent.act(obs.obs.tolist(), msg)
         wire_msg: Any = None
-        if msg is not None:
+        if msg is not None and obs.echo:  # the env host records it (training, a trace)
             wire_msg = WireArray.of("float32", (k, m), [x for row in msg for x in row])
         self.publish_action(obs, WireArray.of("int64", (k,), actions), wire_msg,
                             WireArray.of("bool", (k,), fallback_mask))
