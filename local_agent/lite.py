@@ -6,10 +6,11 @@ MLP policy, one env copy: the usual robot) the edge agent runs this instead of
 `client.LocalAgentClient`: the same process core (`steps.ClientCore`: step window, message
 deadline and matching, fallbacks, weights intake, counters, step log, heartbeat), the same wire
 (protocol/schemas.py, its arrays checked in pure Python as `WireArray`s), and acting in plain
-Python: the forward of learning/lite_policy.py and the agent's own stream by learning/pcg64.py,
-numpy's PCG64 draw for draw. An action differs from the numpy agent's only where a float32 logit
-differs in its last bits and the uniform falls within that of a class boundary (measured:
-docs/deploy.md "Footprint").
+Python: the forward of learning/lite_policy.py, the agent's own stream by learning/pcg64.py,
+numpy's PCG64 draw for draw, and the contract's draw (learning/categorical.py, the numpy agent's
+for the same logits on every machine). An action differs from the numpy agent's only where a
+float32 logit differs in its last bits and the uniform falls within that of a class boundary
+(measured: docs/deploy.md "Footprint").
 
 It handles any K correctly (lists of rows), but costs a Python loop per copy: the edge entry picks
 it only at K=1 (`serve.edge.lite_choice`).
