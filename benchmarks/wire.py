@@ -92,9 +92,9 @@ def half_effect(bundle: Path, k: int = 32, steps: int = 200, seed: int = 0) -> d
     from hammer.envs.local_view import local_view_from_config
     from hammer.envs.registry import make_vec_env
     from hammer.learning.central_acting import CentralActing, zero_prev_actions
-    from hammer.learning.numpy_policy import NumpyLocalPolicy, numpy_central, softmax
+    from hammer.learning.numpy_policy import NumpyLocalPolicy, numpy_central
     from hammer.learning.rollout import next_prev_actions
-    from hammer.learning.sampling import categorical_inverse_cdf
+    from hammer.learning.sampling import categorical_draw
     from hammer.local_agent.client import AgentSpec, LocalAgent
     from hammer.serve.bundle import CENTRAL, LOCAL, load_bundle
     from safetensors.numpy import load_file
@@ -123,8 +123,8 @@ def half_effect(bundle: Path, k: int = 32, steps: int = 200, seed: int = 0) -> d
                            0.0 if m is None else float(np.abs(half(m) - m).max()))
             if spec.discrete:
                 u = rng.random(k)
-                a32 = categorical_inverse_cdf(softmax(out32), u)
-                a16 = categorical_inverse_cdf(softmax(out16), u)
+                a32 = categorical_draw(out32, u)[0]
+                a16 = categorical_draw(out16, u)[0]
                 changed += int((a32 != a16).sum())
             else:
                 a32 = out32 + policy.std * rng.standard_normal(out32.shape).astype(np.float32)

@@ -6,10 +6,11 @@ MLP policy, one env copy: the usual robot) the edge agent runs this instead of
 `client.LocalAgentClient`: the same process core (`steps.ClientCore`: step window, message
 deadline and matching, fallbacks, weights intake, counters, step log, heartbeat), the same wire
 (protocol/schemas.py, its arrays checked in pure Python as `WireArray`s), and acting in plain
-Python: the forward of learning/lite_policy.py and the agent's own stream by learning/pcg64.py,
-numpy's PCG64 draw for draw. An action differs from the numpy agent's only where a float32 logit
-differs in its last bits and the uniform falls within that of a class boundary (measured:
-docs/deploy.md "Footprint").
+Python: the forward of learning/lite_policy.py, the agent's own stream by learning/pcg64.py,
+numpy's PCG64 draw for draw, and the contract's draw (learning/categorical.py, the numpy agent's
+for the same logits on every machine). An action differs from the numpy agent's only where a
+float32 logit differs in its last bits and the uniform falls within that of a class boundary
+(measured: docs/deploy.md "Footprint").
 
 It handles any K correctly (lists of rows), but costs a Python loop per copy: the edge entry picks
 it only at K=1 (`serve.edge.lite_choice`).
@@ -19,7 +20,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from hammer.learning.lite_policy import LiteLocalPolicy, categorical_inverse_cdf, softmax
+from hammer.learning.categorical import draw
+from hammer.learning.lite_policy import LiteLocalPolicy
 from hammer.learning.pcg64 import LOCAL_STREAM, lite_stream
 from hammer.local_agent.steps import MSG_EVENTS, AgentSpec, ClientCore, StepCore
 from hammer.protocol.fields import WireArray
@@ -69,10 +71,10 @@ class LiteLocalAgent:
         """One action id per env copy, from the rows of its observation and message (float32 values)."""
         if self.policy is None:
             raise RuntimeError("no policy weights loaded yet")
-        probs = [softmax(self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else [])))
-                 for j, row in enumerate(obs)]
+        logits = [self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else []))
+                  for j, row in enumerate(obs)]
         u = self.rng.random(len(obs))  # after the forward, as the numpy agent draws
-        return [categorical_inverse_cdf(p, x) for p, x in zip(probs, u)]
+        return [draw(z, x) for z, x in zip(logits, u)]
 
 
 class LiteSteps(StepCore):
