@@ -12,22 +12,35 @@ STAMP := $(VENV)/.installed
 # A literal comma for arguments inside $(if ...).
 , := ,
 
+# The editable install is strict: a static tree of links to the checkout (build/__editable__.*/hammer/...,
+# pyproject's package-dir laid out) on sys.path, not an import hook, so a folder named `hammer` in the
+# current folder (the clone itself, seen from the folder that holds it) cannot shadow it, and editors
+# follow `hammer.*`. hammer/__init__.py takes the parts from the checkout's folders, so an edit or a new
+# module is found at once; $(LINKS) makes the tree again (for editors) when a package folder's entries change.
+STRICT := --config-settings editable_mode=strict
+LINKS := $(VENV)/.linked
+PKG_DIRS := $(patsubst %/__init__.py,%,$(wildcard */__init__.py */*/__init__.py))
+
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[train,dev,cluster]'
+	$(PY) -m pip install -q -e '.[train,dev,cluster]' $(STRICT)
 	touch $(STAMP)
 
-setup: $(STAMP)
+$(LINKS): $(STAMP) $(PKG_DIRS)
+	$(PY) -m pip install -q --no-deps -e . $(STRICT)
+	touch $(LINKS)
 
-up: $(STAMP)
+setup: $(LINKS)
+
+up: $(LINKS)
 	$(VENV)/bin/hammer up $(ARGS)
 
-test: $(STAMP)
+test: $(LINKS)
 	$(PY) -m pytest -q $(ARGS)
 
-bench: $(STAMP)
+bench: $(LINKS)
 	$(VENV)/bin/hammer bench $(ARGS)
 
 # The paper's comparisons (docs/results/): resumable, re-run to continue; hours of CPU in total.
@@ -68,13 +81,13 @@ G_RWARE_CMP = --out runs/paper/rware-cmp --archive $(A)/rware-cmp --presets rwar
 # The same at N = 4 (addendum of 2026-12-03 13:45: both variants learned in the 4-robot pilot).
 G_RWARE_CMP4 = --out runs/paper/rware-cmp4 --archive $(A)/rware-cmp4 --presets rware-tiny-4ag --variants $(or $(1),hammer-rl$(,)il$(,)hammer-backprop$(,)random) --seeds $(or $(2),0-9) --episodes 2000
 # The primary contrast (hammer-rl vs IL) first at every level, so a grid cut short still answers H1/H2.
-paper-dose: $(STAMP)
+paper-dose: $(LINKS)
 	$(H) sweep $(call G_CN3_DOSE_FULL,hammer-rl$(,)il) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE,hammer-rl$(,)il) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE) --snapshot-every 20
 	$(MAKE) paper-report
-paper-warehouse: $(STAMP)
+paper-warehouse: $(LINKS)
 	$(H) sweep $(G_RWARE_PILOT) --snapshot-every 20
 	$(H) sweep $(call G_RWARE_CMP,hammer-rl$(,)il,3-9) --snapshot-every 20
 	$(H) sweep $(call G_RWARE_CMP) --snapshot-every 20
@@ -82,7 +95,7 @@ paper-warehouse: $(STAMP)
 	$(H) sweep $(call G_RWARE_CMP4) --snapshot-every 20
 	$(MAKE) paper-report
 # Every grid is complete in the archive (2026-12-02): on a clone this skips them all and redraws.
-paper: $(STAMP)
+paper: $(LINKS)
 	$(H) sweep $(G_CN3_MSGLEN)
 	$(H) sweep $(G_CN5)
 	$(H) sweep $(G_MW3_PILOT)
@@ -97,7 +110,7 @@ paper: $(STAMP)
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
 # gzipped metrics) to $(A)/<grid>/_partial/ and commit it; `make paper` on a fresh clone restores
 # and resumes those runs. Safe while `make paper` is running. mw3 (4-5 h a run) first.
-snapshot: $(STAMP)
+snapshot: $(LINKS)
 	$(H) sweep $(G_MW3) --snapshot
 	$(H) sweep $(G_MW5_PILOT) --snapshot
 	$(H) sweep $(G_MW3_PILOT) --snapshot
@@ -114,7 +127,7 @@ snapshot: $(STAMP)
 	$(H) sweep $(call G_RWARE_CMP4) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
-status: $(STAMP)
+status: $(LINKS)
 	@$(H) sweep $(G_MW3) --status
 	@$(H) sweep $(G_MW5_PILOT) --status
 	@$(H) sweep $(G_MW3_PILOT) --status
@@ -135,7 +148,7 @@ status: $(STAMP)
 REANALYSIS_CN = $(A)/cn3 $(wildcard $(A)/cn3-msglen/*msg_dim=1-s*) $(wildcard $(A)/cn3-msglen/*msg_dim=2-s*) \
 	$(wildcard $(A)/cn3-msglen/*msg_dim=8-s*) $(A)/cn5 $(A)/cn3-paperppo $(A)/cn3-ownobs $(A)/cn3-ownobs-rep
 REANALYSIS = $(REANALYSIS_CN) $(A)/mw3 $(A)/mw3-pilot $(A)/mw5-pilot
-paper-report: $(STAMP)
+paper-report: $(LINKS)
 	-$(H) plot $(A)/cn3 --out docs/results/cn3-curves
 	-$(H) report $(A)/cn3 --out docs/results/cn3-table.md --export docs/results/cn3-runs.json
 	-$(H) plot $(A)/cn3-msglen --window 2000 --out docs/results/cn3-msglen-curves
@@ -187,7 +200,7 @@ WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backpro
 # (cn3-ownobs: 20 teams, 6 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~40 min once). The dose-grid table is
 # the plan's whole family (Holm across every setting x target), cn3-ownobs included.
 MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
-messages: $(STAMP)
+messages: $(LINKS)
 	$(H) messages $(MESSAGE_RUNS) --out docs/results/messages-cn3-ownobs --figure docs/results/messages-episode.png
 	$(if $(wildcard $(A)/cn3-dose),$(H) messages $(MESSAGE_RUNS) $(A)/cn3-dose $(A)/cn3-dose-full --teams hammer-rl$(,)random --out docs/results/messages --figure docs/results/messages-episode-dose.png)
 	$(if $(call FAMILY_DONE,rware-cmp),$(call WAREHOUSE_MESSAGES,rware-cmp,warehouse2))
@@ -200,7 +213,8 @@ messages: $(STAMP)
 TEAMS = $(foreach s,$(4),$(1)-s$(s)=$(A)/$(3)/cn3-$(2)-env_kwargs_observe_others=false-s$(s))
 OWN_TEAMS = $(call TEAMS,$(1),$(2),cn3-ownobs,0 1 2 3 4) $(call TEAMS,$(1),$(2),cn3-ownobs-rep,5 6 7 8 9)
 FAULTS_EVAL := --delays-ms 0 --seeds 2 --episodes 500 --parallel 1
-faults-ownobs: $(STAMP)
+# Ctrl-C stops it (what finished is written); `make faults-ownobs` again continues where it stopped.
+faults-ownobs: $(LINKS)
 	$(H) faults sweep $(call OWN_TEAMS,hammer,hammer-rl) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer
 	$(H) faults sweep $(call OWN_TEAMS,il,il) --drops 0 $(FAULTS_EVAL) --out runs/faults-ownobs/il
 	$(H) faults sweep $(call TEAMS,backprop,hammer-backprop,cn3-ownobs,0 1 2 3 4) --drops 0,1.0 $(FAULTS_EVAL) --out runs/faults-ownobs/hammer-backprop
@@ -211,10 +225,10 @@ faults-ownobs: $(STAMP)
 # served with its central agent and each edge agent (a torch-free venv) in namespaces of their own,
 # a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.
-edge-chain: $(STAMP)
+edge-chain: $(LINKS)
 	$(PY) -m hammer.benchmarks.edge_chain $(ARGS)
 
-lint: $(STAMP)
+lint: $(LINKS)
 	$(VENV)/bin/ruff check .
 
 clean:

@@ -1,6 +1,7 @@
-"""Per-call wall time of the central agent's acting path: torch `Team.central_messages` (what the
-in-process trainer runs) against the numpy path the central server runs (`NumpyCentralAgent`
-forward + `CentralActing.messages`), same weights, same states, same process; and, with --rss,
+"""Per-call wall time of the central agent's acting path: the torch forward + `CentralActing.messages`
+(what the in-process trainer runs on a GPU, and ran on the CPU until it took the central server's)
+against the numpy path the central server runs (`NumpyCentralAgent` forward + the same sampling),
+same weights, same states, same process; and, with --rss,
 the peak RSS of every role of a short `hammer up` run.
 
 One call = one vector step of the central server: global state (K, S) in, messages for K x N
@@ -54,10 +55,18 @@ def time_acting(preset: str, mode: str, k: int, calls: int, block: int = 200) ->
         states.append(team.global_state(st.obs, team.encode_actions(action, st.active)))
     values = net.values if team.central_rl else None
 
+    def torch_mean(s: np.ndarray) -> np.ndarray:
+        return team.host(team.central.message_mean(team.tensor(s)))
+
+    def torch_values(s: np.ndarray) -> np.ndarray:
+        return team.host(team.central.values(team.tensor(s)))
+
+    @torch.inference_mode()
     def run_torch(streams: ActingStreams, n: int) -> float:
         t0 = time.perf_counter()
         for i in range(n):
-            team.central_messages(states[i % 16], streams, cfg.msg_dropout)
+            team.acting.messages(states[i % 16], streams, cfg.msg_dropout, torch_mean,
+                                 torch_values if team.central_rl else None)
         return time.perf_counter() - t0
 
     def run_numpy(streams: ActingStreams, n: int) -> float:

@@ -104,6 +104,37 @@ def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[
     return report
 
 
+def summary_lines(report: dict, work: Path) -> list[str]:
+    """The chain's result for a person: one line per step, the figures in WORK/chain.json."""
+    head = f"edge chain: team {report['team']} (A), update {report['update']} (B); edge agents on {report['edge_python']}"
+    lines = [head]
+    for r in report["runs"]:
+        rate = "no limit" if not r["rate_kbit"] else f"{r['rate_kbit']} kbit/s"
+        base = r.get("baseline_env_steps_per_s")
+        pace = f" ({r['env_steps_per_s'] / base:.0%} of the unlimited link)" if base else ""
+        lines.append(f"served, agent 0's link {rate}: {'completed' if r['completed'] else 'NOT completed'}, "
+                     f"{r.get('episodes') or 0} episodes, {r['env_steps_per_s'] or 0:,.0f} env-steps/s{pace}, "
+                     f"step p50 {r.get('step_p50_ms') or 0:.1f} ms p99 {r.get('step_p99_ms') or 0:.1f} ms, "
+                     f"default actions {r.get('default_actions')}, fallback messages {r.get('msg_fallback_copies')}"
+                     f"{'' if r.get('keeps_up') else ' (does not keep up)'}")
+        up = r.get("updates")
+        if up is not None:
+            if "error" in up or "error" in up.get("driver", {}):
+                lines.append(f"  push and rollback: {up.get('error') or up['driver'].get('error')}")
+            else:
+                versions = ", ".join(f"v{v} {n}" for v, n in sorted(up["steps_per_version"].items()))
+                lines.append(f"  push and rollback: steps acted per version {versions}; the push took "
+                             f"{up.get('push_took_steps', '-')} steps, the rollback {up.get('rollback_took_steps', '-')}; "
+                             f"versions only rose: {up['versions_monotone']}, no step missed: {up['no_step_missed']}")
+        rp = r.get("replay")
+        if rp is not None:
+            lines.append(f"  replay with each version's weights: {rp['match']:.1%} of the actions match "
+                         f"({rp['acted_in_time']:.1%} acted in time)")
+    lines.append(f"play: {report['play']}")
+    lines.append(f"every figure: {work / 'chain.json'}")
+    return lines
+
+
 def main() -> None:
     import argparse
 
@@ -132,7 +163,7 @@ def main() -> None:
         r = chain(a.work, team, update, edge, tuple(int(x) for x in a.rates.split(",")), a.episodes)
     except (RuntimeError, EdgeVenvError, NetnsUnavailable) as e:
         sys.exit(f"error: {e}")
-    print(json.dumps(r, indent=1))
+    print("\n".join(summary_lines(r, a.work)))
 
 
 if __name__ == "__main__":

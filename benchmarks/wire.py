@@ -60,16 +60,20 @@ def step_sizes(d: dict, k: int) -> dict:
     gs = GlobalState(**h, obs=rng.standard_normal((k, n, dd)).astype(np.float32), prev_actions=prev,
                      active=np.ones((k, n), bool), policy_version=3)
     local_obs, central_msg, action, state = size(lo), size(cm), size(ac), size(gs)
+    # a training run's observation asks for the message back (LocalObs.echo) where there are messages
+    local_obs_training = size(LocalObs(**h, agent=0, obs=obs, active=np.ones(k, bool), policy_version=3,
+                                       echo=bool(m)))
     action_no_echo = size(Action(**h, agent=0, action=act, policy_version=3))
     half = {"local_obs": size(lo, True), "central_msg": size(cm, True), "action": size(ac, True),
             "global_state": size(gs, True)}
     act_min = 1 if d["discrete"] else 4 * a
-    agent_link = local_obs + central_msg + action
+    agent_link = local_obs_training + central_msg + action
     agent_link_eval = local_obs + central_msg + action_no_echo
     central_link = state + n * central_msg
     agent_min = k * (4 * (dd + m) + act_min)
     central_min = k * n * (4 * (dd + m) + act_min)
-    return {"K": k, "local_obs": local_obs, "central_msg": central_msg, "action": action,
+    return {"K": k, "local_obs": local_obs, "local_obs_training": local_obs_training, "central_msg": central_msg,
+            "action": action,
             "action_without_echoed_msg": action_no_echo, "global_state": state,
             "agent_link": agent_link, "agent_link_min": agent_min, "agent_link_ratio": round(agent_link / agent_min, 2),
             "agent_link_eval": agent_link_eval, "agent_link_eval_ratio": round(agent_link_eval / agent_min, 2),
@@ -88,9 +92,9 @@ def half_effect(bundle: Path, k: int = 32, steps: int = 200, seed: int = 0) -> d
     from hammer.envs.local_view import local_view_from_config
     from hammer.envs.registry import make_vec_env
     from hammer.learning.central_acting import CentralActing, zero_prev_actions
-    from hammer.learning.numpy_policy import NumpyLocalPolicy, numpy_central, softmax
+    from hammer.learning.numpy_policy import NumpyLocalPolicy, numpy_central
     from hammer.learning.rollout import next_prev_actions
-    from hammer.learning.sampling import categorical_inverse_cdf
+    from hammer.learning.sampling import categorical_draw
     from hammer.local_agent.client import AgentSpec, LocalAgent
     from hammer.serve.bundle import CENTRAL, LOCAL, load_bundle
     from safetensors.numpy import load_file
@@ -119,8 +123,8 @@ def half_effect(bundle: Path, k: int = 32, steps: int = 200, seed: int = 0) -> d
                            0.0 if m is None else float(np.abs(half(m) - m).max()))
             if spec.discrete:
                 u = rng.random(k)
-                a32 = categorical_inverse_cdf(softmax(out32), u)
-                a16 = categorical_inverse_cdf(softmax(out16), u)
+                a32 = categorical_draw(out32, u)[0]
+                a16 = categorical_draw(out16, u)[0]
                 changed += int((a32 != a16).sum())
             else:
                 a32 = out32 + policy.std * rng.standard_normal(out32.shape).astype(np.float32)

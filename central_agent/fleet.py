@@ -14,8 +14,8 @@ leaves (goes missing) and rejoins are log lines with its name and a counter, and
 
 Messages go out at every tick to every robot (`central/msg/<i>`) through reliable publishers with
 congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
-The message is stamped with the tick as its step, and the send time and sequence number as every
-message; the robot dates it by arrival.
+The message is stamped with the tick as its step (from 0 at this role's start); the wire carries no
+send time or sequence number, so the robot dates it by arrival and takes the newest.
 
 Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
 network whole (this role's link is on the server side). No step names versions in a fleet: each
@@ -43,7 +43,7 @@ from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import CentralMsg, Heartbeat, Uplink
 from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
-from hammer.runtime.presence import Presence
+from hammer.runtime.presence import Presence, flat_member_rejections, rejections_by_member
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
 
@@ -88,7 +88,10 @@ class FleetCentral(Role):
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
                 "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
                 "policy_switched_unheld": self.switched_unheld,
-                **self.presence.counters()}
+                # per robot, the 8 longest absent and the 8 largest refusals: a heartbeat holds 64 counters
+                **self.presence.counters(), **self.presence.member_counters(limit=8),
+                **flat_member_rejections(rejections_by_member(self.session.rejections_by_key(), self.presence.names),
+                                         limit=8)}
 
     def gauges(self) -> dict[str, int]:
         held = self.version if self.weights is None else max(self.version, self.weights.known)

@@ -74,13 +74,15 @@ class CentralServer(Role):
                  idle_exit_s: float | None = None, load_when_idle: bool = False,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
                  max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None, training: bool = False) -> None:
+                 start_version: int | None = None, training: bool = True) -> None:
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
         super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
         self.cfg, self.n_agents = cfg, cfg.n_agents
         self.acting = CentralActing.from_config(cfg)
-        self.training = training  # a training run: the absences missing_prob simulates apply (as in the trainer)
+        # a training run: the absences missing_prob simulates apply (as in the trainer), and the learner gets
+        # a record of each step; a served run has no learner, so no record goes out
+        self.training = training
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
         self.state_dim = cfg.n_agents * (spec.obs_dim + (spec.action_dim if cfg.use_prev_actions else 0))
         self.load_when_idle = load_when_idle
@@ -99,7 +101,8 @@ class CentralServer(Role):
         n = cfg.n_agents  # N messages a step: a burst (protocol.session.BATCH_MIN)
         self.msg_pubs = [LoggedPublisher(session.publisher(self.keys.msg(i), express=burst_express(i, n)), session,
                                          step_log, "central->local") for i in range(n)]
-        self.record_pub = session.publisher(self.keys.exp("central")) if cfg.wiring.needs_central_record else None
+        self.record_pub = (session.publisher(self.keys.exp("central")) if training and cfg.wiring.needs_central_record
+                           else None)
 
     @property
     def version(self) -> int:

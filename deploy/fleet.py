@@ -40,10 +40,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 
+from hammer.deploy.fleet_verdict import fleet_verdict
 from hammer.deploy.supervisor import RoleSpec, Supervisor
+from hammer.deploy.up import stop_on_signals
 from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.protocol.transport_log import refused_counts, watch_refused
 from hammer.runtime.settings import refuse_plain_beyond_loopback
 
 log = logging.getLogger("hammer.fleet")
@@ -70,6 +73,7 @@ class FleetPlan:
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
     runtime: list[str] = field(default_factory=list)  # RuntimeSettings FIELD=VALUE items (`--runtime`)
     timeline: Path | None = None  # the world appends per-robot totals here once a second (benches)
+    site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
     def check(self) -> None:
         for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
@@ -79,6 +83,12 @@ class FleetPlan:
             raise ValueError("a fleet run needs an end: seconds or episodes")
         if self.secure and self.insecure:
             raise ValueError("secure and insecure contradict each other: pass one of --secure, --insecure")
+        if self.site is not None and not self.secure:
+            raise ValueError("--site: a site's identities are for a secure fleet (fix: add --secure)")
+        if self.site is not None:
+            from hammer.protocol.identity import site_ca
+
+            site_ca(self.site)  # before anything is written: one line naming `hammer site init`
 
 
 # The plan's bounds, also settable as `--runtime FIELD=VALUE` on `hammer serve --realtime`.
@@ -235,14 +245,16 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     if plan.secure:
         from hammer.deploy.up import secure_identities
 
-        hub_transport = secure_identities(n, settings, run_dir, hub_transport, fresh=True, as_role=HUB)
+        hub_transport = secure_identities(n, settings, run_dir, hub_transport, fresh=True, site=plan.site,
+                                          as_role=HUB)
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
     fleet_json = json.dumps({
         "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0],
         "endpoint": robot_endpoint(plan), "plan": {**plan.__dict__, "bundle": str(plan.bundle),
-                                                  "timeline": plan.timeline and str(plan.timeline)},
+                                                  "timeline": plan.timeline and str(plan.timeline),
+                                                  "site": plan.site and str(plan.site)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs},
         "robot_commands": {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}}, indent=1)
     board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
@@ -250,11 +262,11 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     sup = Supervisor(run_dir / "logs")
     stopped_by = None
     t0 = time.monotonic()
-
-    def on_term(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, on_term)
+    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
+    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+    watch_refused()  # strangers turned away at the hub's TLS handshake: counted for the verdict
+    stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
+    stopping = stop_on.__enter__()
     try:
         with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
             (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
@@ -286,15 +298,27 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
                     if on_tick is not None:
                         on_tick(board, time.monotonic() - t0)
                     time.sleep(0.1)
-            except KeyboardInterrupt:
-                stopped_by = "interrupted (Ctrl-C or SIGTERM)"
+            except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
+                stopped_by = getattr(e, "signal_name", "SIGINT")
+            stopping["ending"] = True  # a repeated signal must not cut the stop broadcast or the summary short
             hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
-            time.sleep(0.2)
-            for h in beats.drain():
-                board.heartbeats[h.role] = h
+            # each role's last heartbeat (status stopped) holds its final counters: wait for them a while
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:
+                for h in beats.drain():
+                    _note_version(board, h, time.monotonic() - t0)
+                    board.heartbeats[h.role] = h
+                started = {s.name for s in specs}
+                if all(h.status == "stopped" or (n in started and not sup.alive(n))
+                       for n, h in board.heartbeats.items()):
+                    break
+                time.sleep(0.05)
+    except KeyboardInterrupt as e:  # before the roles were up
+        stopped_by = getattr(e, "signal_name", "SIGINT")
     finally:
+        stopping["ending"] = True
         sup.stop_all()
-        signal.signal(signal.SIGTERM, previous)
+        stop_on.__exit__(None, None, None)
     return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
 
 
@@ -325,10 +349,12 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                                                                  "chunks_refused", "weights_rejected")})
         r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
-    reasons = [f"{name} was missing {a['longest_absence_s']:.1f} s at most (> max_absence_s {max_absence_s:g} s; "
-               f"{a['leaves']} time(s))" for name, a in absences.items() if a["longest_absence_s"] > max_absence_s]
-    summary = {"completed": stopped_by is None and bool(world), "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
-               "degraded": bool(reasons), "degraded_reasons": reasons, "absences": absences,
+    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, roles, max_absence_s, refused_counts())
+    summary = {"completed": stopped_by is None and bool(world), "interrupted": stopped_by in ("SIGTERM", "SIGINT"),
+               "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
+               "degraded": bool(verdict["reasons"]), "degraded_reasons": verdict["reasons"], "absences": absences,
+               "central_absences": verdict["central_absences"], "rejections": verdict["rejections"],
+               "rejected_on": verdict["rejected_on"], "refused_connections": verdict["refused_connections"],
                "world": {k: v for k, v in world.items() if k != "robots"}, "robots": robots,
                "central": {**roles.get("central", {}).get("counters", {}),
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()

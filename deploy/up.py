@@ -301,7 +301,7 @@ def _tail(path: Path, lines: int = 3) -> str:
 
 def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=None, resume: bool = False,
            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None,
-           stop_signals: tuple[int, ...] = ()) -> UpResult:
+           stop_signals: tuple[int, ...] = (), stop=None) -> UpResult:
     """Run one distributed experiment to its budget. `on_tick(board)` is called ~4 times a second;
     `chaos(sup, board)` may kill/pause roles (fault experiments and tests); without it,
     `settings.chaos` (e.g. 'kill:central@step=200') is scheduled by `faults.chaos.ChaosScheduler`.
@@ -311,15 +311,20 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
     `external_help`: the command to show for an external role instead of `hammer <role> --run-dir`
     (`hammer serve` shows the bundle's edge command). `stop_signals` (main thread only): signals that
     stop the run as Ctrl-C does and then return what ran (`UpResult.stopped_by`; a served run's
-    summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure."""
+    summary.json says `interrupted`), so a service manager's stop is a clean end, not a failure.
+    `stop()` (any thread): asked every launcher tick, startup included; a signal name returned stops
+    the run as that signal would (a launch in a worker thread, where signals cannot reach it: the
+    runs of `hammer faults sweep`); before anything started it raises Stopped."""
     run_dir = Path(run_dir)
-    with _stop_on(stop_signals) as stopping:
+    if stop is not None and (by := stop()):
+        raise Stopped(by)
+    with stop_on_signals(stop_signals) as stopping:
         return _launch(cfg, settings, run_dir, on_tick, chaos, resume, external_agents, external_help or {},
-                       stopping)
+                       stopping, stop)
 
 
 @contextmanager
-def _stop_on(signals: tuple[int, ...]):
+def stop_on_signals(signals: tuple[int, ...]):
     """While launching: each of `signals` raises Stopped once; later ones (and any after the run is
     ending, `stopping["ending"]`) are logged and ignored, so the stop broadcast and the summary
     are not cut short by a service manager repeating its signal."""
@@ -346,7 +351,7 @@ def _stop_on(signals: tuple[int, ...]):
 
 
 def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resume: bool,
-            external_agents: tuple[int, ...], external_help: dict[str, str], stopping: dict) -> UpResult:
+            external_agents: tuple[int, ...], external_help: dict[str, str], stopping: dict, stop=None) -> UpResult:
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
     if external_agents:
@@ -376,7 +381,7 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
         raise UpError(str(e)) from None
     if settings.secure:
         hub_transport = secure_identities(cfg.n_agents, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings)
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings, stop)
     stopped_by = None
     try:
         with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
@@ -423,7 +428,9 @@ class Launcher:
     tick_s = 0.25
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
-                 chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None) -> None:
+                 chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None,
+                 stop=None) -> None:
+        self.stop = stop  # launch's `stop`: asked every tick
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.settings = settings or RuntimeSettings(run_id="-")
         self.on_tick, self.chaos = on_tick, chaos
@@ -478,6 +485,7 @@ class Launcher:
         names = self.alive_expected if names is None else names
         deadline = time.monotonic() + self.startup_timeout_s
         while not names <= self.board.alive:
+            self.check_stop()
             self.on_liveliness()
             for rp in self.sup.poll():
                 raise UpError(f"role {rp.spec.name} exited with code {rp.exit_codes[-1]} during startup: "
@@ -490,7 +498,12 @@ class Launcher:
             time.sleep(0.05)
         log.info("all %d roles alive after %.1fs", len(self.names), time.monotonic() - self.t_start)
 
+    def check_stop(self) -> None:
+        if self.stop is not None and (by := self.stop()):
+            raise Stopped(by)
+
     def tick(self) -> None:
+        self.check_stop()
         self.on_liveliness()
         for h in self.heartbeats.drain():
             self.on_heartbeat(h)
@@ -569,26 +582,46 @@ class Launcher:
         except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
             log.debug("could not broadcast stop: %s", e)
         deadline = time.monotonic() + 10.0
-        while any(self.sup.alive(n) for n in self.names) and time.monotonic() < deadline:
+        while ((any(self.sup.alive(n) for n in self.names) or self.externals_running())
+               and time.monotonic() < deadline):
             self.sup.poll()
+            self.take_last_heartbeats()
             time.sleep(0.1)
         self.sup.stop_all()
+        self.take_last_heartbeats()
         self.own_rejections = self.rejection_counters(hub)
+
+    def take_last_heartbeats(self) -> None:
+        """The heartbeats that came while the roles stopped: each role's last (`stopped`) carries its
+        final counters, all a role started elsewhere leaves the run directory (links.json)."""
+        for h in self.heartbeats.drain():
+            self.on_heartbeat(h)
+        for ev in self.watch.drain():
+            (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
+
+    def externals_running(self) -> bool:
+        """A role started elsewhere that is still up and has not sent its last heartbeat yet."""
+        return any(n in self.board.alive and getattr(self.board.heartbeats.get(n), "status", None) != "stopped"
+                   for n in self.external)
 
 
 def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,
-                      as_role: str | None = None):
+                      site: Path | None = None, as_role: str | None = None):
     """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
     RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
     RUN/access_control.json, the rules every process applies (a client in another language inserts
-    it into its Zenoh config; docs/wire-format.md). Returns the launcher's own secured transport,
-    as `as_role` (default the launcher; a fleet's launcher is its router, `hub`)."""
+    it into its Zenoh config; docs/wire-format.md). With `site` (a fleet's `--site`): the identities
+    come from the site instead (protocol.identity: the robots' kept ones, the server roles' from its
+    CA), so a restarted fleet admits the robots it admitted before. Returns the launcher's own
+    secured transport, as `as_role` (default the launcher; a fleet's launcher is its router, `hub`)."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
-    from hammer.protocol.identity import create_identities, has_identities, identity_dir
+    from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
 
     roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub)
-    if fresh or not has_identities(identity_dir(run_dir), roles):
+    if site is not None:
+        site_run_identities(site, identity_dir(run_dir), roles)
+    elif fresh or not has_identities(identity_dir(run_dir), roles):
         create_identities(identity_dir(run_dir), roles)
     rules = access_control(Keys(settings.run_id), n_agents, settings.pools(n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))

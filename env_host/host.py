@@ -92,6 +92,7 @@ class EnvHost(Role):
         keys, msg_dim = session.keys, self.wiring.msg_dim
         dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
                     msg_dim=msg_dim or None, echo=echo)  # echo: each action carries its message (training, trace)
+        self.echo = bool(echo and msg_dim)  # ... which each observation asks for (LocalObs.echo)
         self.collector = ActionCollector(session.subscribe(keys.act("*"), Action, dims), self.spec, self.k,
                                          msg_dim, act_deadline_s, self.step_log, reject=self.reject)
         self.links = self.collector.counters
@@ -265,7 +266,8 @@ class EnvHost(Role):
         for i in range(self.n):
             self.obs_out[i].publish(LocalObs(step=step, env_idx=self.env_idx, agent=i,
                                              obs=joint if joint is not None else np.ascontiguousarray(seen[:, i]),
-                                             active=active[:, i], policy_version=version if per is None else int(per[i])))
+                                             active=active[:, i], policy_version=version if per is None else int(per[i]),
+                                             echo=self.echo))
 
     # ----- evaluation ---------------------------------------------------------------------------
     def run_eval(self) -> dict:

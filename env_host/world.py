@@ -27,7 +27,7 @@ from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import Action, LocalObs
 from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
-from hammer.runtime.presence import Presence
+from hammer.runtime.presence import Presence, rejections_by_member
 from hammer.runtime.role import Role
 
 AGES_KEPT = 4096  # per robot: the ages of the latest actions applied (bounded, for percentiles)
@@ -38,7 +38,7 @@ class RealtimeWorld(Role):
 
     def __init__(self, session: HammerSession, env: VecEnv, hz: float, hold_s: float, seed: int,
                  episodes: int | None = None, seconds: float | None = None, startup_s: float = 30.0,
-                 timeline: Path | None = None) -> None:
+                 timeline: Path | None = None, msg_dim: int = 0) -> None:
         super().__init__(session, "env")
         self.env, self.spec, self.k, self.n = env, env.spec, env.num_envs, env.spec.n_agents
         self.clock = Clock(hz)
@@ -48,9 +48,11 @@ class RealtimeWorld(Role):
         self.arrived = np.full(self.n, -np.inf)  # when each robot's latest action arrived
         self.new_action = np.zeros(self.n, bool)  # one came since the last tick
         self.presence = Presence([f"local-{i}" for i in range(self.n)], hold_s, self.log)
+        # every size declared (an action may echo the team's message, msg_dim): a payload larger than a
+        # valid action is refused on arrival, uncopied, so a flood on a robot's key costs no memory
         self.acts = session.subscribe_latest(
             self.keys.act("*"), Action, Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim,
-                                             discrete=self.spec.discrete))
+                                             discrete=self.spec.discrete, msg_dim=msg_dim))
         self.obs_pubs = [session.publisher(self.keys.obs(i), express=True, block=False) for i in range(self.n)]
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self.applied = np.zeros(self.n, np.int64)  # robot-ticks on an action that robot sent
@@ -109,6 +111,7 @@ class RealtimeWorld(Role):
             self.log.info("world clock starts at %g Hz: %d of %d robots present", 1 / self.clock.period,
                           self.presence.present_count(), self.n)
             self.started = self.clock.next = now
+            self.presence.start_clock(now)
             self.new_action[:] = False
             return True
         time.sleep(min(timeout, 0.1))
@@ -146,8 +149,15 @@ class RealtimeWorld(Role):
             self.stop_reason = f"{self.seconds:g} s done"
 
     def on_stop(self) -> None:
+        # while the session is open: the report is written after it closes
+        self._refused = self.refusals()
         if self.timeline is not None:
             self.timeline.close()
+
+    def refusals(self) -> tuple[dict[str, int], dict[str, dict[str, int]]]:
+        """What this world refused, by reason, and per robot whose keys it came on."""
+        return ({k.split(".", 1)[1]: n for k, n in self.rejection_counters().items()},
+                rejections_by_member(self.session.rejections_by_key(), self.presence.names))
 
     def publish_obs(self, tick: int) -> None:
         for i, pub in enumerate(self.obs_pubs):
@@ -157,6 +167,7 @@ class RealtimeWorld(Role):
     def report(self) -> dict:
         """What the run is judged by (the launcher writes it to summary.json)."""
         elapsed = max(time.monotonic() - self.started, 1e-9)
+        refused = getattr(self, "_refused", None) or self.refusals()
         robots = {}
         for i in range(self.n):
             ages = np.asarray(self.ages[i]) * 1e3
@@ -170,4 +181,5 @@ class RealtimeWorld(Role):
                 "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
                 "team_return_mean": self.return_sum / self.episodes if self.episodes else None,
                 "presence": self.presence.counters(), "absences": self.presence.absences(),
+                "rejected": refused[0], "rejected_on": refused[1],
                 "events": list(self.presence.events), "robots": robots}

@@ -18,10 +18,13 @@ import csv
 import json
 import logging
 import math
+import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, fields
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 log = logging.getLogger("hammer.experiments.fault_sweep")
@@ -106,7 +109,17 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
                            msg_deadline_ms=msg_deadline_ms, **faults)
 
 
-def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000) -> PointResult:
+POINT_FILE = "point.json"  # a finished point's result, written last: its presence marks the point done
+
+
+class SweepMismatch(ValueError):
+    """A finished point in `out` was evaluated with other settings than this sweep asks."""
+
+
+def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_seed_base: int = 1000,
+              stop=None) -> PointResult:
+    """Evaluate one point into out/points/<name> (launch's `stop` passed on) and record its result
+    there (POINT_FILE)."""
     from hammer.deploy.up import launch
 
     run = Path(p.run)
@@ -114,16 +127,53 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
     cfg = eval_config(run, episodes, p.seed)
     settings = point_settings(p, msg_deadline_ms, fault_seed_base)
     t0 = time.monotonic()
-    res = launch(cfg, settings, out / "points" / p.name)
-    with open(out / "points" / p.name / "metrics.csv", newline="") as f:
+    point_dir = out / "points" / p.name
+    res = launch(cfg, settings, point_dir, stop=stop)
+    if res.stopped_by is not None:
+        from hammer.deploy.up import Stopped
+
+        raise Stopped(res.stopped_by)
+    with open(point_dir / "metrics.csv", newline="") as f:
         metrics = [float(r["paper_metric"]) for r in csv.DictReader(f)]
     c2l = res.links.get("central->local", {})
     n_entries = max(int(res.summary.get("step", 0)) * cfg.n_agents * cfg.num_envs, 1)
-    return PointResult(team=p.team, variant=cfg.variant, train_msg_dropout=float(trained.get("msg_dropout", 0.0)), drop=p.drop, delay_ms=p.delay_ms, seed=p.seed,
+    r = PointResult(team=p.team, variant=cfg.variant, train_msg_dropout=float(trained.get("msg_dropout", 0.0)), drop=p.drop, delay_ms=p.delay_ms, seed=p.seed,
         episodes=len(metrics), paper_metric=sum(metrics) / len(metrics), msgs_sent=c2l.get("sent", 0),
         msgs_dropped=c2l.get("dropped", 0), msgs_late=c2l.get("late", 0),
         msg_fallback_rate=c2l.get("fallbacks", 0) / n_entries, default_actions=res.links["local->env"]["defaults"],
         wall_s=round(time.monotonic() - t0, 1))
+    asked = {"run": p.run, "episodes": episodes, "msg_deadline_ms": msg_deadline_ms, "fault_seed_base": fault_seed_base}
+    (point_dir / POINT_FILE).write_text(json.dumps({"asked": asked, "result": asdict(r)}, indent=1))
+    return r
+
+
+def finished_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float,
+                   fault_seed_base: int = 1000) -> PointResult | None:
+    """The result of a point finished in an earlier run of this sweep (None: not finished there).
+    A point finished with other settings is an error (SweepMismatch), never silently mixed in."""
+    path = out / "points" / p.name / POINT_FILE
+    try:
+        data = json.loads(path.read_text())
+        r = PointResult(**data["result"])
+        done_with = data["asked"]
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # unreadable: evaluated again
+    asked = {"run": p.run, "episodes": episodes, "msg_deadline_ms": msg_deadline_ms, "fault_seed_base": fault_seed_base}
+    diff = [f"{k}={done_with.get(k)!r} (now {v!r})" for k, v in asked.items() if done_with.get(k) != v]
+    if diff:
+        raise SweepMismatch(f"{path.parent} was evaluated with {', '.join(diff)}; fix: the same arguments as "
+                            f"then, or another --out")
+    return r
+
+
+@dataclass
+class SweepOutcome:
+    results: list[PointResult]  # finished points, this run's and earlier runs' (in grid order)
+    skipped: int = 0  # finished in an earlier run of the sweep
+    failed: list[tuple[str, str]] = field(default_factory=list)  # (point, one-line reason)
+    stopped_by: str | None = None  # the signal that stopped the sweep (the rest did not run)
 
 
 def grid(teams: dict[str, Path], il: Path | None, drops: list[float], delays_ms: list[float],
@@ -139,20 +189,81 @@ def grid(teams: dict[str, Path], il: Path | None, drops: list[float], delays_ms:
 
 
 def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: float, parallel: int = 2,
-              progress: Callable[[PointResult, int, int], None] | None = None) -> list[PointResult]:
-    """Run every point (`parallel` launches at a time: most of a faulty point is waiting on
-    deadlines, not computing) and write sweep.csv / sweep.md / sweep.png into `out`."""
+              progress: Callable[[PointResult, int, int], None] | None = None,
+              note: Callable[[str], None] | None = None,
+              stop_signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> SweepOutcome:
+    """Run every point not finished yet (`parallel` launches at a time: most of a faulty point is
+    waiting on deadlines, not computing) and write sweep.csv / sweep.md / sweep.png of every finished
+    point into `out`. Resumable: a point finished by an earlier run into `out` is taken from its
+    POINT_FILE; an unfinished one (interrupted, failed) is evaluated again from the start (an
+    evaluation has nothing to resume).
+
+    Each of `stop_signals` (main thread only; Ctrl-C, `kill`) stops the sweep at once: no further
+    point starts, the running ones are stopped (launch's `stop`), and what finished is written;
+    SweepOutcome.stopped_by names the signal. A point that fails is reported, not fatal to the rest.
+    `note(text)`: what was found finished, before anything runs."""
     out.mkdir(parents=True, exist_ok=True)
-    results: list[PointResult] = []
-    with ThreadPoolExecutor(max_workers=parallel) as ex:
-        futures = [ex.submit(run_point, p, out, episodes, msg_deadline_ms) for p in points]
-        for f in futures:
-            r = f.result()
-            results.append(r)
-            if progress is not None:
-                progress(r, len(results), len(points))
-    write_outputs(results, out, msg_deadline_ms, episodes)
-    return results
+    outcome = SweepOutcome(results=[])
+    done: dict[Point, PointResult] = {}
+    todo = []
+    for p in points:
+        r = finished_point(p, out, episodes, msg_deadline_ms)
+        if r is None:
+            todo.append(p)
+        else:
+            done[p] = r
+    outcome.skipped = len(done)
+    if done and note is not None:
+        note(f"{len(done)} of {len(points)} evaluation runs already finished in {out / 'points'}; "
+             f"evaluating the other {len(todo)}")
+    stopped: list[str] = []
+
+    def on_signal(signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if stopped:
+            log.warning("%s: already stopping", name)
+        else:
+            stopped.append(name)
+
+    main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, on_signal) for s in stop_signals} if main else {}
+    try:
+        with ThreadPoolExecutor(max_workers=max(1, parallel)) as ex:
+            futures = {}
+            for p in todo:
+                shutil.rmtree(out / "points" / p.name, ignore_errors=True)  # an unfinished evaluation's leftovers
+                futures[ex.submit(run_point, p, out, episodes, msg_deadline_ms,
+                                  stop=lambda: stopped[0] if stopped else None)] = p
+            pending = set(futures)
+            while pending:
+                finished, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+                if stopped:
+                    for f in pending:
+                        f.cancel()  # not started yet: never starts; the running ones stop themselves
+                for f in finished:
+                    p = futures[f]
+                    if f.cancelled():
+                        continue
+                    try:
+                        r = f.result()
+                    except Exception as e:  # noqa: BLE001 - one point's failure is reported, the others go on
+                        if not stopped:
+                            outcome.failed.append((p.name, " ".join(str(e).split()) or type(e).__name__))
+                            log.warning("%s failed: %s", p.name, outcome.failed[-1][1])
+                        continue
+                    except KeyboardInterrupt:  # launch's Stopped: the sweep is stopping
+                        continue
+                    done[p] = r
+                    if progress is not None:
+                        progress(r, len(done), len(points))
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    outcome.stopped_by = stopped[0] if stopped else None
+    outcome.results = [done[p] for p in points if p in done]
+    if outcome.results:
+        write_outputs(outcome.results, out, msg_deadline_ms, episodes)
+    return outcome
 
 
 def _mean_std(xs: list[float]) -> tuple[float, float]:

@@ -6,7 +6,20 @@ on first use, so importing any part of hammer (every module imports this package
 nothing, and an edge device that never calls them never loads them.
 """
 
+import os as _os
+
 __version__ = "0.1.0"
+
+# Installed from a wheel this folder holds every part, `hammer/protocol/...` (pyproject's package-dir).
+# In the repository it holds only the modules above, and the parts are the folders beside it: run from
+# the repository's root (pytest, `python -m hammer` there) or through the editable install's link tree
+# (build/__editable__.*, which links this file), the parts are taken from the checkout itself, so a
+# module added there is found at once.
+_here = _os.path.dirname(_os.path.realpath(__file__))
+_root = _os.path.dirname(_here)
+if not _os.path.isdir(_os.path.join(_here, "protocol")) and _os.path.isfile(_os.path.join(_root, "pyproject.toml")):
+    __path__[:] = [_here, _root]
+del _here, _root
 
 __all__ = ["Bundle", "BundleError", "ConfigError", "RunConfig", "TrainResult", "UpResult", "config", "export",
            "load_bundle", "serve_bundle", "train", "up"]

@@ -44,11 +44,11 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
 
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
-    from hammer.commands import bench, envs, experiments, faults, fleet, protocol, serve, train, up
+    from hammer.commands import bench, envs, experiments, faults, fleet, protocol, serve, site, train, up
     from hammer.commands.hub import hub_command
 
     app.command("hub")(hub_command)
-    for area in (bench, protocol, envs, train, up, experiments, faults, serve, fleet):
+    for area in (bench, protocol, envs, train, up, experiments, faults, serve, fleet, site):
         area.register(app)
 
 
@@ -64,6 +64,11 @@ def main() -> None:
     """Run the CLI; a command that needs the training install, used on an edge install, fails in one line."""
     import sys
 
+    from hammer.commands.edge import is_edge
+    from hammer.commands.edge import main as edge
+
+    if is_edge(sys.argv[1:]):  # `python -m hammer.cli local --bundle ...`: the edge entry, as the console script
+        sys.exit(edge(sys.argv[2:]))
     try:
         app()
     except ModuleNotFoundError as e:

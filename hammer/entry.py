@@ -10,12 +10,9 @@ from __future__ import annotations
 import sys
 
 
-def is_edge(argv: list[str]) -> bool:
-    """`local` with `--bundle` (and not asking for the full CLI's help)."""
-    return argv[:1] == ["local"] and any(a == "--bundle" or a.startswith("--bundle=") for a in argv)
-
-
 def main() -> None:
+    from hammer.commands.edge import is_edge
+
     argv = sys.argv[1:]
     if is_edge(argv):
         from hammer.commands.edge import main as edge

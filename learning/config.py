@@ -157,6 +157,16 @@ _FIXES = {
 }
 
 
+def fields_help() -> str:
+    """Every RunConfig field with its default and description, one paragraph each: the second half of
+    `hammer train --help` and `hammer up --help` (generated here, so it cannot drift from the model)."""
+    out = []
+    for name, f in RunConfig.model_fields.items():
+        default = f.get_default(call_default_factory=True)
+        out.append(f"{name} = {default!r}: {f.description or ''}".rstrip(": "))
+    return "\n\n".join(out)
+
+
 def _format_error(err: ValidationError) -> str:
     parts = []
     for e in err.errors():
@@ -198,6 +208,15 @@ def parse_override(item: str) -> tuple[list[str], Any]:
     return key.split("."), value
 
 
+def yaml_error_text(err: Exception) -> str:
+    """Where and what a YAML error is, for a one-line message: ', line 3, column 10: invalid YAML (expected
+    ',' or ']', but got '<scalar>')' (lines and columns from 1, as an editor counts)."""
+    mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
+    where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    what = " ".join(str(getattr(err, "problem", None) or err.__class__.__name__).split())
+    return f"{where}: invalid YAML ({what})"
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
@@ -205,7 +224,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except yaml.YAMLError as err:
-        raise ConfigError(f"config file '{p}': invalid YAML ({err.__class__.__name__}); fix the syntax") from None
+        raise ConfigError(f"config file '{p}'{yaml_error_text(err)}; fix the syntax there") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file '{p}': top level must be a mapping of field: value")
     return data

@@ -1,4 +1,4 @@
-"""The local policy of a discrete MLP team in pure Python: the lite edge agent's forward and sampling.
+"""The local policy of a discrete MLP team in pure Python: the lite edge agent's forward.
 
 Why: numpy costs the edge agent ~18 MB of its 40 MB budget (docs/deploy.md "Footprint"); a robot
 acting on one env copy (K=1) with a discrete MLP policy needs a few thousand multiply-adds per step,
@@ -11,8 +11,8 @@ without numpy:
   float32 maths keeps them (numpy's BLAS sums in float32 in its own order, so a logit may differ
   in its last bits: the action differs only when a uniform falls within that of a class boundary,
   measured in docs/deploy.md "Footprint");
-- the softmax in float64 and the inverse-CDF draw exactly as `numpy_policy.softmax` and
-  `sampling.categorical_inverse_cdf` compute them (same operations in the same order).
+- the draw: `learning.categorical.draw`, the contract's exact softmax and inverse CDF, which
+  the numpy agent's draw (`sampling.categorical_draw`) equals on every machine.
 
 What it cannot run (a continuous policy, a conv encoder) is refused by `lite_supported`; the edge
 agent then takes the numpy path (serve/edge.py).
@@ -159,22 +159,3 @@ class LiteLocalPolicy:
             if i < last:
                 x = f32([math.tanh(v) for v in x])
         return x
-
-
-def softmax(logits: list[float]) -> list[float]:
-    """`numpy_policy.softmax` of one row: float64, max subtracted, sum in order."""
-    top = max(logits)
-    e = [math.exp(v - top) for v in logits]
-    s = 0.0
-    for v in e:
-        s += v
-    return [v / s for v in e]
-
-
-def categorical_inverse_cdf(probs: list[float], u: float) -> int:
-    """`sampling.categorical_inverse_cdf` of one row: index a with cdf[a-1] <= u < cdf[a]."""
-    c, idx = 0.0, 0
-    for p in probs:
-        c += p
-        idx += c <= u
-    return min(idx, len(probs) - 1)

@@ -54,10 +54,11 @@ def mlp_forward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray, fina
 
 def softmax(logits: np.ndarray) -> np.ndarray:
     """Probabilities in float64 (what `sampling.categorical_inverse_cdf` consumes)."""
-    z = np.asarray(logits, dtype=np.float64)
-    z = z - z.max(axis=-1, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=-1, keepdims=True)
+    e = np.array(logits, dtype=np.float64)  # a copy, computed in place from here (the same maths)
+    e -= e.max(axis=-1, keepdims=True)
+    np.exp(e, out=e)
+    e /= e.sum(axis=-1, keepdims=True)
+    return e
 
 
 def take_last(a: np.ndarray, idx: np.ndarray) -> np.ndarray:

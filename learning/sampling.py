@@ -5,9 +5,11 @@ Every random draw made while acting comes from a named stream
 vector step (the full K, even for absent agents), so a stream's position depends only on the step
 count. The in-process trainer and the distributed runtime (one process per agent) therefore draw
 identical numbers and, given identical logits, take identical actions and send identical messages.
+A categorical action is `categorical.draw(logits, u)` on every machine (`categorical_draw`: exact
+where an exp's last bit could matter), so the plain-Python lite agent draws what numpy draws.
 
 Per vector step with K copies, N agents, A actions, M message length:
-  local agent i     u = rng_local[i].random(K)            categorical by inverse CDF
+  local agent i     u = rng_local[i].random(K)            categorical by inverse CDF (`categorical_draw`)
                     z = rng_local[i].standard_normal((K, A))  Gaussian: a = mean + std * z
   central (rl)      z = rng_central.standard_normal((K, N, M)); u = clip(mean + msg_std z, -1, 1)
   central (random)  u = rng_central.uniform(-1, 1, (K, N, M))
@@ -19,6 +21,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from hammer.learning import categorical
+from hammer.learning.numpy_policy import softmax
 
 LOCAL_STREAM = 1
 CENTRAL_STREAM = 2
@@ -36,6 +40,27 @@ def categorical_inverse_cdf(probs: np.ndarray, u: np.ndarray) -> np.ndarray:
     cdf = np.cumsum(probs, axis=-1)
     idx = (cdf <= u[..., None]).sum(axis=-1)
     return np.minimum(idx, probs.shape[-1] - 1).astype(np.int64)
+
+
+def categorical_draw(logits: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(action, probs): the categorical draw of the contract for logits (..., A) and uniforms (...),
+    and the float64 softmax it was drawn from (what a log-probability is taken of).
+
+    The action is `categorical.draw` of each row, the same on every machine: numpy's softmax (its
+    exp is the CPU's) decides every row whose uniform lies at least `categorical.MARGIN` from its
+    CDF values, and a row closer than that is drawn by the exact softmax in plain Python (rare:
+    about 1e-8 of the draws). The returned probabilities are numpy's."""
+    probs = softmax(logits)
+    # cdf - u for all CDF values but the last (the action counts those at or below u; the last
+    # would only count past A - 1, which the index is clipped to anyway)
+    gap = np.cumsum(probs[..., :-1], axis=-1)
+    gap -= u[..., None]
+    idx = (gap <= 0).sum(axis=-1).astype(np.int64, copy=False)
+    near = np.abs(gap, out=gap)
+    if near.size and not near.min() >= categorical.MARGIN:  # `not >=`: a nan row is drawn exactly too
+        rows = ~(near >= categorical.MARGIN).all(axis=-1)
+        idx[rows] = [categorical.draw(row, x) for row, x in zip(np.asarray(logits)[rows].tolist(), u[rows].tolist())]
+    return idx, probs
 
 
 def env_reset_seed(seed: int, update: int) -> int:

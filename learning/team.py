@@ -11,6 +11,8 @@ All acting randomness goes through `learning.sampling.ActingStreams` (the random
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from hammer.envs.base import EnvSpec
@@ -19,9 +21,12 @@ from hammer.learning.central_acting import CentralActing, CentralOut, encode_act
 from hammer.learning.config import ConfigError, RunConfig
 from hammer.learning.fused_acting import FusedActing
 from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
-from hammer.learning.numpy_policy import gaussian_logp_of_draw, softmax, take_last
+from hammer.learning.numpy_policy import gaussian_logp_of_draw, numpy_central, softmax, take_last
 from hammer.learning.run_env import check_env_fits
-from hammer.learning.sampling import ActingStreams, categorical_inverse_cdf
+from hammer.learning.sampling import ActingStreams, categorical_draw
+
+# (message_mean, values): state (K, S) -> (K, N, M) message means, (K, N) central values
+_CentralForward = tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]]
 
 
 def torch_device(cfg: RunConfig) -> torch.device:
@@ -67,6 +72,8 @@ class Team:
         self.local.to(self.device)
         if self.central is not None:
             self.central.to(self.device)
+        # every tensor of the central network (buffers too, as export_numpy writes them), by name
+        self._central_tensors = list(self.central.state_dict(keep_vars=True).items()) if self.central else []
         self._eye = torch.eye(self.n, device=self.device)
         self.acting = CentralActing.from_config(cfg)
         # What a local agent may see of the full observation (identity unless env_kwargs asks):
@@ -115,19 +122,38 @@ class Team:
         return t.detach().cpu().numpy()
 
     # ----- central agent ------------------------------------------------------------------------
+    def central_forward(self) -> _CentralForward:
+        """The central network's forward on host arrays: (message_mean, values).
+
+        On the CPU it is the central server's own (`numpy_policy.numpy_central`, what `hammer up`
+        runs) over views of this team's current weights, taken at each call (so always the weights
+        of now: updated in place, loaded or swapped): the messages, their log-densities and the
+        critic values the trainer acts and learns on are then the very numbers the central server
+        of a `hammer up` run sends and records, on any CPU. torch computes the same function with
+        other kernels (MKL's, its own tanh): the two agree to ~1e-7, and PPO's clipping turns such
+        a difference into a different update now and then (tests/test_exactness.py). On a GPU the
+        torch forward runs on the device."""
+        if self.device.type == "cpu":
+            net = numpy_central({name: t.detach().cpu().numpy() for name, t in self._central_tensors})
+            return net.message_mean, net.values
+        return (lambda s: self.host(self.central.message_mean(self.tensor(s))),
+                lambda s: self.host(self.central.values(self.tensor(s))))
+
     def _message_mean(self, state: np.ndarray) -> np.ndarray:
-        return self.host(self.central.message_mean(self.tensor(state)))
+        return self.central_forward()[0](state)
 
     def _values(self, state: np.ndarray) -> np.ndarray:
-        return self.host(self.central.values(self.tensor(state)))
+        return self.central_forward()[1](state)
 
     @torch.inference_mode()
     def central_messages(self, state: np.ndarray, streams: ActingStreams, dropout: float = 0.0) -> CentralOut:
-        """Messages for every agent of every copy from the global state (K, S): the torch forward,
-        then the sampling the central server runs after its numpy forward (`CentralActing`)."""
-        net = self.central is not None
-        return self.acting.messages(state, streams, dropout, self._message_mean if net else None,
-                                    self._values if self.central_rl else None)
+        """Messages for every agent of every copy from the global state (K, S): the central
+        network's forward (`central_forward`: the central server's on the CPU), then the sampling
+        the central server runs after it (`CentralActing`)."""
+        if self.central is None:
+            return self.acting.messages(state, streams, dropout, None, None)
+        mean, values = self.central_forward()
+        return self.acting.messages(state, streams, dropout, mean, values if self.central_rl else None)
 
     @torch.inference_mode()
     def bootstrap_messages(self, state: np.ndarray) -> np.ndarray:
@@ -171,8 +197,7 @@ class Team:
         k = out.shape[0]
         if self.discrete:
             u = streams.local_uniforms(k)
-            probs = softmax(out)  # float64, as the randomness contract specifies
-            action = categorical_inverse_cdf(probs, u)
+            action, probs = categorical_draw(out, u)  # float64, as the randomness contract specifies
             logp = np.log(take_last(probs, action)).astype(np.float32)
             return action, logp, value
         z = streams.local_normals(k, self.act_dim)

@@ -22,8 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from hammer.learning.numpy_policy import NumpyLocalPolicy, params_from_blob, softmax
-from hammer.learning.sampling import LOCAL_STREAM, categorical_inverse_cdf, stream
+from hammer.learning.numpy_policy import NumpyLocalPolicy, params_from_blob
+from hammer.learning.sampling import LOCAL_STREAM, categorical_draw, stream
 from hammer.local_agent.steps import (  # noqa: F401 - re-exported: the names every driver of an agent imports from here
     MSG_EVENTS,
     OBS_EVENTS,
@@ -99,7 +99,7 @@ class LocalAgent:
         stacked forward for all its agents."""
         k = out.shape[0]
         if self.spec.discrete:
-            return categorical_inverse_cdf(softmax(out), self.rng.random(k))
+            return categorical_draw(out, self.rng.random(k))[0]
         z = self.rng.standard_normal((k, self.spec.action_dim))
         return (out + self.policy.std * z).astype(np.float32)
 
@@ -114,8 +114,8 @@ class AgentSteps(StepCore):
     A subclass provides `step_log`, `action_pub`, `reject` and `progressed`."""
 
     def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
-                   start_step: int | None = None, echo: bool = True) -> None:
-        self.init_core(spec, step_window, start_step, echo)
+                   start_step: int | None = None) -> None:
+        self.init_core(spec, step_window, start_step)
         self.agent = LocalAgent(spec)
         self.fallback = MessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
 

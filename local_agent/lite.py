@@ -6,10 +6,11 @@ MLP policy, one env copy: the usual robot) the edge agent runs this instead of
 `client.LocalAgentClient`: the same process core (`steps.ClientCore`: step window, message
 deadline and matching, fallbacks, weights intake, counters, step log, heartbeat), the same wire
 (protocol/schemas.py, its arrays checked in pure Python as `WireArray`s), and acting in plain
-Python: the forward of learning/lite_policy.py and the agent's own stream by learning/pcg64.py,
-numpy's PCG64 draw for draw. An action differs from the numpy agent's only where a float32 logit
-differs in its last bits and the uniform falls within that of a class boundary (measured:
-docs/deploy.md "Footprint").
+Python: the forward of learning/lite_policy.py, the agent's own stream by learning/pcg64.py,
+numpy's PCG64 draw for draw, and the contract's draw (learning/categorical.py, the numpy agent's
+for the same logits on every machine). An action differs from the numpy agent's only where a
+float32 logit differs in its last bits and the uniform falls within that of a class boundary
+(measured: docs/deploy.md "Footprint").
 
 It handles any K correctly (lists of rows), but costs a Python loop per copy: the edge entry picks
 it only at K=1 (`serve.edge.lite_choice`).
@@ -19,7 +20,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from hammer.learning.lite_policy import LiteLocalPolicy, categorical_inverse_cdf, softmax
+from hammer.learning.categorical import draw
+from hammer.learning.lite_policy import LiteLocalPolicy
 from hammer.learning.pcg64 import LOCAL_STREAM, lite_stream
 from hammer.local_agent.steps import MSG_EVENTS, AgentSpec, ClientCore, StepCore
 from hammer.protocol.fields import WireArray
@@ -69,18 +71,18 @@ class LiteLocalAgent:
         """One action id per env copy, from the rows of its observation and message (float32 values)."""
         if self.policy is None:
             raise RuntimeError("no policy weights loaded yet")
-        probs = [softmax(self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else [])))
-                 for j, row in enumerate(obs)]
+        logits = [self.policy.logits(row + self._onehot + (msg[j] if self.spec.msg_dim else []))
+                  for j, row in enumerate(obs)]
         u = self.rng.random(len(obs))  # after the forward, as the numpy agent draws
-        return [categorical_inverse_cdf(p, x) for p, x in zip(probs, u)]
+        return [draw(z, x) for z, x in zip(logits, u)]
 
 
 class LiteSteps(StepCore):
     """`client.AgentSteps` on lists: the message of each copy, received or a fallback."""
 
     def init_steps(self, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int, step_window: int,
-                   start_step: int | None = None, echo: bool = True) -> None:
-        self.init_core(spec, step_window, start_step, echo)
+                   start_step: int | None = None) -> None:
+        self.init_core(spec, step_window, start_step)
         self.agent = LiteLocalAgent(spec)
         self.fallback = LiteMessageFallback(fallback, fallback_k, num_envs, spec.msg_dim)
 
@@ -135,7 +137,7 @@ class LiteLocalAgentClient(LiteSteps, ClientCore):
         k, m = obs.k, self.spec.msg_dim
         actions = self.agent.act(obs.obs.tolist(), msg)
         wire_msg: Any = None
-        if msg is not None:
+        if msg is not None and obs.echo:  # the env host records it (training, a trace)
             wire_msg = WireArray.of("float32", (k, m), [x for row in msg for x in row])
         self.publish_action(obs, WireArray.of("int64", (k,), actions), wire_msg,
                             WireArray.of("bool", (k,), fallback_mask))

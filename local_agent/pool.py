@@ -45,7 +45,7 @@ from hammer.protocol.ranges import parse_indices
 from hammer.protocol.schemas import CentralMsg, Heartbeat, LocalObs
 from hammer.protocol.session import HammerSession, Inbox, burst_express, io_counters
 from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
-from hammer.runtime.role import Role
+from hammer.runtime.role import Role, final_heartbeat_publisher
 from hammer.runtime.weights import WeightsIntake
 
 
@@ -59,8 +59,8 @@ class PooledAgent(AgentSteps):
 
     def __init__(self, pool: LocalAgentPool, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
                  step_window: int, step_log_dir: Path | None, faults: FaultSpec | None,
-                 start_step: int | None = None, echo: bool = True) -> None:
-        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step, echo)
+                 start_step: int | None = None) -> None:
+        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step)
         self.pool, self.name = pool, f"local-{spec.agent}"
         self.rejected: collections.Counter[str] = collections.Counter()
         self.faults = FaultInjector(faults) if faults is not None and faults.enabled else None
@@ -137,7 +137,7 @@ class LocalAgentPool(Role):
                  faults: FaultSpec | None = None, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
                  max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None, echo: bool = True) -> None:
+                 start_version: int | None = None) -> None:
         if session.faults is not None:
             raise ValueError("an agent pool's session must not have a fault layer: pass the FaultSpec as "
                              "`faults=` (each agent gets its own injector)")
@@ -146,7 +146,7 @@ class LocalAgentPool(Role):
         self.stall_what = "observations"
         self.inbox = Inbox()
         self.members = [PooledAgent(self, spec, num_envs, fallback, fallback_k, step_window, step_log_dir, faults,
-                                    start_step, echo) for spec in specs]
+                                    start_step) for spec in specs]
         self._route = {}
         for m in self.members:
             self._route[m.observations] = (m, self.on_obs)
@@ -269,13 +269,13 @@ class LocalAgentPool(Role):
         """One heartbeat per agent, as a single-agent process sends it (the launcher, the env host's
         eval start and the link table read `local-<i>`), and each agent's step log flushed."""
         now = time.monotonic()
-        if now - self._last_heartbeat <= self.heartbeat_every_s:
+        if status != "stopped" and now - self._last_heartbeat <= self.heartbeat_every_s:
             return
         self._last_heartbeat = now
         detail = self.stall_detail()
         for m in self.members:
             counters = {**m.counters(), **m.rejection_counters(), **m.fault_counters()}
-            m.heartbeat_pub.publish(Heartbeat(role=m.name, pid=os.getpid(), status=status,
+            final_heartbeat_publisher(self.session, m.name, m.heartbeat_pub, status).publish(Heartbeat(role=m.name, pid=os.getpid(), status=status,
                                               counters=dict(list(counters.items())[:64]), gauges=m.gauges(),
                                               detail=detail))
             m.step_log.flush()

@@ -76,11 +76,10 @@ class StepCore:
     `progressed` (`init_core` sets the rest). numpy-free: the numpy agent (`client.AgentSteps`) and
     the lite edge agent (`lite.LiteSteps`, no numpy) share it."""
 
-    def init_core(self, spec: AgentSpec, step_window: int, start_step: int | None = None, echo: bool = True) -> None:
+    def init_core(self, spec: AgentSpec, step_window: int, start_step: int | None = None) -> None:
         """What every driver of an agent sets up, whatever its arrays are (`init_steps` of a subclass adds
         its acting core `agent` and its message `fallback`)."""
         self.spec = spec
-        self.echo = echo  # send back the message acted on (RuntimeSettings.echo: training, or a trace)
         self.counts = LocalCounters()
         self.pending: dict[int, CentralMsg] = {}  # messages for steps not acted on yet
         self.seen: set[int] = set()  # steps whose message arrived (recent ones): a second copy is a duplicate
@@ -111,7 +110,7 @@ class StepCore:
         publisher of the same key (a pool's non-express one, inside a burst)."""
         (pub or self.action_pub).publish(Action(step=obs.step, env_idx=obs.env_idx, agent=self.spec.agent, action=action,
                                        policy_version=max(self.agent.version, 0), fallback=fallback_mask,
-                                       msg=msg if self.echo else None))
+                                       msg=msg if obs.echo else None))  # the env host records it
         self.last_step = obs.step
         self.counts.steps += 1
         self.step_log.add(obs.step, OBS_EVENTS["delivered"])
@@ -157,11 +156,11 @@ class ClientCore(StepCore, Role):
                  msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
                  step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
                  max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None, echo: bool = True) -> None:
+                 start_version: int | None = None) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, step_log_columns())
         super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
-        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step, echo)
+        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step)
         self.msg_deadline_s = msg_deadline_s
         self.stall_what = "observations"
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,

@@ -88,7 +88,10 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
     run's agent pools, each granted exactly its agents' keys (`pool_grant`); `router`: the roles meet
     through a `hammer hub` router, which relays for everyone (and so is trusted with all)."""
     g = {
-        LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.heartbeat("*"),), watch_liveliness=True),
+        # ctl/all: in a plain run the launcher hears the env host's end-of-budget stop (the roles that go
+        # after it are stopping, not failing); a secure run's rules drop that stop, and the launcher stops all
+        LAUNCHER: Grant(publish=(keys.ctl("all"),), subscribe=(keys.ctl("all"), keys.heartbeat("*")),
+                        watch_liveliness=True),
         "env": Grant(
             publish=(keys.obs("*"), keys.state(), keys.exp("team"), keys.heartbeat("env")),
             subscribe=(keys.act("*"), keys.weights("local"), keys.weights_announce("local"), keys.ctl("all"),

@@ -194,7 +194,7 @@ def _expected_types(expected: Expected) -> tuple[type[Message], ...]:
 
 
 _PATH = re.compile(r" - at `(?:key` in `)?\$\[(\d+)\]([^`]*)`$")
-_LENGTH = re.compile(r"Expected `array` of at (least|most) length \d+, got (\d+)$")
+_LENGTH = re.compile(r"Expected `array` of at (least|most) length (\d+), got (\d+)$")
 
 
 def _from_validation_error(e: msgspec.ValidationError, cls: type[Message]) -> ProtocolError:
@@ -215,11 +215,12 @@ def _from_validation_error(e: msgspec.ValidationError, cls: type[Message]) -> Pr
             text = text[:m.start()]
         return FieldError(text, field)
     if m := _LENGTH.search(text):
-        got = int(m[2])
+        got = int(m[3])
         if m[1] == "least":
             return FieldError(f"missing (the message has {got - 1} of its fields)",
                               names[got] if got < len(names) else None)
-        return FieldError(f"unknown: {got - len(names)} more fields than {cls.TYPE} has", None)
+        # msgspec counts a tagged message's elements after the type tag, both the most and what came
+        return FieldError(f"unknown: {got - int(m[2])} more element(s) than {cls.TYPE} has", None)
     return FieldError(text, None)
 
 

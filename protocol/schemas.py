@@ -67,7 +67,7 @@ if TYPE_CHECKING:
 # edge agent, which keeps its arrays as `WireArray`s checked in pure Python (protocol/fields.py).
 np: Any = None
 
-SCHEMA_VERSION = 5  # 5: WeightsAnnounce and WeightsChunk (a push pulled in paced chunks)
+SCHEMA_VERSION = 6  # 6: LocalObs.echo (the env host says whether it wants the message acted on back)
 
 # Scalar wire types (msgspec checks them while decoding).
 NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
@@ -281,6 +281,10 @@ class LocalObs(Message, tag=1, kw_only=True):
     obs: Arr(OBS2, "(K, D) float32")
     policy_version: Annotated[NonNegInt, Meta(
         description="policy version the agent must act with (on-policy sync)")] = 0
+    # Said by the env host, the one that records (training, a trace), so that an agent needs no setting
+    # of its own to know it: an edge agent joins a served run with nothing but a bundle and a run id.
+    echo: Annotated[bool, Meta(description="send the message acted on back in the action's `msg`: the env host "
+                                           "records it (training, or a trace)")] = False
     active: Arr(BOOL1, "(K,) bool: the agent is present in that copy; nil: in every copy") | None = None
 
     @classmethod

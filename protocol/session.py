@@ -55,6 +55,7 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 # flushes: the loop floor of many agents falls, that of three does not (`hammer bench loop-floor`,
 # figures in docs/scale.md). Shorter bursts stay express.
 BATCH_MIN = 5
+DECLARED_KEYS_ENV = "HAMMER_DECLARED_KEYS"  # a directory: each session writes the keys it declared there at close
 
 
 def query_parameters(text: str) -> dict[str, str]:
@@ -238,6 +239,7 @@ class TransportConfig(Model):
 
 
 QUEUE_DEPTH = 256  # payloads held per key by default before the newest are dropped (see _QueueSub)
+KEYS_TRACKED = 64  # (key, reason) pairs a subscription tallies its refusals under (SubscriptionStats.by_key)
 
 
 @dataclass
@@ -252,6 +254,18 @@ class SubscriptionStats:
     overflow: int = 0
     decode_s: float = 0.0  # wall time in decode + validation (hammer bench scale: where a step's time goes)
     rejected: collections.Counter = field(default_factory=collections.Counter)
+    # refusals (overflow included) per (key, reason): which robot's keys a flood or a forgery came on,
+    # so a verdict can name the key that was attacked; at most KEYS_TRACKED keys, the rest as "*"
+    by_key: collections.Counter = field(default_factory=collections.Counter)
+
+    def refused(self, key: str, reason: str) -> None:
+        if reason == "overflow":
+            self.overflow += 1
+        else:
+            self.rejected[reason] += 1
+        if (key, reason) not in self.by_key and len(self.by_key) >= KEYS_TRACKED:
+            key = "*"  # a wildcard subscription may see keys without end in a plain run: the tally stays bounded
+        self.by_key[(key, reason)] += 1
 
     @property
     def rejected_total(self) -> int:
@@ -286,7 +300,7 @@ class _QueueSub:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: copy the bytes out and return; never decode or block here.
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
-            self.stats.rejected["size"] += 1  # Counter update on one key: atomic enough under the GIL
+            self.stats.refused(str(sample.key_expr), "size")  # Counter updates: atomic enough under the GIL
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
             return
@@ -297,7 +311,7 @@ class _QueueSub:
                 if not full:
                     self._pending[key] += 1
             if full:
-                self.stats.overflow += 1
+                self.stats.refused(key, "overflow")
                 if self.stats.overflow <= 10 or self.stats.overflow % 1000 == 0:
                     log.warning("queue of %s full (%d): dropped the newest payload (#%d)", key, self._maxsize,
                                 self.stats.overflow)
@@ -373,7 +387,7 @@ class Subscription(_QueueSub):
                 msg.check_dims(self.dims)
         except ProtocolError as e:
             self.stats.decode_s += time.perf_counter() - t0
-            self.stats.rejected[e.reason] += 1
+            self.stats.refused(key, e.reason)
             n = self.stats.rejected[e.reason]
             if n <= 10 or n % 1000 == 0:
                 log.warning("rejected message #%d (%s) on %s: %s%s", n, e.reason, self.key_expr, e,
@@ -431,7 +445,7 @@ class LatestSubscription(Subscription):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self.cap is not None and (n := len(sample.payload)) > self.cap:
-            self.stats.rejected["size"] += 1
+            self.stats.refused(str(sample.key_expr), "size")
             if self.stats.rejected["size"] <= 10:
                 log.warning("rejected oversize message (%d bytes, cap %d) on %s", n, self.cap, sample.key_expr)
             return
@@ -615,6 +629,10 @@ class HammerSession:
         self._tokens: list[Any] = []
         self._queryables: list[Any] = []
         self._lock = threading.Lock()
+        # What this session declared: (publish | subscribe | query | answer | alive | watch, key expression).
+        # With HAMMER_DECLARED_KEYS=DIR each session writes it to DIR at close: an audit of what a run's
+        # processes use against its access rules (tests/test_key_table.py; docs/security.md).
+        self.declared: set[tuple[str, str]] = set()
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -638,6 +656,7 @@ class HammerSession:
         """Flush the fault layer, undeclare everything and close the Zenoh session."""
         if self._z is None:
             return
+        self._write_declared()
         if self.faults is not None:
             self.faults.close()
         for s in self._subs:
@@ -652,6 +671,17 @@ class HammerSession:
         self._publishers.clear()
         self._z.close()
         self._z = None
+
+    def _write_declared(self) -> None:
+        directory = os.environ.get(DECLARED_KEYS_ENV)
+        if not directory:
+            return
+        try:
+            path = Path(directory) / f"{self.sender}-{os.getpid()}-{id(self)}.json"
+            path.write_text(json.dumps({"sender": self.sender, "run": self.run_id,
+                                        "declared": sorted(self.declared)}))
+        except OSError as e:  # an audit aid: never what stops a role
+            log.warning("could not write the declared keys to %s: %s", directory, e)
 
     @property
     def zenoh(self) -> zenoh.Session:
@@ -676,6 +706,7 @@ class HammerSession:
         what counts and a dead link must never hold up the sender (a fleet's control streams:
         with BLOCK, one robot's cut link backs up into the publisher and stalls everyone)."""
         self._own(key)
+        self.declared.add(("publish", key))
         block = reliable if block is None else block
         with self._lock:
             pub = self._publishers.get((key, reliable, express, block))
@@ -706,6 +737,7 @@ class HammerSession:
         0: unbounded (only for a consumer that never falls behind by design).
         inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
         sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -714,6 +746,7 @@ class HammerSession:
                          max_bytes: int | None = None) -> LatestSubscription:
         """The newest valid message of each key on `key_expr` with its arrival time (`take()`)."""
         sub = LatestSubscription(self._own(key_expr), expected, dims, self.run_id, max_bytes)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -729,7 +762,11 @@ class HammerSession:
         republish. `current` runs on a Zenoh thread: it must only hand over what it has.
         parameters=True: `current(params)` gets the query's parameters (`key?v=3&i=0`) as a dict of
         strings, untrusted (the asker chose them): at most 8, each name and value at most 32 characters."""
-        pub = self.publisher(key)
+        published = ("publish", key) in self.declared
+        pub = self.publisher(key)  # its stamp only: a reply is not a publication
+        if not published:
+            self.declared.discard(("publish", key))
+        self.declared.add(("answer", key))
 
         def on_query(query: zenoh.Query) -> None:
             msgs = current(query_parameters(str(query.parameters))) if parameters else current()
@@ -750,10 +787,12 @@ class HammerSession:
             if ok is not None:
                 into._on_sample(ok)
 
+        self.declared.add(("query", key))
         self.zenoh.get(self._own(key) + (f"?{parameters}" if parameters else ""), on_reply, timeout=timeout)
 
     def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)
+        self.declared.add(("subscribe", key_expr))
         sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
         self._subs.append(sub)
         return sub
@@ -764,12 +803,14 @@ class HammerSession:
         """Declare this process's liveliness token `hammer/<run>/alive/<role>`. It disappears
         when undeclared, when the session closes, or when the process dies."""
         token = self.zenoh.liveliness().declare_token(self.keys.alive(role))
+        self.declared.add(("alive", self.keys.alive(role)))
         self._tokens.append(token)
         return token
 
     def watch_alive(self, history: bool = True) -> LivelinessWatch:
         """Events for every role of this run going alive / dead (history: also those already alive)."""
         watch = LivelinessWatch(self.keys)
+        self.declared.add(("watch", self.keys.alive("**")))
         watch._zsub = self.zenoh.liveliness().declare_subscriber(
             self.keys.alive("**"), watch._on_sample, history=history
         )
@@ -778,6 +819,7 @@ class HammerSession:
 
     def alive_roles(self, timeout: float = 1.0) -> set[str]:
         """Roles of this run whose liveliness token is currently declared."""
+        self.declared.add(("watch", self.keys.alive("**")))
         replies = self.zenoh.liveliness().get(self.keys.alive("**"), timeout=timeout)
         roles = set()
         for reply in replies:
@@ -795,6 +837,18 @@ class HammerSession:
                 if stats.overflow:
                     total["overflow"] += stats.overflow
         return dict(total)
+
+    def rejections_by_key(self) -> dict[str, dict[str, int]]:
+        """Payloads this session's subscriptions refused, per key (without the run's prefix) and
+        reason: {"agent/act/1": {"size": 12}}; keys beyond what a subscription tallies as "*"."""
+        out: dict[str, collections.Counter[str]] = {}
+        skip = len(self.keys.prefix) + 1
+        for sub in self._subs:
+            stats = getattr(sub, "stats", None)
+            if isinstance(sub, Subscription) and stats is not None:
+                for (key, reason), n in list(stats.by_key.items()):
+                    out.setdefault(key[skip:] if key != "*" else key, collections.Counter())[reason] += n
+        return {k: dict(v) for k, v in out.items()}
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         return self.faults.report() if self.faults is not None else {}

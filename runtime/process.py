@@ -50,6 +50,28 @@ def setup_process(role: str, run_dir: Path | None = None) -> None:
     signal.signal(signal.SIGINT, on_term)
 
 
+M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter
+MMAP_THRESHOLD_BYTES = 128 << 10  # glibc's own starting value
+
+
+def return_large_blocks() -> bool:
+    """Make glibc give every block of 128 KiB or more back to the system when it is freed (False where
+    the C library is not glibc: nothing changed). Why: glibc raises its mmap threshold to the size of
+    each large block freed, up to 32 MiB, so after a flood of multi-MiB messages (which Zenoh
+    reassembles before a subscriber refuses them by size) the next ones are carved from the heap and
+    stay there: +1-2 MiB of RSS kept after a 4 MiB flood (docs/fleet.md, "Bounded under attack").
+    A fixed threshold turns the adjustment off. For the long-lived processes that face robots (a
+    fleet's world and central agent), not for training (torch's tensors would pay a mmap each)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    except (OSError, AttributeError):
+        return False
+
+
 def _log_max_mb(run_dir: Path | None) -> float:
     try:
         return float(json.loads((Path(run_dir) / "runtime.json").read_text()).get("log_max_mb", LOG_MAX_MB))

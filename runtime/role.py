@@ -133,7 +133,10 @@ class Role:
 
     def rejection_counters(self) -> dict[str, int]:
         """Every rejection of this process by reason: the role's own and its subscriptions'."""
-        return rejection_counters(self.session.rejection_counts(), self.rejected)
+        from hammer.protocol.transport_log import refused_counts
+
+        return {**rejection_counters(self.session.rejection_counts(), self.rejected),
+                **{f"refused.{r}": n for r, n in refused_counts().items()}}  # strangers Zenoh turned away
 
     def fault_report(self) -> dict[str, dict[str, int]]:
         """What the fault layer did to this role's publishes (an agent pool: each agent's own)."""
@@ -181,17 +184,18 @@ class Role:
         return self.stop_reason is not None
 
     def heartbeat(self, status: HeartbeatStatus = "running") -> None:
-        """Publish the counters if `heartbeat_every_s` has passed since the last heartbeat."""
+        """Publish the counters if `heartbeat_every_s` has passed since the last heartbeat (status
+        `stopped`: at once, the last one)."""
         now = time.monotonic()
-        if now - self._last_heartbeat <= self.heartbeat_every_s:
+        if status != "stopped" and now - self._last_heartbeat <= self.heartbeat_every_s:
             return
         self._last_heartbeat = now
         counters = {**self.counters(), **self.rejection_counters()}
         if self.report_faults:
             counters = {**counters, **flat_fault_counters(self.fault_report())}
-        self._heartbeat_pub.publish(Heartbeat(role=self.name, pid=os.getpid(), status=status,
-                                              counters=dict(list(counters.items())[:64]),
-                                              gauges=self.gauges(), detail=self.stall_detail()))
+        final_heartbeat_publisher(self.session, self.name, self._heartbeat_pub, status).publish(
+            Heartbeat(role=self.name, pid=os.getpid(), status=status, counters=dict(list(counters.items())[:64]),
+                      gauges=self.gauges(), detail=self.stall_detail()))
         if self.step_log is not None:
             self.step_log.flush()
         if now - self._last_progress_log >= self.progress_every_s:
@@ -223,7 +227,17 @@ class Role:
         if self.step_log is not None:
             self.step_log.flush()
         self.on_stop()
+        self.heartbeat("stopped")
         self.log.info("%s stopped: %s", self.name, self.stop_reason)
+
+
+def final_heartbeat_publisher(session: HammerSession, name: str, periodic, status: str):
+    """Where a heartbeat goes: the periodic ones best effort (telemetry), the last one (`stopped`, the
+    role's final counters, which a launcher keeps for a role started elsewhere) reliably, so that
+    closing the session right after it does not lose it."""
+    if status != "stopped":
+        return periodic
+    return session.publisher(session.keys.heartbeat(name), reliable=True, block=False, express=True)
 
 
 def rejection_counters(*counts: dict[str, int]) -> dict[str, int]:

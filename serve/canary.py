@@ -41,6 +41,7 @@ from pathlib import Path
 
 from hammer.runtime.pushes import HEALTH, assignment
 from hammer.serve.bundle import BundleError
+from hammer.serve.gate_defaults import GATE_DEFAULTS as D
 from hammer.serve.push import _served, append_entry, check_push, read_history, record_push, rollback
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -56,18 +57,18 @@ class Gate(BaseModel):
     """The limits of a staged rollout (`--gate NAME=VALUE,...`); defaults suit a cn3/mw3 team."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    window_episodes: int = Field(100, ge=1, description="episodes per window (the baseline, each stage, the hold)")
-    metric: str = Field("paper_metric", pattern="^(paper_metric|team_return)$")
-    metric_drop: float = Field(0.15, ge=0.0, description="largest drop of the team metric, relative to the "
+    window_episodes: int = Field(D["window_episodes"], ge=1, description="episodes per window (the baseline, each stage, the hold)")
+    metric: str = Field(D["metric"], pattern="^(paper_metric|team_return)$")
+    metric_drop: float = Field(D["metric_drop"], ge=0.0, description="largest drop of the team metric, relative to the "
                                                            "window before the push")
-    metric_z: float = Field(2.0, ge=0.0, description="a drop also fails only if it exceeds this many standard "
+    metric_z: float = Field(D["metric_z"], ge=0.0, description="a drop also fails only if it exceeds this many standard "
                                                      "errors of the difference of the two windows' means")
-    default_rate: float = Field(0.02, ge=0.0, le=1.0, description="canary minus rest: share of default actions")
-    fallback_rate: float = Field(0.05, ge=0.0, le=1.0, description="canary minus rest: share acted on a fallback")
-    latency_ms: float = Field(20.0, ge=0.0, description="canary minus rest: mean action latency")
-    rejected: float = Field(0.0, ge=0.0, description="canary minus rest: rejected messages per agent")
-    crashes: float = Field(0.0, ge=0.0, description="canary minus rest: restarts + leaves per agent")
-    timeout_s: float = Field(600.0, gt=0.0, description="a window that does not fill in this time rolls back")
+    default_rate: float = Field(D["default_rate"], ge=0.0, le=1.0, description="canary minus rest: share of default actions")
+    fallback_rate: float = Field(D["fallback_rate"], ge=0.0, le=1.0, description="canary minus rest: share acted on a fallback")
+    latency_ms: float = Field(D["latency_ms"], ge=0.0, description="canary minus rest: mean action latency")
+    rejected: float = Field(D["rejected"], ge=0.0, description="canary minus rest: rejected messages per agent")
+    crashes: float = Field(D["crashes"], ge=0.0, description="canary minus rest: restarts + leaves per agent")
+    timeout_s: float = Field(D["timeout_s"], gt=0.0, description="a window that does not fill in this time rolls back")
 
 
 def parse_gate(items: list[str], window_episodes: int | None = None) -> Gate:

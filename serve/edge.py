@@ -183,7 +183,7 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
                                       settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
                                       step_log_dir=step_log_dir, step_window=settings.step_window,
                                       max_policy_lag=settings.max_policy_lag, start_step=start_step,
-                                      start_version=start_version, echo=settings.echo)
+                                      start_version=start_version)
             client.stall_warn_s = settings.stall_warn_s
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
@@ -336,7 +336,7 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
                 client = LocalAgentClient(session, spec, num_envs, settings.fallback, settings.fallback_k,
                                           settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
                                           step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
-                                          idle_exit_s=STAY_IDLE_S if stay else None, echo=settings.echo)
+                                          idle_exit_s=STAY_IDLE_S if stay else None)
                 client.stall_warn_s = settings.stall_warn_s
                 stop.client = client
                 if stop.by is not None:

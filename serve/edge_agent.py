@@ -109,6 +109,7 @@ class EdgeAgent:
         self.counts = EdgeCounters()
         self._env_idx = np.zeros(1, np.int64)
         self._prev: np.ndarray | None = None  # the last action taken, for the uplink
+        self.last_msg: np.ndarray | None = None  # (1, M) the message the last act used (received or fallback)
         self._msg: np.ndarray | None = None  # the newest central message held ...
         self._msg_t = 0.0  # ... and when it arrived (monotonic)
         self.last_fresh = False
@@ -198,7 +199,7 @@ class EdgeAgent:
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
         o = o[None]
         self._uplink(o)
-        msg = self.message()
+        msg = self.last_msg = self.message()
         self._take_weights()
         action = self.core.act(o, msg)[0]
         if not self.spec.discrete and self.low is not None:
@@ -246,10 +247,11 @@ class EdgeAgent:
                                 action=prev))
         self.counts.uplinks_sent += 1
 
-    def age_gauges(self) -> dict[str, float]:
-        """p50 / p99 age (ms) of the newest central message at the latest acts."""
+    def age_gauges(self) -> dict[str, float | None]:
+        """p50 / p99 age (ms) of the newest central message at the latest acts (stale ones included):
+        both keys always, None while no message has been received."""
         if not self.ages:
-            return {}
+            return {"msg_age_p50_ms": None, "msg_age_p99_ms": None}
         p50, p99 = np.percentile(np.fromiter(self.ages, float), [50, 99]) * 1e3
         return {"msg_age_p50_ms": round(float(p50), 2), "msg_age_p99_ms": round(float(p99), 2)}
 
@@ -290,10 +292,18 @@ def fleet_check(bundle) -> None:
                          "observation of all agents, which no robot has; a fleet runs il or hammer teams")
 
 
-def robot_role(agent: EdgeAgent):
+def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None = None):
     """The robot of a simulated fleet as a role process (`hammer local --bundle ... --fleet`): its
     sensors are the realtime world's observation for it (`env/obs/<i>`), its actuator the world's
-    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters."""
+    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters.
+
+    Losing the fleet (a cut link, a server restarted or stopped): the robot waits, acting on nothing
+    (a simulated robot's sensors are the world's). Its Zenoh session keeps dialling the hub, so it acts
+    again on the first observation once the fleet is back. `stay=False`: a stop from the launcher ends
+    it, and so does hearing nothing for `lost_exit_s` (a robot out of range when the stop was sent
+    must not wait for ever): `stop_reason` then starts with "lost". `stay=True`: a service; a stop
+    ends only the fleet's session, the robot waits for the next (a restarted `hammer serve` on the
+    same run directory) and rejoins on its own; only SIGTERM or Ctrl-C end it."""
     from hammer.protocol.dims import Dims
     from hammer.protocol.schemas import Action, LocalObs
     from hammer.runtime.role import Role
@@ -307,6 +317,26 @@ def robot_role(agent: EdgeAgent):
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"
             self.last_act: float | None = None
+            self.idle_exit_s = None if stay else lost_exit_s
+            self.sessions_ended = 0
+
+        def stop_requested(self) -> bool:
+            if not super().stop_requested():
+                return False
+            if not stay:
+                return True
+            self.sessions_ended += 1
+            self.log.info("%s: the fleet's session ended (%s); staying for the next one (--stay)", agent.name,
+                          self.stop_reason)
+            self.stop_reason = None
+            self.heartbeat_soon()
+            return False
+
+        def on_stop(self) -> None:
+            if self.stop_reason is not None and self.stop_reason.startswith("no input"):
+                self.stop_reason = (f"lost the fleet: nothing from it for {self.idle_exit_s:g} s (out of range when it "
+                                    "stopped, or its server is gone); exiting (--stay waits for it instead)")
+                self.log.warning("%s %s", agent.name, self.stop_reason)
 
         def alive_names(self) -> list[str]:
             return []  # the EdgeAgent declared it
@@ -315,7 +345,8 @@ def robot_role(agent: EdgeAgent):
             return {**agent.counts.as_dict(), **agent.weights.counters()}
 
         def gauges(self) -> dict[str, float]:
-            return {**agent.weight_gauges(), **agent.age_gauges()}
+            ages = {k: v for k, v in agent.age_gauges().items() if v is not None}  # a gauge is a number: none yet, unsent
+            return {**agent.weight_gauges(), **ages}
 
         def poll(self, timeout: float) -> bool:
             if not self.sensors.wait(timeout):
@@ -331,7 +362,9 @@ def robot_role(agent: EdgeAgent):
                 self.last_act = t
                 self.actuator.publish(Action(step=obs.step, env_idx=obs.env_idx, agent=agent.agent,
                                              action=action.reshape(1, *action.shape[0:]),
-                                             fallback=np.array([not agent.last_fresh])))
+                                             policy_version=agent.policy_version,
+                                             fallback=np.array([not agent.last_fresh]),
+                                             msg=agent.last_msg if obs.echo and agent.spec.msg_dim else None))
                 self.progressed()
             return True
 

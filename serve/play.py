@@ -12,6 +12,7 @@ Needs the training install (PettingZoo, matplotlib).
 from __future__ import annotations
 
 import importlib
+import time
 from pathlib import Path
 
 import numpy as np
@@ -160,9 +161,10 @@ def _warehouse_episodes(cfg, spec, episodes: int, max_steps: int, act):
 
 
 def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
-         fps: float = 8.0, stills: int = 4) -> dict:
+         fps: float = 8.0, stills: int = 4, progress=None) -> dict:
     """Render `episodes` episodes of the bundle's team into the GIF `out` (a *.png: a sheet of `stills`
-    frames spread over them); returns what was played."""
+    frames spread over them); returns what was played. `progress(line)`: a line as each episode ends
+    (drawing a frame takes a good part of a second: a warehouse episode is a minute)."""
     from hammer.envs.rware_vec import is_rware
     from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
     from hammer.learning.numpy_policy import numpy_central
@@ -190,6 +192,14 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
                                net.values if net is not None and acting.rl else None).sent
 
     frames: list[np.ndarray] = []
+    t_start = [time.monotonic()]
+
+    def ended(ep: int, steps: int, ret: float) -> None:
+        if progress is not None:
+            progress(f"episode {ep + 1}/{episodes}: {steps} steps, paper metric {ret:.2f} "
+                     f"({time.monotonic() - t_start[0]:.0f} s)")
+        t_start[0] = time.monotonic()
+
     if is_rware(cfg.env):
         from hammer.envs.local_view import local_view_from_config
 
@@ -203,9 +213,12 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
             return np.array(acts)[None], msgs[0]
 
         returns = [0.0] * episodes
+        last = min(max_steps, spec.max_steps)
         for frame, msgs, r, ep, t in _warehouse_episodes(cfg, spec, episodes, max_steps, act):
             returns[ep] += r
             frames.append(_side_by_side(frame, message_panel(msgs, max(frame.shape[0], 240), t, r)))
+            if t == last:
+                ended(ep, t, returns[ep])
     else:
         env, keep = render_env(cfg.env, cfg.n_agents, cfg.env_kwargs or {})
         returns = []
@@ -233,6 +246,7 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
                     frames.append(_side_by_side(frame, message_panel(msgs[0], frame.shape[0], t, r)))
                     prev = encode_actions(spec, act_arr, present)
                 returns.append(ret)
+                ended(ep, t, ret)
         finally:
             env.close()
     out = Path(out)

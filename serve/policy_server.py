@@ -23,7 +23,7 @@ names, or the newest below it).
 
 A pushed version of the local policy is not published whole when `chunk_bytes` > 0 (RuntimeSettings
 `weights_chunk_bytes`, the default): it is announced (WeightsAnnounce: size, sha256, each chunk's
-digest; repeated after 4, 8 and 16 s for who missed it: not sooner, since each copy crosses every
+digest; repeated 4, 12 and 28 s after the first (waits of 4, 8 and 16 s) for who missed it: not sooner, since each copy crosses every
 thin link while the agents step, and an agent that missed it still gets the version, whole, when
 the env host names it after `weights_name_timeout_s`) and every local agent pulls its
 chunks by query (`learn/local/chunk?v=<version>&i=<index>`, `_answer_chunk`), one at a time, after
@@ -41,7 +41,7 @@ from hammer.protocol.schemas import Weights, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession
 from hammer.runtime.role import Role
 
-ANNOUNCE_FIRST_S, ANNOUNCE_LAST_S = 4.0, 16.0  # an announcement is repeated after 4, 8 and 16 s (see the docstring)
+ANNOUNCE_FIRST_S, ANNOUNCE_LAST_S = 4.0, 16.0  # waits of 4, 8 and 16 s between an announcement's copies (docstring)
 
 
 class PolicyDirError(FileNotFoundError):

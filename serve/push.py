@@ -57,6 +57,24 @@ def _served(run_dir: Path) -> tuple[dict, dict]:
     return rt, cfg
 
 
+def refuse_stopped(run_dir: Path, what: str = "push") -> None:
+    """A served run that has ended (its launcher wrote summary.json: budget spent, SIGTERM, Ctrl-C) takes
+    no push or rollback: nothing would serve it, and serving the folder again sets this session's history
+    aside and starts from the bundle given (deploy/up.py `set_aside_served_session`), so it would be lost."""
+    path = Path(run_dir) / "summary.json"
+    if not path.is_file():
+        return
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, ValueError):
+        s = {}
+    how = "it spent its budget" if s.get("completed") else f"stopped by {s.get('stopped_by') or 'its launcher'}"
+    fix = ("serve the new bundle: hammer serve BUNDLE --run-dir " + str(run_dir) if what == "push"
+           else "serve the bundle wanted: hammer serve BUNDLE --run-dir " + str(run_dir))
+    raise BundleError(f"{run_dir}: the served run has ended ({how}; summary.json), so a {what} would reach nothing, "
+                      f"and serving the folder again starts from the bundle it is given; fix: {fix}")
+
+
 def is_fleet(run_dir: Path) -> bool:
     """A realtime fleet's run directory (its launcher writes fleet.json)."""
     return (Path(run_dir) / "fleet.json").is_file()
@@ -116,6 +134,7 @@ def check_push(bundle_path: Path, run_dir: Path, trust: tuple[Path, ...] = (), a
                               "fix: name at least one of them")
         if served.wiring.has_central_network:
             check_central_pairing(b, _version_dir(run_dir, entries, now.base), now.base)
+    refuse_stopped(run_dir)  # last: what is wrong with the bundle itself is said first
     return b, entries
 
 

@@ -1,16 +1,23 @@
-"""A hammer local agent written from docs/wire-format.md alone: zenoh, msgpack, numpy, stdlib.
+"""A hammer local agent written from docs/wire-format.md, docs/fleet.md and docs/deploy.md alone:
+zenoh, msgpack, numpy, stdlib.
 
 It imports nothing of the project on purpose (tests/test_foreign_client.py checks that): it is
 what someone writing a local agent in another language would write, in Python only because the
 test suite runs Python. Usage:
 
     python foreign_local_agent.py RUN_DIR AGENT
+    python foreign_local_agent.py --fleet BUNDLE RUN_ID AGENT ENDPOINT
 
-It reads RUN_DIR/config.json, env_spec.json and runtime.json, connects to the hub of
-`hammer up` on 127.0.0.1 (runtime.json hub_port), declares itself alive as `local-AGENT`, acts on
-every observation with the policy version it names and the randomness contract (so its actions
-equal those of `hammer local`), and exits 0 on a stop command from `launcher` or `env` (a stop from
-any other sender is counted as rejected and ignored).
+The first reads RUN_DIR/config.json, env_spec.json and runtime.json, connects to the hub of
+`hammer up` or `hammer serve` on 127.0.0.1 (runtime.json hub_port), declares itself alive as
+`local-AGENT`, acts on every observation with the policy version it names and the randomness
+contract (so its actions equal those of `hammer local`), and exits 0 on a stop command from `launcher` or `env` (a stop from any other sender is
+counted as rejected and ignored).
+
+The second is robot AGENT of a fleet (`hammer serve BUNDLE --realtime HZ --external AGENT`): from the
+bundle alone (its manifest, docs/deploy.md, and local.safetensors) and the hub's ENDPOINT, it acts on
+each observation the world sends it with the freshest central message, sends its uplinks, and
+takes a push to the fleet by pulling it in chunks, one per act.
 """
 
 from __future__ import annotations
@@ -28,20 +35,22 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 TAGS = {"local_obs": 1, "global_state": 2, "central_msg": 3, "action": 4, "experience": 5, "weights": 6,
-        "control": 7, "heartbeat": 8, "uplink": 9}
+        "control": 7, "heartbeat": 8, "uplink": 9, "weights_announce": 10, "weights_chunk": 11}
 HEADER = ("v", "step", "env_idx", "sender")
 # Each message's fields in wire order after the type tag, and the defaults of those that may be left off the end.
 FIELDS = {
-    "local_obs": (*HEADER, "agent", "obs", "policy_version", "active"),
+    "local_obs": (*HEADER, "agent", "obs", "policy_version", "echo", "active"),
     "central_msg": (*HEADER, "agent", "msg", "policy_version"),
     "action": (*HEADER, "agent", "action", "policy_version", "fallback", "msg"),
     "weights": (*HEADER, "role", "version", "blob", "sha256", "format"),
     "control": (*HEADER, "command", "target", "args"),
     "heartbeat": (*HEADER, "role", "pid", "status", "counters", "gauges", "detail"),
+    "weights_announce": (*HEADER, "role", "version", "size", "sha256", "chunk_bytes", "digests", "format"),
+    "weights_chunk": (*HEADER, "role", "version", "index", "data"),
 }
-DEFAULTS = {"policy_version": 0, "active": None, "fallback": None, "msg": None, "format": "safetensors",
+DEFAULTS = {"policy_version": 0, "echo": False, "active": None, "fallback": None, "msg": None, "format": "safetensors",
             "target": "*", "args": {}, "counters": {}, "gauges": {}, "detail": ""}
 CODES = {"bool": 0, "uint8": 1, "int32": 2, "int64": 3, "float16": 4, "float32": 5, "float64": 6}
 DTYPES = {"float32": "<f4", "float64": "<f8", "int64": "<i8", "int32": "<i4", "uint8": "u1", "bool": "?",
@@ -174,8 +183,6 @@ class ForeignLocalAgent:
         self.pending, self.last_step = {}, -1
         self.counters = {"steps": 0, "msgs_on_time": 0, "msgs_late": 0, "msgs_duplicate": 0, "fallback_copies": 0,
                          "obs_stale": 0, "rejected": 0}
-        # The message it acted on goes back only when the env host records it (training, or a trace).
-        self.echo = rt.get("mode", "train") == "train" or rt.get("trace", False)
         self.stop = False
 
         conf = zenoh.Config()
@@ -335,7 +342,7 @@ class ForeignLocalAgent:
             z = self.rng.standard_normal((k, self.action_dim))
             wire_action = from_array(out + np.exp(self.log_std) * z, "float32")
         m = [*header("action", step, env_idx), self.agent, wire_action, max(self.version, 0),
-             from_array(fallback, "bool"), from_array(msg, "float32") if msg is not None and self.echo else None]
+             from_array(fallback, "bool"), from_array(msg, "float32") if msg is not None and o["echo"] is True else None]
         self.act_pub.put(msgpack.packb(m, use_bin_type=True))
         self.last_step = step
         self.counters["steps"] += 1
@@ -347,7 +354,11 @@ class ForeignLocalAgent:
         self.last_hb = time.monotonic()
         hb = [*header("heartbeat", 0, np.zeros(0, np.int64)), self.name, os.getpid(), status, self.counters,
               {"policy_version": self.version}, "foreign client"]
-        self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
+        if status == "stopped":  # the last one goes reliably (docs/wire-format.md, "Being a role")
+            self.z.put(self.hb_key, msgpack.packb(hb, use_bin_type=True),
+                       congestion_control=zenoh.CongestionControl.DROP)
+        else:
+            self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
 
     def run(self) -> None:
         while not self.stop:
@@ -374,5 +385,250 @@ class ForeignLocalAgent:
         self.z.close()
 
 
+# ----- a robot of a fleet (docs/fleet.md) ---------------------------------------------------------
+CHUNK_RETRY_S = 2.0  # a chunk asked for and not answered in this long is asked again (docs/wire-format.md)
+
+
+class Pull:
+    """A pushed version, pulled in chunks (docs/wire-format.md, "A pushed version, in chunks")."""
+
+    def __init__(self, a: dict) -> None:
+        self.version, self.size, self.sha256 = a["version"], a["size"], a["sha256"]
+        self.chunk_bytes, self.digests = a["chunk_bytes"], a["digests"]
+        self.n = -(-self.size // self.chunk_bytes)
+        self.chunks: dict[int, bytes] = {}
+        self.asked_at: float | None = None  # the one query outstanding
+
+    def next_index(self) -> int:
+        return min(i for i in range(self.n) if i not in self.chunks)
+
+    def take(self, c: dict) -> str | None:
+        """Keep a chunk of this version; the reason it is refused, else None."""
+        i, data = c["index"], c["data"]
+        if type(i) is not int or not 0 <= i < self.n or not isinstance(data, bytes):
+            return "index or data"
+        want = self.chunk_bytes if i < self.n - 1 else self.size - self.chunk_bytes * (self.n - 1)
+        if len(data) != want:
+            return f"{len(data)} bytes, expected {want}"
+        if hashlib.sha256(data).digest()[:8] != self.digests[8 * i:8 * i + 8]:
+            return "digest"
+        self.chunks[i] = data
+        return None
+
+
+class ForeignRobot:
+    def __init__(self, bundle: Path, run_id: str, agent: int, endpoint: str, max_msg_age_s: float = 0.5) -> None:
+        m = json.loads((bundle / "manifest.json").read_text())
+        spec = m["env_spec"]
+        blob = (bundle / "local.safetensors").read_bytes()
+        if hashlib.sha256(blob).hexdigest() != m["files"]["local.safetensors"]:
+            raise SystemExit("local.safetensors differs from the manifest's sha256")
+        self.agent, self.name, self.max_msg_age_s = agent, f"local-{agent}", max_msg_age_s
+        self.obs_dim, self.discrete, self.action_dim = spec["obs_dim"], spec["discrete"], spec["action_dim"]
+        self.msg_dim = m["msg_dim"]
+        self.fallback, self.fallback_k = m["fallback"]["mode"], m["fallback"]["k"]
+        self.rng = np.random.default_rng([m["config"]["seed"], LOCAL_STREAM, agent])
+        self.blobs = {0: blob}  # version -> local weights held; the bundle's are the run's first (0)
+        self.policy, self.version = Policy(read_safetensors(blob)), 0
+        self.pull: Pull | None = None
+        self.msg, self.msg_t, self.last_msg, self.msg_age = None, 0.0, np.zeros((1, self.msg_dim), np.float32), 0
+        self.ages: list[float] = []
+        self.prev: np.ndarray | None = None
+        self.counters = {"acts": 0, "msg_fresh": 0, "msg_stale": 0, "msg_none": 0, "msgs_received": 0,
+                         "uplinks_sent": 0, "policy_switches": 0, "weights_rejected": 0, "chunk_queries": 0,
+                         "chunks_received": 0, "chunks_refused": 0, "versions_pulled": 0, "rejected": 0}
+        self.stop = False
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.z = zenoh.open(conf)
+        self.p = p = f"hammer/{run_id}"
+        self.queues: dict[str, queue.SimpleQueue] = {}
+        self.subs = [self._subscribe(name, key) for name, key in [
+            ("obs", f"{p}/env/obs/{agent}"), ("msg", f"{p}/central/msg/{agent}"),
+            ("weights", f"{p}/learn/local/weights"), ("announce", f"{p}/learn/local/announce"),
+            ("ctl", f"{p}/ctl/all")]]
+        self.queues["chunk"] = queue.SimpleQueue()  # replies to our chunk queries
+        self.binding = {"obs": {"agent": agent, "sender": "env"}, "msg": {"agent": agent, "sender": "central"},
+                        "weights": {"role": "local", "sender": "learner"},
+                        "announce": {"role": "local", "sender": "learner"},
+                        "chunk": {"role": "local", "sender": "learner"}, "ctl": {}}
+        # A fleet's streams: reliable, congestion control DROP, express (docs/fleet.md): a dead link
+        # drops our messages instead of holding up the robot.
+        drop = zenoh.CongestionControl.DROP
+        self.up_pub = self.z.declare_publisher(f"{p}/agent/up/{agent}", congestion_control=drop, express=True)
+        self.act_pub = self.z.declare_publisher(f"{p}/agent/act/{agent}", congestion_control=drop, express=True)
+        self.hb_key = f"{p}/ctl/hb/{self.name}"
+        self.hb_pub = self.z.declare_publisher(self.hb_key, congestion_control=drop,
+                                               reliability=zenoh.Reliability.BEST_EFFORT)
+        self.token = self.z.liveliness().declare_token(f"{p}/alive/{self.name}")
+        self.last_hb = 0.0
+
+    _subscribe = ForeignLocalAgent._subscribe
+    take = ForeignLocalAgent.take
+    on_control = ForeignLocalAgent.on_control
+
+    # ----- weights: whole publications, and a push in chunks ----------------------------------------
+    def take_weights(self) -> None:
+        while (w := self.take("weights", "weights")) is not None:
+            blob, version = w.get("blob"), w.get("version")
+            if not isinstance(blob, bytes) or hashlib.sha256(blob).hexdigest() != w.get("sha256"):
+                self.counters["weights_rejected"] += 1
+            elif type(version) is int and version not in self.blobs:
+                self.blobs[version] = blob
+        while (a := self.take("announce", "weights_announce")) is not None:
+            v = a.get("version")
+            if type(v) is not int or v <= max(self.blobs) or (self.pull is not None and v <= self.pull.version):
+                continue  # a repeat, or not newer than what we hold
+            size, cb, dg = a.get("size"), a.get("chunk_bytes"), a.get("digests")
+            if not (type(size) is int and type(cb) is int and size > 0 and cb > 0 and isinstance(dg, bytes)
+                    and len(dg) == 8 * -(-size // cb)):
+                self.counters["weights_rejected"] += 1
+                continue
+            same = [b for b in self.blobs.values() if hashlib.sha256(b).hexdigest() == a["sha256"]]
+            if same:  # bytes we hold already (a rollback): held as that version, no pull
+                self.blobs[v], self.pull = same[0], None
+                self.heartbeat(force=True)
+            else:
+                self.pull = Pull(a)
+
+    def pump(self) -> None:
+        """One chunk asked for per act, one query outstanding (docs/wire-format.md)."""
+        pull = self.pull
+        if pull is None:
+            return
+        while (c := self.take("chunk", "weights_chunk")) is not None:
+            if c.get("version") != pull.version:
+                continue
+            why = pull.take(c)
+            self.counters["chunks_received" if why is None else "chunks_refused"] += 1
+            pull.asked_at = None
+        if len(pull.chunks) == pull.n:
+            blob = b"".join(pull.chunks[i] for i in range(pull.n))
+            self.pull = None
+            if hashlib.sha256(blob).hexdigest() != pull.sha256:
+                self.counters["weights_rejected"] += 1
+                return
+            self.blobs[pull.version] = blob
+            self.counters["versions_pulled"] += 1
+            self.heartbeat(force=True)  # policy_held: the central agent waits for it
+            return
+        if pull.asked_at is None or time.monotonic() - pull.asked_at > CHUNK_RETRY_S:
+            q = self.queues["chunk"]
+            pull.asked_at = time.monotonic()
+            self.counters["chunk_queries"] += 1
+            self.z.get(f"{self.p}/learn/local/chunk?v={pull.version}&i={pull.next_index()}",
+                       lambda r: q.put(r.ok.payload.to_bytes()) if r.ok is not None else None, timeout=CHUNK_RETRY_S)
+
+    def switch(self) -> None:
+        """A fleet has no step that names a version: act with the newest held from now on."""
+        newest = max(self.blobs)
+        if newest != self.version:
+            self.policy, self.version = Policy(read_safetensors(self.blobs[newest])), newest
+            self.counters["policy_switches"] += 1
+            self.heartbeat(force=True)
+            self.blobs = {v: b for v, b in self.blobs.items() if v >= newest or v == 0}
+
+    # ----- one act ----------------------------------------------------------------------------------
+    def message(self) -> tuple[np.ndarray, bool]:
+        """The newest central message that arrived (no step to match in a fleet), if young enough."""
+        while (m := self.take("msg", "central_msg")) is not None:
+            try:
+                msg = to_array(m["msg"], "float32", 2)
+            except Rejected:
+                self.counters["rejected"] += 1
+                continue
+            if msg.shape != (1, self.msg_dim) or np.abs(msg).max(initial=0) > 1:
+                self.counters["rejected"] += 1
+                continue
+            self.msg, self.msg_t = msg, time.monotonic()
+            self.counters["msgs_received"] += 1
+        if self.msg is None:
+            self.counters["msg_none"] += 1
+        else:
+            age = time.monotonic() - self.msg_t
+            self.ages = [*self.ages[-1023:], age]
+            if age <= self.max_msg_age_s:
+                self.counters["msg_fresh"] += 1
+                self.last_msg, self.msg_age = self.msg, 0
+                return self.msg, True
+            self.counters["msg_stale"] += 1
+        self.msg_age += 1
+        if self.fallback == "zeros" or (self.fallback == "last_k" and self.msg_age > self.fallback_k):
+            return np.zeros((1, self.msg_dim), np.float32), False
+        return self.last_msg, False
+
+    def act(self, o: dict) -> None:
+        obs = to_array(o["obs"], "float32", 2)
+        if obs.shape != (1, self.obs_dim):
+            raise Rejected("observation shape")
+        prev = None if self.prev is None else from_array(self.prev, "uint8" if self.discrete else "float32")
+        up = [*header("uplink", self.counters["acts"], np.zeros(1, np.int64)), self.agent, from_array(obs, "float32"),
+              prev]
+        self.up_pub.put(msgpack.packb(up, use_bin_type=True))
+        self.counters["uplinks_sent"] += 1
+        msg, fresh = self.message() if self.msg_dim else (None, False)
+        self.take_weights()
+        self.pump()
+        self.switch()
+        out = self.policy.actor_out(np.concatenate([obs, msg], axis=1) if msg is not None else obs)
+        if self.discrete:
+            z = out.astype(np.float64)
+            p = np.exp(z - z.max(axis=1, keepdims=True))
+            p /= p.sum(axis=1, keepdims=True)
+            action = np.minimum((np.cumsum(p, axis=1) <= self.rng.random(1)[:, None]).sum(axis=1), self.action_dim - 1)
+            wire_action = from_array(action, "uint8" if self.action_dim <= 256 else "int64")
+        else:
+            action = (out + np.exp(self.policy.log_std) * self.rng.standard_normal((1, self.action_dim)))
+            wire_action = from_array(action, "float32")
+        self.prev = action
+        a = [*header("action", o["step"], o["env_idx"]), self.agent, wire_action, self.version,
+             from_array(np.array([not fresh]), "bool"),
+             from_array(msg, "float32") if msg is not None and o["echo"] is True else None]
+        self.act_pub.put(msgpack.packb(a, use_bin_type=True))
+        self.counters["acts"] += 1
+
+    def heartbeat(self, status: str = "running", force: bool = False) -> None:
+        if not force and time.monotonic() - self.last_hb < 1.0:
+            return
+        self.last_hb = time.monotonic()
+        held = max(self.blobs)
+        gauges = {"policy_version": self.version, "policy_held": held,
+                  "policy_pulling": -1 if self.pull is None else self.pull.version}
+        if self.ages:
+            p50, p99 = np.percentile(self.ages, [50, 99]) * 1e3
+            gauges.update(msg_age_p50_ms=round(float(p50), 2), msg_age_p99_ms=round(float(p99), 2))
+        hb = [*header("heartbeat", 0, np.zeros(0, np.int64)), self.name, os.getpid(), status, self.counters, gauges,
+              "foreign robot"]
+        if status == "stopped":  # the last one goes reliably (docs/wire-format.md, "Being a role")
+            self.z.put(self.hb_key, msgpack.packb(hb, use_bin_type=True),
+                       congestion_control=zenoh.CongestionControl.DROP)
+        else:
+            self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
+
+    def run(self) -> None:
+        while not self.stop:
+            self.heartbeat()
+            newest = None
+            while (o := self.take("obs", "local_obs", timeout=0.0 if newest else 0.2)) is not None:
+                newest = o  # one act per observation the world sent: the newest, when several queued
+            if newest is not None:
+                try:
+                    self.act(newest)
+                except (Rejected, KeyError, TypeError, ValueError):
+                    self.counters["rejected"] += 1
+            self.on_control()
+        self.heartbeat("stopped", force=True)
+        print(f"{self.name} stopped: {json.dumps(self.counters)}", file=sys.stderr, flush=True)
+        self.token.undeclare()
+        self.z.close()
+
+
 if __name__ == "__main__":
-    ForeignLocalAgent(Path(sys.argv[1]), int(sys.argv[2])).run()
+    if sys.argv[1] == "--fleet":
+        ForeignRobot(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5]).run()
+    else:
+        ForeignLocalAgent(Path(sys.argv[1]), int(sys.argv[2])).run()

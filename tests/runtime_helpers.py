@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -13,10 +14,25 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "HAMMER_TORCH_THREADS": "1"}
 
 
-def hammer(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    """Run `hammer ARGS` as a fresh interpreter from the repository root (one torch thread)."""
+def hammer(*args: str, timeout: float = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run `hammer ARGS` as a fresh interpreter from the repository root (one torch thread), with
+    `env` added to the environment."""
     return subprocess.run([sys.executable, "-m", "hammer.cli", *args], check=False, capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env=ENV)
+                          timeout=timeout, cwd=ROOT, env={**ENV, **(env or {})})
+
+
+# Settings that make this CPU run other maths kernels than it picks itself, as another CPU would:
+# glibc's libm without its FMA/AVX2 variants (exp, log), numpy's SIMD loops at the x86-64-v2
+# baseline (exp, tanh), numpy's OpenBLAS with the Sandy Bridge kernels, torch's ATen without
+# vector kernels, MKL and oneDNN at SSE4.2. A result one of them changes depends on the CPU
+# (tests/test_exactness.py). Unknown names are ignored by each library; x86-64 only.
+DISPATCH: dict[str, dict[str, str]] = {"default": {}}
+if platform.machine().lower() in ("x86_64", "amd64"):
+    DISPATCH["libm without FMA"] = {"GLIBC_TUNABLES": "glibc.cpu.hwcaps=-FMA,-AVX2,-AVX512F"}
+    DISPATCH["baseline kernels"] = {
+        "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-FMA,-AVX2,-AVX512F", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4",
+        "OPENBLAS_CORETYPE": "Sandybridge", "ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
+        "ONEDNN_MAX_CPU_ISA": "SSE41"}
 
 
 def processes_mentioning(text: str) -> list[psutil.Process]:

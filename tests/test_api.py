@@ -23,6 +23,7 @@ def _readme_block() -> str:
 def test_the_readme_library_example_runs_as_written(tmp_path):
     code = _readme_block()
     assert "hammer.train(" in code and "hammer.up(" in code and "hammer.serve_bundle(" in code
+    (tmp_path / "hammer").symlink_to(ROOT)  # run beside the clone, as `git clone ... hammer` leaves it
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=ENV, capture_output=True, text=True,
                        timeout=360, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -31,6 +32,32 @@ def test_the_readme_library_example_runs_as_written(tmp_path):
     assert float(metric) < 0 and rows == "64"  # cooperative navigation's metric is a negative distance cost
     assert last == "True False"
     assert (tmp_path / "bundles" / "lib-cn3" / "manifest.json").is_file()
+
+
+@pytest.mark.parametrize("clone", ["symlink", "copy"])
+def test_a_folder_named_hammer_in_the_current_folder_does_not_shadow_the_installed_package(tmp_path, clone):
+    """`git clone ... hammer` names the clone `hammer`; from the folder that holds it, the current folder
+    comes first on sys.path, and the installed package must still be the one imported."""
+    import shutil
+
+    if clone == "symlink":
+        (tmp_path / "hammer").symlink_to(ROOT)
+    else:  # the parts of a clone that an import could take: its top-level folders, without __init__.py
+        shutil.copytree(ROOT, tmp_path / "hammer", ignore=shutil.ignore_patterns(
+            ".venv", ".git", "build", "runs", "docs", "tests", "__pycache__", "*.egg-info"))
+    block = _readme_block()
+    imports = "\n".join(ln for ln in block.splitlines() if ln.startswith("import "))
+    probe = (f"{imports}\nfrom hammer.edge import EdgeAgent\nimport hammer.protocol.keys\n"
+             "c = hammer.config('cn3', variant='il', episodes=10)\n"
+             "print(hammer.__file__, callable(hammer.train), callable(hammer.export), c.episodes)")
+    r = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                       check=False, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    where, *rest = r.stdout.split()
+    assert not where.startswith(str(tmp_path)) and rest == ["True", "True", "10"], r.stdout
+    r = subprocess.run([sys.executable, "-m", "hammer", "--version"], cwd=tmp_path, env=ENV, capture_output=True,
+                       text=True, check=False, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("hammer "), r.stderr[-2000:]
 
 
 def test_importing_hammer_loads_nothing_until_a_name_is_used():

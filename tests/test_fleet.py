@@ -220,8 +220,16 @@ def test_a_fleet_takes_a_push_and_a_rollback_each_robot_on_its_own(bundle, team_
     run = tmp_path / "fleet-push"
     members = ["local-0", "local-1", "local-2", "central"]
     done: dict[str, float] = {}
+    watch: dict[str, object] = {}
 
     def update(board, t: float) -> None:  # the launcher's tick: push ~2 s in, roll back ~3 s after all hold it
+        if "session" not in watch:  # the robots' actions to the world, watched from outside
+            from hammer.protocol.schemas import Action
+
+            s = watch["session"] = HammerSession(run.name, TransportConfig(
+                listen=["tcp/127.0.0.1:0"], connect=[json.loads((run / "fleet.json").read_text())["hub"]]),
+                sender="watcher").open()
+            watch["acts"] = s.subscribe(s.keys.act("*"), Action, maxsize=100_000)
         world = board.heartbeats.get("env")
         if world is None or world.counters.get("ticks", 0) < 40:
             return
@@ -237,7 +245,16 @@ def test_a_fleet_takes_a_push_and_a_rollback_each_robot_on_its_own(bundle, team_
             done["all_2"] = t
 
     plan = FleetPlan(bundle=bundle, hz=20, seconds=16, max_absence_s=5)
-    s = run_fleet(plan, run, on_tick=update)
+    try:
+        s = run_fleet(plan, run, on_tick=update)
+        acted = [(a.agent, a.policy_version) for a in watch["acts"].drain()]
+    finally:
+        if "session" in watch:
+            watch["session"].close()
+    # each robot's actions name the version that acted: the bundle's, the push's, the rollback's, in order
+    for i in range(3):
+        versions = [v for agent, v in acted if agent == i]
+        assert versions and versions == sorted(versions) and {0, 1, 2} <= set(versions), (i, sorted(set(versions)))
     assert s["completed"], s
     assert list(done) == ["push", "all_1", "rollback", "all_2"], done
     assert [p["action"] for p in s["pushes"]] == ["push", "rollback"] and s["pushes"][1]["restores_version"] == 0
@@ -296,6 +313,9 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
             k = s.keys
             msgs = {i: s.subscribe(k.msg(i), CentralMsg) for i in (0, 1)}
             up0, act0 = s.publisher(k.up(0), block=False), s.publisher(k.act(0), block=False)
+            # its own robot's keys: the access rules let it, only the receivers' bounds stop it
+            flood = [s.publisher(key, reliable=False) for key in (k.up(1), k.act(1))]
+            big = bytes(4 << 20)
             one = np.zeros(1, np.int64)
             # the router is up before the roles (fleet.json is written then): flood once robot 1 is served
             _wait(lambda: bool(msgs[1].drain()), 60)
@@ -303,6 +323,9 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
             while time.monotonic() < end:
                 up0.publish(Uplink(agent=0, env_idx=one, obs=np.ones((1, obs_dim), np.float32), action=one))
                 act0.publish(Action(step=0, env_idx=one, agent=0, action=one, fallback=np.array([False])))
+                if out["sent"] % 10 == 0:
+                    for p in flood:
+                        p.put_bytes(big)
                 out["sent"] += 1
                 for i in (0, 1):
                     got[i] += len(msgs[i].drain())
@@ -326,6 +349,13 @@ def test_a_secure_fleet_gives_a_stolen_robot_key_that_robot_s_job_only(bundle, t
     assert robots["local-1"]["fresh"] > 0 and robots["local-1"]["msg_fresh"] > 0
     assert s["world"]["presence"]["robot_joins"] == n - 1, s["world"]  # the world never heard robot 0 ...
     assert s["central"]["robot_joins"] == n - 1, s["central"]  # ... nor did the central agent
+    # the verdict names what happened: robot 0 never joined; robot 1's keys carried a flood its
+    # thief sent (refused by size at both receivers), which no one should read as a link failure
+    reasons = s["degraded_reasons"]
+    assert s["degraded"] and any(r.startswith("local-0 never joined") for r in reasons), reasons
+    assert s["rejected_on"]["local-1"]["env"]["size"] > 0 and s["rejected_on"]["local-1"]["central"]["size"] > 0, s
+    assert any("refused on local-1's own keys" in r and "stolen" in r for r in reasons), reasons
+    assert "local-0" in s["absences"] and s["absences"]["local-0"]["never_joined"]
 
 
 def test_the_docs_secure_fleet_commands_join_a_robot_from_another_namespace(bundle, tmp_path):
@@ -462,7 +492,24 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
         out = serve.communicate(timeout=60)[0].decode()
     assert serve.returncode == 0, out[-2000:]
     s = json.loads((tmp_path / "runs" / "site-a" / "summary.json").read_text())
-    assert s["stopped_by"].startswith("interrupted") and "local-0" not in s["restarts"]
+    assert s["interrupted"] is True and s["stopped_by"] == "SIGTERM" and "local-0" not in s["restarts"]
+
+
+def test_the_readme_robot_example_runs_with_no_fleet_at_all(bundle, tmp_path):
+    """The same README block with nothing listening at its endpoint (a robot started before its fleet):
+    it acts on the fallback all along and its last line prints, with no message age to report."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("### On a robot"):]
+    code = re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
+    shutil.copytree(bundle, tmp_path / "bundles" / "lib-cn3")
+    code = code.replace("7447", str(free_loopback_port())) + \
+        "print(robot.age_gauges(), robot.counts.msg_none, robot.counts.acts)\n"
+    r = subprocess.run([sys.executable, "-P", "-c", code], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                       timeout=120, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    first, last = r.stdout.strip().splitlines()
+    assert first.split() == ["False", "False"]
+    assert last == "{'msg_age_p50_ms': None, 'msg_age_p99_ms': None} 60 60"
 
 
 def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):

@@ -128,6 +128,81 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
     assert a == pytest.approx(b, abs=1e-5)
 
 
+@pytest.fixture(scope="module")
+def teams(tmp_path_factory):
+    """A briefly trained cn3 team, and the same team with other local weights that declares the first
+    one's central network (a push to a fleet running the first, pulled in chunks)."""
+    import shutil
+
+    import numpy as np
+    from hammer.serve.bundle import export_bundle
+    from safetensors.numpy import load_file, save_file
+
+    from tests.runtime_helpers import trained_bundle
+
+    root = tmp_path_factory.mktemp("teams")
+    a = trained_bundle(root, episodes=16)
+    shutil.copytree(root / "run", root / "run-b")
+    final = root / "run-b" / "final"
+    w = load_file(str(final / "local.safetensors"))
+    save_file({k: v + np.float32(0.01) for k, v in w.items()}, str(final / "local.safetensors"))
+    return a, export_bundle(root / "run-b", root / "B", works_with=(root / "run" / "final",)).path
+
+
+def test_a_foreign_robot_plays_robot_0_of_a_fleet_and_pulls_a_push_in_chunks(teams, tmp_path):
+    """The same client as robot 0 of `hammer serve --realtime 20 --external 0`, from the bundle and the
+    hub's endpoint alone: it acts on fresh central messages, and a `hammer push` reaches it in chunks it
+    asks for one per act; it switches, says it holds the version, and the central agent, which waits
+    for every robot present to hold a push, switches after it."""
+    bundle, pushed = teams
+    run = tmp_path / "fleet"
+    serve = subprocess.Popen([sys.executable, "-m", "hammer.cli", "serve", str(bundle), "--realtime", "20",
+                              "--seconds", "14", "--external", "0", "--run-dir", str(run)],
+                             cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    robot = None
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / "fleet.json").is_file():
+            assert serve.poll() is None and time.monotonic() < deadline, "no fleet.json"
+            time.sleep(0.2)
+        time.sleep(0.2)
+        fleet = json.loads((run / "fleet.json").read_text())
+        clean = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+        with open(tmp_path / "robot.log", "wb") as log:
+            robot = subprocess.Popen([sys.executable, str(AGENT_FILE), "--fleet", str(bundle), fleet["run_id"], "0",
+                                      fleet["hub"]], cwd=tmp_path, env=clean, stdout=subprocess.DEVNULL, stderr=log)
+        env_log = run / "logs" / "env.log"
+        while "world clock starts" not in (env_log.read_text() if env_log.is_file() else ""):
+            assert serve.poll() is None and robot.poll() is None and time.monotonic() < deadline, "no world clock"
+            time.sleep(0.2)
+        time.sleep(2.0)
+        r = hammer("push", str(pushed), "--to", str(run))
+        assert r.returncode == 0, r.stderr[-2000:]
+        out = serve.communicate(timeout=120)[0]
+        assert robot.wait(30) == 0, (tmp_path / "robot.log").read_text()[-2000:]
+    finally:
+        for p in (serve, robot):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait(10)
+    assert serve.returncode == 0, out[-2000:]
+    s = json.loads((run / "summary.json").read_text())
+    mine, others = s["robots"]["local-0"], [s["robots"][f"local-{i}"] for i in (1, 2)]
+    assert s["completed"] and "local-0" not in s["absences"], (s["absences"], mine)
+    # it acted at the world's rate on fresh messages, and said so in its own heartbeats
+    assert mine["fresh"] > 0.8 * min(o["fresh"] for o in others), (mine, others)
+    assert mine["acts"] > 0 and mine["msg_fresh"] > 0.8 * mine["acts"], mine
+    assert mine["msg_age_p50_ms"] is not None and mine["msg_age_p50_ms"] < 500, mine
+    # the push: pulled in 512 B chunks, one query at a time, switched to, held; the central agent after it
+    n_chunks = -(-(pushed / "local.safetensors").stat().st_size // 512)
+    assert mine["versions_pulled"] == 1 and mine["chunks_refused"] == 0 and mine["chunk_queries"] >= n_chunks, mine
+    assert mine["policy_version"] == mine["policy_held"] == 1, mine
+    assert [(x["from"], x["to"]) for x in mine["version_switches"]] == [(0, 1)], mine
+    c = s["central"]
+    assert [(x["from"], x["to"]) for x in c["version_switches"]] == [(0, 1)] and c["policy_switched_unheld"] == 0, c
+    assert c["version_switches"][0]["t_s"] >= mine["version_switches"][0]["t_s"], (c, mine)
+
+
 def test_roles_started_by_hand_without_the_launcher_write_metrics_with_their_header(tmp_path):
     """Only config.json, env_spec.json and runtime.json, a `hammer hub` and each role by hand (the
     docs' two-machine recipe on one host): metrics.csv starts with its header like hammer up's."""

@@ -87,3 +87,20 @@ def test_config_changes_names_every_differing_field_including_nested_ones():
     assert config_changes(ref, dict(ref)) == {}
     # A top-level field the reference lacks (renamed since ours was written) is not compared.
     assert config_changes({**ref, "old_field": 1}, ref) == {}
+
+
+def test_invalid_yaml_is_reported_with_its_line_and_column(tmp_path):
+    import subprocess
+    import sys
+
+    from tests.runtime_helpers import ENV
+
+    bad = tmp_path / "my.yaml"
+    bad.write_text("episodes: 10\nseed: 2\n  variant: il\n")
+    for command in (["train", "--config", str(bad)], ["up", "--config", str(bad)], ["up", "--faults", str(bad)]):
+        r = subprocess.run([sys.executable, "-m", "hammer", *command, "--run-dir", str(tmp_path / "run")],
+                           capture_output=True, text=True, env=ENV, timeout=60, check=False)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, (command, r.stderr)
+        assert str(bad) in r.stderr and "line 3, column 10: invalid YAML (mapping values are not allowed here)" \
+            in r.stderr, r.stderr
+        assert not (tmp_path / "run").exists()

@@ -1,5 +1,6 @@
 """The lite edge agent's acting in plain Python against numpy's: the stream draw for draw, the
-safetensors reader, the forward and softmax, the sampling rule, and whole agents step for step."""
+safetensors reader, the forward and softmax, the sampling rule, and whole agents step for step.
+(The draw on other CPUs' exps: tests/test_exactness.py.)"""
 
 from __future__ import annotations
 
@@ -9,17 +10,15 @@ import struct
 import numpy as np
 import pytest
 from hammer.learning import sampling
+from hammer.learning.categorical import categorical_inverse_cdf, draw, softmax
 from hammer.learning.lite_policy import (
     LiteLocalPolicy,
     LiteWeightsError,
-    categorical_inverse_cdf,
     lite_supported,
     read_safetensors,
     safetensors_names,
-    softmax,
 )
 from hammer.learning.numpy_policy import NumpyLocalPolicy, float16_blob, params_from_blob
-from hammer.learning.numpy_policy import softmax as np_softmax
 from hammer.learning.pcg64 import LOCAL_STREAM, PCG64, lite_stream, seed_sequence_state
 from hammer.local_agent.client import AgentSpec, LocalAgent, MessageFallback
 from hammer.local_agent.lite import LiteLocalAgent, LiteMessageFallback
@@ -96,13 +95,15 @@ def test_forward_softmax_and_inverse_cdf_agree_with_numpy():
     want = ref.actor_out(x)
     got = np.array([lite.logits(row) for row in x.tolist()], np.float32)
     assert np.abs(got - want).max() <= 4e-6 * max(1.0, float(np.abs(want).max()))
-    probs = np_softmax(want)
     u = rng.random(2000)
-    ids = sampling.categorical_inverse_cdf(probs, u)
-    for j in range(2000):  # same logits in: exactly numpy's probabilities and draw
-        p = softmax(want[j].tolist())
-        assert p == probs[j].tolist()
-        assert categorical_inverse_cdf(p, float(u[j])) == ids[j]
+    exact = [softmax(row) for row in want.tolist()]
+    # half the uniforms exactly on a CDF value of the exact softmax: where an exp one ulp off flips the draw
+    cdf = np.cumsum(exact, axis=1)
+    u[:1000] = cdf[np.arange(1000), rng.integers(0, 4, 1000)]
+    ids, probs = sampling.categorical_draw(want, u)
+    assert np.abs(probs - np.asarray(exact)).max() <= 1e-15  # numpy's fast softmax: the same to a few ulps
+    for j in range(2000):  # same logits in: exactly the numpy agent's draw
+        assert draw(want[j].tolist(), float(u[j])) == ids[j]
     assert categorical_inverse_cdf([0.5, 0.5], 0.999999999) == 1 and categorical_inverse_cdf([1.0, 0.0], 0.0) == 0
 
 

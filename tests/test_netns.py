@@ -13,7 +13,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from hammer.benchmarks.edge_chain import chain, replay_check, train_team
+from hammer.benchmarks.edge_chain import chain, replay_check, summary_lines, train_team
 from hammer.benchmarks.netns import NetnsUnavailable
 from safetensors.numpy import load_file, save_file
 
@@ -67,5 +67,10 @@ def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv)
                                                                                        2: bundle_a})
     assert only_a["match_per_version"][1] < 0.7  # B did act differently in its window
     assert (tmp_path / "chain" / "team.gif").stat().st_size > 10_000 and "25 frames" in r["play"]
+    said = summary_lines(r, tmp_path / "chain")  # what `make edge-chain` prints: a line per step, no JSON
+    assert said[1].startswith("served, agent 0's link 1024 kbit/s: completed, 320 episodes")
+    assert "push and rollback: steps acted per version v0 " in said[2] and "no step missed: True" in said[2]
+    assert said[3].startswith("  replay with each version's weights: 100.0% of the actions match")
+    assert not any(line.lstrip().startswith(("{", "}", '"')) for line in said)
     left = subprocess.run(["ip", "netns", "list"], check=False, capture_output=True, text=True).stdout
     assert f"hmr{tag}" not in left  # everything the test created is gone

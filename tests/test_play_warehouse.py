@@ -61,6 +61,8 @@ def test_hammer_play_writes_the_warehouse_team_with_its_messages(tmp_path):
                             "--max-steps", "12"])
     assert r.exit_code == 0, r.output
     assert "24 frames" in r.output and "2 episodes" in r.output
+    # it says how far it is as it goes (a real warehouse episode is a minute of drawing)
+    assert "episode 1/2: 12 steps, paper metric" in r.output and "episode 2/2: 12 steps" in r.output
     frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(tmp_path / "team.gif"))]
     assert len(frames) == 24 and frames[0].shape[1] > frames[0].shape[0]  # the floor with the panel beside it
     floor = 10 * CELL  # tiny: 10 columns

@@ -77,7 +77,9 @@ def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
     assert (rows[1]["agent_link_min"], rows[1]["central_link_min"]) == (57, 171)
     assert rows[32]["agent_link_min"] == 32 * 57
     for row in rows.values():
-        assert row["agent_link"] == row["local_obs"] + row["central_msg"] + row["action"]
+        assert row["agent_link"] == row["local_obs_training"] + row["central_msg"] + row["action"]
+        assert row["local_obs_training"] == row["local_obs"] + 1  # the echo flag (true) of a training observation
+        assert row["agent_link_eval"] == row["local_obs"] + row["central_msg"] + row["action_without_echoed_msg"]
         assert row["central_link"] == row["global_state"] + 3 * row["central_msg"]
         assert row["action"] > row["action_without_echoed_msg"]  # the echo is counted, and visible
         assert row["agent_link"] > row["agent_link_min"]

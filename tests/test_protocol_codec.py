@@ -4,8 +4,10 @@ JSON Schema."""
 from __future__ import annotations
 
 import json
+import re
 import struct
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -301,6 +303,16 @@ def test_the_echoed_message_is_required_only_where_declared():
     codec.decode(codec.encode(without), Action, Dims(num_envs=4, msg_dim=0, echo=True))  # no messages at all
 
 
+@pytest.mark.parametrize("extra", [1, 2])
+def test_extra_elements_are_counted_without_the_type_tag(extra):
+    """A message with `extra` elements more than its type has is refused naming that count (the type
+    tag is not one of the fields)."""
+    for msg in (MSGS[-3], MSGS[0]):
+        wire = msgpack.unpackb(codec.encode(msg))
+        with pytest.raises(FieldError, match=rf"unknown: {extra} more element\(s\) than {msg.TYPE} has"):
+            codec.decode(msgpack.packb([*wire, *([None] * extra)]), type(msg))
+
+
 def test_keys_and_run_ids():
     k = Keys("exp-1.a_b")
     assert k.obs(2) == "hammer/exp-1.a_b/env/obs/2"
@@ -374,14 +386,21 @@ def test_fuzz_structured_field_replacement(data, draw):
 
 
 def test_hand_built_array_from_the_docs_decodes():
-    """A client in another language following docs/wire-format.md produces what we accept."""
-    wire = [1, 5, 12, 1, "", 1, [5, [1, 2], struct.pack("<2f", 1.0, -2.0)], 3]
+    """A client in another language following docs/wire-format.md produces what we accept, and the
+    bytes of the page's example are what hammer sends for it."""
+    wire = [1, SCHEMA_VERSION, 12, 1, "", 1, [5, [1, 2], struct.pack("<2f", 1.0, -2.0)], 3]
     msg = codec.decode(msgpack.packb(wire, use_bin_type=True), LocalObs)
     assert msg.obs.tolist() == [[1.0, -2.0]] and msg.active.tolist() == [True] and msg.agent == 1
+    assert not msg.echo  # left off: the env host records no message (serving)
+    text = (Path(__file__).resolve().parents[1] / "docs" / "wire-format.md").read_text()
+    example = re.search(r"\n((?:[0-9a-f]{2} )+[0-9a-f]{2}) +\((\d+) bytes\)", text)
+    data = bytes.fromhex(example[1])
+    assert len(data) == int(example[2]) and data == msgpack.packb(wire, use_bin_type=True)
+    assert codec.encode(msg, stamp={"sender": ""}) == data
     assert msg.env_idx.tolist() == [0] and msg.policy_version == 3 and msg.step == 12
     assert struct.pack("<2f", 1.0, -2.0) == bytes.fromhex("0000803f000000c0")
     assert msgpack.unpackb(codec.encode(msg)) == wire
-    assert codec.encode(msg).hex() == "980105 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
+    assert codec.encode(msg).hex() == "980106 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
 
 
 def test_the_wire_path_imports_no_pydantic():

@@ -398,8 +398,8 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_pa
 
 def test_actions_echo_their_message_only_where_the_env_host_records_it():
     """Training records the message each action used (the rollout), and so does a trace; serving
-    records neither, and the message stays off the wire (issue 31). Both ends read the same setting:
-    the env host requires the echo exactly where the agents send it."""
+    records neither, and the message stays off the wire. The env host requires the echo exactly where
+    it records, and says so in every observation (LocalObs.echo): an agent needs no setting of its own."""
     from hammer.runtime.settings import RuntimeSettings
 
     assert RuntimeSettings(run_id="r").echo

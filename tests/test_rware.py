@@ -18,7 +18,7 @@ from hammer.learning.config import merge_config
 from hammer.learning.team import Team
 from rware.warehouse import RewardType, Warehouse
 
-from tests.runtime_helpers import hammer, processes_mentioning
+from tests.runtime_helpers import DISPATCH, hammer, processes_mentioning
 
 LOCAL = 71  # rware's flattened view at sensor_range 1: 8 own values + 9 cells x 7
 SHELVES, GOALS = 32, 2  # the tiny layout
@@ -176,19 +176,26 @@ def test_hammer_train_runs_a_few_episodes(tmp_path):
     assert summary["env"] == "rware" and summary["episode_length"] == 100 and summary["updates"] == 3
 
 
-def test_up_equals_train(tmp_path):
+@pytest.mark.parametrize("dispatch", ["default", "baseline kernels"])
+def test_up_equals_train(tmp_path, dispatch):
     """The same config through every `hammer up` role and through `hammer train`: the same
-    episodes and, after 5 PPO updates, the same weights. Rewards are sparse here (most short
-    episodes deliver nothing), so the weights are the sharp check: one different action, or a
-    central agent fed other columns, or a local agent fed unmasked rows, would move them."""
+    episodes and, after 5 PPO updates, the same weights bit for bit, with the kernels this CPU
+    picks and with the ones an older CPU would run (`DISPATCH`: numpy, OpenBLAS, ATen, MKL, libm).
+    Rewards are sparse here (most short episodes deliver nothing), so the weights are the sharp
+    check: one different action, a central agent fed other columns, a local agent fed unmasked
+    rows, or one value computed by another library in one runner (torch's central forward against
+    the central server's numpy one once moved 128 weights by 1.8e-4) would move them."""
     from safetensors.numpy import load as load_safetensors
 
+    if dispatch not in DISPATCH:
+        pytest.skip(f"no '{dispatch}' setting on this machine (x86-64 only)")
+    env = DISPATCH[dispatch]
     up, tr = tmp_path / "up", tmp_path / "train"
     common = ["--preset", "rware-tiny-2ag", "--central-mode", "rl", "--episodes", "12", *_SHORT]
     r1 = hammer("up", *common, "--run-dir", str(up), "--no-dashboard",
-                "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+                "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000", env=env)
     assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = hammer("train", *common, "--variant", "hammer", "--run-dir", str(tr), "--quiet")
+    r2 = hammer("train", *common, "--variant", "hammer", "--run-dir", str(tr), "--quiet", env=env)
     assert r2.returncode == 0, r2.stderr[-2000:]
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
@@ -199,7 +206,7 @@ def test_up_equals_train(tmp_path):
         wb = load_safetensors((tr / "final" / f"{part}.safetensors").read_bytes())
         assert wa.keys() == wb.keys()
         for key in wa:
-            np.testing.assert_allclose(wa[key], wb[key], atol=1e-4, err_msg=f"{part}/{key}")
+            np.testing.assert_array_equal(wa[key], wb[key], err_msg=f"{part}/{key}")
     assert processes_mentioning(str(up)) == []
 
 

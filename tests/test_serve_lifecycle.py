@@ -237,3 +237,25 @@ def test_serve_listens_on_a_veth_address_and_the_printed_command_joins_from_anot
     assert links["local->env"]["defaults"] == 0  # agent 0 acted in time on every step, from the other namespace
     left = subprocess.run(["ip", "netns", "list"], check=False, capture_output=True, text=True).stdout
     assert f"hmr{tag}" not in left  # everything the test created is gone
+
+
+def test_a_serve_whose_external_agent_never_comes_names_its_real_endpoint_and_blocks_no_report(bundle, tmp_path):
+    """No --listen: the hub's port is a free one picked at start, and the printed command names it; the
+    startup wait is --runtime startup_timeout_s; the run directory left behind is skipped by `hammer report`
+    with a note, not a refusal of the whole folder."""
+    import re
+
+    runs = tmp_path / "runs"
+    r = subprocess.run([*CLI, "serve", str(bundle), "--episodes", "4", "--out", str(runs), "--no-dashboard"],
+                       capture_output=True, text=True, env=ENV, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = subprocess.run([*CLI, "serve", str(bundle), "--external", "1", "--runtime", "startup_timeout_s=2", "--out",
+                        str(runs), "--no-dashboard"], capture_output=True, text=True, env=ENV, timeout=120, check=False)
+    assert r.returncode == 1 and "error: roles not alive after 2s" in r.stderr, r.stderr[-2000:]
+    failed = max(runs.iterdir(), key=lambda p: p.stat().st_mtime)
+    port = json.loads((failed / "runtime.json").read_text())["hub_port"]
+    shown = re.search(r"hammer local --bundle \S+ --agent 1 --run-id \S+ --connect tcp/127\.0\.0\.1:(\d+)", r.stderr)
+    assert shown and int(shown.group(1)) == port, r.stderr
+    r = subprocess.run([*CLI, "report", str(runs)], capture_output=True, text=True, env=ENV, timeout=60, check=False)
+    assert r.returncode == 0 and "| cn N=3" in r.stdout, r.stderr
+    assert r.stderr.strip() == f"note: skipped 1 run with no episodes yet: {failed}"

@@ -208,3 +208,24 @@ def test_the_policy_server_publishes_once_and_a_late_joiner_asks(bundles):
             assert server.counters()["weights_answered"] >= 1
         else:
             assert 3 <= len(arrivals) <= 5, arrivals  # a fixed 0.5 s period would have sent 12
+
+
+def test_a_push_or_rollback_to_a_served_run_that_has_ended_is_refused_in_one_line(bundles, tmp_path):
+    """`hammer serve` run to its budget, then `hammer push`: real processes, as a user types them."""
+    import subprocess
+    import sys
+
+    from tests.runtime_helpers import ENV
+
+    a, b = bundles
+    run = tmp_path / "served"
+    r = subprocess.run([sys.executable, "-m", "hammer", "serve", str(a.path), "--episodes", "8", "--run-dir", str(run)],
+                       capture_output=True, text=True, env=ENV, timeout=150, check=False)
+    assert r.returncode == 0 and (run / "summary.json").is_file(), r.stderr[-2000:]
+    for args in (["push", str(b.path), "--to", str(run)], ["rollback", str(run)]):
+        r = subprocess.run([sys.executable, "-m", "hammer", *args], capture_output=True, text=True, env=ENV,
+                           timeout=60, check=False)
+        assert r.returncode == 2 and r.stdout == "" and r.stderr.count("\n") == 1, (r.stdout, r.stderr)
+        assert "the served run has ended (it spent its budget; summary.json)" in r.stderr
+        assert f"hammer serve BUNDLE --run-dir {run}" in r.stderr
+        assert not (run / "pushes.json").exists() and not (run / "policies").exists()

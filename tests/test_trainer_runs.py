@@ -149,3 +149,39 @@ def test_branch_continues_a_copy_with_changed_settings(tmp_path):
     assert bad.exit_code == 2 and "needs --run-dir" in bad.output
     taken = runner.invoke(app, ["train", "--branch", str(tmp_path / "cut"), "--run-dir", str(tmp_path / "lr")])
     assert taken.exit_code == 2 and "already holds a run" in taken.output
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_an_interrupted_hammer_train_says_so_in_one_line_and_how_to_continue(tmp_path, sig):
+    """A real `hammer train` process, stopped by Ctrl-C (SIGINT to its process group, as a terminal sends
+    it) or SIGTERM once it has a checkpoint; then `--resume` continues it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.runtime_helpers import ENV
+
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hammer", "train", "--preset", "cn3", "--variant", "il", "--episodes", "100000",
+           "--run-dir", str(run), "--quiet", "--set", "num_envs=8", "--set", "rollout_steps=25",
+           "--set", "checkpoint_every=1"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+                         start_new_session=True)
+    deadline = time.monotonic() + 90
+    while RunDir(run).latest_checkpoint() is None if run.is_dir() else True:
+        assert p.poll() is None and time.monotonic() < deadline, p.communicate()
+        time.sleep(0.2)
+    os.killpg(p.pid, getattr(signal, sig))
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == {"SIGINT": 130, "SIGTERM": 143}[sig], err
+    last = err.strip().splitlines()[-1]
+    by = "Ctrl-C" if sig == "SIGINT" else "SIGTERM"
+    assert last.startswith(f"interrupted ({by}) after ") and "of 100,000 episodes" in last, err
+    assert f"`hammer train --resume {run}` continues from the last checkpoint (ckpt_" in last
+    assert "Traceback" not in err and out == ""
+    if sig == "SIGINT":
+        r = subprocess.run([sys.executable, "-m", "hammer", "train", "--resume", str(run), "--episodes", "16",
+                            "--quiet"], capture_output=True, text=True, env=ENV, timeout=120, check=False)
+        assert r.returncode == 0 and (run / "summary.json").is_file(), r.stderr

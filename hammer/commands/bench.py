@@ -479,7 +479,8 @@ def bench_soak(
     runtime: Annotated[list[str] | None, typer.Option(
         "--runtime", help="RuntimeSettings field=value for the served run, repeatable, e.g. trace=true.")] = None,
     work: Annotated[Path | None, typer.Option(help="where the bundle and the run go (default runs/soak-<time>)")] = None,
-    json_dir: Annotated[str, typer.Option("--json-dir", help="write soak-<date>.json here ('' to skip)")] = "docs/results",
+    json_dir: Annotated[str, typer.Option("--json-dir", help="write soak-<date>.json here ('' to skip; "
+                                          "--json-dir docs/results to publish)")] = "runs/bench",
 ) -> None:
     """A served team for MINUTES: RSS of the launcher and every role process and the run directory's disk
     use every EVERY seconds, then each one's growth from the first minute to the end."""

@@ -7,8 +7,7 @@ from pathlib import Path
 from typing import Annotated, NoReturn
 
 import typer
-
-from hammer.commands.edge import CONNECT_RETRY_HELP, NUM_ENVS_HELP, STAY_HELP
+import typer.core
 
 RunDirOpt = Annotated[Path, typer.Option(help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")]
 ConnectOpt = Annotated[str | None, typer.Option(help="Zenoh endpoint of the hub, e.g. tcp/127.0.0.1:7447 (default: from runtime.json).")]
@@ -23,10 +22,19 @@ ListenOpt = Annotated[list[str] | None, typer.Option(
     "--listen", help="Also listen on this endpoint for agents on other machines, e.g. tcp/192.0.2.1:7447 (this "
                      "machine's address they reach, a fixed port; repeatable); the run's own roles stay on loopback. "
                      "Beyond loopback it needs --secure or --insecure.")]
-# `hammer local --bundle` under the typer app (`python -m hammer.cli local --bundle`): the edge entry's options.
-ConnectRetryOpt = Annotated[float | None, typer.Option(min=0, help=f"With --bundle: {CONNECT_RETRY_HELP}")]
-StayOpt = Annotated[bool, typer.Option(help=f"With --bundle: {STAY_HELP}")]
-EdgeNumEnvsOpt = Annotated[int | None, typer.Option(min=1, help=f"With --bundle: {NUM_ENVS_HELP}")]
+
+
+class ConfigFieldsHelp(typer.core.TyperCommand):
+    """A command that takes RunConfig fields (--set, --config): its help ends with every field, default and
+    description, read from the model only when the help is shown (the model loads pydantic)."""
+
+    def format_help(self, ctx, formatter) -> None:
+        if self.epilog is None:
+            from hammer.learning.config import fields_help
+
+            self.epilog = ("Config fields (--set FIELD=VALUE or a --config YAML file; a preset changes some of "
+                           "these defaults):\n\n" + fields_help())
+        super().format_help(ctx, formatter)
 
 
 def fail(msg: str, code: int = 2) -> NoReturn:

@@ -13,10 +13,18 @@ from pathlib import Path
 
 # Shared with the typer side of `hammer local` (hammer/commands/common.py), which the edge never imports.
 CONNECT_RETRY_HELP = ("Seconds to keep trying to reach the run (its hub or router may start later), logging what "
-                      "it waits for; then exit 1 with the reason. 0: forever. Default 300.")
+                      "it waits for; then exit 1 with the reason. 0: forever. Default 300. A --fleet robot without "
+                      "--stay also exits 1 after hearing nothing from its fleet this long.")
 STAY_HELP = ("Be a service: after the run stops, wait for its next session (a restarted `hammer serve --run-dir` "
-             "keeps the run id) and join it; exit cleanly (0, counters logged) on SIGTERM or Ctrl-C.")
+             "keeps the run id) and join it; exit cleanly (0, counters logged) on SIGTERM or Ctrl-C. With --fleet: "
+             "a robot that outlives server restarts and rejoins on its own.")
 NUM_ENVS_HELP = "The served run's env copies K, when `hammer serve --num-envs` changed them (default the bundle's)."
+
+
+def is_edge(argv: list[str]) -> bool:
+    """`local` with `--bundle`: the command line this module parses (the console script and
+    `python -m hammer.cli` send it here)."""
+    return argv[:1] == ["local"] and any(a == "--bundle" or a.startswith("--bundle=") for a in argv)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -49,6 +57,18 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--num-envs", type=int, metavar="K", help=NUM_ENVS_HELP)
     ap.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)  # refused with a bundle, in one line
     return ap
+
+
+def options_help() -> str:
+    """Every option of `parser()` as `--name VALUE: help`, one paragraph each (the full CLI's
+    `hammer local --help` shows them: one definition, two front ends)."""
+    out = []
+    for a in parser()._actions:
+        if not a.option_strings or a.help == argparse.SUPPRESS or "--help" in a.option_strings:
+            continue
+        value = "" if a.nargs == 0 else f" {a.metavar or a.dest.upper()}"
+        out.append(f"{', '.join(a.option_strings)}{value}{' (required)' if a.required else ''}: {a.help}")
+    return "\n\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,8 +104,12 @@ def main(argv: list[str] | None = None) -> int:
 def _robot(a: argparse.Namespace) -> int:
     """A robot of a fleet: the SDK's EdgeAgent driven by the world's observations (serve/edge_agent.py)."""
     from hammer.runtime.process import setup_process
+    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S
     from hammer.serve.edge_agent import EdgeAgent, robot_role
 
+    if a.connect_retry_s is not None and a.connect_retry_s < 0:
+        print(f"error: --connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: wait for ever)", file=sys.stderr)
+        return 2
     setup_process(f"local-{a.agent}")
     try:
         agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
@@ -94,9 +118,14 @@ def _robot(a: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    lost_s = DEFAULT_CONNECT_RETRY_S if a.connect_retry_s is None else a.connect_retry_s
     try:
         with agent:
-            robot_role(agent).run()
+            robot = robot_role(agent, stay=a.stay, lost_exit_s=lost_s or None)
+            robot.run()
     except KeyboardInterrupt:
-        pass
+        return 0
+    if (robot.stop_reason or "").startswith("lost the fleet"):
+        print(f"error: local-{a.agent} {robot.stop_reason}", file=sys.stderr)
+        return 1
     return 0

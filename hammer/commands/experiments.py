@@ -31,7 +31,16 @@ def _load(paths: list[Path]) -> list:
         fail(str(e))
     if not loaded:
         fail("no run directories (metrics.csv) or archived runs (metrics.npz) found under the given paths")
-    return loaded
+    # a run that never finished an episode (a serve whose roles never came up, a run killed at once) is no
+    # result: noted and left out, so one of them does not block the folder
+    empty = [r for r in loaded if len(r.paper_metric) == 0]
+    if len(empty) == len(loaded):
+        fail(f"no episodes yet in {', '.join(str(r.path) for r in empty[:3])}{' ...' if len(empty) > 3 else ''}")
+    if empty:
+        shown = ", ".join(str(r.path) for r in empty[:3]) + (f" and {len(empty) - 3} more" if len(empty) > 3 else "")
+        typer.echo(f"note: skipped {len(empty)} run{'s' if len(empty) > 1 else ''} with no episodes yet: {shown}",
+                   err=True)
+    return [r for r in loaded if len(r.paper_metric)]
 
 
 def sweep(

@@ -50,7 +50,7 @@ def sweep_command(
 ) -> None:
     """Evaluate trained teams (real runtime, frozen weights) under a grid of message drop rates and
     delays, several seeds each; writes a CSV, a markdown table and a plot with the IL reference line."""
-    from hammer.experiments.fault_sweep import grid, run_sweep
+    from hammer.experiments.fault_sweep import SweepMismatch, grid, run_sweep
     from hammer.serve.bundle import BundleError, is_bundle, load_bundle
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -64,15 +64,36 @@ def sweep_command(
         elif not (path / "final" / "local.safetensors").is_file():
             fail(f"{label}: {path}/final/local.safetensors is missing; fix: pass a bundle or a finished run directory")
     points = grid(teams, il, _floats(drops, "drops"), _floats(delays_ms, "delays-ms"), list(range(seeds)))
-    typer.echo(f"{len(points)} evaluation runs ({episodes} episodes each, {parallel} at a time) -> {out}")
+    typer.echo(f"{len(points)} evaluation runs ({episodes} episodes each, {parallel} at a time) -> {out}; "
+               "Ctrl-C stops, the same command continues")
 
     def progress(r, i, n) -> None:
         typer.echo(f"[{i}/{n}] {r.team} drop {r.drop:g} delay {r.delay_ms:g} ms seed {r.seed}: metric "
                    f"{r.paper_metric:.2f}, fallbacks {r.msg_fallback_rate:.0%}, late {r.msgs_late}, {r.wall_s:.0f}s")
 
-    run_sweep(points, out, episodes, msg_deadline_ms, parallel, progress)
-    typer.echo((out / "sweep.md").read_text())
-    typer.echo(f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'}, {out / 'sweep.png'}")
+    try:
+        res = run_sweep(points, out, episodes, msg_deadline_ms, parallel, progress, note=typer.echo)
+    except SweepMismatch as e:
+        fail(str(e))
+    wrote = (f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'}, {out / 'sweep.png'}" if res.results
+             else "nothing written")
+    if res.stopped_by is not None:
+        import shlex
+        import signal
+        import sys
+
+        again = shlex.join(["hammer", *sys.argv[1:]])
+        typer.echo(f"stopped by {res.stopped_by}: {len(res.results)} of {len(points)} evaluation runs finished, "
+                   f"{wrote}; continue with the same command: {again}", err=True)
+        raise typer.Exit(128 + signal.Signals[res.stopped_by].value)
+    if res.results:
+        typer.echo((out / "sweep.md").read_text())
+    typer.echo(wrote)
+    for name, reason in res.failed:
+        typer.echo(f"failed: {name}: {reason} (log: {out / 'points' / name / 'logs'})", err=True)
+    if res.failed:
+        fail(f"{len(res.failed)} of {len(points)} evaluation runs failed (above); the same command evaluates them "
+             "again and keeps the finished ones", code=1)
 
 
 @faults_app.command("eval")

@@ -15,7 +15,8 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, fail
-from hammer.runtime.process import setup_process
+from hammer.protocol.transport_log import watch_refused
+from hammer.runtime.process import return_large_blocks, setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
 RunIdOpt = Annotated[str, typer.Option("--run-id", help="The fleet's run id.")]
@@ -69,6 +70,8 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   runtime: RuntimeOpt = None) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
+    watch_refused()
+    return_large_blocks()
     from hammer.env_host.world import RealtimeWorld
     from hammer.learning.run_env import make_env
     from hammer.protocol.session import HammerSession
@@ -80,7 +83,8 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     world = None
     try:
         with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
-            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline)
+            world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline,
+                                  msg_dim=cfg.msg_dim)
             world.run()
     except KeyboardInterrupt:
         pass
@@ -97,6 +101,8 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                     runtime: RuntimeOpt = None) -> None:
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
+    watch_refused()
+    return_large_blocks()
     from hammer.central_agent.fleet import FleetCentral
     from hammer.protocol.session import HammerSession
     from hammer.serve.bundle import CENTRAL

@@ -17,15 +17,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import (
-    ConnectOpt,
-    ConnectRetryOpt,
-    EdgeNumEnvsOpt,
-    RunDirOpt,
-    StayOpt,
-    ZenohCfgOpt,
-    fail,
-)
+from hammer.commands.common import ConnectOpt, RunDirOpt, ZenohCfgOpt, fail
 from hammer.runtime.bounds import known_step, known_version
 from hammer.runtime.process import setup_process
 from hammer.runtime.settings import read_env_spec
@@ -90,6 +82,14 @@ def _step_log_dir(run_dir: Path) -> Path | None:
 
 
 
+def local_epilog() -> str:
+    """`hammer local --help`'s second half: the options of `hammer local --bundle` (hammer/commands/edge.py's
+    parser, the only definition of them)."""
+    from hammer.commands.edge import options_help
+
+    return "With --bundle (an edge agent, or with --fleet a fleet's robot; no run directory):\n\n" + options_help()
+
+
 def local_command(agent: Annotated[int | None, typer.Option(help="Local agent index i (0-based): one agent, "
                                                                 "one process (what an edge device runs).")] = None,
                   agents: Annotated[str | None, typer.Option(
@@ -99,38 +99,16 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
                   run_dir: Annotated[Path | None, typer.Option(
                       help="Run directory made by `hammer up` (config.json, runtime.json, env_spec.json).")] = None,
                   connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None,
-                  bundle: Annotated[Path | None, typer.Option(
-                      help="Join without a run directory: a bundle made by `hammer export` (with --run-id, --connect).")] = None,
-                  run_id: Annotated[str | None, typer.Option(help="With --bundle: the run id of the run to join.")] = None,
-                  seed: Annotated[int | None, typer.Option(
-                      help="With --bundle: the run's seed (the agent's sampling stream); default the bundle's.")] = None,
-                  settings_file: Annotated[Path | None, typer.Option(
-                      "--settings", help="With --bundle: a copy of the served run's runtime.json (deadlines, "
-                                         "fallback, bounds, run id).")] = None,
-                  runtime: Annotated[list[str] | None, typer.Option(
-                      "--runtime", help="With --bundle: RuntimeSettings FIELD=VALUE, repeatable.")] = None,
-                  identity: Annotated[Path | None, typer.Option(
-                      help="With --bundle, a secure run: the directory with ca.pem, local-<i>.pem, local-<i>.key.")] = None,
                   insecure: Annotated[bool, typer.Option(
                       help="Run plain (no TLS) although --connect is beyond loopback: only on a network you trust "
                            "(docs/security.md).")] = False,
-                  connect_retry_s: ConnectRetryOpt = None, stay: StayOpt = False, num_envs: EdgeNumEnvsOpt = None,
-                  trust: Annotated[list[Path] | None, typer.Option(
-                      help="With --bundle: load it only if this ed25519 public key (`hammer keygen`) signed it; "
-                           "repeatable. An unsigned or tampered bundle is refused.")] = None,
                   ) -> None:
     """A local-agent client (--agent i), or a pool of them in one process (--agents 0-19). No torch.
 
-    With --bundle (one agent) the console script starts it without this CLI framework (hammer/commands/edge.py)."""
+    With --run-dir: a role of a run made by `hammer up`. With --bundle: an edge agent or a fleet's robot,
+    started without this CLI framework (hammer/commands/edge.py); its options are listed below."""
     if (agent is None) == (agents is None):
         fail("pass --agent i (one agent) or --agents FIRST-LAST (an agent pool), not both or neither")
-    if bundle is not None:
-        _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                    identity, insecure, connect_retry_s, stay, num_envs, tuple(trust or ()))
-        return
-    if connect_retry_s is not None or stay or num_envs is not None or trust:
-        fail("--connect-retry-s, --stay, --num-envs and --trust go with --bundle (an edge agent); a role of a run made by "
-             "`hammer up` is started and stopped by its launcher")
     setup_process(f"local-{agent}" if agent is not None else f"locals-{agents}", run_dir)
     if run_dir is None:
         fail("pass --run-dir (a run made by `hammer up`) or --bundle with --run-id and --connect")
@@ -153,29 +131,6 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
               start_version=known_version(settings.resume_from))
-
-
-def _edge_agent(agent, agents, bundle, run_dir, run_id, connect, zenoh_config, seed, settings_file, runtime,
-                identity, insecure: bool = False, connect_retry_s: float | None = None, stay: bool = False,
-                num_envs: int | None = None, trust: tuple[Path, ...] = ()) -> None:
-    """One agent from a bundle, no run directory (serve/edge.py; the console script's fast path)."""
-    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
-
-    try:
-        if agents is not None:
-            raise ValueError("--bundle serves one agent: pass --agent i (an edge device runs one agent)")
-        if run_dir is not None:
-            raise ValueError("--bundle and --run-dir: pass one of them (a bundle needs no run directory)")
-        inputs = edge_inputs(bundle, agent, run_id, connect, zenoh_config, seed, settings_file, runtime, identity,
-                             insecure, num_envs, trust)
-    except (FileNotFoundError, ValueError) as e:
-        fail(str(e))
-    setup_process(f"local-{agent}")
-    try:
-        run_edge(*inputs, connect_retry_s=DEFAULT_CONNECT_RETRY_S if connect_retry_s is None else connect_retry_s,
-                 stay=stay)
-    except JoinError as e:
-        fail(str(e), code=1)
 
 
 def _pool_agents(text: str, n_agents: int) -> list[int]:
@@ -228,7 +183,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
                                   step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
                                   start_step=known_step(settings.resume_step),
-                                  start_version=known_version(settings.resume_from), echo=settings.echo)
+                                  start_version=known_version(settings.resume_from))
             pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
@@ -305,6 +260,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
             if summary["completed"]:
                 rd.write_summary(summary)
             (Path(run_dir) / "env_summary.json").write_text(json.dumps(summary, indent=1))
+            host.heartbeat("stopped")
             # The run is over: tell everyone (roles started by hand have no launcher to stop them). In a
             # secure run the access rules keep control to the launcher, which stops everyone as this exits.
             from hammer.protocol.schemas import Control

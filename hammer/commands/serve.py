@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
+from hammer.serve.gate_defaults import GATE_DEFAULTS
 
 
 def register(app: typer.Typer) -> None:
@@ -125,6 +126,9 @@ def serve_command(
         min=1, help="--realtime: run this long (default: until --episodes episodes).")] = None,
     timeline: Annotated[Path | None, typer.Option(hidden=True, help="--realtime: the world appends per-robot "
                                                                     "totals here once a second (benches).")] = None,
+    site: Annotated[Path | None, typer.Option(
+        help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
+             "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`.
@@ -142,8 +146,10 @@ def serve_command(
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs, timeline)
+                     secure, insecure, listen, num_envs, timeline, site)
         return
+    if site is not None:
+        fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
     if seconds is not None:
         fail("--seconds needs --realtime HZ (a lock-stepped served run ends after --episodes)")
     try:
@@ -187,7 +193,8 @@ def serve_command(
 
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
-                 insecure: bool, listen, num_envs: int | None, timeline: Path | None = None) -> None:
+                 insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
+                 site: Path | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
     from hammer.deploy.fleet import FleetPlan, apply_runtime, fleet_settings, robot_command, run_fleet
     from hammer.protocol.session import free_loopback_port
@@ -205,7 +212,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
                      seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
-                     insecure=insecure, timeline=timeline)
+                     insecure=insecure, timeline=timeline, site=site)
     plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
     try:
         apply_runtime(plan, list(runtime or []))
@@ -232,13 +239,14 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json; "
                   f"hot update: hammer push BUNDLE --to {path}, hammer rollback {path})", soft_wrap=True)
     for i in robots:
+        copy = f"{site}/robots/local-{i}/" if site is not None else \
+            f"{path}/identity/{{ca.pem,local-{i}.pem,local-{i}.key}}"
         console.print(f"waiting for robot {i}: {robot_command(plan, i, path)}"
-                      + (f" (on another machine: --identity a directory holding a copy of {path}/identity/"
-                         f"{{ca.pem,local-{i}.pem,local-{i}.key}})" if secure else "")
+                      + (f" (on another machine: --identity a directory holding a copy of {copy})" if secure else "")
                       + " (or hammer.edge.EdgeAgent)", soft_wrap=True)
     try:
         s = run_fleet(plan, path, on_tick=tick)
-    except (BundleError, ValueError) as e:
+    except (BundleError, ValueError) as e:  # SiteError is a ValueError: one line naming the fix
         fail(str(e))
     w = s["world"]
     console.print(f"{'done' if s['completed'] else 'stopped: ' + str(s['stopped_by'])}: {w.get('ticks', 0)} ticks in "
@@ -315,6 +323,11 @@ def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
     return out, roles
 
 
+def _gate_defaults() -> str:
+    return ", ".join(f"{k} ({v:g})" if isinstance(v, float) else f"{k} ({v})" for k, v in GATE_DEFAULTS.items()
+                     if k != "window_episodes") + "."
+
+
 def push_command(
     bundle: Annotated[Path, typer.Argument(help="The bundle to serve next (`hammer export`).")],
     to: Annotated[Path, typer.Option("--to", help="The run directory of a running `hammer serve` (lock-stepped, or "
@@ -329,11 +342,11 @@ def push_command(
         help="With --canary: agents per stage, counts or percentages, ending at 100%, e.g. 1,50%,100% "
              "(default: the canary, then everyone).")] = None,
     gate: Annotated[list[str] | None, typer.Option(
-        help="With --canary: limits, NAME=VALUE[,...], repeatable: metric (paper_metric | team_return), "
-             "metric_drop (0.15), metric_z (2: standard errors), default_rate (0.02), fallback_rate (0.05), latency_ms (20), rejected (0), "
-             "crashes (0), timeout_s (600).")] = None,
+        help="With --canary: limits, NAME=VALUE[,...], repeatable; each with its default: " + _gate_defaults()
+             + " metric is paper_metric or team_return; metric_z counts standard errors.")] = None,
     window_episodes: Annotated[int | None, typer.Option(
-        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default 48).")] = None,
+        help="With --canary: episodes per window (the baseline, each stage, the hold after promotion; default "
+             f"{GATE_DEFAULTS['window_episodes']}).")] = None,
 ) -> None:
     """Hot update of a served team: the bundle becomes the next policy version; every agent switches at the
     same step boundary (the first step that names it); in a fleet (--realtime) each robot switches on its own
@@ -387,9 +400,10 @@ def rollback_command(
 ) -> None:
     """Return a served team to the policy in effect before its latest push (served as a new version)."""
     from hammer.serve.bundle import BundleError
-    from hammer.serve.push import rollback
+    from hammer.serve.push import refuse_stopped, rollback
 
     try:
+        refuse_stopped(run, "rollback")
         e = rollback(run)
     except (BundleError, ValueError, OSError) as err:
         fail(str(err))
@@ -418,7 +432,10 @@ def play_command(
 
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
     try:
-        r = play(load_bundle(bundle), out, episodes, seed, max_steps, fps, stills)
+        b = load_bundle(bundle)
+        typer.echo(f"playing {episodes} episode{'s' if episodes > 1 else ''} of {bundle} (at most {max_steps} steps "
+                   "each; every frame is drawn, a warehouse episode takes about a minute) ...", err=True)
+        r = play(b, out, episodes, seed, max_steps, fps, stills, progress=lambda line: typer.echo(line, err=True))
     except (BundleError, PlayError) as e:
         fail(str(e))
     typer.echo(f"wrote {out}: {r['frames']} frames ({r['size'][0]}x{r['size'][1]}), {episodes} episodes, "

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import fail
+from hammer.commands.common import ConfigFieldsHelp, fail
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
@@ -37,7 +37,7 @@ def train_command(
              "change)")] = None,
     branch: Annotated[Path | None, typer.Option(
         help="continue a copy of this run from its last checkpoint into --run-dir, with --set/--seed/--episodes "
-             "changes (e.g. --set ent_coef=0.01): what would have happened from there with another setting. "
+             "changes (e.g. --set ent_coef=0.02): what would have happened from there with another setting. "
              "The original is not touched.")] = None,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
     seeds: Annotated[str | None, typer.Option(
@@ -66,7 +66,7 @@ def train_command(
             if resume is not None or run_dir is None or any(v is not None for v in (preset, variant, central_mode,
                                                                                      config)):
                 raise ConfigError("--branch: needs --run-dir for the new run and takes only --set, --seed and "
-                                  "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.01")
+                                  "--episodes; fix: e.g. --branch RUN --run-dir RUN-b --set ent_coef=0.02")
             if (branch / "runtime.json").is_file():
                 raise ConfigError(f"--branch '{branch}': a `hammer up` run (it has runtime.json); fix: branch a "
                                   "`hammer train` run, or continue this one with `hammer up --resume`")
@@ -124,6 +124,39 @@ def train_command(
 
 def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     from rich.console import Console
+
+    console = Console(stderr=True)
+    console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
+    console.print(f"will run: {cfg.episodes:,} episodes in this process ({cfg.num_envs} env copies at a time, "
+                  f"{env.spec.max_steps} steps each); Ctrl-C stops, `hammer train --resume {rd.path}` continues "
+                  "from the last checkpoint")
+    started = [None]
+    seen = [0]  # episodes done, for the line an interruption prints
+    import signal
+
+    def on_term(signum, frame) -> None:  # SIGTERM (`kill`, a session ending) stops as Ctrl-C does
+        seen.append("SIGTERM")
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        summary = _train(cfg, rd, env, resume, quiet, console, started, seen)
+    except KeyboardInterrupt:
+        ckpt = rd.latest_checkpoint()
+        then = (f"`hammer train --resume {rd.path}` continues from the last checkpoint ({ckpt.name})" if ckpt
+                else f"no checkpoint yet, nothing to continue; start it again with --run-dir after removing {rd.path}")
+        by = "SIGTERM" if "SIGTERM" in seen else "Ctrl-C"
+        console.print(f"interrupted ({by}) after {seen[0]:,} of {cfg.episodes:,} episodes: {then}", soft_wrap=True)
+        raise typer.Exit(143 if by == "SIGTERM" else 130) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    metric = summary["final_paper_metric_last500"]
+    console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
+                  f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
+    print_next_steps(console, cfg, metric, rd.path, "hammer train")
+
+
+def _train(cfg, rd, env, resume: bool, quiet: bool, console, started: list, seen: list) -> dict:
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -135,16 +168,13 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
 
     from hammer.learning.trainer import train
 
-    console = Console(stderr=True)
-    console.print(f"run dir: {rd.path}  ({cfg.env} N={cfg.n_agents}, {cfg.wiring.label}, seed {cfg.seed})")
-    console.print(f"will run: {cfg.episodes:,} episodes in this process ({cfg.num_envs} env copies at a time, "
-                  f"{env.spec.max_steps} steps each); Ctrl-C stops, `hammer train --resume {rd.path}` continues "
-                  "from the last checkpoint")
-    started = [None]
     if quiet or not sys.stderr.isatty():
         last = [0]
 
         def report(p) -> None:  # a line every ~5% for logs
+            seen[0] = p.episodes
+            if quiet:
+                return
             if started[0] is None:
                 started[0] = (time.monotonic(), p.episodes)
             if p.episodes - last[0] >= max(1, p.budget // 20):
@@ -152,7 +182,7 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
                 console.print(f"episodes {p.episodes}/{p.budget}  env-steps/s {p.steps_per_s:,.0f}  "
                               f"metric(100) {p.running_metric:.2f}  eta {eta(started[0], p.episodes, p.budget)}")
 
-        summary = train(cfg, rd, resume=resume, env=env, on_progress=None if quiet else report)
+        return train(cfg, rd, resume=resume, env=env, on_progress=report)
     else:
         with Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
                       TextColumn("{task.fields[sps]} env-steps/s"), TextColumn("metric {task.fields[metric]}"),
@@ -160,14 +190,11 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
             task = bar.add_task("train", total=cfg.episodes, sps="-", metric="-")
 
             def report(p) -> None:
+                seen[0] = p.episodes
                 bar.update(task, completed=p.episodes, sps=f"{p.steps_per_s:,.0f}",
                            metric=f"{p.running_metric:.2f}")
 
-            summary = train(cfg, rd, resume=resume, env=env, on_progress=report)
-    metric = summary["final_paper_metric_last500"]
-    console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
-                  f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
-    print_next_steps(console, cfg, metric, rd.path, "hammer train")
+            return train(cfg, rd, resume=resume, env=env, on_progress=report)
 
 
 def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
@@ -199,4 +226,4 @@ def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
 
 def register(app: typer.Typer) -> None:
     """Add this package's commands to the top-level app."""
-    app.command("train")(train_command)
+    app.command("train", cls=ConfigFieldsHelp)(train_command)

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from hammer.commands.common import InsecureOpt, SecureOpt, fail
+from hammer.commands.common import ConfigFieldsHelp, InsecureOpt, SecureOpt, fail
 
 
 def settings_error(err: Exception, flag: str = "--runtime") -> str:
@@ -38,18 +38,18 @@ def settings_error(err: Exception, flag: str = "--runtime") -> str:
 def register(app: typer.Typer) -> None:
     from hammer.commands import roles
 
-    app.command("up")(up_command)
+    app.command("up", cls=ConfigFieldsHelp)(up_command)
     app.command("env-host")(roles.env_host_command)
     app.command("central")(roles.central_command)
-    app.command("local")(roles.local_command)
+    # `hammer local --bundle` is parsed by hammer/commands/edge.py alone (entry.py sends it there): its
+    # options are listed in this command's help from that one definition
+    app.command("local", epilog=roles.local_epilog())(roles.local_command)
     app.command("learner")(roles.learner_command)
 
 
 def _links_table(board, cfg, settings):
     """Configured faults and their live effect per link (from the roles' heartbeats)."""
-    from rich.table import Table
-
-    from hammer.faults.links import COLUMNS, COUNTERS_NOTE, collect_role_counters, link_table
+    from hammer.faults.links import COUNTERS_NOTE, collect_role_counters, link_table
     from hammer.faults.spec import LinkFault
 
     plan = [LinkFault.model_validate(d) for d in settings.fault_links]
@@ -57,22 +57,56 @@ def _links_table(board, cfg, settings):
                           "custom rules" if settings.faults and settings.faults.enabled else "none")
     if settings.chaos:
         title += f" | chaos: {', '.join(settings.chaos)}"
-    t = Table(title=title, show_header=True, expand=False)
-    t.add_column("link")
-    for col in COLUMNS:
-        t.add_column(col, justify="right")
     roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    notes = []
-    for link, row in link_table(roles, cfg.n_agents, cfg.wiring.uses_central).items():
-        t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
-        if row.get("unreported"):
-            notes.append(f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted "
-                         "or between heartbeats)")
+    rows = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
+    notes = [f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted or between "
+             "heartbeats)" for link, row in rows.items() if row.get("unreported")]
     if board.chaos_log:
         notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
                                                  for e in board.chaos_log[-3:]))
-    t.caption = "\n".join([COUNTERS_NOTE, *notes])
-    return t
+    return LinksView(title, rows, "\n".join([COUNTERS_NOTE, *notes]))
+
+
+class LinksView:
+    """The links table: a row per link and a column per counter where the terminal is wide enough for
+    its ten columns, else turned (a column per link, a row per counter), so that no link name or count is
+    cut to `env-…` in an 80-column terminal. Decided at each render, from the width there is."""
+
+    def __init__(self, title: str, rows: dict[str, dict[str, int]], caption: str) -> None:
+        self.title, self.rows, self.caption = title, rows, caption
+
+    def wide(self):
+        from rich.table import Table
+
+        from hammer.faults.links import COLUMNS
+
+        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
+        t.add_column("link", no_wrap=True)
+        for col in COLUMNS:
+            t.add_column(col, justify="right", no_wrap=True)
+        for link, row in self.rows.items():
+            t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
+        return t
+
+    def turned(self):
+        from rich.table import Table
+
+        from hammer.faults.links import COLUMNS
+
+        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
+        t.add_column("counter", no_wrap=True)
+        for link in self.rows:
+            t.add_column(link, justify="right", no_wrap=True)
+        for col in COLUMNS:
+            t.add_row(col, *(f"{row[col]:,}" for row in self.rows.values()))
+        return t
+
+    def __rich_console__(self, console, options):
+        from rich.measure import Measurement
+
+        wide = self.wide()
+        natural = Measurement.get(console, options.update_width(10_000), wide).maximum  # its width uncut
+        yield wide if natural <= options.max_width else self.turned()
 
 
 def _eta(board, cfg, rate: dict) -> str:
@@ -269,6 +303,10 @@ def up_command(
     if faults is not None:
         try:
             rt["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
+        except yaml.YAMLError as e:
+            from hammer.learning.config import yaml_error_text
+
+            fail(f"--faults {faults}{yaml_error_text(e)}; fix the syntax there")
         except Exception as e:  # noqa: BLE001 - report any parse/validation problem in one line
             fail(f"--faults {faults}: {str(e).splitlines()[0]}")
     try:
