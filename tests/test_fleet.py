@@ -122,7 +122,8 @@ def test_the_sdk_acts_at_once_on_the_freshest_message_or_the_fallback(bundle):
     port = free_loopback_port()
     b = load_bundle(bundle)
     with HammerSession("fleet-sdk", TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"):
-        robot = EdgeAgent(bundle, 1, run_id="fleet-sdk", connect=loopback_endpoint(port), max_msg_age_s=0.3)
+        robot = EdgeAgent(bundle, 1, run_id="fleet-sdk", connect=loopback_endpoint(port), max_msg_age_s=0.3,
+                          wait=True)
         with robot:
             obs = np.linspace(-1, 1, robot.obs_dim).astype(np.float32)
             a = robot.act(obs)
