@@ -103,6 +103,66 @@ def topology(n_agents: int, tag: str, rate_kbit: int = 0, central: bool = False)
             subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True, timeout=10)
 
 
+@dataclass
+class Lan:
+    """A site's LAN: the serving machine and one namespace per robot, each with one interface into a
+    bridge (the switch) in a namespace of its own. `address`: the serving machine's; `ports`: who
+    (`server`, `local-<i>`) -> its port on the switch (a veth in `switch`); `nics`: who -> (namespace,
+    its own interface)."""
+
+    server: str
+    robots: list[str]
+    switch: str
+    address: str
+    ports: dict[str, str] = field(default_factory=dict)
+    nics: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+
+LAN_NET = "10.214.0"  # the serving machine is .1, robot i is .(10 + i), /24
+
+
+@contextmanager
+def lan(n_robots: int, tag: str, rate_kbit: int = 0):
+    """Namespaces server, switch (a bridge) and one per robot, each machine's interface into a switch
+    port; tbf both ways on robot 0's port with `rate_kbit` (a thin radio link). Yields a Lan; deletes
+    every namespace it made on the way out (their veths go with them)."""
+    net = Lan(f"hmr{tag}s", [f"hmr{tag}r{i}" for i in range(n_robots)], f"hmr{tag}w", f"{LAN_NET}.1")
+    made: list[str] = []
+    try:
+        for ns in [net.switch, net.server, *net.robots]:
+            _ip("netns", "add", ns)
+            made.append(ns)
+            _ip("link", "set", "lo", "up", ns=ns)
+        _ip("link", "add", "br0", "type", "bridge", ns=net.switch)
+        _ip("link", "set", "br0", "up", ns=net.switch)
+        for j, (who, ns, addr) in enumerate([("server", net.server, net.address),
+                                            *((f"local-{i}", r, f"{LAN_NET}.{10 + i}") for i, r in enumerate(net.robots))]):
+            port, nic = f"p{tag}{j}"[:15], f"e{tag}{j}"[:15]
+            _ip("link", "add", port, "netns", net.switch, "type", "veth", "peer", "name", nic, "netns", ns)
+            _ip("link", "set", port, "master", "br0", ns=net.switch)
+            _ip("addr", "add", f"{addr}/24", "dev", nic, ns=ns)
+            _ip("link", "set", port, "up", ns=net.switch)
+            _ip("link", "set", nic, "up", ns=ns)
+            net.ports[who], net.nics[who] = port, (ns, nic)
+            if rate_kbit and who == "local-0":
+                for dev, n in ((port, net.switch), (nic, ns)):
+                    r = subprocess.run(["ip", "netns", "exec", n, "tc", "qdisc", "add", "dev", dev, "root", "tbf",
+                                        "rate", f"{rate_kbit}kbit", "burst", "16kb", "latency", "400ms"],
+                                       check=False, capture_output=True, text=True, timeout=10)
+                    if r.returncode != 0:
+                        raise NetnsUnavailable(f"tc tbf on {dev}: {r.stderr.strip()}")
+        yield net
+    finally:
+        for ns in reversed(made):
+            subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True, timeout=10)
+
+
+def link_counts(ns: str, dev: str) -> tuple[int, int]:
+    """(bytes, packets) both ways through `dev` so far (its stats64 counters)."""
+    st = json.loads(_ip("-j", "-s", "link", "show", "dev", dev, ns=ns))[0]["stats64"]
+    return (int(st["rx"]["bytes"]) + int(st["tx"]["bytes"]), int(st["rx"]["packets"]) + int(st["tx"]["packets"]))
+
+
 def link_bytes(ns: str, dev: str) -> int:
     """Bytes both ways through `dev` so far (its stats64 counters)."""
     st = json.loads(_ip("-j", "-s", "link", "show", "dev", dev, ns=ns))[0]["stats64"]

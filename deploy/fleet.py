@@ -8,7 +8,15 @@ a robot that is paused, killed or cut off costs the others nothing, which is wha
 shows (per robot: control rate, action and message ages, defaults, fallbacks; joins, leaves and
 rejoins by name). Training stays lock-stepped (`hammer up`); this is deployment.
 
-The launcher opens the hub, starts the roles, restarts a robot or the central agent that dies
+The topology (docs/fleet.md "Running a fleet"): the launcher's own Zenoh session is the fleet's
+router, listening on loopback and on every `--listen` endpoint; the world, the central agent, the
+policy server and every robot are Zenoh clients of it. No process ever dials another but the
+router, so a robot's link that fails and returns is one client reconnecting to one router, and a
+robot whose lease expires is one client link closed: no other robot's traffic takes part. In a
+secure fleet the router holds the run's `hub` identity and checks the access rules on every hop,
+and every role checks them again on its own link.
+
+The launcher opens the router, starts the roles, restarts a robot or the central agent that dies
 (not one that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires
 the `--chaos` events on time, and at the end (the world's episodes or seconds, Ctrl-C or SIGTERM)
 stops every role and writes summary.json.
@@ -35,7 +43,7 @@ from types import SimpleNamespace
 from hammer.deploy.fleet_verdict import fleet_verdict
 from hammer.deploy.supervisor import RoleSpec, Supervisor
 from hammer.deploy.up import stop_on_signals
-from hammer.protocol.access import LAUNCHER
+from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
@@ -63,6 +71,8 @@ class FleetPlan:
     secure: bool = False  # mutual TLS with the run's identities (RUN/identity/) and per-role access rules
     insecure: bool = False  # accept plain traffic beyond loopback (on a network you trust)
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
+    runtime: list[str] = field(default_factory=list)  # RuntimeSettings FIELD=VALUE items (`--runtime`)
+    timeline: Path | None = None  # the world appends per-robot totals here once a second (benches)
     site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
     def check(self) -> None:
@@ -81,17 +91,80 @@ class FleetPlan:
             site_ca(self.site)  # before anything is written: one line naming `hammer site init`
 
 
+# The plan's bounds, also settable as `--runtime FIELD=VALUE` on `hammer serve --realtime`.
+PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s")
+# The RuntimeSettings items every process of a fleet takes (each role's and robot's own link).
+LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
+
+
+def apply_runtime(plan: FleetPlan, items: list[str]) -> FleetPlan:
+    """`--runtime FIELD=VALUE` items for a fleet: the plan's bounds (PLAN_BOUNDS) set on the plan, the
+    rest kept as RuntimeSettings items (checked when the fleet's runtime.json is made). ValueError
+    naming the item on a malformed one."""
+    rest = []
+    for item in items:
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq:
+            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. zenoh_lease_s=3")
+        if key in PLAN_BOUNDS:
+            try:
+                setattr(plan, key, float(val))
+            except ValueError:
+                raise ValueError(f"--runtime {item!r}: {key} takes seconds, e.g. {key}=0.5") from None
+        else:
+            rest.append(f"{key}={val.strip()}")
+    plan.runtime = rest
+    return plan
+
+
+def link_items(plan: FleetPlan) -> list[str]:
+    """The plan's `--runtime` items every role and robot gets (LINK_FIELDS), as command arguments."""
+    return [x for item in plan.runtime if item.partition("=")[0] in LINK_FIELDS for x in ("--runtime", item)]
+
+
+def robot_endpoint(plan: FleetPlan) -> str:
+    """Where a robot on another machine connects: the first `--listen` endpoint (an any-address one
+    as `<this host>`), else the router's loopback endpoint (a robot on this machine). The plan's
+    hub_port must be fixed (run_fleet fixes it before anything is printed or written)."""
+    if plan.listen:
+        proto, addr = plan.listen[0].split("/", 1)
+        host, _, port = addr.rpartition(":")
+        if host.strip("[]") in ("0.0.0.0", "::"):
+            host = "<this host>"
+        return f"{proto}/{host}:{port}"
+    return loopback_endpoint(plan.hub_port)
+
+
+def robot_command(plan: FleetPlan, i: int, run_dir: Path) -> str:
+    """The exact command robot i runs (printed while the launcher waits for it, and in fleet.json):
+    the router's real endpoint, its identity files in a secure fleet (on another machine, a copy of
+    RUN/identity/{ca.pem,local-i.pem,local-i.key}), --insecure where a plain fleet reaches past loopback."""
+    from hammer.protocol.identity import identity_dir
+    from hammer.protocol.session import is_loopback_endpoint
+
+    where = robot_endpoint(plan)
+    plain_out = not plan.secure and ("<" in where or not is_loopback_endpoint(where))
+    return shlex.join(["hammer", "local", "--bundle", str(plan.bundle), "--agent", str(i), "--run-id",
+                       Path(run_dir).name, "--connect", where,
+                       *(["--identity", str(identity_dir(Path(run_dir)))] if plan.secure else []),
+                       *(["--insecure"] if plain_out else []), *link_items(plan),
+                       *(["--seed", str(plan.seed)] if plan.seed is not None else []), "--fleet"])
+
+
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
                run_dir: Path) -> list[RoleSpec]:
-    """Each role's command; in a secure fleet each reads its own identity from RUN/identity/ (a role
-    on another machine gets a copy of its three files) and makes `connect` a TLS endpoint."""
+    """Each role's command, a Zenoh client of the router at `connect`; in a secure fleet each reads
+    its own identity from RUN/identity/ (a role on another machine gets a copy of its three files)
+    and makes `connect` a TLS endpoint."""
     from hammer.protocol.identity import identity_dir
 
     common = ["--bundle", str(plan.bundle), "--run-id", run_id, "--connect", connect,
               *(["--identity", str(identity_dir(run_dir))] if plan.secure else []),
-              *(["--seed", str(plan.seed)] if plan.seed is not None else [])]
+              *(["--seed", str(plan.seed)] if plan.seed is not None else []), *link_items(plan)]
     specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
                               "--run-dir", str(run_dir),
+                              *(["--timeline", str(plan.timeline)] if plan.timeline is not None else []),
                               *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
                               *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])]),
              RoleSpec("learner", ["fleet-policy", *common, "--run-dir", str(run_dir)], restart=True)]
@@ -118,14 +191,26 @@ def _set_aside(run_dir: Path) -> Path | None:
     return move_to_previous(run_dir, SESSION_RESULTS, "fleet")
 
 
+def fleet_settings(b, plan: FleetPlan, run_id: str):
+    """The fleet's RuntimeSettings (its runtime.json): eval mode, the plan's `--runtime` items, the
+    router's real port and `--listen` endpoints; a secure fleet has the router's `hub` identity.
+    ValueError naming the field on a bad item."""
+    from hammer.serve.settings import serve_settings
+
+    items = [*plan.runtime, *(["secure=true", "secure_hub=true"] if plan.secure else []),
+             *(["insecure=true"] if plan.insecure else []), f"hub_port={plan.hub_port}",
+             f"max_absence_s={plan.max_absence_s}"]
+    settings, _ = serve_settings(b, run_id, runtime=items, listen=plan.listen)
+    return settings
+
+
 def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:
     """runtime.json (mode eval, the bundle as policy version 0), config.json (the team at K = 1) and
     env_spec.json: the files `hammer push` / `hammer rollback` (serve/push.py) check a push against
     and the policy server reads, the same as a lock-stepped `hammer serve` writes."""
     from hammer.runtime.settings import write_env_spec
-    from hammer.serve.settings import serve_settings
 
-    settings, _ = serve_settings(b, run_id, runtime=["secure=true"] if plan.secure else [])
+    settings = fleet_settings(b, plan, run_id)
     # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
     settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
     settings.save(run_dir)
@@ -147,27 +232,31 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     n = int(b.env_spec_data["n_agents"])
     if any(not 0 <= i < n for i in plan.external):
         raise ValueError(f"external robots {plan.external}: this team has robots 0..{n - 1}")
-    connect = loopback_endpoint(plan.hub_port or free_loopback_port())
-    hub_transport = TransportConfig(listen=[connect, *plan.listen])
-    refuse_plain_beyond_loopback(hub_transport, plan.secure, plan.insecure)
+    plan.hub_port = plan.hub_port or free_loopback_port()
+    connect = loopback_endpoint(plan.hub_port)
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     run_id = run_dir.name
+    settings = fleet_settings(b, plan, run_id)
+    hub_transport = settings.link(TransportConfig(mode="router", listen=[connect, *plan.listen]), fleet=True)
+    refuse_plain_beyond_loopback(hub_transport, plan.secure, plan.insecure)
+    run_dir.mkdir(parents=True, exist_ok=True)
     _set_aside(run_dir)
     write_served_files(b, plan, run_dir, run_id)
     if plan.secure:
         from hammer.deploy.up import secure_identities
-        from hammer.runtime.settings import RuntimeSettings
 
-        hub_transport = secure_identities(n, RuntimeSettings(run_id=run_id, secure=True), run_dir, hub_transport,
-                                          fresh=True, site=plan.site)
+        hub_transport = secure_identities(n, settings, run_dir, hub_transport, fresh=True, site=plan.site,
+                                          as_role=HUB)
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
-    (run_dir / "fleet.json").write_text(json.dumps({
-        "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0], "plan": {**plan.__dict__, "bundle": str(plan.bundle),
-                                                                                     "site": plan.site and str(plan.site)},
-        "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs}}, indent=1))
+    fleet_json = json.dumps({
+        "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0],
+        "endpoint": robot_endpoint(plan), "plan": {**plan.__dict__, "bundle": str(plan.bundle),
+                                                  "timeline": plan.timeline and str(plan.timeline),
+                                                  "site": plan.site and str(plan.site)},
+        "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs},
+        "robot_commands": {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}}, indent=1)
     board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
                             versions={}, switches={})
     sup = Supervisor(run_dir / "logs")
@@ -180,6 +269,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     stopping = stop_on.__enter__()
     try:
         with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
+            (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
             beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
             for s in specs:
                 sup.start(s)

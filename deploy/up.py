@@ -606,14 +606,14 @@ class Launcher:
 
 
 def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,
-                      site: Path | None = None):
+                      site: Path | None = None, as_role: str | None = None):
     """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
     RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
     RUN/access_control.json, the rules every process applies (a client in another language inserts
     it into its Zenoh config; docs/wire-format.md). With `site` (a fleet's `--site`): the identities
     come from the site instead (protocol.identity: the robots' kept ones, the server roles' from its
     CA), so a restarted fleet admits the robots it admitted before. Returns the launcher's own
-    secured transport."""
+    secured transport, as `as_role` (default the launcher; a fleet's launcher is its router, `hub`)."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
     from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
@@ -625,7 +625,7 @@ def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, h
         create_identities(identity_dir(run_dir), roles)
     rules = access_control(Keys(settings.run_id), n_agents, settings.pools(n_agents), router=settings.secure_hub)
     (run_dir / "access_control.json").write_text(json.dumps(rules, indent=1))
-    return settings.secured(hub_transport, LAUNCHER, run_dir, n_agents)
+    return settings.secured(hub_transport, as_role or LAUNCHER, run_dir, n_agents)
 
 
 def _write_links(cfg, run_dir: Path, board: Board, launcher_rejections: dict[str, int] | None = None):

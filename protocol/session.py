@@ -87,6 +87,21 @@ def _quietly(undeclare: Any) -> None:
 # writes the same).
 RECONNECT = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
+# A fleet's links (its router, roles and robots: docs/fleet.md "Recovery"). A link cut for longer
+# than the lease is closed on both sides and the robot opens a new one, which takes a fraction of a
+# second once the link is back; a cut within the lease is ridden out by TCP, whose retransmissions
+# back off exponentially (about 0.2, 0.6, 1.4, 3, 6 s after the cut), so with Zenoh's 10 s lease a
+# robot cut for 8 s waited up to seconds after its link returned for the next retransmission. With
+# a lease under 1.4 s a cut link is either back by the retransmission at ~1.4 s or made anew. And
+# one attempt to open a link is given up after FLEET_OPEN_TIMEOUT_MS (Zenoh: 10 s): an attempt
+# started while the link was down has lost its SYN, whose retransmission comes 1 s, then 3 s later.
+# The next attempt follows FLEET_RECONNECT_MAX_MS later (hammer's other runs: 500 ms), so one is
+# under way when the robot's kernel next resolves the router's address (ARP, once a second by
+# default while it cannot): what is left of a robot's return after a long cut is that timer's.
+FLEET_LEASE_MS = 1200
+FLEET_OPEN_TIMEOUT_MS = 500
+FLEET_RECONNECT_MAX_MS = 100
+
 
 def free_loopback_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (bind to port 0, read, release)."""
@@ -138,6 +153,8 @@ class TransportConfig(Model):
                                                            "(None: Zenoh's 10 s)")
     reconnect_max_ms: int = Field(RECONNECT["period_max_ms"], ge=100, description="the longest wait between "
                                                                                   "tries to reach a lost endpoint")
+    open_timeout_ms: int | None = Field(None, ge=100, description="one attempt to open a link is given up after "
+                                                                 "this long (None: Zenoh's 10 s)")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
     zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
     security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
@@ -209,6 +226,8 @@ class TransportConfig(Model):
             cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.lease_ms is not None:
             cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        if self.open_timeout_ms is not None:
+            cfg.insert_json5("transport/unicast/open_timeout", str(self.open_timeout_ms))
         if self.security is not None:
             self.security.apply(cfg)
         return cfg

@@ -20,7 +20,14 @@ from typing import Literal
 
 from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.fault_injection import FaultSpec
-from hammer.protocol.session import TransportConfig, is_loopback_endpoint, loopback_endpoint
+from hammer.protocol.session import (
+    FLEET_LEASE_MS,
+    FLEET_OPEN_TIMEOUT_MS,
+    FLEET_RECONNECT_MAX_MS,
+    TransportConfig,
+    is_loopback_endpoint,
+    loopback_endpoint,
+)
 
 Fallback = Literal["zeros", "last", "last_k"]
 Mode = Literal["train", "eval"]
@@ -28,7 +35,8 @@ Mode = Literal["train", "eval"]
 
 _BOUNDS = ("step_window", "stall_warn_s", "degraded_fraction", "degraded_rejections", "max_absence_s",
            "step_log_max_mb", "trace_max_mb", "log_max_mb", "weights_republish_s",
-           "weights_republish_max_s", "zenoh_lease_s", "reconnect_max_s", "weights_float16", "wire_float16",
+           "weights_republish_max_s", "zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s", "weights_float16",
+           "wire_float16",
            "weights_chunk_bytes", "weights_name_timeout_s")
 
 
@@ -135,11 +143,15 @@ class RuntimeSettings(Model):
                                  "dropped (trace.npz keeps the latest, its `steps` say which)")
     zenoh_lease_s: float | None = Field(
         None, ge=0.5, description="Zenoh's lease: a link silent this long is closed and made anew when it returns "
-                                  "(None: Zenoh's 10 s). Within the lease a link that comes back resumes at once; "
-                                  "past it, reaching the hub again takes about a second more (docs/fleet.md)")
+                                  "(None: Zenoh's 10 s; a fleet's 1.2 s). Within the lease a link that comes back "
+                                  "resumes at TCP's next retransmission, which backs off (0.2, 0.6, 1.4, 3 s ...); "
+                                  "past it, the link is opened anew (docs/fleet.md \"Recovery\")")
+    zenoh_open_timeout_s: float | None = Field(
+        None, ge=0.1, description="one attempt to open a link (TCP, TLS, Zenoh's handshake) is given up after this "
+                                  "long and tried again (None: Zenoh's 10 s; a fleet's: 0.5 s, docs/fleet.md)")
     reconnect_max_s: float = Field(
         0.5, ge=0.1, description="the longest wait between tries to reach a lost hub or router (from 0.1 s, "
-                                 "doubling; Zenoh's own default backs off to 4 s)")
+                                 "doubling; Zenoh's own default backs off to 4 s; a fleet's: 0.1 s)")
     log_max_mb: float = Field(
         10.0, gt=0, description="size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated "
                                 "(<role>.log.1, .2; older ones are deleted)")
@@ -253,13 +265,24 @@ class RuntimeSettings(Model):
 
         return tuple((pool_name(g), tuple(g)) for g in self.agent_groups(n_agents) if len(g) > 1)
 
-    def link(self, transport: TransportConfig) -> TransportConfig:
-        """`transport` with this run's lease and reconnect period (`zenoh_lease_s`, `reconnect_max_s`);
-        a Zenoh config file keeps its own retry periods unless `reconnect_max_s` is set here."""
+    def link(self, transport: TransportConfig, fleet: bool = False) -> TransportConfig:
+        """`transport` with this run's lease, open timeout and reconnect period (`zenoh_lease_s`,
+        `zenoh_open_timeout_s`, `reconnect_max_s`); a Zenoh config file keeps its own retry periods
+        unless `reconnect_max_s` is set here. `fleet`: a fleet's link, whose unset lease, open timeout
+        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS,
+        FLEET_RECONNECT_MAX_MS)."""
         update: dict = {}
         if self.zenoh_lease_s is not None:
             update["lease_ms"] = round(self.zenoh_lease_s * 1000)
-        if "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
+        elif fleet:
+            update["lease_ms"] = FLEET_LEASE_MS
+        if self.zenoh_open_timeout_s is not None:
+            update["open_timeout_ms"] = round(self.zenoh_open_timeout_s * 1000)
+        elif fleet:
+            update["open_timeout_ms"] = FLEET_OPEN_TIMEOUT_MS
+        if fleet and "reconnect_max_s" not in self.model_fields_set:
+            update["reconnect_max_ms"] = FLEET_RECONNECT_MAX_MS
+        elif "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
             update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
         return TransportConfig.model_validate({**transport.model_dump(exclude_unset=True), **update})
 
@@ -270,11 +293,15 @@ class RuntimeSettings(Model):
             return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
         return self.link(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)]))
 
-    def transport_to(self, connect: str) -> TransportConfig:
-        """A role joining the hub at `connect` by hand. Beyond loopback it listens on every interface:
-        peers meet directly and the hub relays nothing between them, so the run's other roles must be
-        able to reach it back (a role listening on its own loopback would hear only the hub)."""
+    def transport_to(self, connect: str, client: bool = False) -> TransportConfig:
+        """A role joining the hub at `connect` by hand. A peer (lock-stepped runs): beyond loopback it
+        listens on every interface: peers meet directly and the hub relays nothing between them, so
+        the run's other roles must be able to reach it back (a role listening on its own loopback would
+        hear only the hub). `client`: a Zenoh client of the router at `connect` (a fleet's roles and
+        robots): it listens nowhere, nobody dials it, and the router carries all its traffic."""
         try:
+            if client:
+                return self.link(TransportConfig(mode="client", connect=[connect]), fleet=True)
             return self.link(TransportConfig(
                 listen=["tcp/127.0.0.1:0" if is_loopback_endpoint(connect) else "tcp/0.0.0.0:0"], connect=[connect]))
         except ValueError:

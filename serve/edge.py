@@ -105,9 +105,10 @@ def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtim
 
 
 def edge_transport(settings, role: str, n_agents: int, connect: str | None, zenoh_config: Path | None,
-                   identity: Path | None, insecure: bool = False):
+                   identity: Path | None, insecure: bool = False, client: bool = False):
     """The agent's Zenoh transport: --zenoh-config, or a peer connecting to --connect; TLS with the
-    agent's identity files for a secure run."""
+    agent's identity files for a secure run. `client`: a role of a fleet, a Zenoh client of the
+    fleet's router (docs/fleet.md), which in a secure fleet relays as the run's `hub` identity."""
     from hammer.protocol.session import TransportConfig
 
     if connect is None and zenoh_config is None:
@@ -119,7 +120,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         # A hub on this host: stay on loopback. No Zenoh shared memory: its 16 MB pool is mapped (and counted
         # in the RSS) as soon as a peer on the same host sends a large message, and a robot's peers are
         # on other machines (issue 31); a --zenoh-config file decides for itself.
-        transport = settings.transport_to(connect).model_copy(update={"shared_memory": False})
+        transport = settings.transport_to(connect, client).model_copy(update={"shared_memory": False})
     if settings.secure and identity is None:
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")
@@ -134,8 +135,8 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
     if missing:
         raise ValueError(f"--identity {identity}: {', '.join(p.name for p in missing)} missing; fix: copy them "
                          "from the launcher's RUN/identity/")
-    return settings.model_copy(update={"secure": True}).secured(transport, role, None, n_agents,
-                                                                 identity_directory=identity)
+    return settings.model_copy(update={"secure": True, "secure_hub": settings.secure_hub or client}).secured(
+        transport, role, None, n_agents, identity_directory=identity)
 
 
 def check_endpoint(endpoint: str, flag: str = "--connect",

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -64,12 +65,13 @@ class EdgeCounters:
 class EdgeAgent:
     """Agent `agent` of the team in `bundle`, joined to run `run_id` (`act`, `run`, `close`).
 
-    Transport as `hammer local --bundle`: `connect` (a peer reaching the run's hub), or
-    `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
+    Transport: `connect` (the fleet's router: the robot is a Zenoh client of it, which no other
+    process ever dials), or `zenoh_config`; `identity` (a directory with ca.pem, local-<i>.pem, local-<i>.key) for a secure
     run; `insecure` to accept plain traffic beyond loopback. `max_msg_age_s`: the oldest central
     message acted on; `fallback`: the team's own (from the bundle) unless given (zeros, last, last_k).
-    `connect_retry_s`: how long to keep trying to open a client session whose router is not up yet
-    (a peer opens at once and reaches the hub whenever it appears), then ConnectionError.
+    `connect_retry_s`: how long to keep trying to reach the fleet's router: in the background while
+    `act` acts on the fallback (a robot started before its fleet; a warning when it gives up), or,
+    with `wait=True`, in the constructor, then ConnectionError.
     `runtime`: RuntimeSettings items as `hammer local --runtime` takes them (`zenoh_lease_s=30`, ...).
     `trust`: ed25519 public keys (`hammer keygen`'s NAME.pub); given any, the bundle loads only if one
     of them signed it (serve/signing.py), else BundleError.
@@ -79,11 +81,8 @@ class EdgeAgent:
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
                  max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None,
                  connect_retry_s: float = 300.0, runtime: tuple[str, ...] = (),
-                 trust: tuple[str | Path, ...] = ()) -> None:
+                 trust: tuple[str | Path, ...] = (), wait: bool = False) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
-        from hammer.protocol.dims import Dims
-        from hammer.protocol.schemas import CentralMsg
-        from hammer.protocol.session import HammerSession
         from hammer.serve.bundle import LOCAL, load_bundle
         from hammer.serve.edge import agent_spec, edge_settings, edge_transport
 
@@ -95,7 +94,7 @@ class EdgeAgent:
         env = b.env_spec_data
         self.settings = edge_settings(b, run_id, None, [*runtime, *([f"fallback={fallback}"] if fallback else [])])
         self.transport = edge_transport(self.settings, f"local-{agent}", self.spec.n_agents, connect, zenoh_config,
-                                        identity, insecure)
+                                        identity, insecure, client=True)
         self.agent, self.max_msg_age_s = agent, max_msg_age_s
         self.name = f"local-{agent}"
         self.obs_dim = int(env["obs_dim"])
@@ -115,21 +114,54 @@ class EdgeAgent:
         self.last_fresh = False
         self._stale_since: float | None = None  # when the messages went stale (None: fresh, or none yet)
         self.ages: collections.deque[float] = collections.deque(maxlen=1024)  # of the messages acted on, s
-        self.session = self._open(HammerSession, connect_retry_s)
+        # The robot is a client of the fleet's router, whose session opens only once the router
+        # answers. `wait`: here, up to connect_retry_s (ConnectionError after); else in the
+        # background, while `act` acts on the fallback (a robot started before its fleet).
+        self.session = self._msgs = self._up = self.weights = None
+        self._closed = threading.Event()
+        self._joiner: threading.Thread | None = None
+        if wait:
+            self._join(connect_retry_s)
+        else:
+            self._joiner = threading.Thread(target=self._join_quietly, args=(connect_retry_s,), daemon=True,
+                                            name=f"{self.name}-join")
+            self._joiner.start()
+
+    def _join(self, retry_s: float) -> None:
+        """Open the session and declare what the robot sends and hears (ConnectionError: no router)."""
+        from hammer.protocol.dims import Dims
+        from hammer.protocol.schemas import CentralMsg
+        from hammer.protocol.session import HammerSession
+
+        session = self._open(HammerSession, retry_s)
+        if session is None:
+            return
+        if self._closed.is_set():  # closed while this was opening
+            session.close()
+            return
         try:
-            keys = self.session.keys
-            self._msgs = self.session.subscribe_latest(
-                keys.msg(agent), CentralMsg, Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
-            self._up = self.session.publisher(keys.up(agent), express=True, block=False)
-            self.weights = self._intake()
-            self.session.declare_alive(self.name)
+            keys = session.keys
+            msgs = session.subscribe_latest(
+                keys.msg(self.agent), CentralMsg,
+                Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
+            up = session.publisher(keys.up(self.agent), express=True, block=False)
+            self.weights = self._intake(session)
+            session.declare_alive(self.name)
         except BaseException:
-            self.session.close()
+            session.close()
             raise
+        self._msgs, self._up = msgs, up
+        self.session = session  # last: `act` uses the session once all of it is declared
         log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
                  ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
 
-    def _intake(self):
+    def _join_quietly(self, retry_s: float) -> None:
+        try:
+            self._join(retry_s)
+        except ConnectionError as e:
+            log.warning("%s (acting on the fallback)", e)
+
+    def _intake(self, session):
         """The local network's weights from the run's policy server. Nothing held from the run at
         first (version -1): the first version received, a publication or the answer to this
         robot's query, sets the reference a later version is bounded by (runtime.bounds), since a
@@ -140,7 +172,7 @@ class EdgeAgent:
             self.counts.weights_rejected += 1
             log.warning("%s: rejected (%s): %s", self.name, reason, what)
 
-        intake = WeightsIntake(self.session, "local", self._load, timeout_s=0.0, reject=reject)
+        intake = WeightsIntake(session, "local", self._load, timeout_s=0.0, reject=reject)
         intake.remember(self._bundle_blob)  # a rollback to the bundle's weights is held without a pull
         return intake
 
@@ -158,6 +190,8 @@ class EdgeAgent:
         A robot holding nothing from the run asks for the current version (the query returns at
         once; its answer is taken by a later act)."""
         w = self.weights
+        if w is None or self.session is None:
+            return  # not joined yet
         w.pump()
         if w.known < 0:
             w.fetch()  # at most once every FETCH_EVERY_S
@@ -166,15 +200,16 @@ class EdgeAgent:
     def weight_gauges(self) -> dict[str, int]:
         """The version it acts with and the newest it holds (the heartbeat's `policy_version`,
         `policy_held`), the version being pulled (-1: none)."""
-        pulling = self.weights.pulling
-        return {"policy_version": self.policy_version, "policy_held": max(self.weights.known, self.policy_version),
+        pulling = None if self.weights is None else self.weights.pulling
+        known = -1 if self.weights is None else self.weights.known
+        return {"policy_version": self.policy_version, "policy_held": max(known, self.policy_version),
                 "policy_pulling": -1 if pulling is None else pulling}
 
     def _open(self, session_type, retry_s: float):
         import zenoh
 
         deadline, next_log = time.monotonic() + retry_s, 0.0
-        while True:
+        while not self._closed.is_set():
             session = session_type(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
             try:
                 return session.open()
@@ -187,7 +222,8 @@ class EdgeAgent:
                 if now >= next_log:
                     log.info("%s waiting for the run's router (%s)", self.name, reason)
                     next_log = now + 10.0
-                time.sleep(0.5)
+                self._closed.wait(0.5)
+        return None
 
     # ----- the control step -----------------------------------------------------------------------
     def act(self, obs: Any) -> np.ndarray:
@@ -211,7 +247,7 @@ class EdgeAgent:
     def message(self) -> np.ndarray:
         """(1, M) float32: the freshest central message if young enough, else the fallback (counted)."""
         now = time.monotonic()
-        for got, t in self._msgs.take():  # one key: at most one, the newest that arrived
+        for got, t in self._msgs.take() if self.session is not None else ():  # at most one, the newest
             self._msg, self._msg_t = got.msg, t
             self.counts.msgs_received += 1
         self.last_fresh = self._msg is not None and now - self._msg_t <= self.max_msg_age_s
@@ -242,6 +278,8 @@ class EdgeAgent:
     def _uplink(self, obs: np.ndarray) -> None:
         from hammer.protocol.schemas import Uplink
 
+        if self.session is None:
+            return  # not joined yet: nobody to send it to
         prev = None if self._prev is None else (self._prev.reshape(1) if self.spec.discrete else self._prev[None])
         self._up.publish(Uplink(step=self.counts.acts, env_idx=self._env_idx, agent=self.agent, obs=obs,
                                 action=prev))
@@ -270,7 +308,11 @@ class EdgeAgent:
     # ----- lifetime ---------------------------------------------------------------------------------
     def close(self) -> None:
         log.info("%s leaves run %s: %s", self.name, self.settings.run_id, self.counts.as_dict())
-        self.session.close()
+        self._closed.set()
+        if self._joiner is not None:
+            self._joiner.join(30)  # an open under way ends within its open timeout; the session must not outlive us
+        if self.session is not None:
+            self.session.close()
 
     def __enter__(self) -> Self:
         return self

@@ -500,34 +500,43 @@ def bench_soak(
 def bench_fleet(
     bundle: Annotated[Path, typer.Argument(help="A trained team (`hammer export`) that can run as a fleet (cn, mw).")],
     hz: Annotated[float, typer.Option(min=0.1, help="the world's and the central agent's rate")] = 20.0,
-    outages: Annotated[str | None, typer.Option(
-        help="links cut one after another, LINK:SECONDS with LINK local-<i> or central; LINK:SECONDS@robot takes "
-             "the robot's own interface down instead of the hub's end (a cut beyond the robot); default "
-             "local-0:5,local-0:30,local-0:30@robot,central:5,central:30; `none`: the run without outages only")] = None,
-    rate_kbit: Annotated[int, typer.Option(min=0, help="a tbf limit (kbit/s, both ways) on robot 0's link in both "
-                                                       "runs: does the loop keep its rate on a thin radio link? (0 = none)")] = 0,
+    trials: Annotated[str | None, typer.Option(
+        help="cuts, KIND:SECONDS[xN] comma-separated, robots in turn: port (the robot's switch port), nic (the "
+             "robot's own interface), hub (the serving machine's port: every robot); default "
+             "port:0.5x2,port:5x2,port:8x2,port:30x2,nic:8x2,nic:30x1,hub:8x2")] = None,
+    insecure: Annotated[bool, typer.Option(help="the plain profile (default: --secure, as docs/fleet.md runs it)")] = False,
+    per_fleet: Annotated[int, typer.Option(min=1, help="trials per fleet session")] = 10,
+    bytes_s: Annotated[float, typer.Option(help="first: bytes and packets per control step on robot 0's link "
+                                                "over this many quiet seconds")] = 0.0,
+    rate_kbit: Annotated[int, typer.Option(min=0, help="a tbf limit (kbit/s, both ways) on robot 0's port (0 = none)")] = 0,
     neigh_retrans_ms: Annotated[int | None, typer.Option(
-        help="the kernel's neighbour (ARP) retransmission timer on the robots' and the central agent's "
-             "interfaces (Linux default 1000 ms)")] = None,
-    baseline_s: Annotated[float, typer.Option(help="length of the run without outages")] = 30.0,
+        help="the kernel's neighbour (ARP) retransmission timer on every machine's interface (Linux: 1000 ms)")] = None,
+    runtime: Annotated[list[str] | None, typer.Option(
+        "--runtime", help="passed to `hammer serve --realtime --runtime`, e.g. zenoh_lease_s=10")] = None,
     edge_venv: Annotated[Path | None, typer.Option(help="the robots' interpreter (a torch-free venv)")] = None,
-    push: Annotated[Path | None, typer.Option(help="instead of outages: a hot update to this bundle 10 s into a "
-                                                   "30 s run (exported with --works-with BUNDLE); each robot's "
-                                                   "switch and every robot's control rate while they pull")] = None,
-    out: Annotated[Path | None, typer.Option(help="write the JSON result here")] = None,
+    push: Annotated[Path | None, typer.Option(help="instead of trials: a hot update to this bundle 10 s into the "
+                                                   "run (exported with --works-with BUNDLE); each robot's switch "
+                                                   "and every robot's control rate while they pull")] = None,
+    work: Annotated[Path, typer.Option(help="where the fleets' run directories and logs go")] = Path(
+        "/tmp/hammer-bench-fleet"),
+    out: Annotated[Path | None, typer.Option(help="write the JSON result here; each trial goes to "
+                                                  "OUT.trials.jsonl as it ends, and the same command again runs "
+                                                  "only the trials still missing")] = None,
     soak_minutes: Annotated[float | None, typer.Option(help="instead: a fleet on loopback this long, RSS per "
                                                            "process and disk every 30 s (no root)")] = None,
 ) -> None:
-    """A realtime fleet across network namespaces (root): each robot, the central agent and the world in
-    namespaces of their own; links cut and restored; the healthy robots' control rate during each outage,
-    the time to fresh messages after it, defaults, and the paper metric against no outage (docs/fleet.md)."""
+    """The documented fleet (`hammer serve --realtime --secure` and the robot command it prints) across
+    network namespaces (root): a serving machine and one namespace per robot on a bridge; links cut and
+    restored, each cut repeated and every trial reported: the healthy robots' control rate during it,
+    when the cut robot, the world and the central agent were back on fresh traffic (docs/fleet.md)."""
     from hammer.benchmarks.fleet import main
 
-    code = main([str(bundle), "--hz", str(hz), *(["--outages", outages] if outages else []),
+    code = main([str(bundle), "--hz", str(hz), *(["--trials", trials] if trials else []),
+                 *(["--insecure"] if insecure else []), "--per-fleet", str(per_fleet), "--bytes-s", str(bytes_s),
                  *(["--neigh-retrans-ms", str(neigh_retrans_ms)] if neigh_retrans_ms is not None else []),
-                 "--baseline-s", str(baseline_s), "--rate-kbit", str(rate_kbit),
-                 *(["--edge-venv", str(edge_venv)] if edge_venv else []), *(["--out", str(out)] if out else []),
-                 *(["--push", str(push)] if push else []),
+                 "--rate-kbit", str(rate_kbit), *(x for r in runtime or [] for x in ("--runtime", r)),
+                 *(["--edge-venv", str(edge_venv)] if edge_venv else []), "--work", str(work),
+                 *(["--out", str(out)] if out else []), *(["--push", str(push)] if push else []),
                  *(["--soak-minutes", str(soak_minutes)] if soak_minutes else [])])
     if code:
         raise typer.Exit(code)

@@ -111,14 +111,24 @@ def _robot(a: argparse.Namespace) -> int:
         print(f"error: --connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: wait for ever)", file=sys.stderr)
         return 2
     setup_process(f"local-{a.agent}")
+    lost_s = DEFAULT_CONNECT_RETRY_S if a.connect_retry_s is None else a.connect_retry_s
     try:
+        # a robot is a client of the fleet's router, whose session opens only once the router answers:
+        # a router that never does within the bound is a fleet lost like any other
         agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
                           identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed,
-                          runtime=tuple(a.runtime), trust=tuple(a.trust))
+                          runtime=tuple(a.runtime), trust=tuple(a.trust), connect_retry_s=lost_s or float("inf"),
+                          wait=True)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    lost_s = DEFAULT_CONNECT_RETRY_S if a.connect_retry_s is None else a.connect_retry_s
+    except ConnectionError:
+        print(f"error: local-{a.agent} lost the fleet: nothing from it for {lost_s:g} s (its router at "
+              f"{a.connect or a.zenoh_config} never answered); fix: check the address and that the fleet runs",
+              file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
     try:
         with agent:
             robot = robot_role(agent, stay=a.stay, lost_exit_s=lost_s or None)

@@ -27,6 +27,9 @@ HzOpt = Annotated[float, typer.Option("--hz", help="Ticks per second.")]
 SeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed (default: the team's training seed).")]
 IdentityOpt = Annotated[Path | None, typer.Option("--identity", help="A secure fleet: the directory with ca.pem and "
                                                                       "this role's <role>.pem, <role>.key (RUN/identity/).")]
+RuntimeOpt = Annotated[list[str] | None, typer.Option("--runtime", help="RuntimeSettings FIELD=VALUE, repeatable: the "
+                                                                         "fleet's link settings (zenoh_lease_s, "
+                                                                         "reconnect_max_s).")]
 
 
 def register(app: typer.Typer) -> None:
@@ -36,9 +39,9 @@ def register(app: typer.Typer) -> None:
 
 
 def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
-          insecure: bool, identity: Path | None, role: str):
-    """The bundle, the team's config at K = 1, and this role's transport: a peer connecting to the
-    fleet's hub as the robots do (serve/edge.py), TLS with the role's identity in a secure fleet,
+          insecure: bool, identity: Path | None, role: str, runtime: list[str] | None = None):
+    """The bundle, the team's config at K = 1, and this role's transport: a Zenoh client of the
+    fleet's router as the robots are (serve/edge.py), TLS with the role's identity in a secure fleet,
     plain beyond loopback only with --insecure."""
     from hammer.serve.bundle import load_bundle
     from hammer.serve.edge import edge_settings, edge_transport
@@ -49,8 +52,8 @@ def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | N
     cfg = b.config(num_envs=1, **({} if seed is None else {"seed": seed}))
     if connect is None and zenoh_config is None:
         raise ValueError("--connect tcp/<hub>:<port> or --zenoh-config FILE: where the fleet's hub is")
-    transport = edge_transport(edge_settings(b, run_id, None, []), role, cfg.n_agents, connect, zenoh_config,
-                               identity, insecure)
+    transport = edge_transport(edge_settings(b, run_id, None, runtime or []), role, cfg.n_agents, connect,
+                               zenoh_config, identity, insecure, client=True)
     return b, cfg, transport, run_id
 
 
@@ -63,7 +66,8 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   run_dir: Annotated[Path | None, typer.Option(help="Where world.json goes.")] = None,
                   timeline: Annotated[Path | None, typer.Option(help="Append a JSON line a second: per-robot "
                                                                      "totals (for benches).")] = None,
-                  seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
+                  seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None,
+                  runtime: RuntimeOpt = None) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     watch_refused()
@@ -73,7 +77,7 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     from hammer.protocol.session import HammerSession
 
     try:
-        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env")
+        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env", runtime)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     world = None
@@ -93,7 +97,8 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                     hz: HzOpt = 20.0,
                     missing_after_s: Annotated[float, typer.Option(help="A robot silent this long is missing "
                                                                        "(zeros in the state).")] = 0.5,
-                    seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
+                    seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None,
+                    runtime: RuntimeOpt = None) -> None:
     """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
     setup_process("central")
     watch_refused()
@@ -103,7 +108,8 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     from hammer.serve.bundle import CENTRAL
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "central")
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "central",
+                                                runtime)
         blob = (b.path / CENTRAL).read_bytes() if (b.path / CENTRAL).is_file() else None
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
@@ -118,7 +124,7 @@ def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
                    run_dir: Annotated[Path, typer.Option(help="The fleet's run directory: its runtime.json and the "
                                                              "update history (pushes.json) it follows.")],
                    connect: ConnectOpt = None, zenoh_config: ZenohOpt = None, seed: SeedOpt = None,
-                   insecure: InsecureOpt = False, identity: IdentityOpt = None) -> None:
+                   insecure: InsecureOpt = False, identity: IdentityOpt = None, runtime: RuntimeOpt = None) -> None:
     """The fleet's policy server: the bundle as version 0, then each version `hammer push` / `hammer
     rollback` record in RUN/pushes.json (serve/policy_server.py, the class a lock-stepped served run uses)."""
     setup_process("learner")
@@ -127,7 +133,8 @@ def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
     from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "learner")
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "learner",
+                                                runtime)
         settings = RuntimeSettings.load(run_dir)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))

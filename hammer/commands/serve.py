@@ -104,7 +104,9 @@ def serve_command(
     chaos: Annotated[list[str] | None, typer.Option(
         "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S], e.g. 'kill:central@step=200'.")] = None,
     runtime: Annotated[list[str] | None, typer.Option(
-        "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447.")] = None,
+        "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447; with "
+                    "--realtime also the fleet's bounds (hold_s, missing_after_s, max_msg_age_s, max_absence_s) and "
+                    "its links' zenoh_lease_s, reconnect_max_s (docs/fleet.md).")] = None,
     external: Annotated[str | None, typer.Option(
         help="Roles started elsewhere, not launched here (the run waits for them): agent indices (`hammer local "
              "--bundle`) and/or central (`hammer central --run-dir`), e.g. 0,2 or 0,1,2,central.")] = None,
@@ -122,6 +124,8 @@ def serve_command(
                       "agent fed by the robots' uplinks, one torch-free process per robot; K=1.")] = None,
     seconds: Annotated[float | None, typer.Option(
         min=1, help="--realtime: run this long (default: until --episodes episodes).")] = None,
+    timeline: Annotated[Path | None, typer.Option(hidden=True, help="--realtime: the world appends per-robot "
+                                                                    "totals here once a second (benches).")] = None,
     site: Annotated[Path | None, typer.Option(
         help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
              "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
@@ -142,7 +146,7 @@ def serve_command(
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs, site)
+                     secure, insecure, listen, num_envs, timeline, site)
         return
     if site is not None:
         fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
@@ -189,13 +193,14 @@ def serve_command(
 
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
-                 insecure: bool, listen, num_envs: int | None, site: Path | None = None) -> None:
+                 insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
+                 site: Path | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
-    from hammer.deploy.fleet import FleetPlan, run_fleet
-    from hammer.serve.bundle import BundleError
+    from hammer.deploy.fleet import FleetPlan, apply_runtime, fleet_settings, robot_command, run_fleet
+    from hammer.protocol.session import free_loopback_port
+    from hammer.serve.bundle import BundleError, load_bundle
 
     refused = ((fault, "--fault (link faults are a lock-stepped run's; cut a link instead: hammer bench fleet)"),
-               (runtime, "--runtime"),
                (num_envs, "--num-envs (a fleet is one world, K=1)"))
     for given, what in refused:
         if given:
@@ -207,7 +212,18 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
                      seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
-                     insecure=insecure, site=site)
+                     insecure=insecure, timeline=timeline, site=site)
+    plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
+    try:
+        apply_runtime(plan, list(runtime or []))
+        for item in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
+            if item.partition("=")[0] in ("hub_port", "hub_listen", "zenoh_config_file", "secure_hub"):
+                raise ValueError(f"--runtime {item!r}: a fleet's router is set by --listen (and --secure); "
+                                 "fix: leave it out")
+        plan.check()
+        fleet_settings(load_bundle(bundle), plan, path.name)  # a bad --runtime value: one line, before anything
+    except (BundleError, ValueError) as e:
+        fail(str(e))
     last = [0.0]
 
     def tick(board, t: float) -> None:
@@ -223,10 +239,11 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json; "
                   f"hot update: hammer push BUNDLE --to {path}, hammer rollback {path})", soft_wrap=True)
     for i in robots:
-        who = ("" if not secure else f"--identity <a copy of {site}/robots/local-{i}/>" if site is not None
-               else f"--identity <a copy of ca.pem, local-{i}.pem, local-{i}.key from {path}/identity>")
-        console.print(f"waiting for robot {i}: hammer local --bundle {bundle} --agent {i} --run-id {path.name} "
-                      f"--connect <this run's hub> {who} --fleet (or hammer.edge.EdgeAgent)", soft_wrap=True)
+        copy = f"{site}/robots/local-{i}/" if site is not None else \
+            f"{path}/identity/{{ca.pem,local-{i}.pem,local-{i}.key}}"
+        console.print(f"waiting for robot {i}: {robot_command(plan, i, path)}"
+                      + (f" (on another machine: --identity a directory holding a copy of {copy})" if secure else "")
+                      + " (or hammer.edge.EdgeAgent)", soft_wrap=True)
     try:
         s = run_fleet(plan, path, on_tick=tick)
     except (BundleError, ValueError) as e:  # SiteError is a ValueError: one line naming the fix
