@@ -264,7 +264,8 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     t0 = time.monotonic()
     # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
     # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
-    watch_refused()  # strangers turned away at the hub's TLS handshake: counted for the verdict
+    if plan.secure:  # strangers turned away at the hub's TLS handshake: counted for the verdict (a plain hub has no handshake to refuse)
+        watch_refused()
     stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
     stopping = stop_on.__enter__()
     try:
