@@ -427,6 +427,8 @@ def play_command(
     Needs the training install."""
     import os
 
+    import PIL  # noqa: F401  (the training install's: missing, the one-line error comes before the start line)
+
     from hammer.serve.bundle import BundleError, load_bundle
     from hammer.serve.play import PlayError, play
 
