@@ -165,8 +165,7 @@ def link_counts(ns: str, dev: str) -> tuple[int, int]:
 
 def link_bytes(ns: str, dev: str) -> int:
     """Bytes both ways through `dev` so far (its stats64 counters)."""
-    st = json.loads(_ip("-j", "-s", "link", "show", "dev", dev, ns=ns))[0]["stats64"]
-    return int(st["rx"]["bytes"]) + int(st["tx"]["bytes"])
+    return link_counts(ns, dev)[0]
 
 
 def client_config(path: Path, endpoint: str) -> Path:

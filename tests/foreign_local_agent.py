@@ -149,6 +149,16 @@ def layers(params: dict[str, np.ndarray], prefix: str) -> list[tuple[np.ndarray,
     return out
 
 
+def send_heartbeat(z, key: str, pub, hb: list, status: str) -> None:
+    """Periodic heartbeats on the best-effort publisher; the last one (stopped) reliably, at once
+    (docs/wire-format.md, "Being a role")."""
+    data = msgpack.packb(hb, use_bin_type=True)
+    if status == "stopped":
+        z.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
+    else:
+        pub.put(data)
+
+
 class Policy:
     def __init__(self, params: dict[str, np.ndarray]) -> None:
         self.actor = layers(params, "actor")
@@ -354,11 +364,7 @@ class ForeignLocalAgent:
         self.last_hb = time.monotonic()
         hb = [*header("heartbeat", 0, np.zeros(0, np.int64)), self.name, os.getpid(), status, self.counters,
               {"policy_version": self.version}, "foreign client"]
-        if status == "stopped":  # the last one goes reliably (docs/wire-format.md, "Being a role")
-            self.z.put(self.hb_key, msgpack.packb(hb, use_bin_type=True),
-                       congestion_control=zenoh.CongestionControl.DROP)
-        else:
-            self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
+        send_heartbeat(self.z, self.hb_key, self.hb_pub, hb, status)
 
     def run(self) -> None:
         while not self.stop:
@@ -603,11 +609,7 @@ class ForeignRobot:
             gauges.update(msg_age_p50_ms=round(float(p50), 2), msg_age_p99_ms=round(float(p99), 2))
         hb = [*header("heartbeat", 0, np.zeros(0, np.int64)), self.name, os.getpid(), status, self.counters, gauges,
               "foreign robot"]
-        if status == "stopped":  # the last one goes reliably (docs/wire-format.md, "Being a role")
-            self.z.put(self.hb_key, msgpack.packb(hb, use_bin_type=True),
-                       congestion_control=zenoh.CongestionControl.DROP)
-        else:
-            self.hb_pub.put(msgpack.packb(hb, use_bin_type=True))
+        send_heartbeat(self.z, self.hb_key, self.hb_pub, hb, status)
 
     def run(self) -> None:
         while not self.stop:

@@ -73,3 +73,20 @@ def trained_bundle(directory: Path, episodes: int) -> Path:
                                          f"episodes={episodes}", "seed=4"])
     train(cfg, RunDir.create(directory / "run", cfg), tensorboard=False)
     return export_bundle(directory / "run", directory / "bundle").path
+
+
+def trained_pair(directory: Path, episodes: int = 16) -> tuple[Path, Path]:
+    """`trained_bundle`, and the same team with its local weights moved by 0.01, exported declaring
+    that it works with the first one's central network: a push that must be pulled in chunks."""
+    import shutil
+
+    import numpy as np
+    from hammer.serve.bundle import export_bundle
+    from safetensors.numpy import load_file, save_file
+
+    a = trained_bundle(directory, episodes=episodes)
+    shutil.copytree(directory / "run", directory / "run-b")
+    final = directory / "run-b" / "final"
+    w = load_file(str(final / "local.safetensors"))
+    save_file({k: v + np.float32(0.01) for k, v in w.items()}, str(final / "local.safetensors"))
+    return a, export_bundle(directory / "run-b", directory / "B", works_with=(directory / "run" / "final",)).path

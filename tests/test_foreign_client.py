@@ -132,21 +132,9 @@ def test_foreign_local_agent_completes_a_hammer_run_exactly_like_hammer_local(tm
 def teams(tmp_path_factory):
     """A briefly trained cn3 team, and the same team with other local weights that declares the first
     one's central network (a push to a fleet running the first, pulled in chunks)."""
-    import shutil
+    from tests.runtime_helpers import trained_pair
 
-    import numpy as np
-    from hammer.serve.bundle import export_bundle
-    from safetensors.numpy import load_file, save_file
-
-    from tests.runtime_helpers import trained_bundle
-
-    root = tmp_path_factory.mktemp("teams")
-    a = trained_bundle(root, episodes=16)
-    shutil.copytree(root / "run", root / "run-b")
-    final = root / "run-b" / "final"
-    w = load_file(str(final / "local.safetensors"))
-    save_file({k: v + np.float32(0.01) for k, v in w.items()}, str(final / "local.safetensors"))
-    return a, export_bundle(root / "run-b", root / "B", works_with=(root / "run" / "final",)).path
+    return trained_pair(tmp_path_factory.mktemp("teams"))
 
 
 def test_a_foreign_robot_plays_robot_0_of_a_fleet_and_pulls_a_push_in_chunks(teams, tmp_path):

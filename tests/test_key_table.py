@@ -9,19 +9,17 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
 from hammer.protocol.access import LAUNCHER, Grant, grants
 from hammer.protocol.keys import Keys
 from hammer.protocol.session import DECLARED_KEYS_ENV
 
-from tests.runtime_helpers import ENV, ROOT, trained_bundle
+from tests.runtime_helpers import ENV, ROOT
 
 pytestmark = pytest.mark.timeout(420)
 RUN = "r"
@@ -143,16 +141,9 @@ def _check_declared(directory: Path, run: str, roles: set[str]) -> set[tuple[str
 def teams(tmp_path_factory):
     """A briefly trained cn3 team, and the same team with other local weights (declaring that it
     works with the first one's central network), for a push that must be pulled in chunks."""
-    from hammer.serve.bundle import export_bundle
-    from safetensors.numpy import load_file, save_file
+    from tests.runtime_helpers import trained_pair
 
-    root = tmp_path_factory.mktemp("keys")
-    a = trained_bundle(root, episodes=16)
-    shutil.copytree(root / "run", root / "run-b")
-    final = root / "run-b" / "final"
-    w = load_file(str(final / "local.safetensors"))
-    save_file({k: v + np.float32(0.01) for k, v in w.items()}, str(final / "local.safetensors"))
-    return a, export_bundle(root / "run-b", root / "B", works_with=(root / "run" / "final",)).path
+    return trained_pair(tmp_path_factory.mktemp("keys"))
 
 
 def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(teams, tmp_path, monkeypatch):
