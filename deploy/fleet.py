@@ -47,7 +47,7 @@ from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
-from hammer.runtime.settings import refuse_plain_beyond_loopback
+from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
 
 log = logging.getLogger("hammer.fleet")
 
@@ -71,7 +71,7 @@ class FleetPlan:
     secure: bool = False  # mutual TLS with the run's identities (RUN/identity/) and per-role access rules
     insecure: bool = False  # accept plain traffic beyond loopback (on a network you trust)
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
-    runtime: list[str] = field(default_factory=list)  # RuntimeSettings FIELD=VALUE items (`--runtime`)
+    runtime: dict = field(default_factory=dict)  # RuntimeSettings fields from `--runtime` (runtime_items)
     timeline: Path | None = None  # the world appends per-robot totals here once a second (benches)
     site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
@@ -98,29 +98,23 @@ LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
 
 
 def apply_runtime(plan: FleetPlan, items: list[str]) -> FleetPlan:
-    """`--runtime FIELD=VALUE` items for a fleet: the plan's bounds (PLAN_BOUNDS) set on the plan, the
-    rest kept as RuntimeSettings items (checked when the fleet's runtime.json is made). ValueError
-    naming the item on a malformed one."""
-    rest = []
-    for item in items:
-        key, eq, val = item.partition("=")
-        key = key.strip()
-        if not eq:
-            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. zenoh_lease_s=3")
-        if key in PLAN_BOUNDS:
-            try:
-                setattr(plan, key, float(val))
-            except ValueError:
-                raise ValueError(f"--runtime {item!r}: {key} takes seconds, e.g. {key}=0.5") from None
-        else:
-            rest.append(f"{key}={val.strip()}")
-    plan.runtime = rest
+    """`--runtime FIELD=VALUE` items for a fleet (read by `runtime.settings.runtime_items`, the one
+    parser): the plan's bounds (PLAN_BOUNDS) set on the plan, the rest kept as RuntimeSettings fields
+    (checked when the fleet's runtime.json is made). ValueError naming the item on a bad one."""
+    values = runtime_items(items)
+    for key in PLAN_BOUNDS:
+        if key in values:
+            v = values.pop(key)
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ValueError(f"--runtime {key}={v}: {key} takes seconds, e.g. {key}=0.5")
+            setattr(plan, key, float(v))
+    plan.runtime = values
     return plan
 
 
 def link_items(plan: FleetPlan) -> list[str]:
     """The plan's `--runtime` items every role and robot gets (LINK_FIELDS), as command arguments."""
-    return [x for item in plan.runtime if item.partition("=")[0] in LINK_FIELDS for x in ("--runtime", item)]
+    return [x for key, v in plan.runtime.items() if key in LINK_FIELDS for x in ("--runtime", f"{key}={v}")]
 
 
 def robot_endpoint(plan: FleetPlan) -> str:
@@ -197,20 +191,19 @@ def fleet_settings(b, plan: FleetPlan, run_id: str):
     ValueError naming the field on a bad item."""
     from hammer.serve.settings import serve_settings
 
-    items = [*plan.runtime, *(["secure=true", "secure_hub=true"] if plan.secure else []),
-             *(["insecure=true"] if plan.insecure else []), f"hub_port={plan.hub_port}",
-             f"max_absence_s={plan.max_absence_s}"]
-    settings, _ = serve_settings(b, run_id, runtime=items, listen=plan.listen)
+    fixed = {**plan.runtime, **({"secure": True, "secure_hub": True} if plan.secure else {}),
+             **({"insecure": True} if plan.insecure else {}), "hub_port": plan.hub_port,
+             "max_absence_s": plan.max_absence_s}
+    settings, _ = serve_settings(b, run_id, listen=plan.listen, fixed=fixed)
     return settings
 
 
-def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:
-    """runtime.json (mode eval, the bundle as policy version 0), config.json (the team at K = 1) and
+def write_served_files(b, plan: FleetPlan, run_dir: Path, settings) -> None:
+    """runtime.json (`settings`, the bundle as policy version 0), config.json (the team at K = 1) and
     env_spec.json: the files `hammer push` / `hammer rollback` (serve/push.py) check a push against
     and the policy server reads, the same as a lock-stepped `hammer serve` writes."""
     from hammer.runtime.settings import write_env_spec
 
-    settings = fleet_settings(b, plan, run_id)
     # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
     settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
     settings.save(run_dir)
@@ -241,7 +234,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     refuse_plain_beyond_loopback(hub_transport, plan.secure, plan.insecure)
     run_dir.mkdir(parents=True, exist_ok=True)
     _set_aside(run_dir)
-    write_served_files(b, plan, run_dir, run_id)
+    write_served_files(b, plan, run_dir, settings)
     if plan.secure:
         from hammer.deploy.up import secure_identities
 

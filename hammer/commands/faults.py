@@ -155,20 +155,11 @@ def eval_command(
 
 def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | None, runtime: list[str] | None):
     """RuntimeSettings of the evaluation of a run directory's final/ policy (default fallback)."""
-    import yaml
-
-    from hammer.runtime.settings import RuntimeSettings
+    from hammer.runtime.settings import build_settings
 
     rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
           "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            fail(f"--runtime {item!r}: expected FIELD=VALUE")
-        rt[key.strip()] = yaml.safe_load(val)
     try:
-        return RuntimeSettings.model_validate(rt)
+        return build_settings(rt, runtime)
     except ValueError as e:
-        from hammer.commands.up import settings_error
-
-        fail(settings_error(e))
+        fail(str(e))

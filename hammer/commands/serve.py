@@ -159,10 +159,9 @@ def serve_command(
         b.check_env_here(cfg)
         skip, roles = _external(external, cfg)
         path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
-                                                                                   *(["secure=true"] if secure else []),
-                                                                                   *(["insecure=true"] if insecure else [])],
-                                        listen=_listen(listen))
+        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, runtime, listen=_listen(listen),
+                                        fixed={**({"secure": True} if secure else {}),
+                                               **({"insecure": True} if insecure else {})})
         if roles:
             settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
         if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
@@ -216,9 +215,9 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
     try:
         apply_runtime(plan, list(runtime or []))
-        for item in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
-            if item.partition("=")[0] in ("hub_port", "hub_listen", "zenoh_config_file", "secure_hub"):
-                raise ValueError(f"--runtime {item!r}: a fleet's router is set by --listen (and --secure); "
+        for key in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
+            if key in ("hub_port", "hub_listen", "zenoh_config_file", "secure_hub"):
+                raise ValueError(f"--runtime {key}: a fleet's router is set by --listen (and --secure); "
                                  "fix: leave it out")
         plan.check()
         fleet_settings(load_bundle(bundle), plan, path.name)  # a bad --runtime value: one line, before anything

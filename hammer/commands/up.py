@@ -13,28 +13,6 @@ import typer
 from hammer.commands.common import ConfigFieldsHelp, InsecureOpt, SecureOpt, fail
 
 
-def settings_error(err: Exception, flag: str = "--runtime") -> str:
-    """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
-    import difflib
-
-    from hammer.protocol.config_model import ValidationError
-    from hammer.runtime.settings import RuntimeSettings
-
-    if not isinstance(err, ValidationError):
-        return f"{flag}: {' '.join(str(err).split())}"
-    parts = []
-    for e in err.errors(include_url=False):
-        field = ".".join(str(x) for x in e["loc"]) or "settings"
-        if e["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
-            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
-            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
-        else:
-            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
-            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
-    return "; ".join(parts)
-
-
 def register(app: typer.Typer) -> None:
     from hammer.commands import roles
 
@@ -241,7 +219,7 @@ def up_command(
     from hammer.faults.spec import FaultSpecError, build_plan
     from hammer.learning.config import ConfigError, load_yaml, merge_config
     from hammer.protocol.fault_injection import FaultSpec
-    from hammer.runtime.settings import RuntimeSettings
+    from hammer.runtime.settings import build_settings
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -295,14 +273,10 @@ def up_command(
         rt["secure"] = True
     if insecure:
         rt["insecure"] = True
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            fail(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
-        rt[key.strip()] = yaml.safe_load(val)
+    fixed = {}
     if faults is not None:
         try:
-            rt["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
+            fixed["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
         except yaml.YAMLError as e:
             from hammer.learning.config import yaml_error_text
 
@@ -310,9 +284,9 @@ def up_command(
         except Exception as e:  # noqa: BLE001 - report any parse/validation problem in one line
             fail(f"--faults {faults}: {str(e).splitlines()[0]}")
     try:
-        settings = RuntimeSettings.model_validate(rt)
-    except Exception as e:  # noqa: BLE001
-        fail(settings_error(e))
+        settings = build_settings(rt, runtime, fixed=fixed)
+    except ValueError as e:
+        fail(str(e))
     console.print(f"run dir: {path}")
     if plan.links:
         for lf in plan.links:
