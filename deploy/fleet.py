@@ -38,13 +38,12 @@ import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 from hammer.deploy.fleet_verdict import fleet_verdict
-from hammer.deploy.supervisor import RoleSpec, Supervisor
-from hammer.deploy.up import stop_on_signals
+from hammer.deploy.supervisor import RoleSpec, role_args
+from hammer.deploy.up import Board, Launcher, UpError, stop_on_signals
 from hammer.protocol.access import HUB, LAUNCHER
-from hammer.protocol.schemas import Control, Heartbeat
+from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
 from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
@@ -113,8 +112,8 @@ def apply_runtime(plan: FleetPlan, items: list[str]) -> FleetPlan:
 
 
 def link_items(plan: FleetPlan) -> list[str]:
-    """The plan's `--runtime` items every role and robot gets (LINK_FIELDS), as command arguments."""
-    return [x for key, v in plan.runtime.items() if key in LINK_FIELDS for x in ("--runtime", f"{key}={v}")]
+    """The plan's `--runtime` items every role and robot gets (LINK_FIELDS)."""
+    return [f"{key}={v}" for key, v in plan.runtime.items() if key in LINK_FIELDS]
 
 
 def robot_endpoint(plan: FleetPlan) -> str:
@@ -139,11 +138,10 @@ def robot_command(plan: FleetPlan, i: int, run_dir: Path) -> str:
 
     where = robot_endpoint(plan)
     plain_out = not plan.secure and ("<" in where or not is_loopback_endpoint(where))
-    return shlex.join(["hammer", "local", "--bundle", str(plan.bundle), "--agent", str(i), "--run-id",
-                       Path(run_dir).name, "--connect", where,
-                       *(["--identity", str(identity_dir(Path(run_dir)))] if plan.secure else []),
-                       *(["--insecure"] if plain_out else []), *link_items(plan),
-                       *(["--seed", str(plan.seed)] if plan.seed is not None else []), "--fleet"])
+    return shlex.join(["hammer", *role_args("local", bundle=plan.bundle, agent=i, run_id=Path(run_dir).name,
+                                            connect=where, identity=plan.secure and identity_dir(Path(run_dir)),
+                                            insecure=plain_out, runtime=link_items(plan), seed=plan.seed,
+                                            fleet=True)])
 
 
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
@@ -153,23 +151,21 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     and makes `connect` a TLS endpoint."""
     from hammer.protocol.identity import identity_dir
 
-    common = ["--bundle", str(plan.bundle), "--run-id", run_id, "--connect", connect,
-              *(["--identity", str(identity_dir(run_dir))] if plan.secure else []),
-              *(["--seed", str(plan.seed)] if plan.seed is not None else []), *link_items(plan)]
-    specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
-                              "--run-dir", str(run_dir),
-                              *(["--timeline", str(plan.timeline)] if plan.timeline is not None else []),
-                              *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
-                              *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])]),
-             RoleSpec("learner", ["fleet-policy", *common, "--run-dir", str(run_dir)], restart=True)]
+    common = {"bundle": plan.bundle, "run_id": run_id, "connect": connect,
+              "identity": plan.secure and identity_dir(run_dir), "seed": plan.seed, "runtime": link_items(plan)}
+    specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, run_dir=run_dir,
+                                       timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
+             RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:
-        specs.append(RoleSpec("central", ["fleet-central", *common, "--hz", str(plan.hz),
-                                          "--missing-after-s", str(plan.missing_after_s)], restart=True))
+        specs.append(RoleSpec("central", role_args("fleet-central", **common, hz=plan.hz,
+                                                   missing_after_s=plan.missing_after_s),
+                              restart=True, essential=False))
     for i in range(n_agents):
         if i in plan.external:
             continue
-        specs.append(RoleSpec(f"local-{i}", ["local", *common, "--agent", str(i), "--fleet",
-                                             "--max-msg-age-s", str(plan.max_msg_age_s)], restart=True))
+        specs.append(RoleSpec(f"local-{i}", role_args("local", **common, agent=i, fleet=True,
+                                                      max_msg_age_s=plan.max_msg_age_s),
+                              restart=True, essential=False))
     return specs
 
 
@@ -243,77 +239,57 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
+    robots = {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}
     fleet_json = json.dumps({
         "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0],
         "endpoint": robot_endpoint(plan), "plan": {**plan.__dict__, "bundle": str(plan.bundle),
                                                   "timeline": plan.timeline and str(plan.timeline),
                                                   "site": plan.site and str(plan.site)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs},
-        "robot_commands": {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}}, indent=1)
-    board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
-                            versions={}, switches={})
-    sup = Supervisor(run_dir / "logs")
-    stopped_by = None
+        "robot_commands": robots}, indent=1)
+    board = FleetBoard()
     t0 = time.monotonic()
-    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
-    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+
+    def started_world(sup, board) -> None:  # chaos's clock (t=...) starts with the world's
+        world = board.heartbeats.get("env")
+        if world is not None and world.counters.get("ticks", 0) > 0:
+            chaos(sup, board)
+
+    # The one launcher loop (deploy/up.py), as a fleet runs it: no waiting for anyone to be up (robots
+    # join when they can; the world waits for them), robots that keep dying are let go (the verdict
+    # names their absence), on a fleet's clock.
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s,
+                        on_tick=None if on_tick is None else (lambda board: on_tick(board, time.monotonic() - t0)),
+                        chaos=None if chaos is None else started_world, settings=settings,
+                        external=robots, wait_alive=False, watch_liveliness=False, board=board, tick_s=0.1, stop_wait_s=5.0,
+                        heard=lambda h: _note_version(board, h, time.monotonic() - t0))
+    stopped_by = None
     if plan.secure:  # strangers turned away at the hub's TLS handshake: counted for the verdict (a plain hub has no handshake to refuse)
         watch_refused()
-    stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
-    stopping = stop_on.__enter__()
-    try:
-        with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
-            (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
-            beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
-            for s in specs:
-                sup.start(s)
-            try:
-                while True:
-                    for h in beats.drain():
-                        _note_version(board, h, time.monotonic() - t0)
-                        board.heartbeats[h.role] = h
-                    done = False
-                    for rp in sup.poll():
-                        name = rp.spec.name
-                        if name == "env":
-                            done = True
-                            if rp.exit_codes[-1] != 0:
-                                stopped_by = f"the world exited with code {rp.exit_codes[-1]}"
-                        elif name not in board.held and rp.restarts < rp.spec.max_restarts:
-                            rp.restarts += 1
-                            board.restarts[name] += 1
-                            log.warning("%s exited (code %s): restarting (%d)", name, rp.exit_codes[-1], rp.restarts)
-                            sup.start(rp.spec)
-                    if done:
-                        break
-                    world = board.heartbeats.get("env")
-                    if chaos is not None and world is not None and world.counters.get("ticks", 0) > 0:
-                        chaos(sup, board)  # its clock (t=...) starts with the world's
-                    if on_tick is not None:
-                        on_tick(board, time.monotonic() - t0)
-                    time.sleep(0.1)
-            except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
-                stopped_by = getattr(e, "signal_name", "SIGINT")
-            stopping["ending"] = True  # a repeated signal must not cut the stop broadcast or the summary short
-            hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
-            # each role's last heartbeat (status stopped) holds its final counters: wait for them a while
-            deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline:
-                for h in beats.drain():
-                    _note_version(board, h, time.monotonic() - t0)
-                    board.heartbeats[h.role] = h
-                started = {s.name for s in specs}
-                if all(h.status == "stopped" or (n in started and not sup.alive(n))
-                       for n, h in board.heartbeats.items()):
-                    break
-                time.sleep(0.05)
-    except KeyboardInterrupt as e:  # before the roles were up
-        stopped_by = getattr(e, "signal_name", "SIGINT")
-    finally:
-        stopping["ending"] = True
-        sup.stop_all()
-        stop_on.__exit__(None, None, None)
+    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
+    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+    with stop_on_signals((signal.SIGTERM, signal.SIGINT)) as state:
+        launcher.stopping = state  # marked ending once the launcher broadcasts the stop
+        try:
+            with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
+                (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
+                launcher.run(hub)
+        except UpError as e:  # the world failed: every role was stopped all the same
+            stopped_by = str(e)
+        except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
+            stopped_by = getattr(e, "signal_name", "SIGINT")
+        finally:
+            state["ending"] = True  # a repeated signal must not cut the summary short
     return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
+
+
+@dataclass
+class FleetBoard(Board):
+    """The launcher's board with what a fleet adds: each robot's and the central agent's policy
+    version, and every switch seen (summary.json: `version_switches`)."""
+
+    versions: dict[str, int] = field(default_factory=dict)
+    switches: dict[str, list[dict]] = field(default_factory=dict)
 
 
 def _note_version(board, h: Heartbeat, t: float) -> None:

@@ -20,7 +20,6 @@ import logging
 import math
 import shutil
 import signal
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -130,7 +129,7 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
     point_dir = out / "points" / p.name
     res = launch(cfg, settings, point_dir, stop=stop)
     if res.stopped_by is not None:
-        from hammer.deploy.up import Stopped
+        from hammer.runtime.process import Stopped
 
         raise Stopped(res.stopped_by)
     with open(point_dir / "metrics.csv", newline="") as f:
@@ -216,17 +215,10 @@ def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: fl
     if done and note is not None:
         note(f"{len(done)} of {len(points)} evaluation runs already finished in {out / 'points'}; "
              f"evaluating the other {len(todo)}")
+    from hammer.runtime.process import take_signals
+
     stopped: list[str] = []
-
-    def on_signal(signum, frame) -> None:
-        name = signal.Signals(signum).name
-        if stopped:
-            log.warning("%s: already stopping", name)
-        else:
-            stopped.append(name)
-
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, on_signal) for s in stop_signals} if main else {}
+    _, restore = take_signals(stop_signals, stopped.append)
     try:
         with ThreadPoolExecutor(max_workers=max(1, parallel)) as ex:
             futures = {}
@@ -257,8 +249,7 @@ def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: fl
                     if progress is not None:
                         progress(r, len(done), len(points))
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     outcome.stopped_by = stopped[0] if stopped else None
     outcome.results = [done[p] for p in points if p in done]
     if outcome.results:

@@ -19,7 +19,7 @@ from hammer.faults.steplog import LoggedPublisher, StepLog, column
 from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import Action, CentralMsg, LocalObs
 from hammer.protocol.session import HammerSession
-from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.bounds import StepWindow
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
 

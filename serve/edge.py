@@ -275,7 +275,8 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
     `weights`: the bundle's local.safetensors (`lite_choice` reads its tensor names)."""
     import collections
     import signal
-    import threading
+
+    from hammer.runtime.process import take_signals
 
     log = logging.getLogger("hammer.local")
     name = f"local-{spec.agent}"
@@ -291,14 +292,13 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
     where = ", ".join(hub_endpoints(transport)) or "the run"
     stop = _Stop()
 
-    def on_signal(signum, frame) -> None:
-        stop.by = signal.Signals(signum).name
+    def on_signal(signal_name: str) -> None:
+        stop.by = signal_name
         log.warning("%s: %s, stopping", name, stop.by)
         if stop.client is not None and stop.client.stop_reason is None:
             stop.client.stop_reason = stop.by  # the role's loop ends at its next turn, as on a stop command
 
-    signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
-    previous = {s: signal.signal(s, on_signal) for s in signals}
+    _, restore = take_signals((signal.SIGTERM, signal.SIGINT), on_signal)
     deadline = time.monotonic() + connect_retry_s if connect_retry_s > 0 else None
     runs, totals, ended = 0, collections.Counter(), None
     try:
@@ -326,8 +326,7 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
             log.info("%s: run %s session %d ended (%s); staying for the next one", name, settings.run_id, runs,
                      client.stop_reason)
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     if stop.by is not None:
         log.info("%s stopped by %s after %d session(s) of run %s; counters: %s", name, stop.by, runs,
                  settings.run_id, dict(totals))

@@ -378,10 +378,9 @@ def push_command(
         fail(str(err))
     import signal
 
-    def on_term(signum, frame) -> None:  # SIGTERM (a supervisor stopping the command) as Ctrl-C: roll back
-        raise KeyboardInterrupt
+    from hammer.runtime.process import take_signals
 
-    signal.signal(signal.SIGTERM, on_term)
+    take_signals((signal.SIGTERM,))  # a supervisor stopping the command, as Ctrl-C: roll back
     try:
         verdict = r.run()
     except KeyboardInterrupt:

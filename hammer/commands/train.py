@@ -134,22 +134,21 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     seen = [0]  # episodes done, for the line an interruption prints
     import signal
 
-    def on_term(signum, frame) -> None:  # SIGTERM (`kill`, a session ending) stops as Ctrl-C does
-        seen.append("SIGTERM")
-        raise KeyboardInterrupt
+    from hammer.runtime.process import take_signals
 
-    previous = signal.signal(signal.SIGTERM, on_term)
+    # SIGTERM (`kill`, a session ending) stops as Ctrl-C does
+    term, restore = take_signals((signal.SIGTERM,))
     try:
         summary = _train(cfg, rd, env, resume, quiet, console, started, seen)
     except KeyboardInterrupt:
         ckpt = rd.latest_checkpoint()
         then = (f"`hammer train --resume {rd.path}` continues from the last checkpoint ({ckpt.name})" if ckpt
                 else f"no checkpoint yet, nothing to continue; start it again with --run-dir after removing {rd.path}")
-        by = "SIGTERM" if "SIGTERM" in seen else "Ctrl-C"
+        by = "SIGTERM" if term["by"] else "Ctrl-C"
         console.print(f"interrupted ({by}) after {seen[0]:,} of {cfg.episodes:,} episodes: {then}", soft_wrap=True)
         raise typer.Exit(143 if by == "SIGTERM" else 130) from None
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        restore()
     metric = summary["final_paper_metric_last500"]
     console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
                   f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
