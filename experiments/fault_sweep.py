@@ -86,26 +86,39 @@ def eval_config(run: Path, episodes: int, seed: int):
     return build_config(data)
 
 
-def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
-    """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
-    served as `hammer serve` serves it (serve.settings.serve_settings: its fallback applies); a run directory
-    with the default fallback."""
-    from hammer.faults.spec import FaultPlan, LinkFault
-    from hammer.runtime.settings import RuntimeSettings
+def eval_settings(run: Path, run_id: str, fault: list[str] | None = None, fault_seed: int = 0,
+                  chaos: list[str] | None = None, runtime: list[str] | None = None):
+    """(RuntimeSettings, FaultPlan) of an evaluation of a trained team (`hammer faults eval`, each sweep
+    point): eval mode, link faults, chaos, --runtime items. A bundle is served as `hammer serve` serves
+    it (serve.settings.serve_settings: its fallback applies); a run directory's final/ policy with the
+    default fallback. ValueError (FaultSpecError, ChaosSpecError, BundleError) with one line."""
+    from hammer.faults.chaos import parse_chaos
+    from hammer.faults.spec import build_plan
+    from hammer.runtime.settings import build_settings
     from hammer.serve.bundle import is_bundle, load_bundle
 
-    run = Path(p.run)
-    links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
-    plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
-    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
-    run_id = p.name.replace(".", "_")[:64]
+    run = Path(run)
     if is_bundle(run):
         from hammer.serve.settings import serve_settings
 
-        base, _ = serve_settings(load_bundle(run), run_id, runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
-        return base.model_copy(update=faults)
-    return RuntimeSettings(run_id=run_id, mode="eval", policy_dir=str(team_source(run)[1]),
-                           msg_deadline_ms=msg_deadline_ms, **faults)
+        return serve_settings(load_bundle(run), run_id, fault, fault_seed, chaos, runtime)
+    plan = build_plan(fault, fault_seed)
+    for c in chaos or []:
+        parse_chaos(c)
+    rt = {"run_id": run_id, "mode": "eval", "policy_dir": str(team_source(run)[1]),
+          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
+    return build_settings(rt, runtime), plan
+
+
+def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
+    """RuntimeSettings of one sweep point: eval mode (`eval_settings`), the point's fault on central->local."""
+    from hammer.faults.spec import FaultPlan, LinkFault
+
+    links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
+    plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
+    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
+    base, _ = eval_settings(Path(p.run), p.name.replace(".", "_")[:64], runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
+    return base.model_copy(update=faults)
 
 
 POINT_FILE = "point.json"  # a finished point's result, written last: its presence marks the point done

@@ -10,9 +10,9 @@ import time
 
 import numpy as np
 from hammer.local_agent.client import AgentSpec, LocalAgentClient
-from hammer.runtime.settings import RuntimeSettings
 from hammer.protocol.schemas import Heartbeat, Weights
 from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.runtime.settings import RuntimeSettings
 from safetensors.numpy import save
 
 

@@ -18,8 +18,8 @@ import pytest
 from hammer.protocol.codec import encode
 from hammer.protocol.schemas import Control, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
-from hammer.runtime.weights import WeightsIntake
 from hammer.runtime.settings import RuntimeSettings
+from hammer.runtime.weights import WeightsIntake
 from hammer.serve.policy_server import PolicyServer
 
 pytestmark = pytest.mark.timeout(120)

@@ -17,8 +17,8 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.trainer import train
 from hammer.local_agent.client import AgentSpec, LocalAgent
-from hammer.serve.bundle import BundleError, export_bundle
 from hammer.runtime.settings import RuntimeSettings
+from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.push import push, read_history, rollback
 from hammer.serve.settings import serve_settings
 from safetensors.numpy import load_file, save_file

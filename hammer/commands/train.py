@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import ConfigFieldsHelp, fail
+from hammer.deploy.dashboard import eta
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
@@ -194,21 +195,6 @@ def _train(cfg, rd, env, resume: bool, quiet: bool, console, started: list, seen
                            metric=f"{p.running_metric:.2f}")
 
             return train(cfg, rd, resume=resume, env=env, on_progress=report)
-
-
-def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
-    """Time left at this session's episode rate, as h:mm:ss ('-' until there is a rate)."""
-    t0, e0 = start
-    done, elapsed = episodes - e0, time.monotonic() - t0
-    if done <= 0 or elapsed <= 0:
-        return "-"
-    return hms(max(0, budget - episodes) * elapsed / done)
-
-
-def hms(seconds: float) -> str:
-    """h:mm:ss with as many hours as it takes (26:03:00, not the 02:03:00 a clock shows after 24 h)."""
-    s = int(seconds)
-    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:
