@@ -16,10 +16,12 @@ robot whose lease expires is one client link closed: no other robot's traffic ta
 secure fleet the router holds the run's `hub` identity and checks the access rules on every hop,
 and every role checks them again on its own link.
 
-The launcher opens the router, starts the roles, restarts a robot or the central agent that dies
-(not one that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires
-the `--chaos` events on time, and at the end (the world's episodes or seconds, Ctrl-C or SIGTERM)
-stops every role and writes summary.json.
+The launcher opens the router and runs the one launch loop of every launcher (deploy.up.Launcher:
+no waiting for liveliness here, robots join when they can): it starts the roles, restarts a robot,
+the central agent or the policy server that dies (up to 3 times, then goes on without it; not one
+that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires the
+`--chaos` events on time (from the world's first tick), and at the end (the world's episodes or
+seconds, Ctrl-C or SIGTERM) stops every role; then it writes summary.json.
 
 Hot updates: the launcher also runs the fleet's policy server (`hammer fleet-policy`, the
 `serve.policy_server.PolicyServer` of a lock-stepped served run) following RUN/pushes.json, and
