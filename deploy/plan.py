@@ -181,21 +181,19 @@ def external_help(bundle: Path, b, cfg, settings, path: Path, agents: list[int],
     agent from the bundle, the central agent from the run directory; the hub's endpoint filled in."""
     import shlex
 
+    from hammer.deploy.supervisor import role_args
     from hammer.protocol.session import is_loopback_endpoint
 
     where = hub_endpoint(settings)
     plain_out = not settings.secure and ("<" in where or not is_loopback_endpoint(where))  # the agent's consent too
-    out = {}
-    for i in agents:
-        cmd = ["hammer", "local", "--bundle", str(bundle), "--agent", str(i)]
-        cmd += (["--settings", str(path / "runtime.json"), "--identity", str(path / "identity")] if settings.secure
-                else ["--run-id", settings.run_id])
-        cmd += ["--connect", where, *(["--insecure"] if plain_out else []),
-                *(["--seed", str(seed)] if seed is not None else []),
-                *(["--num-envs", str(cfg.num_envs)] if cfg.num_envs != int(b.config_data["num_envs"]) else [])]
-        out[f"local-{i}"] = shlex.join(cmd)
+    joins = ({"settings": path / "runtime.json", "identity": path / "identity"} if settings.secure
+             else {"run_id": settings.run_id})
+    num_envs = cfg.num_envs if cfg.num_envs != int(b.config_data["num_envs"]) else None
+    out = {f"local-{i}": shlex.join(["hammer", *role_args("local", bundle=bundle, agent=i, **joins, connect=where,
+                                                          insecure=plain_out, seed=seed, num_envs=num_envs)])
+           for i in agents}
     if "central" in roles:
-        out["central"] = shlex.join(["hammer", "central", "--run-dir", str(path), "--connect", where]) + \
+        out["central"] = shlex.join(["hammer", *role_args("central", run_dir=path, connect=where)]) + \
             " (the run directory's config.json, runtime.json and env_spec.json are all it reads)"
     return out
 

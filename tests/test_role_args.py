@@ -62,3 +62,18 @@ def test_every_role_line_of_a_fleet_parses(tmp_path, secure):
     for s in specs:
         _parse(s.args)
     _parse(shlex.split(robot_command(plan, 1, tmp_path))[1:])
+
+
+@pytest.mark.parametrize("secure", [False, True])
+def test_every_command_hammer_serve_shows_for_an_external_role_parses(tmp_path, secure):
+    from types import SimpleNamespace
+
+    from hammer.deploy.plan import external_help
+
+    cfg = merge_config("cn3", None, [], {"variant": "hammer", "out": str(tmp_path)})
+    trained = SimpleNamespace(config_data={"num_envs": cfg.num_envs + 1})  # served with other K: --num-envs shown
+    settings = RuntimeSettings(run_id="r", hub_port=7447, secure=secure, hub_listen=["tcp/0.0.0.0:7500"])
+    shown = external_help(tmp_path / "b", trained, cfg, settings, tmp_path / "run", [0, 2], ["central"], 5)
+    assert set(shown) == {"local-0", "local-2", "central"} and "--num-envs" in shown["local-0"]
+    for line in shown.values():
+        _parse(shlex.split(line.split(" (")[0])[1:])
