@@ -356,8 +356,8 @@ class LiveStatus:
                    "msg_age_p50_ms": g.get("msg_age_p50_ms", g.get("step_p50_ms")),
                    "msg_age_p99_ms": g.get("msg_age_p99_ms", g.get("step_p99_ms")),
                    "defaults": world_defaults if world_defaults is not None else c.get("default_actions"),
-                   "fallbacks": (c.get("msg_stale", 0) + c.get("msg_none", 0)) if "msg_none" in c
-                   else c.get("msg_fallback_copies"),
+                   "fallbacks": (c.get("msg_stale", 0) + c.get("msg_none", 0)) if "msg_none" in c  # a robot
+                   else c.get("fallback_copies", c.get("msg_fallback_copies")),  # a local agent, the env host
                    "policy_acted": g.get("policy_version"), "policy_held": g.get("policy_held"),
                    "cohort": None if i is None or not self.rollout else ("canary" if i in canary else "base"),
                    "restarts": self._restarts.get(name, 0),
