@@ -480,7 +480,7 @@ def check_view_addr(host: str, token: str | None, flag: str = "--view") -> None:
 class ViewProcess:
     """`hammer view RUNS_DIR` as a child of a launcher: started before the run, stopped after it."""
 
-    def __init__(self, runs_dir: Path, addr: str, token: str | None = None) -> None:
+    def __init__(self, runs_dir: Path, addr: str, token: str | None = None, log_path: Path | None = None) -> None:
         from hammer.runtime.process import PARENT_ENV
 
         self.host, port = parse_view_addr(addr)
@@ -498,7 +498,8 @@ class ViewProcess:
         else:
             env.pop(VIEW_TOKEN_ENV, None)
         Path(runs_dir).mkdir(parents=True, exist_ok=True)
-        self.log_path = Path(runs_dir) / ".view.log"
+        self.log_path = Path(log_path) if log_path is not None else Path(runs_dir) / ".view.log"
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = open(self.log_path, "ab")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", "view", str(runs_dir),
                                       "--addr", f"[{self.host}]:{port}" if ":" in self.host else f"{self.host}:{port}"],
@@ -555,7 +556,7 @@ class LiveRun:
         self.board = None
         self.view = None
         if view is not None:
-            self.view = ViewProcess(self.run_dir.resolve().parent, view, token)
+            self.view = ViewProcess(self.run_dir.resolve().parent, view, token, self.run_dir / "logs" / "view.log")
             self.view.wait_ready()
 
     @property

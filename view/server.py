@@ -39,7 +39,7 @@ from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, R
 from starlette.routing import Route
 
 STATIC = Path(__file__).resolve().parent / "static"
-RUN_MARKERS = ("live.json", "summary.json", "fleet.json", "config.json", "env_summary.json")
+RUN_MARKERS = ("live.json", "summary.json", "fleet.json", "config.json", "env_summary.json", "sweep.csv")
 PART = re.compile(r"[A-Za-z0-9][A-Za-z0-9._=+-]{0,199}")
 LIVE_FRESH_S = 5.0  # a live.json older than this, with no end written, is a launcher that stopped answering
 STREAM_POLL_S = 0.1
@@ -97,6 +97,8 @@ def resolve_run(root: Path, run: str) -> Path | None:
 def run_kind(d: Path) -> str:
     if (d / "fleet.json").is_file():
         return "fleet"
+    if (d / "sweep.csv").is_file() and not (d / "config.json").is_file():
+        return "fault sweep"  # `hammer faults sweep --out DIR`
     rt = _json(d / "runtime.json")
     if rt:
         return "serve" if rt.get("mode") == "eval" else "up"
