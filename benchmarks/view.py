@@ -107,6 +107,38 @@ def up_trial(episodes: int, run: Path, view: bool) -> dict:
     return {**r, "env_steps_per_s": round(s["env_steps_per_s"], 1)}
 
 
+def live_cost(robots: int, ticks: int = 200) -> dict:
+    """The launcher's share, apart: CPU time of one `LiveStatus` write (live.json of `robots` robots with
+    their heartbeats all new, a world report, a series line each second), times 5 writes a second."""
+    from types import SimpleNamespace
+
+    from hammer.deploy.live import WRITE_EVERY_S, LiveStatus
+    from hammer.protocol.schemas import Heartbeat
+
+    clock = [0.0]
+    with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
+        live = LiveStatus(Path(tmp), "fleet", "bench", robots=robots, roles=("env", "central", "learner"),
+                          clock=lambda: clock[0])
+        board = SimpleNamespace(heartbeats={}, restarts={}, chaos_log=[])
+        spent = 0.0
+        for k in range(ticks):
+            clock[0] += WRITE_EVERY_S
+            board.heartbeats = {f"local-{i}": Heartbeat(role=f"local-{i}", pid=10 + i, status="running",
+                                                        counters={"acts": 10 * k, "msg_none": 0, "msg_stale": k},
+                                                        gauges={"policy_version": 0, "policy_held": 0,
+                                                                "msg_age_p50_ms": 12.0, "msg_age_p99_ms": 30.0})
+                                for i in range(robots)}
+            board.heartbeats["env"] = Heartbeat(role="env", pid=2, status="running", counters={
+                "ticks": 10 * k, **{f"local_{i}.fresh": 10 * k for i in range(min(robots, 20))}})
+            t = time.process_time()
+            live.tick(board)
+            spent += time.process_time() - t
+        size = (Path(tmp) / "live.json").stat().st_size
+    per = spent / ticks
+    return {"robots": robots, "ms_per_write": round(1e3 * per, 3), "cpu_pct_at_5hz": round(100 * per / WRITE_EVERY_S, 2),
+            "live_json_bytes": size}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bundle", type=Path, required=True)
@@ -116,8 +148,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--episodes", type=int, default=800)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--skip-up", action="store_true", help="the fleet only")
+    ap.add_argument("--live-only", action="store_true", help="only the launcher's share (LiveStatus writes)")
     a = ap.parse_args(argv)
-    out: dict = {"host_cpus": os.cpu_count(), "hz": a.hz, "seconds": a.seconds, "episodes": a.episodes,
+    costs = [live_cost(n) for n in (3, 20, 100)]
+    for c in costs:
+        print(f"live.json with {c['robots']} robots: {c['ms_per_write']} ms CPU a write, {c['cpu_pct_at_5hz']} % of a "
+              f"core at 5 writes/s, {c['live_json_bytes']:,} bytes", flush=True)
+    if a.live_only:
+        return
+    out: dict = {"live_cost": costs, "host_cpus": os.cpu_count(), "hz": a.hz, "seconds": a.seconds, "episodes": a.episodes,
                  "fleet": {"off": [], "view": []}, "up": {"off": [], "view": []}}
     with tempfile.TemporaryDirectory(prefix="bench-view-") as tmp:
         for t in range(a.trials):

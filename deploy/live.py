@@ -291,7 +291,9 @@ class LiveStatus:
 
     # ----- judging ------------------------------------------------------------------------------
     def _judge(self, board, now: float) -> None:
-        alive = getattr(board, "alive", None)  # `hammer up`'s tokens (a fleet's launcher follows none)
+        alive = getattr(board, "alive", None) or set()  # `hammer up`'s tokens (a fleet's launcher follows none)
+        att = getattr(board, "attendance", None)
+        followed = set(att.roles) if att is not None and att.started else set()
         for name, r in self.rows.items():
             h = r.hb
             silent = r.last_seen is None or now - r.last_seen > SILENT_AFTER_S
@@ -299,9 +301,11 @@ class LiveStatus:
                 state = "stopped"
             elif r.last_seen is None and not (r.world and r.world[0]):
                 state = "never"
-            elif silent or (alive is not None and getattr(board, "attendance", None) is not None
-                            and name in board.attendance.roles and name not in alive):
-                state = "missing"
+            elif name in followed and name not in alive:
+                state = "missing"  # its liveliness token went (`hammer up`: the launcher follows them)
+            elif silent:
+                # a token still up while the heartbeats pause (a learner in a long update): late, not gone
+                state = "late" if name in followed else "missing"
             elif r.world_delta is not None and r.world_delta[1] > 0:
                 state = "missing" if r.world_delta[0] == 0 else "late"
             else:
@@ -334,7 +338,7 @@ class LiveStatus:
         if r.last_seen is None:
             return f"{r.name}: never heard of"
         why = f"no heartbeat for {now - r.last_seen:.1f} s" if now - r.last_seen > SILENT_AFTER_S else \
-            "the world applied its default action" if r.world_delta and r.world_delta[1] else "its token is gone"
+            "the world applied its default action" if r.world_delta and r.world_delta[1] else "its liveliness token is gone"
         return f"{r.name} missing: {why}"
 
     # ----- writing ------------------------------------------------------------------------------
