@@ -119,6 +119,8 @@ def run_info(root: Path, d: Path, now: float | None = None) -> dict:
         status = "completed"
     elif live and not live.get("ended"):
         status = "not answering"
+    elif summary or (d / "sweep.csv").is_file():
+        status = "finished"  # a trainer's or a sweep's result, which says no more
     else:
         status = "unfinished"
     reasons = summary.get("degraded_reasons") or []
