@@ -44,7 +44,19 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
 
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
-    from hammer.commands import bench, envs, experiments, faults, fleet, protocol, serve, site, train, up, view
+    from hammer.commands import (
+        bench,
+        envs,
+        experiments,
+        faults,
+        fleet,
+        protocol,
+        serve,
+        site,
+        train,
+        up,
+        view,
+    )
     from hammer.commands.hub import hub_command
 
     app.command("hub")(hub_command)
