@@ -417,6 +417,12 @@ class LiveStatus:
             self._take_heartbeats(board, now)
             self._take_board_events(board)
             self._take_pushes()
+            try:  # the launcher's verdict, written just before: each degraded reason as an event
+                summary = json.loads((self.run_dir / "summary.json").read_text())
+            except (OSError, ValueError):
+                summary = {}
+            for reason in summary.get("degraded_reasons") or []:
+                self._event({"event": "degraded", "reason": str(reason)[:500]})
             self._event({"event": "ended", "reason": ended})
             self._write(board, now, ended=ended)
         except Exception as e:  # noqa: BLE001 - the run's own end must not fail for the view

@@ -118,8 +118,12 @@ def test_a_silent_robot_stays_in_the_list_with_its_last_seen_age_and_comes_back(
     kinds = [(e["event"], e.get("role")) for e in events]
     for want in (("missing", "local-1"), ("alert", "local-1"), ("back", "local-1"), ("restart", "local-0")):
         assert want in kinds, kinds
-    live.close(board, "completed")
-    assert json.loads((tmp_path / LIVE_FILE).read_text())["ended"] == "completed"
+    (tmp_path / "summary.json").write_text(json.dumps({"degraded_reasons": ["local-1 was missing 4.0 s at most"]}))
+    live.close(board, "completed")  # the launcher's verdict, written just before, as events
+    d = json.loads((tmp_path / LIVE_FILE).read_text())
+    assert d["ended"] == "completed"
+    assert [(e["event"], e["reason"]) for e in d["events"][-2:]] == [
+        ("degraded", "local-1 was missing 4.0 s at most"), ("ended", "completed")]
 
 
 def _free_port() -> int:
