@@ -235,3 +235,31 @@ def test_metrics_have_the_documented_names_and_labels(tmp_path):
     must = {"hammer_role_up", "hammer_role_last_seen_seconds", "hammer_role_rate_hz", "hammer_role_policy_version",
             "hammer_run_live", "hammer_run_robots"}
     assert must <= set(seen), must - set(seen)
+
+
+def test_in_hammer_up_a_paused_role_with_its_token_up_is_late_and_one_whose_token_went_is_missing(tmp_path):
+    """`hammer up`'s board (deploy.up.Board, with the launcher's attendance of liveliness tokens): a
+    learner in a long update still holds its token (late, no alert), a local agent whose token went is
+    missing, with the attendance's leave as an event."""
+    from hammer.deploy.attendance import Attendance
+    from hammer.deploy.up import Board
+
+    clock = Clock()
+    roles = {"env", "learner", "local-0"}
+    board = Board(alive=set(roles), attendance=Attendance(roles, clock=clock))
+    for r in sorted(roles):
+        board.attendance.up(r)
+    board.attendance.start()
+    live = LiveStatus(tmp_path, "up", "cn3", robots=1, roles=("env", "learner"), clock=clock)
+    d = _step(live, board, clock, 0.3, {"env": 1, "learner": 1, "local-0": 1})
+    assert {r["name"]: r["state"] for r in d["rows"]} == {"env": "ok", "learner": "ok", "local-0": "ok"}
+    for k in range(3):  # the learner's heartbeats pause for 3 s; its token stays
+        d = _step(live, board, clock, 1.0, {"env": 2 + k, "local-0": 2 + k})
+    assert {r["name"]: r["state"] for r in d["rows"]}["learner"] == "late" and d["alerts"] == []
+    board.alive.discard("local-0")
+    board.attendance.down("local-0")
+    d = _step(live, board, clock, 0.3, {"env": 9, "learner": 9})
+    rows = {r["name"]: r["state"] for r in d["rows"]}
+    assert rows["local-0"] == "missing" and rows["learner"] == "ok"
+    assert ("leave", "local-0") in [(e["event"], e.get("role")) for e in d["events"]]
+    assert ("missing", "local-0") in [(e["event"], e.get("role")) for e in d["events"]]
