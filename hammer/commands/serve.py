@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
+from hammer.commands.view import ViewOpt, ViewTokenOpt
 from hammer.serve.gate_defaults import GATE_DEFAULTS
 
 
@@ -129,6 +130,8 @@ def serve_command(
     site: Annotated[Path | None, typer.Option(
         help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
              "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
+    view: ViewOpt = None,
+    view_token: ViewTokenOpt = None,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`.
@@ -146,7 +149,7 @@ def serve_command(
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs, timeline, site)
+                     secure, insecure, listen, num_envs, timeline, site, view, view_token)
         return
     if site is not None:
         fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
@@ -174,13 +177,14 @@ def serve_command(
     earlier = set_aside_served_session(path)  # a restarted service: same directory, same run id
     if earlier is not None:
         console.print(f"the previous session's results are in {earlier}")
-    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip), external_help=p.external_help)
+    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip), external_help=p.external_help,
+           view=view, view_token=view_token)
 
 
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
-                 site: Path | None = None) -> None:
+                 site: Path | None = None, view: str | None = None, view_token: str | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
     from hammer.deploy.dashboard import fleet_status_line
     from hammer.deploy.fleet import robot_command, run_fleet
@@ -192,11 +196,20 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                                         chaos=chaos, runtime=runtime, external=external, out=out, run_dir=run_dir,
                                         secure=secure, insecure=insecure, listen=listen, num_envs=num_envs,
                                         timeline=timeline, site=site)
+        from hammer.deploy.live import LiveRun
+        from hammer.serve.bundle import load_bundle
+
+        team = load_bundle(bundle)
+        roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
+        # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
+        watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
+                        roles=roles, view=view, token=view_token)
     except (BundleError, ValueError) as e:
         fail(str(e))
     last = [0.0]
 
     def tick(board, t: float) -> None:
+        watch.tick(board)
         if t - last[0] >= 5.0:
             last[0] = t
             console.print(fleet_status_line(board, t))
@@ -209,10 +222,16 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         console.print(f"waiting for robot {i}: {robot_command(plan, i, path)}"
                       + (f" (on another machine: --identity a directory holding a copy of {copy})" if secure else "")
                       + " (or hammer.edge.EdgeAgent)", soft_wrap=True)
+    if watch.url:
+        console.print(f"view: {watch.url}", soft_wrap=True)
+    ended = "failed"
     try:
         s = run_fleet(plan, path, on_tick=tick)
+        ended = "completed" if s["completed"] else f"stopped: {s['stopped_by']}"
     except (BundleError, ValueError) as e:  # SiteError is a ValueError: one line naming the fix
         fail(str(e))
+    finally:
+        watch.close(ended)
     w = s["world"]
     console.print(f"{'done' if s['completed'] else 'stopped: ' + str(s['stopped_by'])}: {w.get('ticks', 0)} ticks in "
                   f"{w.get('seconds', 0):.0f} s, {w.get('episodes', 0)} episodes, paper metric "

@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import ConfigFieldsHelp, InsecureOpt, SecureOpt, fail
+from hammer.commands.view import ViewOpt, ViewTokenOpt
 from hammer.deploy.dashboard import dashboard_table, status_line
 
 
@@ -57,6 +58,8 @@ def up_command(
                            "command, waits for its liveliness and never restarts it; docs/wire-format.md.")] = None,
     secure: SecureOpt = False,
     insecure: InsecureOpt = False,
+    view: ViewOpt = None,
+    view_token: ViewTokenOpt = None,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -90,7 +93,7 @@ def up_command(
             fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
                   "fix: drop the other options")
         cfg, settings = _resume_inputs(resume, episodes)
-        run_up(cfg, settings, resume, dashboard, console, resume=True)
+        run_up(cfg, settings, resume, dashboard, console, resume=True, view=view, view_token=view_token)
         return
     try:
         p = plan_up(config, preset=preset, set_=set_, runtime=runtime, faults_file=faults, fault=fault,
@@ -109,7 +112,7 @@ def up_command(
             console.print(f"fault rule: {r.model_dump()}")
     for c in settings.chaos:
         console.print(f"chaos: {c}")
-    run_up(cfg, settings, path, dashboard, console)
+    run_up(cfg, settings, path, dashboard, console, view=view, view_token=view_token)
 
 
 def _report_stopped(res, cfg, path: Path, served: bool) -> None:
@@ -169,7 +172,8 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
 
 
 def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
-            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None) -> None:
+            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None,
+            view: str | None = None, view_token: str | None = None) -> None:
     """Launch and report. SIGTERM (systemd, `docker stop`) stops every role as Ctrl-C does; a served
     run then ends cleanly (summary.json with `stopped_by`, exit 0: stopping a service is its normal
     end, and Ctrl-C does the same there), a training run is resumable and exits 143 (128 + SIGTERM),
@@ -188,6 +192,15 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
     console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,
                             external_agents), soft_wrap=True)
+    from hammer.deploy.live import LiveRun
+
+    try:  # the run's live files for `hammer view` (RUN/live.json), and the view itself with --view
+        watch = LiveRun(path, "serve" if served else "up", f"{cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
+                        robots=cfg.n_agents, view=view, token=view_token)
+    except ValueError as e:
+        fail(str(e))
+    if watch.url:
+        console.print(f"view: {watch.url}", soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None
@@ -197,6 +210,7 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
         live.start()
 
     def tick(board) -> None:
+        watch.tick(board)
         if live is not None:
             live.update(dashboard_table(board, cfg, started, settings, rate, path if served else None))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
@@ -204,9 +218,11 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
             console.print(status_line(board, cfg, rate))
 
     signals = (signal.SIGTERM, signal.SIGINT) if served else (signal.SIGTERM,)
+    ended = "failed"
     try:
         res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents,
                      external_help=external_help, stop_signals=signals)
+        ended = "completed" if res.stopped_by is None else f"stopped by {res.stopped_by}"
     except Stopped as e:  # before any role started: nothing ran
         if live is not None:
             live.stop()
@@ -226,7 +242,10 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
         if live is not None:
             live.stop()
         console.print("interrupted: every role was stopped")
+        ended = "interrupted"
         raise typer.Exit(130) from None
+    finally:
+        watch.close(ended)
     if live is not None:
         live.stop()
     s = res.summary
