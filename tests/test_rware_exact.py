@@ -24,6 +24,7 @@ CI runs ~10,500 copy-steps. The long check (>= 100,000 copy-steps, same cases sc
 
 from __future__ import annotations
 
+import math
 import os
 from collections import Counter
 
@@ -244,7 +245,7 @@ def lockstep(name: str, n: int, k: int, steps: int, max_steps: int, policy: str,
 def test_numpy_warehouse_is_rware(policy: str) -> None:
     total: Counter = Counter()
     for j, (name, n, k, steps, max_steps) in enumerate(CASES):
-        total += lockstep(name, n, k, int(steps * SCALE), max_steps, policy, seed=100 * j + POLICIES.index(policy))
+        total += lockstep(name, n, k, math.ceil(steps * SCALE), max_steps, policy, seed=100 * j + POLICIES.index(policy))
     print(policy, dict(total))
     assert total["episodes"] >= len(CASES)  # every case crossed a time limit and an unseeded reset
     if policy in ("push", "staged"):
