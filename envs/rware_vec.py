@@ -216,17 +216,13 @@ class RwareVecEnv(VecEnv):
                        active=active, next_active=active.copy(), final_obs=final_obs, done=done, episodes=episodes)
 
 
-def build_rware(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:
-    """The in-process warehouse batch for `desc` (also each subprocess worker's slice): rware's own
-    objects, or with env_kwargs impl="numpy" the same env on all copies at once (`envs.rware_numpy`)."""
+def installed_settings(desc: EnvDescription) -> RwareSettings:
+    """`desc`'s validated settings, once rware itself is known to import (both implementations
+    build rware's layout from it). `envs.catalog.build_local` then builds `RwareVecEnv` (impl
+    "rware") or `envs.rware_numpy.NumpyRwareVecEnv` (impl "numpy")."""
     try:
         import rware.warehouse  # noqa: F401
     except ImportError as e:
         raise EnvConfigError(f"env {desc.name!r}: the rware package is not installed ({e}); fix: "
                              "pip install 'hammer-marl[train]' (or pip install rware==2.0.0 --no-deps networkx)") from e
-    settings = settings_from(desc)
-    if settings.impl == "numpy":
-        from hammer.envs.rware_numpy import NumpyRwareVecEnv
-
-        return NumpyRwareVecEnv(settings, num_envs, name=desc.name, index_offset=index_offset)
-    return RwareVecEnv(settings, num_envs, name=desc.name, index_offset=index_offset)
+    return settings_from(desc)
