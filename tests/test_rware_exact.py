@@ -278,7 +278,8 @@ def test_batched_env_equals_the_plain_adapter() -> None:
 
 
 def test_slices_and_errors() -> None:
-    """A worker's slice (index_offset) is that slice of the whole batch; bad input is refused."""
+    """A worker's slice (index_offset) is that slice of the whole batch, subprocess workers step it
+    alike; bad input is refused."""
     whole = make_vec_env("rware-tiny-2ag", 2, 4, env_kwargs={"impl": "numpy"})
     part = NumpyRwareVecEnv(whole.settings, 2, index_offset=2)
     o_whole, _ = whole.reset(9)
@@ -287,6 +288,15 @@ def test_slices_and_errors() -> None:
     acts = np.random.default_rng(0).integers(0, 5, (50, 4, 2))
     for a in acts:
         assert np.array_equal(whole.step(a).obs[2:], part.step(a[2:]).obs)
+    workers = make_vec_env("rware-tiny-2ag", 2, 4, env_kwargs={"impl": "numpy"}, workers=2)
+    try:
+        whole.reset(9)
+        assert np.array_equal(workers.reset(9)[0], o_whole)
+        for a in acts[:20]:
+            w, s = workers.step(a), whole.step(a)
+            assert np.array_equal(w.obs, s.obs) and np.array_equal(w.reward, s.reward)
+    finally:
+        workers.close()
     with pytest.raises(ValueError, match="shape"):
         whole.step(np.zeros((4, 3), dtype=np.int64))
     with pytest.raises(ValueError, match=r"\[0, 5\)"):
