@@ -7,7 +7,8 @@ step counter, the whole observation row (rware's flattened view plus the central
 rewards; the time limit and the unseeded resets that follow it must match too.
 
 Rollouts, for every size (tiny, small, medium, large) and difficulty (easy, normal, hard) that the
-`rware-<size>-<N>ag[-easy|-hard]` names can take, and crowded grids:
+`rware-<size>-<N>ag[-easy|-hard]` names can take, crowded grids, and rware's two_stage and global
+rewards and a 5x5 window through the bare `rware` name:
   random   uniform actions;
   push     mostly forward, so robots queue into chains and contest cells;
   seek     robots steer to a goal or a requested shelf and toggle loads there, so loaded robots are
@@ -18,7 +19,7 @@ Rollouts, for every size (tiny, small, medium, large) and difficulty (easy, norm
 Counters of what happened (moved rotations, swaps, contested cells, ties that networkx broke,
 chains, cancelled loaded moves, deliveries) are asserted so the comparison cannot pass vacuously.
 
-CI runs ~10,500 copy-steps. The long check (>= 100,000 copy-steps, same cases scaled up):
+CI runs ~12,100 copy-steps. The long check (>= 100,000 copy-steps, same cases scaled up):
     RWARE_EXACT_STEPS=100000 .venv/bin/python -m pytest -q tests/test_rware_exact.py
 """
 
@@ -53,10 +54,13 @@ CASES = [
     ("rware-large-8ag", 8, 1, 100, 60),
     ("rware-large-16ag-easy", 16, 1, 100, 60),
     ("rware-large-6ag-hard", 6, 1, 100, 60),
+    # rware's other reward types and a wider window, through the bare name's env_kwargs
+    ("rware", 4, 2, 100, 60, {"reward_type": "two_stage", "sensor_range": 2}),
+    ("rware", 3, 2, 100, 60, {"reward_type": "global", "size": "small", "difficulty": "easy"}),
 ]
 POLICIES = ("random", "push", "seek", "staged")
 LONG = int(os.environ.get("RWARE_EXACT_STEPS", "0"))  # the long check's total copy-steps
-CI_TOTAL = sum(k * t for _, _, k, t, _ in CASES) * len(POLICIES)
+CI_TOTAL = sum(case[2] * case[3] for case in CASES) * len(POLICIES)
 SCALE = max(1.0, LONG / CI_TOTAL)
 
 
@@ -195,8 +199,9 @@ def count_events(env: NumpyRwareVecEnv, before: dict, acts: np.ndarray, after_x,
             ev[f"rotation{len(seen)}"] += 1
 
 
-def lockstep(name: str, n: int, k: int, steps: int, max_steps: int, policy: str, seed: int) -> Counter:
-    settings = settings_from(EnvDescription(name, n, {"impl": "numpy", "max_steps": max_steps}))
+def lockstep(name: str, n: int, k: int, steps: int, max_steps: int, policy: str, seed: int,
+             kwargs: dict | None = None) -> Counter:
+    settings = settings_from(EnvDescription(name, n, {"impl": "numpy", "max_steps": max_steps, **(kwargs or {})}))
     env = NumpyRwareVecEnv(settings, k)
     obs, _ = env.reset(seed)
     d = env.spec.obs_dim
@@ -229,6 +234,7 @@ def lockstep(name: str, n: int, k: int, steps: int, max_steps: int, policy: str,
             ref_st = ref_state(ref)
             count_events(env, before[c], acts[c], np.asarray(ref_st["x"]), np.asarray(ref_st["y"]), c, ev)
             ev["deliveries"] += int(np.count_nonzero(rew))
+            ev["half_rewards"] += int(np.count_nonzero(np.asarray(rew) == 0.5))  # two_stage
             if done:
                 ev["episodes"] += 1
                 local, _ = ref.reset()
@@ -244,8 +250,9 @@ def lockstep(name: str, n: int, k: int, steps: int, max_steps: int, policy: str,
 @pytest.mark.parametrize("policy", POLICIES)
 def test_numpy_warehouse_is_rware(policy: str) -> None:
     total: Counter = Counter()
-    for j, (name, n, k, steps, max_steps) in enumerate(CASES):
-        total += lockstep(name, n, k, math.ceil(steps * SCALE), max_steps, policy, seed=100 * j + POLICIES.index(policy))
+    for j, (name, n, k, steps, max_steps, *kwargs) in enumerate(CASES):
+        total += lockstep(name, n, k, math.ceil(steps * SCALE), max_steps, policy, seed=100 * j + POLICIES.index(policy),
+                          kwargs=kwargs[0] if kwargs else None)
     print(policy, dict(total))
     assert total["episodes"] >= len(CASES)  # every case crossed a time limit and an unseeded reset
     if policy in ("push", "staged"):
@@ -253,7 +260,7 @@ def test_numpy_warehouse_is_rware(policy: str) -> None:
     if policy == "staged":
         assert total["rotation4"] >= 10 and total["rotation6"] >= 3 and total["swap"] >= 20
     if policy == "seek":
-        assert total["deliveries"] >= 20 and total["cancelled"] >= 20
+        assert total["deliveries"] >= 20 and total["cancelled"] >= 20 and total["half_rewards"] >= 3
 
 
 def test_batched_env_equals_the_plain_adapter() -> None:
