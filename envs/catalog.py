@@ -194,10 +194,15 @@ def _adapted(factory: Callable[[], Any], desc: EnvDescription) -> Callable[[], A
 
 def build_local(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> VecEnv:
     """The in-process VecEnv for `desc`; also what each worker of `SubprocVecEnv` runs on its slice."""
-    from hammer.envs.rware_vec import build_rware, is_rware
+    from hammer.envs.rware_vec import RwareVecEnv, installed_settings, is_rware
 
-    if is_rware(desc.name):
-        return build_rware(desc, num_envs, index_offset)
+    if is_rware(desc.name):  # two implementations of the same warehouse (env_kwargs.impl)
+        settings = installed_settings(desc)
+        if settings.impl == "numpy":
+            from hammer.envs.rware_numpy import NumpyRwareVecEnv
+
+            return NumpyRwareVecEnv(settings, num_envs, name=desc.name, index_offset=index_offset)
+        return RwareVecEnv(settings, num_envs, name=desc.name, index_offset=index_offset)
     factory, spec_name, max_steps = parallel_env_factory(desc)
     venv = PettingZooVecEnv(factory, num_envs, name=spec_name, max_steps=max_steps, index_offset=index_offset)
     if venv.spec.n_agents != desc.n_agents:

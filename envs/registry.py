@@ -16,7 +16,9 @@ Names:
             robot's partial view is its local observation, the whole warehouse goes to the central
             agent only (`EnvSpec.local_obs_dim`); env_kwargs size (tiny|small|medium|large),
             difficulty (easy|normal|hard), sensor_range, max_steps (500), column_height,
-            request_queue_size, reward_type. `rware-tiny-2ag` etc. name rware's own presets.
+            request_queue_size, reward_type, impl (rware: rware's objects, the default and the
+            reference; numpy: `envs.rware_numpy`, the same env on all copies at once).
+            `rware-tiny-2ag` etc. name rware's own presets.
   module:factory
             any PettingZoo parallel env, e.g. `pettingzoo.sisl.multiwalker_v9:parallel_env`
             or `mpe2.simple_reference_v3:parallel_env`; env_kwargs

@@ -39,7 +39,11 @@ SIZES: dict[str, tuple[int, int]] = {"tiny": (1, 3), "small": (2, 3), "medium": 
 DIFFICULTY: dict[str, float] = {"easy": 2.0, "normal": 1.0, "hard": 0.5}
 REWARD_TYPES = ("individual", "global", "two_stage")
 DEFAULTS: dict[str, Any] = {"size": "tiny", "difficulty": "normal", "sensor_range": 1, "max_steps": 500,
-                            "column_height": 8, "reward_type": "individual", "request_queue_size": None}
+                            "column_height": 8, "reward_type": "individual", "request_queue_size": None,
+                            "impl": "rware"}
+# Two implementations of the same env: rware's own objects (the reference) and the numpy one on all
+# copies at once (`envs.rware_numpy`, exact to it step for step, tests/test_rware_exact.py).
+IMPLS = ("rware", "numpy")
 PRESET_RE = re.compile(r"^rware-(tiny|small|medium|large)-(\d+)ag(?:-(easy|hard))?$")
 ABOUT = ("multi-robot warehouse (rware 2.0): partial view per robot, full warehouse for the central agent; "
          "also rware-<size>-<N>ag[-easy|-hard], e.g. rware-tiny-2ag")
@@ -62,6 +66,7 @@ class RwareSettings:
     request_queue_size: int
     max_steps: int
     reward_type: str
+    impl: str = "rware"
 
     def warehouse(self) -> Any:
         from rware.warehouse import RewardType, Warehouse
@@ -111,6 +116,8 @@ def settings_from(desc: EnvDescription) -> RwareSettings:
     if full["reward_type"] not in REWARD_TYPES:
         raise EnvConfigError(f"env 'rware': env_kwargs.reward_type must be one of {', '.join(REWARD_TYPES)}, "
                              f"got {full['reward_type']!r}")
+    if full["impl"] not in IMPLS:
+        raise EnvConfigError(f"env 'rware': env_kwargs.impl must be one of {', '.join(IMPLS)}, got {full['impl']!r}")
     queue = full["request_queue_size"]
     if queue is None:  # rware's own rule for its registered ids
         queue = max(1, int(desc.n_agents * DIFFICULTY[full["difficulty"]]))
@@ -119,7 +126,8 @@ def settings_from(desc: EnvDescription) -> RwareSettings:
                          column_height=_int_field("column_height", full["column_height"], 1),
                          sensor_range=_int_field("sensor_range", full["sensor_range"], 1),
                          request_queue_size=_int_field("request_queue_size", queue, 1),
-                         max_steps=_int_field("max_steps", full["max_steps"], 1), reward_type=full["reward_type"])
+                         max_steps=_int_field("max_steps", full["max_steps"], 1), reward_type=full["reward_type"],
+                         impl=full["impl"])
 
 
 def central_columns(wh: Any, out: np.ndarray) -> None:
@@ -208,11 +216,13 @@ class RwareVecEnv(VecEnv):
                        active=active, next_active=active.copy(), final_obs=final_obs, done=done, episodes=episodes)
 
 
-def build_rware(desc: EnvDescription, num_envs: int, index_offset: int = 0) -> RwareVecEnv:
-    """The in-process warehouse batch for `desc` (also each subprocess worker's slice)."""
+def installed_settings(desc: EnvDescription) -> RwareSettings:
+    """`desc`'s validated settings, once rware itself is known to import (both implementations
+    build rware's layout from it). `envs.catalog.build_local` then builds `RwareVecEnv` (impl
+    "rware") or `envs.rware_numpy.NumpyRwareVecEnv` (impl "numpy")."""
     try:
         import rware.warehouse  # noqa: F401
     except ImportError as e:
         raise EnvConfigError(f"env {desc.name!r}: the rware package is not installed ({e}); fix: "
                              "pip install 'hammer-marl[train]' (or pip install rware==2.0.0 --no-deps networkx)") from e
-    return RwareVecEnv(settings_from(desc), num_envs, name=desc.name, index_offset=index_offset)
+    return settings_from(desc)

@@ -64,10 +64,12 @@ _MW = {
 # and long episodes, hence gamma 0.99 (as in rware's own baselines, EPyMARL). 16 copies x 125 steps =
 # 2,000 env steps per update; checkpoints every 20 updates = 5 whole episodes per copy, so the reseed
 # at a checkpoint falls on episode boundaries. 10,000 episodes = 5M env steps: the pilot budget B that
-# step 1 of the plan fixed (docs/results/warehouse.md).
+# step 1 of the plan fixed (docs/results/warehouse.md). impl "numpy" steps all copies as one numpy
+# program (`envs.rware_numpy`), bit for bit rware's own env (tests/test_rware_exact.py) and ~20-60x
+# faster per copy; `--set env_kwargs.impl=rware` runs the reference with the same results.
 _RWARE = {
     "env": "rware",
-    "env_kwargs": {"size": "tiny"},
+    "env_kwargs": {"size": "tiny", "impl": "numpy"},
     "gamma": 0.99,
     "clip": 0.2,
     "episodes": 10_000,

@@ -65,7 +65,7 @@ def test_presets_carry_the_paper_settings():
     rware = {"rware-tiny-2ag": 2, "rware-tiny-4ag": 4}  # docs/results/plan-warehouse.md: B = 5M env steps
     for name, n in rware.items():
         cfg = merge_config(name)
-        assert (cfg.env, cfg.env_kwargs, cfg.n_agents, cfg.episodes, cfg.gamma) == ("rware", {"size": "tiny"}, n,
+        assert (cfg.env, cfg.env_kwargs, cfg.n_agents, cfg.episodes, cfg.gamma) == ("rware", {"size": "tiny", "impl": "numpy"}, n,
                                                                                   10_000, 0.99)
         assert cfg.rollout_steps * cfg.checkpoint_every % 500 == 0  # env reseeds fall on episode ends
     assert set(PRESETS) == set(expected) | set(rware)

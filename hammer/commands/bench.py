@@ -7,6 +7,7 @@ part against a baseline taken in the same run:
   codec        build/encode/decode us per message: fast path vs pydantic   (benchmarks.transport)
   loop-floor   the step loop with every role's work taken out               (benchmarks.loop_floor)
   workers      multiwalker in-process vs subprocess workers vs the ceiling  (benchmarks.bench_workers)
+  rware        the numpy warehouse vs rware's own: env and hammer train      (benchmarks.bench_rware_vec)
   train        the in-process trainer's speed, PPO updates included         (benchmarks.train)
   runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
   security     `hammer up --secure` vs plain vs a flood on one agent's key    (benchmarks.security)
@@ -221,6 +222,28 @@ def bench_workers(
     from hammer.benchmarks.bench_workers import main
 
     main([f"--num-envs={num_envs}", f"--workers={workers}", f"--n-agents={n_agents}", f"--steps={steps}"])
+
+
+@bench.command("rware")
+def bench_rware(
+    n_agents: Annotated[str, typer.Option("--n", help="comma-separated robot counts (rware-tiny-<N>ag)")] = "2,4",
+    copies: Annotated[str, typer.Option("--k", help="comma-separated copy counts K for the env figure")] = "1,16,64,256",
+    seconds: Annotated[float, typer.Option(min=0.5, help="timed seconds per env measurement")] = 4.0,
+    episodes: Annotated[int, typer.Option(min=0, help="episodes of each hammer train run (0: skip the train figure)")] = 96,
+    seed: Annotated[int, typer.Option(help="run seed")] = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures as JSON")] = None,
+) -> None:
+    """The numpy warehouse (impl=numpy) vs rware's own (impl=rware) in one run: copy-steps per CPU-second at each K, and `hammer train` end to end on the presets with the same seed (wall, CPU, identical metrics.csv); prints the ratios and the load. Pin it (`taskset -c 1`) to measure one core."""
+    from hammer.benchmarks.bench_rware_vec import main
+
+    try:
+        ns, ks = [int(v) for v in n_agents.split(",")], [int(v) for v in copies.split(",")]
+    except ValueError:
+        fail(f"--n and --k take comma-separated integers, got {n_agents!r} and {copies!r}")
+    if min(ns + ks) < 1:
+        fail("--n and --k must be >= 1")
+    main(["--n", *map(str, ns), "--k", *map(str, ks), f"--seconds={seconds}", f"--episodes={episodes}",
+          f"--seed={seed}", *(["--json", str(json_out)] if json_out else [])])
 
 
 @bench.command("train")
