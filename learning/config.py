@@ -276,13 +276,18 @@ def merge_config(
     return build_config(data)
 
 
+# Fields that choose how a result is computed, never the result: the numpy warehouse equals rware
+# step for step (tests/test_rware_exact.py), so a run on either implementation is the same run.
+RESULT_NEUTRAL = frozenset({"env_kwargs.impl"})
+
+
 def config_changes(ours: dict[str, Any], reference: dict[str, Any],
                    ignore: frozenset[str] | set[str] = frozenset()) -> dict[str, Any]:
     """Every field where two resolved configs (`model_dump(mode="json")`) differ, as dotted key ->
     our value, sorted by key: `lr_local`, `env_kwargs.observe_others`. Nested mappings are compared
     key by key, and a key either side lacks counts as a change (ours `None` if we lack it).
     Top-level fields the reference lacks (renamed or removed since `ours` was written) and the
-    `ignore`d ones are skipped. Shared by sweep snapshots (is this the same run?) and reports
+    `ignore`d ones and the `RESULT_NEUTRAL` ones (dotted) are skipped. Shared by sweep snapshots (is this the same run?) and reports
     (which runs pool as seeds of one setting?), so both agree on what "differs" means."""
 
     def diff(a: dict[str, Any], b: dict[str, Any], prefix: str) -> dict[str, Any]:
@@ -290,6 +295,8 @@ def config_changes(ours: dict[str, Any], reference: dict[str, Any],
         keys = set(a) if not prefix else set(a) | set(b)
         for key in sorted(keys):
             if not prefix and (key in ignore or key not in b):
+                continue
+            if f"{prefix}{key}" in RESULT_NEUTRAL:
                 continue
             x, y = a.get(key), b.get(key)
             if isinstance(x, dict) and isinstance(y, dict):

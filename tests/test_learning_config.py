@@ -104,3 +104,16 @@ def test_invalid_yaml_is_reported_with_its_line_and_column(tmp_path):
         assert str(bad) in r.stderr and "line 3, column 10: invalid YAML (mapping values are not allowed here)" \
             in r.stderr, r.stderr
         assert not (tmp_path / "run").exists()
+
+
+def test_a_warehouse_run_on_either_implementation_is_the_same_run():
+    # The numpy warehouse is exact to rware, so a sweep must not restart an archived plain-rware
+    # run (written before `impl` existed, or with impl=rware) as "config differs".
+    numpy_cfg = merge_config(preset="rware-tiny-2ag").model_dump(mode="json")
+    assert numpy_cfg["env_kwargs"]["impl"] == "numpy"
+    plain = {**numpy_cfg, "env_kwargs": {**numpy_cfg["env_kwargs"], "impl": "rware"}}
+    older = {**numpy_cfg, "env_kwargs": {k: v for k, v in numpy_cfg["env_kwargs"].items() if k != "impl"}}
+    assert config_changes(numpy_cfg, plain) == {} and config_changes(older, numpy_cfg) == {}
+    # anything else in env_kwargs still counts
+    other = {**plain, "env_kwargs": {**plain["env_kwargs"], "max_steps": 1}}
+    assert config_changes(numpy_cfg, other) == {"env_kwargs.max_steps": numpy_cfg["env_kwargs"].get("max_steps")}
