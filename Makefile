@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages edge-chain
+.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse paper-warehouse-5m snapshot status faults-ownobs messages edge-chain
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -87,6 +87,9 @@ paper-dose: $(LINKS)
 	$(H) sweep $(call G_CN3_DOSE_FULL) --snapshot-every 20
 	$(H) sweep $(call G_CN3_DOSE) --snapshot-every 20
 	$(MAKE) paper-report
+# The warehouse study at its planned budget (docs/results/plan-warehouse.md, addendum): 5M env steps.
+G_RW5M_2 := --out runs/paper/rware5m-2 --archive $(A)/rware5m-2 --presets rware-tiny-2ag --episodes 10000
+G_RW5M_4 := --out runs/paper/rware5m-4 --archive $(A)/rware5m-4 --presets rware-tiny-4ag --episodes 10000
 paper-warehouse: $(LINKS)
 	$(H) sweep $(G_RWARE_PILOT) --snapshot-every 20
 	$(H) sweep $(call G_RWARE_CMP,hammer-rl$(,)il,3-9) --snapshot-every 20
@@ -106,6 +109,15 @@ paper: $(LINKS)
 	$(H) sweep $(G_MW3)
 	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
+
+# Pilot first (3 seeds of hammer-rl and IL at each N), then the grid; the plan says when B doubles.
+paper-warehouse-5m: $(LINKS)
+	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
+	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
+	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
+	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
+	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il,hammer-backprop,random --seeds 0-9 --snapshot-every 20
+	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il,hammer-backprop,random --seeds 0-9 --snapshot-every 20
 
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
 # gzipped metrics) to $(A)/<grid>/_partial/ and commit it; `make paper` on a fresh clone restores
