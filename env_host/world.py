@@ -59,6 +59,10 @@ class RealtimeWorld(Role):
         self.fresh = np.zeros(self.n, np.int64)  # ... on one that arrived since the previous tick
         self.defaults = np.zeros(self.n, np.int64)  # robot-ticks on the default action (robot missing)
         self.ages: list[collections.deque] = [collections.deque(maxlen=AGES_KEPT) for _ in range(self.n)]
+        # the loop's latency per robot: from a tick's start (the step, then its observations go out) to
+        # the arrival of the robot's action on that tick's observation; its first only
+        self.loop_s: list[collections.deque] = [collections.deque(maxlen=AGES_KEPT) for _ in range(self.n)]
+        self.tick_t, self.answered = 0.0, np.zeros(self.n, bool)
         self.episodes = 0  # running totals, not lists: a world that runs for days stays flat
         self.metric_sum = self.return_sum = 0.0
         self.recent: collections.deque[float] = collections.deque(maxlen=100)
@@ -100,6 +104,9 @@ class RealtimeWorld(Role):
             self.arrived[a.agent] = t
             self.new_action[a.agent] = True
             self.presence.seen(a.agent, t)
+            if self.running and a.step == self.clock.ticks and not self.answered[a.agent]:
+                self.answered[a.agent] = True
+                self.loop_s[a.agent].append(t - self.tick_t)
 
     def wait_for_robots(self, timeout: float) -> bool:
         """Before the first tick: offer the first observation until every robot has answered it (a
@@ -121,6 +128,8 @@ class RealtimeWorld(Role):
     def tick(self, now: float) -> None:
         """Apply every robot's latest action (the default for a missing one), step, send the observations."""
         present = self.presence.update(now)
+        self.tick_t = now
+        self.answered[:] = False
         actions = self.actions.copy()
         if not present.all():
             actions[:, ~present] = self.spec.default_actions(self.k)[:, ~present]
@@ -171,11 +180,14 @@ class RealtimeWorld(Role):
         robots = {}
         for i in range(self.n):
             ages = np.asarray(self.ages[i]) * 1e3
+            loop = np.asarray(self.loop_s[i]) * 1e3
             robots[f"local-{i}"] = {
                 "applied": int(self.applied[i]), "fresh": int(self.fresh[i]), "defaults": int(self.defaults[i]),
                 "control_hz": round(self.fresh[i] / elapsed, 2),
                 "action_age_ms_p50": round(float(np.percentile(ages, 50)), 2) if ages.size else None,
-                "action_age_ms_p99": round(float(np.percentile(ages, 99)), 2) if ages.size else None}
+                "action_age_ms_p99": round(float(np.percentile(ages, 99)), 2) if ages.size else None,
+                "step_to_action_ms_p50": round(float(np.percentile(loop, 50)), 2) if loop.size else None,
+                "step_to_action_ms_p99": round(float(np.percentile(loop, 99)), 2) if loop.size else None}
         return {"hz": round(1 / self.clock.period, 3), "seconds": round(elapsed, 3), "ticks": self.clock.ticks,
                 "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
