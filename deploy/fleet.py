@@ -47,6 +47,7 @@ from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
+from hammer.runtime.clock import MSG_WAIT_S
 from hammer.runtime.settings import refuse_plain_beyond_loopback
 
 log = logging.getLogger("hammer.fleet")
@@ -63,6 +64,7 @@ class FleetPlan:
     hold_s: float = 0.5  # the world holds a robot's last action this long, then applies the default
     missing_after_s: float = 0.5  # the central agent counts a robot silent this long as missing (zeros)
     max_msg_age_s: float = 0.5  # a robot acts on a central message no older than this, else its fallback
+    msg_wait_s: float = MSG_WAIT_S  # a tick's observations wait this long for the central agent's messages of it
     seed: int | None = None
     chaos: list[str] = field(default_factory=list)
     hub_port: int = 0
@@ -79,6 +81,8 @@ class FleetPlan:
         for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.msg_wait_s < 1 / self.hz:
+            raise ValueError(f"msg_wait_s: must be >= 0 and under a tick ({1 / self.hz:g} s), got {self.msg_wait_s}")
         if self.seconds is None and self.episodes is None:
             raise ValueError("a fleet run needs an end: seconds or episodes")
         if self.secure and self.insecure:
@@ -92,7 +96,7 @@ class FleetPlan:
 
 
 # The plan's bounds, also settable as `--runtime FIELD=VALUE` on `hammer serve --realtime`.
-PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s")
+PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s", "msg_wait_s")
 # The RuntimeSettings items every process of a fleet takes (each role's and robot's own link).
 LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
 
@@ -163,6 +167,7 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
               *(["--identity", str(identity_dir(run_dir))] if plan.secure else []),
               *(["--seed", str(plan.seed)] if plan.seed is not None else []), *link_items(plan)]
     specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
+                              "--msg-wait-s", str(plan.msg_wait_s),
                               "--run-dir", str(run_dir),
                               *(["--timeline", str(plan.timeline)] if plan.timeline is not None else []),
                               *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
