@@ -1,9 +1,10 @@
 """`hammer serve --realtime HZ`: a trained team run as a fleet, every robot its own process.
 
 The processes (docs/fleet.md): the realtime world (env_host/world.py, the simulator stepping at HZ
-on the robots' latest actions), the fleet-fed central agent (central_agent/fleet.py, its state from
-the robots' uplinks, messages on its own clock at the same rate) and one robot per agent
-(`hammer local --bundle ... --fleet`: serve/edge_agent.py, torch-free). Nothing waits for anyone:
+on the robots' latest actions), the fleet's central agent (central_agent/fleet.py, answering the
+state of each of the world's ticks with a message per robot, which the world puts into that tick's
+observations) and one robot per agent (`hammer local --bundle ... --fleet`: serve/edge_agent.py,
+torch-free). No robot waits for anyone:
 a robot that is paused, killed or cut off costs the others nothing, which is what the summary
 shows (per robot: control rate, action and message ages, defaults, fallbacks; joins, leaves and
 rejoins by name). Training stays lock-stepped (`hammer up`); this is deployment.

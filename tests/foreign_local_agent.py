@@ -208,7 +208,7 @@ class ForeignLocalAgent:
             ("obs", f"{p}/env/obs/{agent}"), ("weights", f"{p}/learn/local/weights"), ("ctl", f"{p}/ctl/all"),
             *([("msg", f"{p}/central/msg/{agent}")] if self.msg_dim else [])]]
         # What each key says about its payload (docs/wire-format.md, "Bound to its key"): anything else is rejected.
-        self.binding = {"obs": {"agent": agent, "sender": "env"},
+        self.binding = {"obs": {"agent": agent, "sender": "env"}, "msg": {"agent": agent, "sender": "central"},
                         "weights": {"role": "local", "sender": "learner"}, "ctl": {}}
         self.act_key, self.hb_key = f"{p}/agent/act/{agent}", f"{p}/ctl/hb/{self.name}"
         self.act_pub = self.z.declare_publisher(self.act_key, congestion_control=zenoh.CongestionControl.BLOCK,
