@@ -100,7 +100,7 @@ class FleetCentral(Role):
         self.pubs = [session.publisher(self.keys.msg(i), express=True, block=False) for i in range(self.n)]
         self.env_idx = np.zeros(1, np.int64)
         self.sent = 0
-        self.stall_what = "robot uplinks"
+        self.stall_what = "states of the world or robot uplinks"
 
     def counters(self) -> dict[str, int]:
         return {"ticks": self.ticks, "world_ticks": self.world_ticks, "ticks_skipped": self.clock.skipped,
