@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[train,dev,cluster]' $(STRICT)
+	$(PY) -m pip install -q -e '.[train,dev,cluster,view]' $(STRICT)
 	touch $(STAMP)
 
 $(LINKS): $(STAMP) $(PKG_DIRS)

@@ -153,7 +153,9 @@ def main() -> None:
     a = ap.parse_args()
     import signal
 
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped chain still deletes its namespaces
+    from hammer.runtime.process import take_signals
+
+    take_signals((signal.SIGTERM,), lambda _: sys.exit(143))  # a stopped chain still deletes its namespaces
     team, update = a.team, a.update
     try:
         if a.train_episodes:

@@ -354,7 +354,9 @@ def main() -> None:
     a = ap.parse_args()
     import signal
 
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped bench still deletes its namespaces
+    from hammer.runtime.process import take_signals
+
+    take_signals((signal.SIGTERM,), lambda _: sys.exit(143))  # a stopped bench still deletes its namespaces
     baseline = None
     for rate in [int(x) for x in a.rates.split(",")]:
         try:

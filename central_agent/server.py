@@ -42,8 +42,9 @@ from hammer.learning.sampling import ActingStreams
 from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import CentralMsg, ExperienceChunk, GlobalState
 from hammer.protocol.session import HammerSession, burst_express
-from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.bounds import StepWindow
 from hammer.runtime.role import Role
+from hammer.runtime.settings import RuntimeSettings
 from hammer.runtime.weights import WeightsIntake
 
 DELIVERED, LATE = column("env->central", "delivered"), column("env->central", "late")
@@ -70,14 +71,16 @@ class CentralServer(Role):
     asks for them (up == train equivalence). step_log_dir: where this process logs its link events
     per step (faults.steplog; None: nowhere)."""
 
-    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, weights_timeout_s: float, *,
-                 idle_exit_s: float | None = None, load_when_idle: bool = False,
-                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None,
-                 start_version: int | None = None, training: bool = True) -> None:
+    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, settings: RuntimeSettings, *,
+                 idle_exit_s: float | None = None, step_log_dir: Path | None = None, start_step: int | None = None,
+                 start_version: int | None = None) -> None:
+        # a served run (eval) loads the policy as soon as it is there, before the first state
+        training, load_when_idle = settings.mode == "train", settings.mode == "eval"
+        step_window, max_policy_lag = settings.step_window, settings.max_policy_lag
         step_log = StepLog(step_log_dir, "central", [DELIVERED, LATE, *(column("central->local", e) for e in
                                                                        ("sent", "dropped", "duplicated"))])
-        super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s)
+        super().__init__(session, "central", step_log=step_log, idle_exit_s=idle_exit_s,
+                         stall_warn_s=settings.stall_warn_s)
         self.cfg, self.n_agents = cfg, cfg.n_agents
         self.acting = CentralActing.from_config(cfg)
         # a training run: the absences missing_prob simulates apply (as in the trainer), and the learner gets
@@ -95,7 +98,7 @@ class CentralServer(Role):
                     action_dim=spec.action_dim, discrete=spec.discrete)
         self.states = session.subscribe(self.keys.state(), GlobalState, dims)
         self.handle(self.states, self.on_state)
-        self.weights = (WeightsIntake(session, "central", self.load_weights, weights_timeout_s, reject=self.reject,
+        self.weights = (WeightsIntake(session, "central", self.load_weights, settings.weights_timeout_s, reject=self.reject,
                                       max_policy_lag=max_policy_lag, start_version=start_version)
                         if self.acting.has_network else None)
         n = cfg.n_agents  # N messages a step: a burst (protocol.session.BATCH_MIN)

@@ -17,10 +17,12 @@ robot whose lease expires is one client link closed: no other robot's traffic ta
 secure fleet the router holds the run's `hub` identity and checks the access rules on every hop,
 and every role checks them again on its own link.
 
-The launcher opens the router, starts the roles, restarts a robot or the central agent that dies
-(not one that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires
-the `--chaos` events on time, and at the end (the world's episodes or seconds, Ctrl-C or SIGTERM)
-stops every role and writes summary.json.
+The launcher opens the router and runs the one launch loop of every launcher (deploy.up.Launcher:
+no waiting for liveliness here, robots join when they can): it starts the roles, restarts a robot,
+the central agent or the policy server that dies (up to 3 times, then goes on without it; not one
+that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires the
+`--chaos` events on time (from the world's first tick), and at the end (the world's episodes or
+seconds, Ctrl-C or SIGTERM) stops every role; then it writes summary.json.
 
 Hot updates: the launcher also runs the fleet's policy server (`hammer fleet-policy`, the
 `serve.policy_server.PolicyServer` of a lock-stepped served run) following RUN/pushes.json, and
@@ -39,17 +41,16 @@ import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 from hammer.deploy.fleet_verdict import fleet_verdict
-from hammer.deploy.supervisor import RoleSpec, Supervisor
-from hammer.deploy.up import stop_on_signals
+from hammer.deploy.supervisor import RoleSpec, role_args
+from hammer.deploy.up import Board, Launcher, UpError, stop_on_signals
 from hammer.protocol.access import HUB, LAUNCHER
-from hammer.protocol.schemas import Control, Heartbeat
+from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
 from hammer.runtime.clock import MSG_WAIT_S
-from hammer.runtime.settings import refuse_plain_beyond_loopback
+from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
 
 log = logging.getLogger("hammer.fleet")
 
@@ -74,7 +75,7 @@ class FleetPlan:
     secure: bool = False  # mutual TLS with the run's identities (RUN/identity/) and per-role access rules
     insecure: bool = False  # accept plain traffic beyond loopback (on a network you trust)
     max_absence_s: float = 10.0  # a robot missing longer than this at a time makes the run degraded
-    runtime: list[str] = field(default_factory=list)  # RuntimeSettings FIELD=VALUE items (`--runtime`)
+    runtime: dict = field(default_factory=dict)  # RuntimeSettings fields from `--runtime` (runtime_items)
     timeline: Path | None = None  # the world appends per-robot totals here once a second (benches)
     site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
@@ -103,29 +104,23 @@ LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
 
 
 def apply_runtime(plan: FleetPlan, items: list[str]) -> FleetPlan:
-    """`--runtime FIELD=VALUE` items for a fleet: the plan's bounds (PLAN_BOUNDS) set on the plan, the
-    rest kept as RuntimeSettings items (checked when the fleet's runtime.json is made). ValueError
-    naming the item on a malformed one."""
-    rest = []
-    for item in items:
-        key, eq, val = item.partition("=")
-        key = key.strip()
-        if not eq:
-            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. zenoh_lease_s=3")
-        if key in PLAN_BOUNDS:
-            try:
-                setattr(plan, key, float(val))
-            except ValueError:
-                raise ValueError(f"--runtime {item!r}: {key} takes seconds, e.g. {key}=0.5") from None
-        else:
-            rest.append(f"{key}={val.strip()}")
-    plan.runtime = rest
+    """`--runtime FIELD=VALUE` items for a fleet (read by `runtime.settings.runtime_items`, the one
+    parser): the plan's bounds (PLAN_BOUNDS) set on the plan, the rest kept as RuntimeSettings fields
+    (checked when the fleet's runtime.json is made). ValueError naming the item on a bad one."""
+    values = runtime_items(items)
+    for key in PLAN_BOUNDS:
+        if key in values:
+            v = values.pop(key)
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ValueError(f"--runtime {key}={v}: {key} takes seconds, e.g. {key}=0.5")
+            setattr(plan, key, float(v))
+    plan.runtime = values
     return plan
 
 
 def link_items(plan: FleetPlan) -> list[str]:
-    """The plan's `--runtime` items every role and robot gets (LINK_FIELDS), as command arguments."""
-    return [x for item in plan.runtime if item.partition("=")[0] in LINK_FIELDS for x in ("--runtime", item)]
+    """The plan's `--runtime` items every role and robot gets (LINK_FIELDS)."""
+    return [f"{key}={v}" for key, v in plan.runtime.items() if key in LINK_FIELDS]
 
 
 def robot_endpoint(plan: FleetPlan) -> str:
@@ -150,11 +145,10 @@ def robot_command(plan: FleetPlan, i: int, run_dir: Path) -> str:
 
     where = robot_endpoint(plan)
     plain_out = not plan.secure and ("<" in where or not is_loopback_endpoint(where))
-    return shlex.join(["hammer", "local", "--bundle", str(plan.bundle), "--agent", str(i), "--run-id",
-                       Path(run_dir).name, "--connect", where,
-                       *(["--identity", str(identity_dir(Path(run_dir)))] if plan.secure else []),
-                       *(["--insecure"] if plain_out else []), *link_items(plan),
-                       *(["--seed", str(plan.seed)] if plan.seed is not None else []), "--fleet"])
+    return shlex.join(["hammer", *role_args("local", bundle=plan.bundle, agent=i, run_id=Path(run_dir).name,
+                                            connect=where, identity=plan.secure and identity_dir(Path(run_dir)),
+                                            insecure=plain_out, runtime=link_items(plan), seed=plan.seed,
+                                            fleet=True)])
 
 
 def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_central: bool,
@@ -164,24 +158,22 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     and makes `connect` a TLS endpoint."""
     from hammer.protocol.identity import identity_dir
 
-    common = ["--bundle", str(plan.bundle), "--run-id", run_id, "--connect", connect,
-              *(["--identity", str(identity_dir(run_dir))] if plan.secure else []),
-              *(["--seed", str(plan.seed)] if plan.seed is not None else []), *link_items(plan)]
-    specs = [RoleSpec("env", ["fleet-world", *common, "--hz", str(plan.hz), "--hold-s", str(plan.hold_s),
-                              "--msg-wait-s", str(plan.msg_wait_s),
-                              "--run-dir", str(run_dir),
-                              *(["--timeline", str(plan.timeline)] if plan.timeline is not None else []),
-                              *(["--seconds", str(plan.seconds)] if plan.seconds is not None else []),
-                              *(["--episodes", str(plan.episodes)] if plan.episodes is not None else [])]),
-             RoleSpec("learner", ["fleet-policy", *common, "--run-dir", str(run_dir)], restart=True)]
+    common = {"bundle": plan.bundle, "run_id": run_id, "connect": connect,
+              "identity": plan.secure and identity_dir(run_dir), "seed": plan.seed, "runtime": link_items(plan)}
+    specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, msg_wait_s=plan.msg_wait_s,
+                                       run_dir=run_dir,
+                                       timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
+             RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:
-        specs.append(RoleSpec("central", ["fleet-central", *common, "--hz", str(plan.hz),
-                                          "--missing-after-s", str(plan.missing_after_s)], restart=True))
+        specs.append(RoleSpec("central", role_args("fleet-central", **common, hz=plan.hz,
+                                                   missing_after_s=plan.missing_after_s),
+                              restart=True, essential=False))
     for i in range(n_agents):
         if i in plan.external:
             continue
-        specs.append(RoleSpec(f"local-{i}", ["local", *common, "--agent", str(i), "--fleet",
-                                             "--max-msg-age-s", str(plan.max_msg_age_s)], restart=True))
+        specs.append(RoleSpec(f"local-{i}", role_args("local", **common, agent=i, fleet=True,
+                                                      max_msg_age_s=plan.max_msg_age_s),
+                              restart=True, essential=False))
     return specs
 
 
@@ -203,20 +195,19 @@ def fleet_settings(b, plan: FleetPlan, run_id: str):
     ValueError naming the field on a bad item."""
     from hammer.serve.settings import serve_settings
 
-    items = [*plan.runtime, *(["secure=true", "secure_hub=true"] if plan.secure else []),
-             *(["insecure=true"] if plan.insecure else []), f"hub_port={plan.hub_port}",
-             f"max_absence_s={plan.max_absence_s}"]
-    settings, _ = serve_settings(b, run_id, runtime=items, listen=plan.listen)
+    fixed = {**plan.runtime, **({"secure": True, "secure_hub": True} if plan.secure else {}),
+             **({"insecure": True} if plan.insecure else {}), "hub_port": plan.hub_port,
+             "max_absence_s": plan.max_absence_s}
+    settings, _ = serve_settings(b, run_id, listen=plan.listen, fixed=fixed)
     return settings
 
 
-def write_served_files(b, plan: FleetPlan, run_dir: Path, run_id: str) -> None:
-    """runtime.json (mode eval, the bundle as policy version 0), config.json (the team at K = 1) and
+def write_served_files(b, plan: FleetPlan, run_dir: Path, settings) -> None:
+    """runtime.json (`settings`, the bundle as policy version 0), config.json (the team at K = 1) and
     env_spec.json: the files `hammer push` / `hammer rollback` (serve/push.py) check a push against
     and the policy server reads, the same as a lock-stepped `hammer serve` writes."""
     from hammer.runtime.settings import write_env_spec
 
-    settings = fleet_settings(b, plan, run_id)
     # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
     settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
     settings.save(run_dir)
@@ -247,7 +238,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     refuse_plain_beyond_loopback(hub_transport, plan.secure, plan.insecure)
     run_dir.mkdir(parents=True, exist_ok=True)
     _set_aside(run_dir)
-    write_served_files(b, plan, run_dir, run_id)
+    write_served_files(b, plan, run_dir, settings)
     if plan.secure:
         from hammer.deploy.up import secure_identities
 
@@ -256,77 +247,57 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
+    robots = {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}
     fleet_json = json.dumps({
         "bundle": str(plan.bundle), "run_id": run_id, "hub": hub_transport.listen[0],
         "endpoint": robot_endpoint(plan), "plan": {**plan.__dict__, "bundle": str(plan.bundle),
                                                   "timeline": plan.timeline and str(plan.timeline),
                                                   "site": plan.site and str(plan.site)},
         "commands": {s.name: "hammer " + shlex.join(s.args) for s in specs},
-        "robot_commands": {f"local-{i}": robot_command(plan, i, run_dir) for i in plan.external}}, indent=1)
-    board = SimpleNamespace(heartbeats={}, held=set(), chaos_log=[], restarts={s.name: 0 for s in specs},
-                            versions={}, switches={})
-    sup = Supervisor(run_dir / "logs")
-    stopped_by = None
+        "robot_commands": robots}, indent=1)
+    board = FleetBoard()
     t0 = time.monotonic()
-    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
-    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+
+    def started_world(sup, board) -> None:  # chaos's clock (t=...) starts with the world's
+        world = board.heartbeats.get("env")
+        if world is not None and world.counters.get("ticks", 0) > 0:
+            chaos(sup, board)
+
+    # The one launcher loop (deploy/up.py), as a fleet runs it: no waiting for anyone to be up (robots
+    # join when they can; the world waits for them), robots that keep dying are let go (the verdict
+    # names their absence), on a fleet's clock.
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s,
+                        on_tick=None if on_tick is None else (lambda board: on_tick(board, time.monotonic() - t0)),
+                        chaos=None if chaos is None else started_world, settings=settings,
+                        external=robots, wait_alive=False, watch_liveliness=False, board=board, tick_s=0.1, stop_wait_s=5.0,
+                        heard=lambda h: _note_version(board, h, time.monotonic() - t0))
+    stopped_by = None
     if plan.secure:  # strangers turned away at the hub's TLS handshake: counted for the verdict (a plain hub has no handshake to refuse)
         watch_refused()
-    stop_on = stop_on_signals((signal.SIGTERM, signal.SIGINT))
-    stopping = stop_on.__enter__()
-    try:
-        with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
-            (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
-            beats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
-            for s in specs:
-                sup.start(s)
-            try:
-                while True:
-                    for h in beats.drain():
-                        _note_version(board, h, time.monotonic() - t0)
-                        board.heartbeats[h.role] = h
-                    done = False
-                    for rp in sup.poll():
-                        name = rp.spec.name
-                        if name == "env":
-                            done = True
-                            if rp.exit_codes[-1] != 0:
-                                stopped_by = f"the world exited with code {rp.exit_codes[-1]}"
-                        elif name not in board.held and rp.restarts < rp.spec.max_restarts:
-                            rp.restarts += 1
-                            board.restarts[name] += 1
-                            log.warning("%s exited (code %s): restarting (%d)", name, rp.exit_codes[-1], rp.restarts)
-                            sup.start(rp.spec)
-                    if done:
-                        break
-                    world = board.heartbeats.get("env")
-                    if chaos is not None and world is not None and world.counters.get("ticks", 0) > 0:
-                        chaos(sup, board)  # its clock (t=...) starts with the world's
-                    if on_tick is not None:
-                        on_tick(board, time.monotonic() - t0)
-                    time.sleep(0.1)
-            except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
-                stopped_by = getattr(e, "signal_name", "SIGINT")
-            stopping["ending"] = True  # a repeated signal must not cut the stop broadcast or the summary short
-            hub.publish(hub.keys.ctl("all"), Control(command="stop", target="*"))
-            # each role's last heartbeat (status stopped) holds its final counters: wait for them a while
-            deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline:
-                for h in beats.drain():
-                    _note_version(board, h, time.monotonic() - t0)
-                    board.heartbeats[h.role] = h
-                started = {s.name for s in specs}
-                if all(h.status == "stopped" or (n in started and not sup.alive(n))
-                       for n, h in board.heartbeats.items()):
-                    break
-                time.sleep(0.05)
-    except KeyboardInterrupt as e:  # before the roles were up
-        stopped_by = getattr(e, "signal_name", "SIGINT")
-    finally:
-        stopping["ending"] = True
-        sup.stop_all()
-        stop_on.__exit__(None, None, None)
+    # SIGTERM (a service manager's stop) and Ctrl-C end a fleet as they end a served run: every role
+    # stopped, summary.json written with `"interrupted": true, "stopped_by": "SIGTERM"` (or "SIGINT")
+    with stop_on_signals((signal.SIGTERM, signal.SIGINT)) as state:
+        launcher.stopping = state  # marked ending once the launcher broadcasts the stop
+        try:
+            with HammerSession(run_id, hub_transport, sender=LAUNCHER) as hub:
+                (run_dir / "fleet.json").write_text(fleet_json)  # once the router listens: a client may join now
+                launcher.run(hub)
+        except UpError as e:  # the world failed: every role was stopped all the same
+            stopped_by = str(e)
+        except KeyboardInterrupt as e:  # Stopped by a signal stop_on_signals took; a bare one is Ctrl-C's
+            stopped_by = getattr(e, "signal_name", "SIGINT")
+        finally:
+            state["ending"] = True  # a repeated signal must not cut the summary short
     return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
+
+
+@dataclass
+class FleetBoard(Board):
+    """The launcher's board with what a fleet adds: each robot's and the central agent's policy
+    version, and every switch seen (summary.json: `version_switches`)."""
+
+    versions: dict[str, int] = field(default_factory=dict)
+    switches: dict[str, list[dict]] = field(default_factory=dict)
 
 
 def _note_version(board, h: Heartbeat, t: float) -> None:

@@ -23,6 +23,27 @@ log = logging.getLogger("hammer.deploy")
 
 
 
+def role_args(command: str, **options) -> list[str]:
+    """A role command's line after `hammer`, the one way a launcher writes one: `command`, then each
+    keyword as its option in the order given (`run_dir` -> `--run-dir VALUE`; a list or tuple repeats
+    it; True is a bare flag; None and False leave it out). The role commands are hammer/commands/
+    roles.py, fleet.py and edge.py (`local --bundle`), which this floor may not import:
+    tests/test_role_args.py parses every line the launchers make with those commands' own parsers."""
+    out = [command]
+    for key, value in options.items():
+        opt = "--" + key.replace("_", "-")
+        if value is None or value is False:
+            continue
+        if value is True:
+            out.append(opt)
+        elif isinstance(value, list | tuple):
+            for v in value:
+                out += [opt, str(v)]
+        else:
+            out += [opt, str(value)]
+    return out
+
+
 @dataclass
 class RoleSpec:
     """One role process: its name (used for logs and liveliness) and CLI arguments after `hammer`."""
@@ -31,6 +52,7 @@ class RoleSpec:
     args: list[str]
     restart: bool = False  # restart when it dies before the run is over
     max_restarts: int = 3
+    essential: bool = True  # past max_restarts the run ends (False: it goes on without it: a fleet's robot)
     members: tuple[str, ...] = ()  # an agent pool: the liveliness names of its agents (else the role's own name)
 
 

@@ -21,20 +21,18 @@ import os
 import re
 import secrets
 import shlex
-import signal
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from hammer.deploy.attendance import Attendance
-from hammer.deploy.supervisor import RoleSpec, Supervisor
+from hammer.deploy.supervisor import RoleSpec, Supervisor, role_args
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, free_loopback_port
 from hammer.runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
 from hammer.runtime.heartbeats import HeartbeatLedger
+from hammer.runtime.process import Stopped, on_signals
 from hammer.runtime.role import rejection_counters
 from hammer.runtime.settings import RuntimeSettings, write_env_spec
 
@@ -43,17 +41,6 @@ log = logging.getLogger("hammer.up")
 
 class UpError(RuntimeError):
     """The run could not complete; the message is the one-line reason."""
-
-
-class Stopped(KeyboardInterrupt):
-    """A stop asked from outside by a signal `launch` was told to take (`stop_signals`: SIGTERM, what
-    systemd and `docker stop` send; SIGINT for a served run). A KeyboardInterrupt, so every path that
-    already cleans up after Ctrl-C (the launcher's stop broadcast to every role, external ones
-    included) does the same for it; `launch` then writes what ran instead of failing."""
-
-    def __init__(self, signal_name: str) -> None:
-        super().__init__(signal_name)
-        self.signal_name = signal_name
 
 
 @dataclass
@@ -93,21 +80,21 @@ def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> l
     each; a pool's `members` are the liveliness names of its agents."""
     from hammer.protocol.access import pool_name
 
-    rd = ["--run-dir", str(run_dir)]
-    specs = [RoleSpec("learner", ["learner", *rd])]
+    specs = [RoleSpec("learner", role_args("learner", run_dir=run_dir))]
     if cfg.wiring.uses_central:
-        specs.append(RoleSpec("central", ["central", *rd], restart=True))
+        specs.append(RoleSpec("central", role_args("central", run_dir=run_dir), restart=True))
     groups = (settings or RuntimeSettings(run_id="-")).agent_groups(cfg.n_agents)
     external = {int(e.split("-")[1]) for e in (settings.external if settings else ()) if re.fullmatch(r"local-\d+", e)}
     for i in sorted(external):
         groups.append([i])
     for g in sorted(groups):
         if len(g) == 1:
-            specs.append(RoleSpec(f"local-{g[0]}", ["local", *rd, "--agent", str(g[0])], restart=True))
+            specs.append(RoleSpec(f"local-{g[0]}", role_args("local", run_dir=run_dir, agent=g[0]), restart=True))
         else:
-            specs.append(RoleSpec(pool_name(g), ["local", *rd, "--agents", ",".join(map(str, g))], restart=True,
+            specs.append(RoleSpec(pool_name(g), role_args("local", run_dir=run_dir, agents=",".join(map(str, g))),
+                                  restart=True,
                                   members=tuple(f"local-{i}" for i in g)))
-    specs.append(RoleSpec("env", ["env-host", *rd]))
+    specs.append(RoleSpec("env", role_args("env-host", run_dir=run_dir)))
     return specs
 
 
@@ -323,31 +310,17 @@ def launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick=None, chaos=No
                        stopping, stop)
 
 
-@contextmanager
+def _stop_every_role(name: str) -> None:
+    log.warning("%s: stopping every role", name)
+    raise Stopped(name)
+
+
 def stop_on_signals(signals: tuple[int, ...]):
-    """While launching: each of `signals` raises Stopped once; later ones (and any after the run is
-    ending, `stopping["ending"]`) are logged and ignored, so the stop broadcast and the summary
-    are not cut short by a service manager repeating its signal."""
-    state: dict = {"by": None, "ending": False}
-    if not signals or threading.current_thread() is not threading.main_thread():
-        yield state
-        return
-
-    def on_signal(signum, frame) -> None:
-        name = signal.Signals(signum).name
-        if state["by"] is not None or state["ending"]:
-            log.warning("%s: already stopping", name)
-            return
-        state["by"] = name
-        log.warning("%s: stopping every role", name)
-        raise Stopped(name)
-
-    previous = {s: signal.signal(s, on_signal) for s in signals}
-    try:
-        yield state
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+    """While launching (runtime.process.on_signals, the one policy): the first of `signals` raises
+    Stopped (the launcher's stop broadcast to every role, external ones included, follows as after
+    Ctrl-C, and then what ran is written instead of a failure); later ones, and any once the run is
+    ending (`state["ending"]`), are logged and ignored."""
+    return on_signals(signals, _stop_every_role)
 
 
 def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resume: bool,
@@ -381,7 +354,8 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
         raise UpError(str(e)) from None
     if settings.secure:
         hub_transport = secure_identities(cfg.n_agents, settings, run_dir, hub_transport, fresh=not resume)
-    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings, stop)
+    launcher = Launcher(specs, run_dir, settings.startup_timeout_s, on_tick, chaos, external, settings, stop,
+                        stopping=stopping)
     stopped_by = None
     try:
         with HammerSession(settings.run_id, hub_transport, sender=LAUNCHER) as hub:
@@ -421,16 +395,27 @@ def _stopped_summary(cfg, settings: RuntimeSettings, run_dir: Path, summary: dic
 
 
 class Launcher:
-    """The launcher role: starts every role, waits for their liveliness, follows their heartbeats,
-    restarts the ones that may be restarted, and stops them all when the env host is done (or on
-    any way out, Ctrl-C included). The only publisher of control commands."""
+    """The launcher role, the one launch-and-supervise loop of every launcher (`hammer up`, `hammer
+    serve`, and with `wait_alive=False, watch_liveliness=False` a fleet's, deploy/fleet.py): starts
+    every role, waits for their liveliness, follows their heartbeats (`heard(h)`: each one believed),
+    fires the chaos schedule, restarts the ones that may be restarted, and stops them all when the
+    env host is done (or on any way out, Ctrl-C included). The only publisher of control commands.
+    The caller writes the verdict from `board` once `run` returns."""
 
     tick_s = 0.25
+    stop_wait_s = 10.0  # after the stop broadcast: how long roles get to exit on their own
 
     def __init__(self, specs: list[RoleSpec], run_dir: Path, startup_timeout_s: float, on_tick=None,
                  chaos=None, external: dict[str, str] | None = None, settings: RuntimeSettings | None = None,
-                 stop=None) -> None:
+                 stop=None, *, wait_alive: bool = True, watch_liveliness: bool = True, heard=None,
+                 board: Board | None = None, tick_s: float | None = None, stop_wait_s: float | None = None,
+                 stopping: dict | None = None) -> None:
         self.stop = stop  # launch's `stop`: asked every tick
+        self.stopping = stopping  # the signal policy's state (stop_on_signals): marked ending at the stop broadcast
+        # a fleet's roles and robots come and go while it runs: nothing waits for them to be up
+        self.wait_for_alive, self.watch_liveliness, self.heard = wait_alive, watch_liveliness, heard
+        self.tick_s = self.tick_s if tick_s is None else tick_s
+        self.stop_wait_s = self.stop_wait_s if stop_wait_s is None else stop_wait_s
         self.specs, self.run_dir, self.startup_timeout_s = specs, run_dir, startup_timeout_s
         self.settings = settings or RuntimeSettings(run_id="-")
         self.on_tick, self.chaos = on_tick, chaos
@@ -440,7 +425,9 @@ class Launcher:
         self.sup = Supervisor(run_dir / "logs")
         self.sup.set_env(RUN_STEP_ENV, None)  # until the env host reports a step, the roles use runtime.json's
         self.sup.set_env(RUN_VERSION_ENV, None)  # ... and its resume version
-        self.board = Board(restarts={n: 0 for n in self.names}, attendance=Attendance(self.alive_expected))
+        self.board = board if board is not None else Board()
+        self.board.restarts = {n: 0 for n in self.names}
+        self.board.attendance = Attendance(self.alive_expected) if watch_liveliness else None
         # Only counters the launcher can believe reach the verdict (runtime.heartbeats).
         self.ledger = HeartbeatLedger(self.sup.started_pids)
         self.own_rejections: dict[str, int] = {}  # the launcher's, as a role's final counters: rejected.<reason>
@@ -448,32 +435,37 @@ class Launcher:
         self.done = False
 
     def run(self, hub: HammerSession) -> None:
-        self.watch = hub.watch_alive()
+        self.watch = hub.watch_alive() if self.watch_liveliness else None
         self.heartbeats = hub.subscribe(hub.keys.heartbeat("*"), Heartbeat)
         # The env host's stop at the end of its budget: the tokens that go after it are roles stopping.
         # (A secure run keeps control to the launcher: there env_summary.json on disk says it, below.)
-        self.stops = None if self.settings.secure else hub.subscribe(hub.keys.ctl("all"), Control)
+        self.stops = (None if self.settings.secure or not self.watch_liveliness
+                      else hub.subscribe(hub.keys.ctl("all"), Control))
         file_log = _launcher_log(self.run_dir, self.settings.log_max_mb)
         own = logging.getLogger(FILE_ONLY)
         own.info("launcher started: run %s, pid %d, roles %s, run dir %s", self.settings.run_id, os.getpid(),
                  ", ".join(s.name for s in self.specs), self.run_dir)
         try:
-            for name, cmd in self.external.items():
+            for name, cmd in self.external.items() if self.wait_for_alive else ():  # a fleet's command says it
                 log.warning("external role %s: start it by hand with: %s", name, cmd)
             # A hand-started role must be subscribed before step 0: the env host then starts last.
-            later = [s for s in self.specs if s.name == "env" and self.external and "env" not in self.external]
+            later = [s for s in self.specs if s.name == "env" and self.external and "env" not in self.external
+                     and self.wait_for_alive]
             for spec in self.specs:
                 if spec.name not in self.external and spec not in later:
                     self.sup.start(spec)
             if later:
                 self.wait_alive(self.alive_expected - {"env"})
                 self.sup.start(later[0])
-            self.wait_alive()
-            self.board.attendance.start()
+            if self.wait_for_alive:
+                self.wait_alive()
+            if self.board.attendance is not None:
+                self.board.attendance.start()
             while not self.done:
                 self.tick()
         finally:
-            self.board.attendance.end()
+            if self.board.attendance is not None:
+                self.board.attendance.end()
             self.stop_all(hub)
             own.info("launcher stopped: %s", "the env host is done" if self.done else "interrupted or failed")
             logging.getLogger("hammer.up").removeHandler(file_log)
@@ -517,6 +509,8 @@ class Launcher:
 
     def on_liveliness(self) -> None:
         att = self.board.attendance
+        if self.watch is None:
+            return
         if self.stops is not None and any(c.command == "stop" and c.sender in ("env", LAUNCHER)
                                           for c in self.stops.drain()):
             att.end()
@@ -544,6 +538,8 @@ class Launcher:
             self.sup.set_env(RUN_VERSION_ENV, str(max(0, int(h.gauges.get("policy_version", 0)))))
             board.steps_hist.append((time.monotonic(), int(h.counters.get("env_steps", 0))))
             board.steps_hist = board.steps_hist[-20:]
+        if self.heard is not None:
+            self.heard(h)
 
     def on_exit(self, rp) -> None:
         """A role process ended: the env host's clean exit ends the run; others are restarted if they may be."""
@@ -562,6 +558,8 @@ class Launcher:
             self.board.restarts[name] = rp.restarts
             log.warning("role %s died (code %s); restart %d/%d", name, code, rp.restarts, rp.spec.max_restarts)
             self.sup.start(rp.spec)
+        elif not rp.spec.essential:  # a fleet goes on without it (its verdict names the absence)
+            log.warning("role %s died (code %s) %d times; going on without it", name, code, rp.restarts + 1)
         elif name == "learner":
             raise UpError(f"learner exited with code {code}: {_tail(rp.log_path, 5) or 'nothing in its log'} "
                           f"(log: {rp.log_path}); "
@@ -576,12 +574,14 @@ class Launcher:
         return rejection_counters(hub.rejection_counts(), self.ledger.rejected)
 
     def stop_all(self, hub: HammerSession) -> None:
-        """Tell every role to stop, give them 10 s to exit cleanly, then end the rest."""
+        """Tell every role to stop, give them `stop_wait_s` to exit cleanly, then end the rest."""
+        if self.stopping is not None:
+            self.stopping["ending"] = True  # a repeated signal must not cut the stop broadcast short
         try:
             hub.publish(hub.keys.ctl("all"), Control(command="stop"))
         except Exception as e:  # noqa: BLE001 - the hub may be closing; roles are stopped below anyway
             log.debug("could not broadcast stop: %s", e)
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + self.stop_wait_s
         while ((any(self.sup.alive(n) for n in self.names) or self.externals_running())
                and time.monotonic() < deadline):
             self.sup.poll()
@@ -596,12 +596,14 @@ class Launcher:
         final counters, all a role started elsewhere leaves the run directory (links.json)."""
         for h in self.heartbeats.drain():
             self.on_heartbeat(h)
-        for ev in self.watch.drain():
+        for ev in self.watch.drain() if self.watch is not None else ():
             (self.board.alive.add if ev.alive else self.board.alive.discard)(ev.role)
 
     def externals_running(self) -> bool:
-        """A role started elsewhere that is still up and has not sent its last heartbeat yet."""
-        return any(n in self.board.alive and getattr(self.board.heartbeats.get(n), "status", None) != "stopped"
+        """A role started elsewhere that is still up (its token; without the liveliness watch: heard
+        from) and has not sent its last heartbeat yet."""
+        up = self.board.alive if self.watch is not None else self.board.heartbeats
+        return any(n in up and getattr(self.board.heartbeats.get(n), "status", None) != "stopped"
                    for n in self.external)
 
 

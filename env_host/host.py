@@ -62,20 +62,20 @@ from hammer.protocol.schemas import (
 from hammer.protocol.session import HammerSession, burst_express
 from hammer.runtime.pushes import HistoryError, assignment, read_pushes
 from hammer.runtime.role import Role, process_cpu_s
+from hammer.runtime.settings import RuntimeSettings
 
 HISTORY_EVERY_S = 0.25  # a served run reads its update history (pushes.json) at most this often
 
 
 class EnvHost(Role):
     heartbeat_every_s = 0.5
-    name_timeout_s = 20.0  # eval: a push is named this long after it was published even if not every agent holds it
 
     def __init__(self, session: HammerSession, cfg: RunConfig, env: VecEnv, rd: RunDir,
-                 act_deadline_s: float, weights_timeout_s: float, trace: bool = False,
-                 max_policy_lag: int = 0, resume_from: int | None = None, resume_step: int | None = None,
-                 trace_max_mb: float = 512.0, echo: bool = True) -> None:
-        if (resume_from is None) != (resume_step is None):
-            raise ValueError("resume_from and resume_step go together")
+                 settings: RuntimeSettings) -> None:
+        s = settings  # RuntimeSettings checks that resume_from and resume_step go together
+        act_deadline_s, weights_timeout_s, trace, echo = s.act_deadline_ms / 1e3, s.weights_timeout_s, s.trace, s.echo
+        max_policy_lag, resume_from, resume_step = s.max_policy_lag, s.resume_from, s.resume_step
+        self.name_timeout_s = s.weights_name_timeout_s
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
         # Where this session's wall time went (summary `time_s`; `hammer bench scale` reads it).
         self.time_s = {"first_weights": 0.0, "wait_weights": 0.0, "loop": 0.0, "env_step": 0.0}
@@ -88,7 +88,8 @@ class EnvHost(Role):
         links = (["env->central"] if self.wiring.uses_central else []) + ["env->local"]
         super().__init__(session, "env", step_log=StepLog(rd.path / STEP_LOG_DIR, "env", [
             *(column(lk, e) for lk in links for e in ("sent", "dropped", "duplicated")),
-            *(column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults"))]))
+            *(column("local->env", e) for e in ("delivered", "late", "duplicate", "defaults"))]),
+            stall_warn_s=s.stall_warn_s)
         keys, msg_dim = session.keys, self.wiring.msg_dim
         dims = Dims(num_envs=self.k, n_agents=self.n, action_dim=self.spec.action_dim, discrete=self.spec.discrete,
                     msg_dim=msg_dim or None, echo=echo)  # echo: each action carries its message (training, trace)
@@ -110,7 +111,7 @@ class EnvHost(Role):
         self.env_idx = np.arange(self.k, dtype=np.int64)
         self.rollout = RolloutLayout.from_config(cfg, self.spec).chunk_steps()
         self.writer = RolloutWriter(self.rollout, self.spec)
-        self.trace = TraceWriter(rd.path, int(trace_max_mb * 2**20)) if trace else None
+        self.trace = TraceWriter(rd.path, int(s.trace_max_mb * 2**20)) if trace else None
         self.agent_versions: np.ndarray | None = None  # eval: each agent's version (a staged rollout)
         self.health: AgentHealth | None = None
         self._history_read, self._history_mtime, self._history_bad, self._named_for = 0.0, None, False, -2

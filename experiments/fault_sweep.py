@@ -20,7 +20,6 @@ import logging
 import math
 import shutil
 import signal
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -87,26 +86,39 @@ def eval_config(run: Path, episodes: int, seed: int):
     return build_config(data)
 
 
-def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
-    """RuntimeSettings of one sweep point: eval mode, the point's fault on central->local. A bundle is
-    served as `hammer serve` serves it (serve.settings.serve_settings: its fallback applies); a run directory
-    with the default fallback."""
-    from hammer.faults.spec import FaultPlan, LinkFault
-    from hammer.runtime.settings import RuntimeSettings
+def eval_settings(run: Path, run_id: str, fault: list[str] | None = None, fault_seed: int = 0,
+                  chaos: list[str] | None = None, runtime: list[str] | None = None):
+    """(RuntimeSettings, FaultPlan) of an evaluation of a trained team (`hammer faults eval`, each sweep
+    point): eval mode, link faults, chaos, --runtime items. A bundle is served as `hammer serve` serves
+    it (serve.settings.serve_settings: its fallback applies); a run directory's final/ policy with the
+    default fallback. ValueError (FaultSpecError, ChaosSpecError, BundleError) with one line."""
+    from hammer.faults.chaos import parse_chaos
+    from hammer.faults.spec import build_plan
+    from hammer.runtime.settings import build_settings
     from hammer.serve.bundle import is_bundle, load_bundle
 
-    run = Path(p.run)
-    links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
-    plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
-    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
-    run_id = p.name.replace(".", "_")[:64]
+    run = Path(run)
     if is_bundle(run):
         from hammer.serve.settings import serve_settings
 
-        base, _ = serve_settings(load_bundle(run), run_id, runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
-        return base.model_copy(update=faults)
-    return RuntimeSettings(run_id=run_id, mode="eval", policy_dir=str(team_source(run)[1]),
-                           msg_deadline_ms=msg_deadline_ms, **faults)
+        return serve_settings(load_bundle(run), run_id, fault, fault_seed, chaos, runtime)
+    plan = build_plan(fault, fault_seed)
+    for c in chaos or []:
+        parse_chaos(c)
+    rt = {"run_id": run_id, "mode": "eval", "policy_dir": str(team_source(run)[1]),
+          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
+    return build_settings(rt, runtime), plan
+
+
+def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000):
+    """RuntimeSettings of one sweep point: eval mode (`eval_settings`), the point's fault on central->local."""
+    from hammer.faults.spec import FaultPlan, LinkFault
+
+    links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
+    plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
+    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
+    base, _ = eval_settings(Path(p.run), p.name.replace(".", "_")[:64], runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
+    return base.model_copy(update=faults)
 
 
 POINT_FILE = "point.json"  # a finished point's result, written last: its presence marks the point done
@@ -130,7 +142,7 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
     point_dir = out / "points" / p.name
     res = launch(cfg, settings, point_dir, stop=stop)
     if res.stopped_by is not None:
-        from hammer.deploy.up import Stopped
+        from hammer.runtime.process import Stopped
 
         raise Stopped(res.stopped_by)
     with open(point_dir / "metrics.csv", newline="") as f:
@@ -216,17 +228,10 @@ def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: fl
     if done and note is not None:
         note(f"{len(done)} of {len(points)} evaluation runs already finished in {out / 'points'}; "
              f"evaluating the other {len(todo)}")
+    from hammer.runtime.process import take_signals
+
     stopped: list[str] = []
-
-    def on_signal(signum, frame) -> None:
-        name = signal.Signals(signum).name
-        if stopped:
-            log.warning("%s: already stopping", name)
-        else:
-            stopped.append(name)
-
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, on_signal) for s in stop_signals} if main else {}
+    _, restore = take_signals(stop_signals, stopped.append)
     try:
         with ThreadPoolExecutor(max_workers=max(1, parallel)) as ex:
             futures = {}
@@ -257,8 +262,7 @@ def run_sweep(points: list[Point], out: Path, episodes: int, msg_deadline_ms: fl
                     if progress is not None:
                         progress(r, len(done), len(points))
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     outcome.stopped_by = stopped[0] if stopped else None
     outcome.results = [done[p] for p in points if p in done]
     if outcome.results:

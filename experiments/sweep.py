@@ -19,7 +19,6 @@ import itertools
 import json
 import os
 import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from hammer.experiments.archive import (
 )
 from hammer.experiments.launch import Job, Launcher, LocalLauncher
 from hammer.protocol.ranges import parse_indices
+from hammer.runtime.process import take_signals
 
 # Variant spellings accepted by the sweep: `hammer-rl` / `hammer-backprop` pin the central mode.
 VARIANTS = ("hammer", "hammer-rl", "hammer-backprop", "il", "random", "centralized")
@@ -207,9 +207,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
     last_snap = time.monotonic()
     # SIGTERM (a session ending, `kill`) must stop the runs too, not orphan them: turn it into an
     # exit through the `finally` below, as Ctrl-C already does.
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
-        old_term = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    _, restore = take_signals((signal.SIGTERM,), _exit_on_sigterm)
     try:
         while s.queue or s.running:
             while s.queue and len(s.running) < jobs:
@@ -221,8 +219,7 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
             s.reap()
     finally:
         s.stop_all()
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        restore()
     return s.result
 
 
@@ -379,8 +376,8 @@ def _take_batch(queue: list[tuple[SweepPoint, Path, str]], key: tuple, n: int, o
     return taken
 
 
-def _exit_on_sigterm(signum: int, frame: object) -> None:
-    raise SystemExit(128 + signum)
+def _exit_on_sigterm(signal_name: str) -> None:
+    raise SystemExit(128 + signal.Signals[signal_name].value)
 
 
 def _snapshot_one(run_dir: Path, archive: Path, on_event=None, report_unchanged: bool = True) -> Snapshot | None:

@@ -101,12 +101,12 @@ def up(preset: str | RunConfig | None = "cn3", *, run_dir: str | Path | None = N
     RuntimeSettings fields (deadlines, faults, chaos, ...). Raises `hammer.deploy.up.UpError` when a
     role fails or the run stops before its budget."""
     from hammer.deploy.up import launch
-    from hammer.runtime.settings import RuntimeSettings
+    from hammer.runtime.settings import build_settings
 
     cfg = _config(preset, set, file, fields)
     path = Path(run_dir) if run_dir is not None else Path(cfg.out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
-    settings = RuntimeSettings.model_validate({"run_id": path.name.replace("_", "-")[:64], "secure": secure,
-                                               **(runtime or {})})
+    settings = build_settings({"run_id": path.name.replace("_", "-")[:64], **(runtime or {})},
+                              fixed={"secure": True} if secure else None, flag="runtime")
     return launch(cfg, settings, path)
 
 
@@ -128,12 +128,9 @@ def serve_bundle(bundle: Bundle | str | Path, *, episodes: int = 100, run_dir: s
           runtime: Iterable[str] = (), seed: int | None = None) -> UpResult:
     """Run a trained team as processes with frozen weights and no learner (`hammer serve`);
     `runtime`: RuntimeSettings items as on the command line (`"msg_deadline_ms=20"`)."""
+    from hammer.deploy.plan import plan_serve
     from hammer.deploy.up import launch
-    from hammer.serve.settings import serve_settings
 
-    b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
-    cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
-    b.check_env_here(cfg)
-    path = Path(run_dir) if run_dir is not None else Path("runs") / f"serve-{b.path.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    settings, _ = serve_settings(b, path.name, runtime=list(runtime))
-    return launch(cfg, settings, path)
+    p = plan_serve(bundle.path if isinstance(bundle, Bundle) else Path(bundle), episodes=episodes, seed=seed,
+                   runtime=list(runtime), run_dir=None if run_dir is None else Path(run_dir))
+    return launch(p.cfg, p.settings, p.run_dir)

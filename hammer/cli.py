@@ -44,11 +44,23 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
 
 def _register_all() -> None:
     # Imported lazily per area so `hammer --help` stays fast and the edge client never pulls torch.
-    from hammer.commands import bench, envs, experiments, faults, fleet, protocol, serve, site, train, up
+    from hammer.commands import (
+        bench,
+        envs,
+        experiments,
+        faults,
+        fleet,
+        protocol,
+        serve,
+        site,
+        train,
+        up,
+        view,
+    )
     from hammer.commands.hub import hub_command
 
     app.command("hub")(hub_command)
-    for area in (bench, protocol, envs, train, up, experiments, faults, serve, fleet, site):
+    for area in (bench, protocol, envs, train, up, experiments, faults, serve, fleet, site, view):
         area.register(app)
 
 

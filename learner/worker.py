@@ -40,8 +40,9 @@ from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
 from hammer.protocol.schemas import ExperienceChunk, Weights
 from hammer.protocol.session import QUEUE_DEPTH, HammerSession
-from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.bounds import StepWindow
 from hammer.runtime.role import Role
+from hammer.runtime.settings import RuntimeSettings
 from safetensors.numpy import save as save_safetensors
 
 
@@ -59,10 +60,10 @@ class LearnerWorker(Role):
 
     republish_s = 1.0  # while no experience comes, late joiners (a restarted agent) get the current policy
 
-    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir, *,
-                 central_wait_s: float = 5.0, max_policy_lag: int = 0, resume_from: int | None = None,
-                 step_window: int = DEFAULT_STEP_WINDOW, start_step: int | None = None) -> None:
-        super().__init__(session, "learner", report_faults=False)
+    def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, rd: RunDir, settings: RuntimeSettings,
+                 *, central_wait_s: float = 5.0, start_step: int | None = None) -> None:
+        super().__init__(session, "learner", report_faults=False, stall_warn_s=settings.stall_warn_s)
+        step_window, max_policy_lag, resume_from = settings.step_window, settings.max_policy_lag, settings.resume_from
         self.stall_what = "experience chunks"
         self.last_step = -1  # the env host's step at the last chunk learned from
         # a chunk comes every rollout_steps steps (records are up to L+1 rollouts ahead of the last chunk)

@@ -44,8 +44,8 @@ from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.ranges import parse_indices
 from hammer.protocol.schemas import CentralMsg, Heartbeat, LocalObs
 from hammer.protocol.session import HammerSession, Inbox, burst_express, io_counters
-from hammer.runtime.bounds import DEFAULT_STEP_WINDOW
 from hammer.runtime.role import Role, final_heartbeat_publisher
+from hammer.runtime.settings import RuntimeSettings
 from hammer.runtime.weights import WeightsIntake
 
 
@@ -132,29 +132,28 @@ class PooledAgent(AgentSteps):
 class LocalAgentPool(Role):
     """Many local agents served by one process and one event loop (see the module docstring)."""
 
-    def __init__(self, session: HammerSession, specs: list[AgentSpec], num_envs: int, fallback: str,
-                 fallback_k: int, msg_deadline_s: float, weights_timeout_s: float, *,
-                 faults: FaultSpec | None = None, idle_exit_s: float | None = None,
-                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None,
+    def __init__(self, session: HammerSession, specs: list[AgentSpec], num_envs: int, settings: RuntimeSettings, *,
+                 idle_exit_s: float | None = None, step_log_dir: Path | None = None, start_step: int | None = None,
                  start_version: int | None = None) -> None:
         if session.faults is not None:
-            raise ValueError("an agent pool's session must not have a fault layer: pass the FaultSpec as "
-                             "`faults=` (each agent gets its own injector)")
-        super().__init__(session, pool_name([s.agent for s in specs]), idle_exit_s=idle_exit_s)
-        self.msg_deadline_s = msg_deadline_s
+            raise ValueError("an agent pool's session must not have a fault layer: the settings' faults are "
+                             "applied per agent (each agent gets its own injector)")
+        super().__init__(session, pool_name([s.agent for s in specs]), idle_exit_s=idle_exit_s,
+                         stall_warn_s=settings.stall_warn_s)
+        self.msg_deadline_s = settings.msg_deadline_ms / 1e3
         self.stall_what = "observations"
         self.inbox = Inbox()
-        self.members = [PooledAgent(self, spec, num_envs, fallback, fallback_k, step_window, step_log_dir, faults,
-                                    start_step) for spec in specs]
+        self.members = [PooledAgent(self, spec, num_envs, settings.fallback, settings.fallback_k, settings.step_window,
+                                    step_log_dir, settings.faults, start_step) for spec in specs]
         self._route = {}
         for m in self.members:
             self._route[m.observations] = (m, self.on_obs)
             if m.messages is not None:
                 self._route[m.messages] = (m, self.on_message)
         self.policies: dict[int, NumpyLocalPolicy] = {}  # version -> policy (the last few: a canary and its base)
-        self.weights = WeightsIntake(session, "local", self._load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version,
+        self.weights = WeightsIntake(session, "local", self._load_weights, settings.weights_timeout_s,
+                                     reject=self.reject, max_policy_lag=settings.max_policy_lag,
+                                     start_version=start_version,
                                      on_held=lambda version: self.heartbeat_soon())
         self.forwards = self.stacked_forwards = 0  # forward calls, and those that served several agents at once
 

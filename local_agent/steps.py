@@ -19,13 +19,14 @@ from hammer.faults.steplog import LoggedPublisher, StepLog, column
 from hammer.protocol.dims import Dims
 from hammer.protocol.schemas import Action, CentralMsg, LocalObs
 from hammer.protocol.session import HammerSession
-from hammer.runtime.bounds import DEFAULT_STEP_WINDOW, StepWindow
+from hammer.runtime.bounds import StepWindow
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
 
 if TYPE_CHECKING:  # annotations only: the edge agent builds its AgentSpec without the (pydantic) RunConfig
     from hammer.envs.base import EnvSpec
     from hammer.learning.config import RunConfig
+    from hammer.runtime.settings import RuntimeSettings
 
 OBS_EVENTS = {e: column("env->local", e) for e in ("delivered", "late")}
 MSG_EVENTS = {e: column("central->local", e) for e in ("delivered", "late", "duplicate", "fallbacks")}
@@ -152,24 +153,24 @@ class ClientCore(StepCore, Role):
 
     step_log_dir: where this process logs its link events per step (faults.steplog; None: nowhere)."""
 
-    def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, fallback: str, fallback_k: int,
-                 msg_deadline_s: float, weights_timeout_s: float, *, idle_exit_s: float | None = None,
-                 step_log_dir: Path | None = None, step_window: int = DEFAULT_STEP_WINDOW,
-                 max_policy_lag: int = 0, start_step: int | None = None,
+    def __init__(self, session: HammerSession, spec: AgentSpec, num_envs: int, settings: RuntimeSettings, *,
+                 idle_exit_s: float | None = None, step_log_dir: Path | None = None, start_step: int | None = None,
                  start_version: int | None = None) -> None:
         name = f"local-{spec.agent}"
         step_log = StepLog(step_log_dir, name, step_log_columns())
-        super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s)
-        self.init_steps(spec, num_envs, fallback, fallback_k, step_window, start_step)
-        self.msg_deadline_s = msg_deadline_s
+        super().__init__(session, name, step_log=step_log, idle_exit_s=idle_exit_s,
+                         stall_warn_s=settings.stall_warn_s)
+        self.init_steps(spec, num_envs, settings.fallback, settings.fallback_k, settings.step_window, start_step)
+        self.msg_deadline_s = settings.msg_deadline_ms / 1e3
         self.stall_what = "observations"
         dims = Dims(num_envs=num_envs, n_agents=spec.n_agents, obs_dim=spec.obs_dim,
                     msg_dim=spec.msg_dim or None, action_dim=spec.action_dim, discrete=spec.discrete)
         self.observations = session.subscribe(self.keys.obs(spec.agent), LocalObs, dims)
         self.handle(self.observations, self.on_obs)  # messages are taken in on_obs, up to their deadline
         self.messages = session.subscribe(self.keys.msg(spec.agent), CentralMsg, dims) if spec.msg_dim else None
-        self.weights = WeightsIntake(session, "local", self.agent.load_weights, weights_timeout_s,
-                                     reject=self.reject, max_policy_lag=max_policy_lag, start_version=start_version,
+        self.weights = WeightsIntake(session, "local", self.agent.load_weights, settings.weights_timeout_s,
+                                     reject=self.reject, max_policy_lag=settings.max_policy_lag,
+                                     start_version=start_version,
                                      on_held=lambda version: self.heartbeat_soon())
         self.action_pub = LoggedPublisher(session.publisher(self.keys.act(spec.agent), express=True), session,
                                           step_log, "local->env")

@@ -863,3 +863,36 @@ class HammerSession:
         with self._lock:
             pubs = list(self._publishers.values())
         return io_counters(pubs, [s for s in self._subs if isinstance(s, Subscription)])
+
+
+class OpenTimeout(ConnectionError):
+    """`open_retrying` gave up at its deadline; `reason` is Zenoh's, in one line."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+def open_retrying(make: Callable[[], HammerSession], deadline: float | None, stopped: Callable[[], bool],
+                  on_wait: Callable[[str], None] | None = None, *, pause: Callable[[float], Any] = time.sleep,
+                  retry_s: float = 1.0, log_every_s: float = 10.0) -> HammerSession | None:
+    """The session `make()` builds, opened as soon as it can be: a client-mode config fails to open
+    while its router is down (zenoh.ZError), so an agent started before its hub or router tries
+    again every `retry_s` (waiting with `pause`, which may return early on a stop), calling
+    `on_wait(reason)` at most every `log_every_s`. None once `stopped()`; OpenTimeout past
+    `deadline` (time.monotonic; None: never)."""
+    next_log = 0.0
+    while not stopped():
+        session = make()
+        try:
+            return session.open()
+        except zenoh.ZError as e:
+            reason = str(e).split(" at ", 1)[0].strip()
+            now = time.monotonic()
+            if deadline is not None and now > deadline:
+                raise OpenTimeout(reason) from None
+            if on_wait is not None and now >= next_log:
+                on_wait(reason)
+                next_log = now + log_every_s
+            pause(retry_s)
+    return None

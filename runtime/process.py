@@ -1,4 +1,5 @@
-"""What every role process does first: its log, the launcher watchdog, SIGTERM as a clean exit.
+"""What every role process does first: its log, the launcher watchdog, SIGTERM as a clean exit;
+and the one signal policy of every hammer process (`on_signals`, `take_signals`).
 
 One definition for every entry that starts a role (the role commands of `hammer up`, the edge
 agent's own entry), so they all log the same way, never outlive the launcher that started them and
@@ -22,6 +23,8 @@ import stat
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 PARENT_ENV = "HAMMER_PARENT_PID"  # set by the launcher (deploy.supervisor) for every role it starts
@@ -42,12 +45,66 @@ def setup_process(role: str, run_dir: Path | None = None) -> None:
     _describe(role, run_dir)
     parent_watchdog()
 
-    def on_term(signum, frame):
-        log.warning("%s: %s, stopping", role, signal.Signals(signum).name)
-        raise KeyboardInterrupt
+    def on_term(name: str) -> None:
+        log.warning("%s: %s, stopping", role, name)
+        raise Stopped(name)
 
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
+    # every signal, not only the first: a role started by hand stops at a second Ctrl-C even mid-cleanup
+    take_signals((signal.SIGTERM, signal.SIGINT), on_term, repeat=True)
+
+
+class Stopped(KeyboardInterrupt):
+    """A stop asked from outside by a signal (SIGTERM: what systemd and `docker stop` send; SIGINT).
+    A KeyboardInterrupt, so every path that already cleans up after Ctrl-C does the same for it;
+    `signal_name` says which."""
+
+    def __init__(self, signal_name: str) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+
+
+def _raise_stopped(name: str) -> None:
+    raise Stopped(name)
+
+
+def take_signals(signals: tuple[int, ...], action: Callable[[str], None] = _raise_stopped, *,
+                 repeat: bool = False) -> tuple[dict, Callable[[], None]]:
+    """The one signal policy of every hammer process: each of `signals` calls `action(name)`
+    (default: raise Stopped(name)); once one came, or once the caller set `state["ending"]`, later
+    ones are logged and ignored (unless `repeat`), so a stop broadcast, a summary or a clean-up is
+    not cut short by a service manager repeating its signal. Returns (state, restore): state["by"]
+    is the first signal's name (None: none yet); restore() puts the previous handlers back. Only the
+    main thread can take signals: elsewhere nothing is installed."""
+    state: dict = {"by": None, "ending": False}
+    if not signals or threading.current_thread() is not threading.main_thread():
+        return state, lambda: None
+
+    def on_signal(signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if not repeat and (state["by"] is not None or state["ending"]):
+            log.warning("%s: already stopping", name)
+            return
+        state["by"] = state["by"] or name
+        action(name)
+
+    previous = {s: signal.signal(s, on_signal) for s in signals}
+
+    def restore() -> None:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+    return state, restore
+
+
+@contextmanager
+def on_signals(signals: tuple[int, ...], action: Callable[[str], None] = _raise_stopped, *,
+               repeat: bool = False) -> Iterator[dict]:
+    """`take_signals` while inside the block (the previous handlers come back after); yields the state."""
+    state, restore = take_signals(signals, action, repeat=repeat)
+    try:
+        yield state
+    finally:
+        restore()
 
 
 M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter

@@ -52,7 +52,8 @@ class Role:
     poll_s = 0.2  # how long `poll` may block: the loop's reaction time to control and heartbeats
 
     def __init__(self, session: HammerSession, name: str, *, step_log: StepLog | None = None,
-                 idle_exit_s: float | None = None, report_faults: bool = True) -> None:
+                 idle_exit_s: float | None = None, report_faults: bool = True,
+                 stall_warn_s: float | None = DEFAULT_STALL_WARN_S) -> None:
         self.session, self.keys, self.name = session, session.keys, name
         self.log = logging.getLogger(f"hammer.{name.split('-')[0]}")
         self.step_log = step_log
@@ -71,7 +72,7 @@ class Role:
                       os.getpid(), session.run_id, t.mode, t.listen or "-", t.connect or "-",
                       f", zenoh config {t.zenoh_config_file}" if t.zenoh_config_file else "")
         self.rejected: collections.Counter[str] = collections.Counter()  # refused by this role, by reason
-        self.stall_warn_s: float | None = DEFAULT_STALL_WARN_S
+        self.stall_warn_s = stall_warn_s
         self.stall_what = "input"  # what a stalled role is waiting for (its heartbeat says)
         self._progress_t: float | None = None  # None until the role's first progress
         self.cpu_at_start: float | None = None  # process CPU seconds when the role started work (run)

@@ -355,6 +355,55 @@ class RuntimeSettings(Model):
         return cls.model_validate(json.loads(path.read_text()))
 
 
+def runtime_items(items, flag: str = "--runtime") -> dict:
+    """`--runtime FIELD=VALUE` items as {field: value}, each value read as YAML (numbers, booleans,
+    lists, as a config file's `runtime:` section says them); the one parser of them, for every command.
+    ValueError naming the item on a malformed one."""
+    out: dict = {}
+    for item in items or ():
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ValueError(f"{flag} {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
+        if key == "num_envs":  # a config field, not a runtime setting: what users reach for first
+            raise ValueError(f"{flag} {item!r}: num_envs is not a runtime setting; fix: pass --num-envs {val.strip()}")
+        import yaml  # here only: an edge agent given no --runtime item never loads it
+
+        out[key] = yaml.safe_load(val)
+    return out
+
+
+def settings_error(err: Exception, flag: str = "--runtime") -> str:
+    """A RuntimeSettings validation error as one line naming each field, with did-you-mean for typos."""
+    import difflib
+
+    from hammer.protocol.config_model import ValidationError
+
+    if not isinstance(err, ValidationError):
+        return f"{flag}: {' '.join(str(err).split())}"
+    parts = []
+    for e in err.errors(include_url=False):
+        field = ".".join(str(x) for x in e["loc"]) or "settings"
+        if e["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
+            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
+            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
+        else:
+            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
+            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
+    return "; ".join(parts)
+
+
+def build_settings(base: dict, items=(), *, fixed: dict | None = None, flag: str = "--runtime") -> RuntimeSettings:
+    """The one way a command makes its RuntimeSettings: `base` (what the command and its config file
+    decided), then the `--runtime` items over it, then `fixed` (what no item may change here).
+    ValueError with one line naming each bad field."""
+    try:
+        return RuntimeSettings.model_validate({**base, **runtime_items(items, flag), **(fixed or {})})
+    except ValueError as e:
+        raise ValueError(settings_error(e, flag)) from None
+
+
 # env_spec.json: the task's dimensions, written by `hammer up` next to runtime.json; every role reads it.
 def write_env_spec(run_dir: Path, spec) -> None:
     (Path(run_dir) / "env_spec.json").write_text(json.dumps(asdict(spec), indent=1))

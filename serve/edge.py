@@ -76,7 +76,7 @@ def lite_choice(spec, num_envs: int, weights: Path | None) -> str | None:
 def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtime: list[str]):
     """RuntimeSettings of the run to join: the served run's runtime.json if given, else the bundle's
     fallback; then the --runtime items. Raises ValueError with a one-line reason."""
-    from hammer.runtime.settings import RuntimeSettings
+    from hammer.runtime.settings import build_settings
 
     if settings_file is not None:
         try:
@@ -90,18 +90,8 @@ def edge_settings(bundle, run_id: str | None, settings_file: Path | None, runtim
         rt["run_id"] = run_id
     if not rt.get("run_id"):
         raise ValueError("--bundle needs --run-id (or --settings): the id of the run to join (`hammer serve` prints it)")
-    for item in runtime:
-        import yaml  # only for --runtime values (yaml.safe_load: numbers, booleans, lists as on `hammer serve`)
-
-        key, eq, val = item.partition("=")
-        if not eq:
-            raise ValueError(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
-        rt[key.strip()] = yaml.safe_load(val)
-    rt.update(hub_port=0, zenoh_config_file=None, external=[], hub_listen=[])  # where to connect is this machine's business
-    try:
-        return RuntimeSettings.model_validate(rt)
-    except Exception as e:  # noqa: BLE001 - pydantic's multi-line report, in one line
-        raise ValueError(f"runtime settings: {' '.join(str(e).split())[:400]}") from None
+    # where to connect is this machine's business
+    return build_settings(rt, runtime, fixed={"hub_port": 0, "zenoh_config_file": None, "external": [], "hub_listen": []})
 
 
 def edge_transport(settings, role: str, n_agents: int, connect: str | None, zenoh_config: Path | None,
@@ -179,12 +169,8 @@ def run_agent(settings, transport, spec, num_envs: int, step_log_dir: Path | Non
     name = f"local-{spec.agent}"
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender=name) as s:
-            client = LocalAgentClient(s, spec, num_envs, settings.fallback, settings.fallback_k,
-                                      settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                      step_log_dir=step_log_dir, step_window=settings.step_window,
-                                      max_policy_lag=settings.max_policy_lag, start_step=start_step,
+            client = LocalAgentClient(s, spec, num_envs, settings, step_log_dir=step_log_dir, start_step=start_step,
                                       start_version=start_version)
-            client.stall_warn_s = settings.stall_warn_s
             client.run()
             logging.getLogger("hammer.local").info("counters: %s", client.counts.as_dict())
             if run_dir is not None:
@@ -218,28 +204,19 @@ class _Stop:
 
 
 def _open(settings, transport, name: str, where: str, deadline: float | None, stop: _Stop, log):
-    """The agent's session, opened as soon as it can be: a client-mode config fails to open while its
-    router is down (zenoh.ZError), so that is retried like a hub that is not reachable yet."""
-    import zenoh
-    from hammer.protocol.session import HammerSession
+    """The agent's session, opened as soon as it can be (protocol.session.open_retrying: a hub or
+    router not reachable yet is tried again); None on a stop signal, JoinError past `deadline`."""
+    from hammer.protocol.session import HammerSession, OpenTimeout, open_retrying
 
-    next_log = 0.0
-    while stop.by is None:
-        session = HammerSession(settings.run_id, transport, settings.faults, sender=name)
-        try:
-            return session.open()
-        except zenoh.ZError as e:
-            now = time.monotonic()
-            reason = str(e).split(" at ", 1)[0].strip()
-            if deadline is not None and now > deadline:
-                raise JoinError(f"{name}: {where} not reachable within --connect-retry-s ({reason}); fix: check the "
-                                "address and that the run's hub or router is up there, or wait longer with "
-                                "--connect-retry-s") from None
-            if now >= next_log:
-                log.info("%s waiting for %s (%s)", name, where, reason)
-                next_log = now + WAIT_LOG_EVERY_S
-            time.sleep(1.0)
-    return None
+    try:
+        return open_retrying(lambda: HammerSession(settings.run_id, transport, settings.faults, sender=name),
+                             deadline, lambda: stop.by is not None,
+                             lambda reason: log.info("%s waiting for %s (%s)", name, where, reason),
+                             log_every_s=WAIT_LOG_EVERY_S)
+    except OpenTimeout as e:
+        raise JoinError(f"{name}: {where} not reachable within --connect-retry-s ({e.reason}); fix: check the "
+                        "address and that the run's hub or router is up there, or wait longer with "
+                        "--connect-retry-s") from None
 
 
 def _run_seen(session, name: str, watch_liveliness: bool) -> tuple[bool, set[str]]:
@@ -298,7 +275,8 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
     `weights`: the bundle's local.safetensors (`lite_choice` reads its tensor names)."""
     import collections
     import signal
-    import threading
+
+    from hammer.runtime.process import take_signals
 
     log = logging.getLogger("hammer.local")
     name = f"local-{spec.agent}"
@@ -314,14 +292,13 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
     where = ", ".join(hub_endpoints(transport)) or "the run"
     stop = _Stop()
 
-    def on_signal(signum, frame) -> None:
-        stop.by = signal.Signals(signum).name
+    def on_signal(signal_name: str) -> None:
+        stop.by = signal_name
         log.warning("%s: %s, stopping", name, stop.by)
         if stop.client is not None and stop.client.stop_reason is None:
             stop.client.stop_reason = stop.by  # the role's loop ends at its next turn, as on a stop command
 
-    signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
-    previous = {s: signal.signal(s, on_signal) for s in signals}
+    _, restore = take_signals((signal.SIGTERM, signal.SIGINT), on_signal)
     deadline = time.monotonic() + connect_retry_s if connect_retry_s > 0 else None
     runs, totals, ended = 0, collections.Counter(), None
     try:
@@ -333,11 +310,7 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
                 if not wait_for_run(session, settings, name, where, deadline, stop, log, ended):
                     break
                 deadline = None  # the run was reached: from now on the agent waits for it as long as it takes
-                client = LocalAgentClient(session, spec, num_envs, settings.fallback, settings.fallback_k,
-                                          settings.msg_deadline_ms / 1e3, settings.weights_timeout_s,
-                                          step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
-                                          idle_exit_s=STAY_IDLE_S if stay else None)
-                client.stall_warn_s = settings.stall_warn_s
+                client = LocalAgentClient(session, spec, num_envs, settings, idle_exit_s=STAY_IDLE_S if stay else None)
                 stop.client = client
                 if stop.by is not None:
                     client.stop_reason = stop.by
@@ -353,8 +326,7 @@ def run_edge(settings, transport, spec, num_envs: int, *, connect_retry_s: float
             log.info("%s: run %s session %d ended (%s); staying for the next one", name, settings.run_id, runs,
                      client.stop_reason)
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     if stop.by is not None:
         log.info("%s stopped by %s after %d session(s) of run %s; counters: %s", name, stop.by, runs,
                  settings.run_id, dict(totals))

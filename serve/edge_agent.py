@@ -210,24 +210,17 @@ class EdgeAgent:
                 "policy_pulling": -1 if pulling is None else pulling}
 
     def _open(self, session_type, retry_s: float):
-        import zenoh
+        from hammer.protocol.session import OpenTimeout, open_retrying
 
-        deadline, next_log = time.monotonic() + retry_s, 0.0
-        while not self._closed.is_set():
-            session = session_type(self.settings.run_id, self.transport, self.settings.faults, sender=self.name)
-            try:
-                return session.open()
-            except zenoh.ZError as e:
-                reason = str(e).split(" at ", 1)[0].strip()
-                now = time.monotonic()
-                if now > deadline:
-                    raise ConnectionError(f"{self.name}: the run's router not reachable within {retry_s:g} s "
-                                          f"({reason}); fix: check the address and that the router is up") from None
-                if now >= next_log:
-                    log.info("%s waiting for the run's router (%s)", self.name, reason)
-                    next_log = now + 10.0
-                self._closed.wait(0.5)
-        return None
+        try:
+            return open_retrying(
+                lambda: session_type(self.settings.run_id, self.transport, self.settings.faults, sender=self.name),
+                time.monotonic() + retry_s, self._closed.is_set,
+                lambda reason: log.info("%s waiting for the run's router (%s)", self.name, reason),
+                pause=self._closed.wait, retry_s=0.5)
+        except OpenTimeout as e:
+            raise ConnectionError(f"{self.name}: the run's router not reachable within {retry_s:g} s "
+                                  f"({e.reason}); fix: check the address and that the router is up") from None
 
     # ----- the control step -----------------------------------------------------------------------
     def act(self, obs: Any) -> np.ndarray:

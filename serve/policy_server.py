@@ -40,6 +40,7 @@ from pathlib import Path
 from hammer.protocol.schemas import Weights, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession
 from hammer.runtime.role import Role
+from hammer.runtime.settings import RuntimeSettings
 
 ANNOUNCE_FIRST_S, ANNOUNCE_LAST_S = 4.0, 16.0  # waits of 4, 8 and 16 s between an announcement's copies (docstring)
 
@@ -63,18 +64,20 @@ def policy_blobs(policy_dir: Path, needs_central: bool) -> dict[str, bytes]:
 
 class PolicyServer(Role):
     """Publishes the frozen weights (version 0, then each pushed version) until a stop command, and
-    answers whoever asks for the current version; `republish_s` > 0: also republishes with a
-    back-off (doubling up to `republish_max_s`)."""
+    answers whoever asks for the current version; the settings' `weights_republish_s` > 0: also
+    republishes with a back-off (doubling up to `weights_republish_max_s`); `weights_float16`,
+    `weights_chunk_bytes`: what goes on the wire."""
 
-    def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool,
-                 republish_s: float = 0.0, run_dir: Path | None = None, republish_max_s: float | None = None,
-                 float16: bool = False, chunk_bytes: int = 0) -> None:
-        self.float16, self.chunk_bytes = float16, chunk_bytes
+    def __init__(self, session: HammerSession, policy_dir: Path, needs_central: bool, settings: RuntimeSettings,
+                 run_dir: Path | None = None) -> None:
+        self.float16, self.chunk_bytes = settings.weights_float16, settings.weights_chunk_bytes
+        republish_s, republish_max_s = settings.weights_republish_s, settings.weights_republish_max_s
+        chunk_bytes = self.chunk_bytes
         blobs = self._wire(policy_blobs(policy_dir, needs_central))  # a missing file fails before anything is declared
-        super().__init__(session, "learner", report_faults=False)
+        super().__init__(session, "learner", report_faults=False, stall_warn_s=settings.stall_warn_s)
         self.blobs, self.needs_central = blobs, needs_central
         self.republish_s = republish_s
-        self.republish_max_s = max(republish_s, republish_max_s if republish_max_s is not None else republish_s)
+        self.republish_max_s = max(republish_s, republish_max_s)
         self.period = republish_s  # the wait before the next republish: doubles up to republish_max_s
         self.pubs = {role: session.publisher(self.keys.weights(role)) for role in blobs}
         self.published = self.answered = 0

@@ -122,13 +122,15 @@ from hammer.envs.base import EnvSpec
 from hammer.learning.config import build_config
 from hammer.protocol.session import HammerSession, TransportConfig
 from hammer.central_agent.server import CentralServer
+from hammer.runtime.settings import RuntimeSettings
 
 args = json.loads(sys.argv[1])
 cfg = build_config(args["cfg"])
 spec = args["spec"]
 spec["agent_ids"] = tuple(spec["agent_ids"])
 with HammerSession(args["run"], TransportConfig.connector(args["port"]), sender="central") as s:
-    server = CentralServer(s, cfg, EnvSpec(**spec), weights_timeout_s=args["weights_timeout_s"], idle_exit_s=30.0)
+    settings = RuntimeSettings(run_id=args["run"], weights_timeout_s=args["weights_timeout_s"])
+    server = CentralServer(s, cfg, EnvSpec(**spec), settings, idle_exit_s=30.0)
     server.run()
 print(json.dumps({"torch": "torch" in sys.modules, "counters": server.counts.as_dict()}))
 """

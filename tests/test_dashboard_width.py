@@ -58,10 +58,9 @@ def test_the_links_table_in_an_80_column_terminal_cuts_no_link_name(tmp_path):
 
 
 def test_a_wide_terminal_keeps_a_row_per_link():
+    from hammer.deploy.dashboard import LinksView
     from hammer.faults.links import COLUMNS
     from rich.console import Console
-
-    from hammer.commands.up import LinksView
 
     rows = {link: dict.fromkeys(COLUMNS, 123_456) for link in LINKS}
     for width, turned in ((80, True), (140, False)):

@@ -564,14 +564,14 @@ def test_a_fleet_takes_its_settings_from_the_command_line_and_refuses_bad_ones_i
 
     plan = apply_runtime(FleetPlan(bundle=bundle, hub_port=7447, external=[1], listen=["tcp/0.0.0.0:7500"]),
                          ["hold_s=1.5", "zenoh_lease_s=3", "weights_chunk_bytes=1024"])
-    assert plan.hold_s == 1.5 and plan.runtime == ["zenoh_lease_s=3", "weights_chunk_bytes=1024"]
+    assert plan.hold_s == 1.5 and plan.runtime == {"zenoh_lease_s": 3, "weights_chunk_bytes": 1024}
     cmd = robot_command(plan, 1, tmp_path / "site-a")
     assert "--connect 'tcp/<this host>:7500' --insecure --runtime zenoh_lease_s=3 --fleet" in cmd, cmd
     world = role_specs(plan, "site-a", "tcp/127.0.0.1:7447", 3, True, tmp_path)[0].args
     assert world[world.index("--runtime") + 1] == "zenoh_lease_s=3" and world[world.index("--hold-s") + 1] == "1.5"
     for item, says in (("zenoh_lease_s=0.1", "zenoh_lease_s: Input should be greater than or equal to 0.5"),
                        ("hold_s=abc", "hold_s takes seconds"), ("hub_port=5", "set by --listen"),
-                       ("nosuch=1", "nosuch: Extra inputs")):
+                       ("nosuch=1", "nosuch: unknown field")):
         res = CliRunner().invoke(app, ["serve", str(bundle), "--realtime", "20", "--seconds", "2", "--runtime", item,
                                        "--run-dir", str(tmp_path / "never")])
         assert res.exit_code == 2 and says in res.output and len(res.output.strip().splitlines()) == 1, res.output

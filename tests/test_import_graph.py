@@ -31,7 +31,7 @@ FLOORS: list[tuple[str, ...]] = [
     ("hammer.central_agent", "hammer.env_host", "hammer.local_agent", "hammer.learner"),  # the roles
     ("hammer.serve",),  # a trained team served: bundles, the policy server, the edge agent
     ("hammer.deploy",),  # a whole run launched and supervised
-    ("hammer.experiments",),  # sweeps, reports, analyses
+    ("hammer.experiments", "hammer.view"),  # sweeps, reports, analyses; the web view of run directories
     ("hammer.benchmarks",),  # measures everything below, from outside
     ("hammer",),  # the commands (hammer.commands, hammer.cli) and the console entry
 ]

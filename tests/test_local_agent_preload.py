@@ -12,6 +12,7 @@ import numpy as np
 from hammer.local_agent.client import AgentSpec, LocalAgentClient
 from hammer.protocol.schemas import Heartbeat, Weights
 from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.runtime.settings import RuntimeSettings
 from safetensors.numpy import save
 
 
@@ -33,7 +34,8 @@ def test_agent_holds_the_policy_before_its_first_observation():
     with HammerSession("pre", t, sender="launcher") as hub, \
             HammerSession("pre", TransportConfig.connector(port), sender="local-0") as s:
         hb = hub.subscribe(hub.keys.heartbeat("local-0"), Heartbeat)
-        client = LocalAgentClient(s, spec, 4, "zeros", 1, 0.02, 5.0, idle_exit_s=4.0)
+        client = LocalAgentClient(s, spec, 4, RuntimeSettings(run_id="pre", fallback="zeros", fallback_k=1,
+                                                       msg_deadline_ms=20.0, weights_timeout_s=5.0), idle_exit_s=4.0)
         agent = threading.Thread(target=client.run, daemon=True)
         agent.start()
         first = hb.get(timeout=5.0)  # announced before any weights: no policy yet

@@ -139,9 +139,8 @@ def test_attendance_counts_leaves_and_rejoins_after_startup_and_ignores_the_run_
 
 
 def test_the_dashboard_shows_who_left_and_who_is_away():
+    from hammer.deploy.dashboard import attendance_text, dashboard_table
     from rich.console import Console
-
-    from hammer.commands.up import _attendance_text, _dashboard_table
 
     t = [0.0]
     att = Attendance(["local-0", "local-1"], clock=lambda: t[0])
@@ -149,13 +148,13 @@ def test_the_dashboard_shows_who_left_and_who_is_away():
     att.up("local-0")
     att.up("local-1")
     att.start()
-    assert _attendance_text(board) == ""
+    assert attendance_text(board) == ""
     t[0] = 3.0
     att.down("local-1")
     t[0] = 7.0
-    assert _attendance_text(board) == "local-1 left 1, rejoined 0; away now: local-1 4 s"
+    assert attendance_text(board) == "local-1 left 1, rejoined 0; away now: local-1 4 s"
     console = Console(record=True, width=240, color_system=None)
-    console.print(_dashboard_table(board, merge_config("cn3"), time.monotonic()))
+    console.print(dashboard_table(board, merge_config("cn3"), time.monotonic()))
     assert "local-1 left 1, rejoined 0; away now: local-1 4 s" in console.export_text()
 
 

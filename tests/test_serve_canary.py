@@ -109,9 +109,9 @@ def test_options_and_pairing_are_checked(teams, tmp_path):
     assert r.exit_code == 2 and "not stepping" in r.output and not (run / "pushes.json").exists()
     # An open canary refuses a plain push until its decision; `hammer rollback` ends it.
     push(a.path, run, agents=[0])
-    from hammer.commands.up import _rollout_text
+    from hammer.deploy.dashboard import rollout_text
 
-    assert _rollout_text(run, 3).startswith("canary v1 open; central:0 local-0:1 local-1:0 local-2:0; last: canary v1")
+    assert rollout_text(run, 3).startswith("canary v1 open; central:0 local-0:1 local-1:0 local-2:0; last: canary v1")
     with pytest.raises(BundleError, match="staged rollout of version 1 is open"):
         push(a.path, run)
     e = rollback(run)

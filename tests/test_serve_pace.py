@@ -18,6 +18,7 @@ import pytest
 from hammer.protocol.codec import encode
 from hammer.protocol.schemas import Control, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.runtime.settings import RuntimeSettings
 from hammer.runtime.weights import WeightsIntake
 from hammer.serve.policy_server import PolicyServer
 
@@ -83,8 +84,8 @@ class _Net:
 
 
 def _serve(net: _Net, policy_dir, run_dir, chunk_bytes=CHUNK) -> tuple[PolicyServer, threading.Thread]:
-    server = PolicyServer(net.session("learner"), policy_dir, needs_central=True, run_dir=run_dir,
-                          chunk_bytes=chunk_bytes)
+    settings = RuntimeSettings(run_id="pace", mode="eval", policy_dir=str(policy_dir), weights_chunk_bytes=chunk_bytes)
+    server = PolicyServer(net.session("learner"), policy_dir, True, settings, run_dir=run_dir)
     runner = threading.Thread(target=server.run, daemon=True)
     return server, runner
 

@@ -17,6 +17,7 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.trainer import train
 from hammer.local_agent.client import AgentSpec, LocalAgent
+from hammer.runtime.settings import RuntimeSettings
 from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.push import push, read_history, rollback
 from hammer.serve.settings import serve_settings
@@ -184,7 +185,9 @@ def test_the_policy_server_publishes_once_and_a_late_joiner_asks(bundles):
                 HammerSession("once", peer, sender="learner") as s, HammerSession("once", peer, sender="local-1") as w:
             got = w.subscribe(w.keys.weights("local"), Weights)
             time.sleep(0.5)  # the subscription has reached the other sessions
-            server = PolicyServer(s, a.path, needs_central=True, republish_s=republish_s, republish_max_s=4.0)
+            settings = RuntimeSettings(run_id="once", mode="eval", policy_dir=str(a.path), weights_republish_s=republish_s,
+                                       weights_republish_max_s=4.0)
+            server = PolicyServer(s, a.path, True, settings)
             runner = threading.Thread(target=server.run, daemon=True)
             t0 = time.monotonic()
             runner.start()

@@ -5,18 +5,17 @@ from __future__ import annotations
 
 import time
 
+from hammer.deploy.dashboard import dashboard_table
 from hammer.deploy.up import Board
 from hammer.learning.config import merge_config
 from hammer.protocol.schemas import Heartbeat
 from rich.console import Console
 
-from hammer.commands.up import _dashboard_table
-
 
 def _render(board: Board) -> dict[str, str]:
     """The table as {row label: value}, rendered by rich as a terminal would show it."""
     console = Console(record=True, width=240, color_system=None)
-    console.print(_dashboard_table(board, merge_config("cn3"), time.monotonic()))
+    console.print(dashboard_table(board, merge_config("cn3"), time.monotonic()))
     rows: dict[str, str] = {}
     label = ""
     for line in console.export_text().splitlines():

@@ -116,30 +116,15 @@ def eval_command(
     import time
 
     from hammer.deploy.up import UpError, launch
-    from hammer.experiments.fault_sweep import eval_config, team_source
-    from hammer.faults.chaos import ChaosSpecError, parse_chaos
-    from hammer.faults.spec import FaultSpecError, build_plan
-    from hammer.serve.bundle import BundleError, is_bundle, load_bundle
+    from hammer.experiments.fault_sweep import eval_config, eval_settings
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        plan = build_plan(fault, fault_seed)
-        for c in chaos or []:
-            parse_chaos(c)
-        cfg = eval_config(run, episodes, seed)
-        policy_dir = team_source(run)[1]
-    except (FaultSpecError, ChaosSpecError, FileNotFoundError, BundleError) as e:
-        fail(str(e))
     path = run_dir or run.parent / f"{run.name}-eval-{time.strftime('%Y%m%d-%H%M%S')}"
-    if is_bundle(run):  # served as `hammer serve` serves it: the bundle's fallback applies
-        from hammer.serve.settings import serve_settings
-
-        try:
-            settings, _ = serve_settings(load_bundle(run), path.name, fault, fault_seed, chaos, runtime)
-        except ValueError as e:
-            fail(str(e))
-    else:
-        settings = _run_dir_settings(path, policy_dir, plan, chaos, runtime)
+    try:
+        cfg = eval_config(run, episodes, seed)
+        settings, plan = eval_settings(run, path.name.replace("_", "-")[:64], fault, fault_seed, chaos, runtime)
+    except (FileNotFoundError, ValueError) as e:  # FaultSpecError, ChaosSpecError, BundleError: one line
+        fail(str(e))
     for lf in plan.links:
         typer.echo(f"fault: {lf.describe()} (seed {plan.seed})")
     try:
@@ -151,24 +136,3 @@ def eval_command(
     for ev in res.chaos_log:
         typer.echo(f"chaos: {ev}")
     typer.echo(json.dumps(res.links, indent=1))
-
-
-def _run_dir_settings(path: Path, policy_dir: Path, plan, chaos: list[str] | None, runtime: list[str] | None):
-    """RuntimeSettings of the evaluation of a run directory's final/ policy (default fallback)."""
-    import yaml
-
-    from hammer.runtime.settings import RuntimeSettings
-
-    rt = {"run_id": path.name.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(policy_dir),
-          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            fail(f"--runtime {item!r}: expected FIELD=VALUE")
-        rt[key.strip()] = yaml.safe_load(val)
-    try:
-        return RuntimeSettings.model_validate(rt)
-    except ValueError as e:
-        from hammer.commands.up import settings_error
-
-        fail(settings_error(e))

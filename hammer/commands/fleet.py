@@ -145,8 +145,7 @@ def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
         fail(str(e))
     try:
         with HammerSession(run_id, transport, sender="learner") as s:
-            PolicyServer(s, b.policy_dir, cfg.wiring.has_central_network, 0.0, run_dir,
-                         float16=settings.weights_float16, chunk_bytes=settings.weights_chunk_bytes).run()
+            PolicyServer(s, b.policy_dir, cfg.wiring.has_central_network, settings, run_dir).run()
     except PolicyDirError as e:
         fail(str(e))
     except KeyboardInterrupt:

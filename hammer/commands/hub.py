@@ -19,6 +19,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands import common
+from hammer.runtime.process import take_signals
 
 
 def hub_command(
@@ -50,7 +51,7 @@ def hub_command(
         except ValueError as e:
             common.fail(str(e))
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    take_signals((signal.SIGTERM,), lambda _: stop.set())
     with HammerSession(run_id, transport, sender="hub"):
         shown = ", ".join(transport.listen)
         typer.echo(f"hammer hub: Zenoh router listening on {shown}"

@@ -178,13 +178,10 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
     try:
         # No fault layer on the shared session: each agent gets its own (its own streams and counters).
         with HammerSession(settings.run_id, transport, None, sender=pool_name(agents)) as s:
-            pool = LocalAgentPool(s, specs, cfg.num_envs, settings.fallback, settings.fallback_k,
-                                  settings.msg_deadline_ms / 1e3, settings.weights_timeout_s, faults=settings.faults,
+            pool = LocalAgentPool(s, specs, cfg.num_envs, settings,
                                   step_log_dir=_step_log_dir(run_dir) if run_dir else None,
-                                  step_window=settings.step_window, max_policy_lag=settings.max_policy_lag,
                                   start_step=known_step(settings.resume_step),
                                   start_version=known_version(settings.resume_from))
-            pool.stall_warn_s = settings.stall_warn_s
             pool.run()
             pool.log.info("%s counters: %s", pool.name, pool.counters())
             if run_dir is not None:
@@ -210,11 +207,9 @@ def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="central") as s:
             s.wire_float16 = settings.wire_float16
-            server = CentralServer(s, cfg, spec, settings.weights_timeout_s, load_when_idle=settings.mode == "eval",
-                                   step_log_dir=_step_log_dir(run_dir), step_window=settings.step_window,
-                                   max_policy_lag=settings.max_policy_lag, start_step=known_step(settings.resume_step),
-                                   start_version=known_version(settings.resume_from), training=settings.mode == "train")
-            server.stall_warn_s = settings.stall_warn_s
+            server = CentralServer(s, cfg, spec, settings, step_log_dir=_step_log_dir(run_dir),
+                                   start_step=known_step(settings.resume_step),
+                                   start_version=known_version(settings.resume_from))
             server.run()
             logging.getLogger("hammer.central").info("counters: %s", server.counts.as_dict())
             _write_counters(run_dir, "central", server.final_counters())
@@ -243,12 +238,7 @@ def env_host_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_confi
         with HammerSession(settings.run_id, transport, settings.faults, sender="env") as s:
             s.wire_float16 = settings.wire_float16
             s.declare_alive("env")
-            host = EnvHost(s, cfg, env, rd, settings.act_deadline_ms / 1e3, settings.weights_timeout_s,
-                           trace=settings.trace, max_policy_lag=settings.max_policy_lag,
-                           resume_from=settings.resume_from, resume_step=settings.resume_step,
-                           trace_max_mb=settings.trace_max_mb, echo=settings.echo)
-            host.stall_warn_s = settings.stall_warn_s
-            host.name_timeout_s = settings.weights_name_timeout_s
+            host = EnvHost(s, cfg, env, rd, settings)
             summary = host.run_eval() if settings.mode == "eval" else host.run_training()
             host.log.info("env stopped: %s at step %d, %d episodes", "budget reached" if summary.get("completed")
                           else host.stop_reason or "ended before the budget", host.state.step, host.state.episodes)
@@ -297,9 +287,7 @@ def learner_command(run_dir: RunDirOpt,
 
         try:
             with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network,
-                             settings.weights_republish_s, run_dir, settings.weights_republish_max_s,
-                             float16=settings.weights_float16, chunk_bytes=settings.weights_chunk_bytes).run()
+                PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network, settings, run_dir).run()
         except PolicyDirError as e:
             fail(str(e))
         except KeyboardInterrupt:
@@ -311,10 +299,7 @@ def learner_command(run_dir: RunDirOpt,
     rd = RunDir(run_dir)
     try:
         with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
-            worker = LearnerWorker(s, cfg, spec, rd, max_policy_lag=settings.max_policy_lag,
-                                   resume_from=settings.resume_from, step_window=settings.step_window,
-                                   start_step=known_step(settings.resume_step))
-            worker.stall_warn_s = settings.stall_warn_s
+            worker = LearnerWorker(s, cfg, spec, rd, settings, start_step=known_step(settings.resume_step))
             worker.run()
             _write_counters(run_dir, "learner", worker.final_counters())
     except KeyboardInterrupt:

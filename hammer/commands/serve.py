@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import InsecureOpt, ListenOpt, SecureOpt, fail
+from hammer.commands.view import ViewOpt, ViewTokenOpt
 from hammer.serve.gate_defaults import GATE_DEFAULTS
 
 
@@ -129,6 +130,8 @@ def serve_command(
     site: Annotated[Path | None, typer.Option(
         help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
              "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
+    view: ViewOpt = None,
+    view_token: ViewTokenOpt = None,
 ) -> None:
     """Run a trained team as separate processes with frozen weights and no learner: env host, central agent,
     local agents and the policy server, with the dashboard and run directory of `hammer up`.
@@ -139,39 +142,26 @@ def serve_command(
     from rich.console import Console
 
     from hammer.commands.up import run_up
-    from hammer.serve.bundle import BundleError, load_bundle
-    from hammer.serve.settings import serve_settings
+    from hammer.deploy.plan import plan_serve
+    from hammer.serve.bundle import BundleError
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs, timeline, site)
+                     secure, insecure, listen, num_envs, timeline, site, view, view_token)
         return
     if site is not None:
         fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
     if seconds is not None:
         fail("--seconds needs --realtime HZ (a lock-stepped served run ends after --episodes)")
     try:
-        b = load_bundle(bundle)
-        cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}),
-                       **({} if num_envs is None else {"num_envs": num_envs}))
-        b.check_env_here(cfg)
-        skip, roles = _external(external, cfg)
-        path = run_dir or out / f"serve-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-        settings, plan = serve_settings(b, path.name, fault, fault_seed, chaos, [*(runtime or []),
-                                                                                   *(["secure=true"] if secure else []),
-                                                                                   *(["insecure=true"] if insecure else [])],
-                                        listen=_listen(listen))
-        if roles:
-            settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
-        if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
-            from hammer.protocol.session import free_loopback_port
-
-            settings = settings.model_copy(update={"hub_port": free_loopback_port()})
-        settings.refuse_plain_beyond_loopback(settings.hub_transport())  # before anything is written
+        p = plan_serve(bundle, episodes=episodes, seed=seed, fault=fault, fault_seed=fault_seed, chaos=chaos,
+                       runtime=runtime, external=external, out=out, run_dir=run_dir, secure=secure,
+                       insecure=insecure, listen=listen, num_envs=num_envs)
     except (BundleError, ValueError) as e:
         fail(str(e))
+    b, cfg, settings, path, plan, skip = p.bundle, p.cfg, p.settings, p.run_dir, p.faults, p.external_agents
     console.print(f"serving {bundle} ({b.manifest['variant']}, from run {b.manifest['source']['run']}, "
                   f"env copies K={cfg.num_envs}) -> {path}")
     for lf in plan.links:
@@ -187,54 +177,42 @@ def serve_command(
     earlier = set_aside_served_session(path)  # a restarted service: same directory, same run id
     if earlier is not None:
         console.print(f"the previous session's results are in {earlier}")
-    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip),
-           external_help=_external_help(bundle, b, cfg, settings, path, skip, roles, seed))
+    run_up(cfg, settings, path, dashboard, console, external_agents=tuple(skip), external_help=p.external_help,
+           view=view, view_token=view_token)
 
 
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
-                 site: Path | None = None) -> None:
+                 site: Path | None = None, view: str | None = None, view_token: str | None = None) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
-    from hammer.deploy.fleet import FleetPlan, apply_runtime, fleet_settings, robot_command, run_fleet
-    from hammer.protocol.session import free_loopback_port
-    from hammer.serve.bundle import BundleError, load_bundle
+    from hammer.deploy.dashboard import fleet_status_line
+    from hammer.deploy.fleet import robot_command, run_fleet
+    from hammer.deploy.plan import plan_fleet
+    from hammer.serve.bundle import BundleError
 
-    refused = ((fault, "--fault (link faults are a lock-stepped run's; cut a link instead: hammer bench fleet)"),
-               (num_envs, "--num-envs (a fleet is one world, K=1)"))
-    for given, what in refused:
-        if given:
-            fail(f"--realtime does not take {what}")
     try:
-        robots = [int(x) for x in (external or "").split(",") if x.strip()]
-    except ValueError:
-        fail(f"--external {external!r}: with --realtime, robot indices only, e.g. 0,2")
-    path = run_dir or out / f"fleet-{bundle.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
-                     seed=seed, chaos=list(chaos or []), listen=_listen(listen), external=robots, secure=secure,
-                     insecure=insecure, timeline=timeline, site=site)
-    plan.hub_port = free_loopback_port()  # fixed now: the robots' commands below name it
-    try:
-        apply_runtime(plan, list(runtime or []))
-        for item in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
-            if item.partition("=")[0] in ("hub_port", "hub_listen", "zenoh_config_file", "secure_hub"):
-                raise ValueError(f"--runtime {item!r}: a fleet's router is set by --listen (and --secure); "
-                                 "fix: leave it out")
-        plan.check()
-        fleet_settings(load_bundle(bundle), plan, path.name)  # a bad --runtime value: one line, before anything
+        plan, path, robots = plan_fleet(bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault,
+                                        chaos=chaos, runtime=runtime, external=external, out=out, run_dir=run_dir,
+                                        secure=secure, insecure=insecure, listen=listen, num_envs=num_envs,
+                                        timeline=timeline, site=site)
+        from hammer.deploy.live import LiveRun
+        from hammer.serve.bundle import load_bundle
+
+        team = load_bundle(bundle)
+        roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
+        # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
+        watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
+                        roles=roles, view=view, token=view_token)
     except (BundleError, ValueError) as e:
         fail(str(e))
     last = [0.0]
 
     def tick(board, t: float) -> None:
+        watch.tick(board)
         if t - last[0] >= 5.0:
             last[0] = t
-            w = board.heartbeats.get("env")
-            c = {**w.counters, **w.gauges} if w else {}
-            console.print(f"t {t:5.0f} s  ticks {int(c.get('ticks', 0))}  robots present "
-                          f"{int(c.get('robots_present', 0))}  defaults {int(c.get('default_actions', 0))}  "
-                          f"episodes {int(c.get('episodes', 0))}  metric(100) {c.get('paper_metric_100', 0):.2f}"
-                          + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
+            console.print(fleet_status_line(board, t))
 
     console.print(f"serving {bundle} as a fleet at {hz:g} Hz -> {path} (each role's command: {path}/fleet.json; "
                   f"hot update: hammer push BUNDLE --to {path}, hammer rollback {path})", soft_wrap=True)
@@ -244,10 +222,16 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         console.print(f"waiting for robot {i}: {robot_command(plan, i, path)}"
                       + (f" (on another machine: --identity a directory holding a copy of {copy})" if secure else "")
                       + " (or hammer.edge.EdgeAgent)", soft_wrap=True)
+    if watch.url:
+        console.print(f"view: {watch.url}", soft_wrap=True)
+    ended = "failed"
     try:
         s = run_fleet(plan, path, on_tick=tick)
+        ended = "completed" if s["completed"] else f"stopped: {s['stopped_by']}"
     except (BundleError, ValueError) as e:  # SiteError is a ValueError: one line naming the fix
         fail(str(e))
+    finally:
+        watch.close(ended)
     w = s["world"]
     console.print(f"{'done' if s['completed'] else 'stopped: ' + str(s['stopped_by'])}: {w.get('ticks', 0)} ticks in "
                   f"{w.get('seconds', 0):.0f} s, {w.get('episodes', 0)} episodes, paper metric "
@@ -256,71 +240,6 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                   f"{[r.get('defaults') for r in s['robots'].values()]}; summary {path}/summary.json", soft_wrap=True)
     if s["degraded"]:
         console.print(f"degraded: {'; '.join(s['degraded_reasons'])}", soft_wrap=True)
-
-
-def _listen(listen: list[str] | None) -> list[str]:
-    """--listen endpoints, checked: the agents must be told a fixed port (0 would be whatever the OS picks)."""
-    from hammer.serve.edge import check_endpoint
-
-    for e in listen or []:
-        check_endpoint(e, "--listen", "give this machine's address the agents reach and a fixed port, e.g. "
-                                      "tcp/192.0.2.1:7447")
-    return list(listen or [])
-
-
-def _hub_endpoint(settings) -> str:
-    """Where a role on another machine connects: the first --listen endpoint (an any-address one as
-    `<this host>`), else the loopback hub (an agent on this machine)."""
-    proto = "tls" if settings.secure else "tcp"
-    if settings.hub_listen:
-        addr = settings.hub_listen[0].split("/", 1)[1]
-        host, _, port = addr.rpartition(":")
-        if host.strip("[]") in ("0.0.0.0", "::"):
-            host = "<this host>"
-        return f"{proto}/{host}:{port}"
-    if settings.zenoh_config_file:
-        return "<the hub's endpoint in your Zenoh config>"
-    return f"{proto}/127.0.0.1:{settings.hub_port}"
-
-
-def _external_help(bundle: Path, b, cfg, settings, path: Path, agents: list[int], roles: list[str],
-                  seed: int | None) -> dict[str, str]:
-    """The one command each external role needs (the launcher shows it as it waits for them): an edge
-    agent from the bundle, the central agent from the run directory; the hub's endpoint filled in."""
-    import shlex
-
-    from hammer.protocol.session import is_loopback_endpoint
-
-    where = _hub_endpoint(settings)
-    plain_out = not settings.secure and ("<" in where or not is_loopback_endpoint(where))  # the agent's consent too
-    out = {}
-    for i in agents:
-        cmd = ["hammer", "local", "--bundle", str(bundle), "--agent", str(i)]
-        cmd += (["--settings", str(path / "runtime.json"), "--identity", str(path / "identity")] if settings.secure
-                else ["--run-id", settings.run_id])
-        cmd += ["--connect", where, *(["--insecure"] if plain_out else []),
-                *(["--seed", str(seed)] if seed is not None else []),
-                *(["--num-envs", str(cfg.num_envs)] if cfg.num_envs != int(b.config_data["num_envs"]) else [])]
-        out[f"local-{i}"] = shlex.join(cmd)
-    if "central" in roles:
-        out["central"] = shlex.join(["hammer", "central", "--run-dir", str(path), "--connect", where]) + \
-            " (the run directory's config.json, runtime.json and env_spec.json are all it reads)"
-    return out
-
-
-def _external(text: str | None, cfg) -> tuple[list[int], list[str]]:
-    """--external: (agent indices, other roles) started elsewhere; only the central agent may be one of those."""
-    if not text:
-        return [], []
-    items = [x.strip() for x in text.split(",") if x.strip()]
-    roles = sorted({x for x in items if not x.lstrip("-").isdigit()})
-    if [r for r in roles if r != "central"] or (roles and not cfg.wiring.uses_central):
-        raise ValueError(f"--external {text!r}: expected agent indices and optionally central "
-                         f"({'this team has no central agent' if roles == ['central'] else 'e.g. 0,2,central'})")
-    out = sorted({int(x) for x in items if x not in roles})
-    if any(not 0 <= i < cfg.n_agents for i in out):
-        raise ValueError(f"--external {text!r}: this team has agents 0..{cfg.n_agents - 1}")
-    return out, roles
 
 
 def _gate_defaults() -> str:
@@ -379,10 +298,9 @@ def push_command(
         fail(str(err))
     import signal
 
-    def on_term(signum, frame) -> None:  # SIGTERM (a supervisor stopping the command) as Ctrl-C: roll back
-        raise KeyboardInterrupt
+    from hammer.runtime.process import take_signals
 
-    signal.signal(signal.SIGTERM, on_term)
+    take_signals((signal.SIGTERM,))  # a supervisor stopping the command, as Ctrl-C: roll back
     try:
         verdict = r.run()
     except KeyboardInterrupt:

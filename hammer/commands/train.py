@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import ConfigFieldsHelp, fail
+from hammer.deploy.dashboard import eta
 
 # What a branch may not change: the checkpoint's networks, buffers and random streams depend on it.
 BRANCH_FIXED = ("env", "env_kwargs", "env_adapters", "n_agents", "num_envs", "variant", "central_mode", "central_net",
@@ -134,22 +135,21 @@ def _run(cfg, rd, env, resume: bool, quiet: bool) -> None:
     seen = [0]  # episodes done, for the line an interruption prints
     import signal
 
-    def on_term(signum, frame) -> None:  # SIGTERM (`kill`, a session ending) stops as Ctrl-C does
-        seen.append("SIGTERM")
-        raise KeyboardInterrupt
+    from hammer.runtime.process import take_signals
 
-    previous = signal.signal(signal.SIGTERM, on_term)
+    # SIGTERM (`kill`, a session ending) stops as Ctrl-C does
+    term, restore = take_signals((signal.SIGTERM,))
     try:
         summary = _train(cfg, rd, env, resume, quiet, console, started, seen)
     except KeyboardInterrupt:
         ckpt = rd.latest_checkpoint()
         then = (f"`hammer train --resume {rd.path}` continues from the last checkpoint ({ckpt.name})" if ckpt
                 else f"no checkpoint yet, nothing to continue; start it again with --run-dir after removing {rd.path}")
-        by = "SIGTERM" if "SIGTERM" in seen else "Ctrl-C"
+        by = "SIGTERM" if term["by"] else "Ctrl-C"
         console.print(f"interrupted ({by}) after {seen[0]:,} of {cfg.episodes:,} episodes: {then}", soft_wrap=True)
         raise typer.Exit(143 if by == "SIGTERM" else 130) from None
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        restore()
     metric = summary["final_paper_metric_last500"]
     console.print(f"done: {summary['episodes']} episodes, last-{min(500, summary['episodes'])} paper metric "
                   f"{metric:.3f}, {summary['env_steps_per_s_this_session']:,.0f} env-steps/s -> {rd.path}")
@@ -195,21 +195,6 @@ def _train(cfg, rd, env, resume: bool, quiet: bool, console, started: list, seen
                            metric=f"{p.running_metric:.2f}")
 
             return train(cfg, rd, resume=resume, env=env, on_progress=report)
-
-
-def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
-    """Time left at this session's episode rate, as h:mm:ss ('-' until there is a rate)."""
-    t0, e0 = start
-    done, elapsed = episodes - e0, time.monotonic() - t0
-    if done <= 0 or elapsed <= 0:
-        return "-"
-    return hms(max(0, budget - episodes) * elapsed / done)
-
-
-def hms(seconds: float) -> str:
-    """h:mm:ss with as many hours as it takes (26:03:00, not the 02:03:00 a clock shows after 24 h)."""
-    s = int(seconds)
-    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def print_next_steps(console, cfg, metric: float, path, runner: str) -> None:

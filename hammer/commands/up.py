@@ -11,28 +11,8 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import ConfigFieldsHelp, InsecureOpt, SecureOpt, fail
-
-
-def settings_error(err: Exception, flag: str = "--runtime") -> str:
-    """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
-    import difflib
-
-    from hammer.protocol.config_model import ValidationError
-    from hammer.runtime.settings import RuntimeSettings
-
-    if not isinstance(err, ValidationError):
-        return f"{flag}: {' '.join(str(err).split())}"
-    parts = []
-    for e in err.errors(include_url=False):
-        field = ".".join(str(x) for x in e["loc"]) or "settings"
-        if e["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
-            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
-            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
-        else:
-            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
-            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
-    return "; ".join(parts)
+from hammer.commands.view import ViewOpt, ViewTokenOpt
+from hammer.deploy.dashboard import dashboard_table, status_line
 
 
 def register(app: typer.Typer) -> None:
@@ -45,148 +25,6 @@ def register(app: typer.Typer) -> None:
     # options are listed in this command's help from that one definition
     app.command("local", epilog=roles.local_epilog())(roles.local_command)
     app.command("learner")(roles.learner_command)
-
-
-def _links_table(board, cfg, settings):
-    """Configured faults and their live effect per link (from the roles' heartbeats)."""
-    from hammer.faults.links import COUNTERS_NOTE, collect_role_counters, link_table
-    from hammer.faults.spec import LinkFault
-
-    plan = [LinkFault.model_validate(d) for d in settings.fault_links]
-    title = "faults: " + ("; ".join(lf.describe() for lf in plan) if plan else
-                          "custom rules" if settings.faults and settings.faults.enabled else "none")
-    if settings.chaos:
-        title += f" | chaos: {', '.join(settings.chaos)}"
-    roles = collect_role_counters(Path("/nonexistent"), board.last_by_pid)
-    rows = link_table(roles, cfg.n_agents, cfg.wiring.uses_central)
-    notes = [f"{link}: sent includes {row['unreported']:,} not yet reported by its sender (restarted or between "
-             "heartbeats)" for link, row in rows.items() if row.get("unreported")]
-    if board.chaos_log:
-        notes.append("chaos fired: " + "; ".join(f"{e['event']} (t={e['t']:.0f}s, step {e['step']})"
-                                                 for e in board.chaos_log[-3:]))
-    return LinksView(title, rows, "\n".join([COUNTERS_NOTE, *notes]))
-
-
-class LinksView:
-    """The links table: a row per link and a column per counter where the terminal is wide enough for
-    its ten columns, else turned (a column per link, a row per counter), so that no link name or count is
-    cut to `env-…` in an 80-column terminal. Decided at each render, from the width there is."""
-
-    def __init__(self, title: str, rows: dict[str, dict[str, int]], caption: str) -> None:
-        self.title, self.rows, self.caption = title, rows, caption
-
-    def wide(self):
-        from rich.table import Table
-
-        from hammer.faults.links import COLUMNS
-
-        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
-        t.add_column("link", no_wrap=True)
-        for col in COLUMNS:
-            t.add_column(col, justify="right", no_wrap=True)
-        for link, row in self.rows.items():
-            t.add_row(link, *(f"{row[c]:,}" for c in COLUMNS))
-        return t
-
-    def turned(self):
-        from rich.table import Table
-
-        from hammer.faults.links import COLUMNS
-
-        t = Table(title=self.title, caption=self.caption, show_header=True, expand=False)
-        t.add_column("counter", no_wrap=True)
-        for link in self.rows:
-            t.add_column(link, justify="right", no_wrap=True)
-        for col in COLUMNS:
-            t.add_row(col, *(f"{row[col]:,}" for row in self.rows.values()))
-        return t
-
-    def __rich_console__(self, console, options):
-        from rich.measure import Measurement
-
-        wide = self.wide()
-        natural = Measurement.get(console, options.update_width(10_000), wide).maximum  # its width uncut
-        yield wide if natural <= options.max_width else self.turned()
-
-
-def _eta(board, cfg, rate: dict) -> str:
-    """Time left at the episode rate seen since the first finished episode of this session."""
-    from hammer.commands.train import eta
-
-    env = board.heartbeats.get("env")
-    episodes = int(env.counters.get("episodes", 0)) if env else 0
-    if "start" not in rate and episodes > 0:
-        rate["start"] = (time.monotonic(), episodes)
-    return eta(rate["start"], episodes, cfg.episodes) if "start" in rate else "-"
-
-
-def _attendance_text(board) -> str:
-    """Who left and came back, and who is away now (deploy.attendance); '' while nobody left."""
-    att = getattr(board, "attendance", None)
-    if att is None or not att.leaves():
-        return ""
-    per = "; ".join(f"{n} left {r.leaves}, rejoined {r.rejoins}" for n, r in sorted(att.roles.items()) if r.leaves)
-    away = att.away()
-    return per + (f"; away now: {', '.join(f'{n} {s:.0f} s' for n, s in sorted(away.items()))}" if away else "")
-
-
-def _rollout_text(run_dir, n_agents: int) -> str:
-    """A served run's update history, for the dashboard: the version each agent's steps name (a
-    staged rollout gives the canary's agents a version of their own, runtime/pushes.py) and the
-    latest decision."""
-    from hammer.runtime.pushes import HistoryError, assignment, read_pushes
-
-    try:
-        entries = read_pushes(run_dir)
-    except HistoryError as e:
-        return f"unreadable: {e}"
-    if not entries:
-        return ""
-    a, last = assignment(entries), entries[-1]
-    per = f"central:{a.base} " + " ".join(f"local-{i}:{v}" for i, v in enumerate(a.agent_versions(n_agents)))
-    decision = last.get("decision")
-    stage = f" stage {decision['stage']}" if isinstance(decision, dict) and "stage" in decision else ""
-    reason = f" ({last['reason']})" if last.get("reason") else ""
-    canary = f"canary v{a.canary} open; " if a.canary is not None else ""
-    return f"{canary}{per}; last: {last.get('action', 'push')} v{last['version']}{stage}{reason}"
-
-
-def _dashboard_table(board, cfg, started: float, settings=None, rate: dict | None = None, run_dir=None):
-    from rich.console import Group
-    from rich.table import Table
-
-    env = board.heartbeats.get("env")
-    c = {**env.counters, **env.gauges} if env else {}
-    t = Table(title=f"hammer up: {cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
-              show_header=True, expand=False)
-    t.add_column("what")
-    t.add_column("value", justify="right")
-    t.add_row("episodes", f"{int(c.get('episodes', 0)):,} / {cfg.episodes:,}")
-    t.add_row("paper metric (last 100)", f"{c.get('paper_metric_100', float('nan')):.2f}")
-    t.add_row("env-steps/s", f"{board.env_rate():,.0f}")
-    t.add_row("step latency p50 / p99 (ms)", f"{c.get('step_p50_ms', 0):.2f} / {c.get('step_p99_ms', 0):.2f}")
-    t.add_row("late / duplicate actions", f"{int(c.get('actions_late', 0))} / {int(c.get('actions_duplicate', 0))}")
-    t.add_row("default actions / msg fallbacks", f"{int(c.get('default_actions', 0))} / "
-                                                 f"{int(c.get('msg_fallback_copies', 0))}")
-    versions = ", ".join(f"{r}:{int(h.gauges.get('policy_version', -1))}" for r, h in sorted(board.heartbeats.items()))
-    t.add_row("policy version per role", versions or "-")
-    rollout = _rollout_text(run_dir, cfg.n_agents) if run_dir is not None else ""
-    if rollout:
-        t.add_row("updates (pushes.json)", rollout)
-    restarts = ", ".join(f"{r}:{n}" for r, n in sorted(board.restarts.items()) if n)
-    t.add_row("roles alive / restarts", f"{len(board.alive)} / {restarts or 0}")
-    t.add_row("leaves / rejoins", _attendance_text(board) or "0")
-    rejected = {r: {k[9:]: int(v) for k, v in h.counters.items() if k.startswith("rejected.") and v}
-                for r, h in sorted(board.heartbeats.items())}
-    t.add_row("rejected messages", "; ".join(f"{r} " + ", ".join(f"{k} {v}" for k, v in c.items())
-                                             for r, c in rejected.items() if c) or "0")
-    stalled = [f"{r}: {h.detail}" for r, h in sorted(board.heartbeats.items()) if h.detail.startswith("stalled")]
-    if stalled:
-        t.add_row("[bold red]stalled[/]", "\n".join(stalled))
-    t.add_row("elapsed / eta", f"{time.monotonic() - started:,.0f} s / {_eta(board, cfg, rate if rate is not None else {})}")
-    if settings is None:
-        return t
-    return Group(t, _links_table(board, cfg, settings))
 
 
 def up_command(
@@ -220,6 +58,8 @@ def up_command(
                            "command, waits for its liveliness and never restarts it; docs/wire-format.md.")] = None,
     secure: SecureOpt = False,
     insecure: InsecureOpt = False,
+    view: ViewOpt = None,
+    view_token: ViewTokenOpt = None,
 ) -> None:
     """Run a whole experiment as separate processes over Zenoh on this host.
 
@@ -234,14 +74,9 @@ def up_command(
     `--resume RUN_DIR` continues a run whose session died (machine, Ctrl-C, kill) from the latest
     update with both a learner checkpoint and the env host's state (every checkpoint_every updates).
     """
-    import yaml
     from rich.console import Console
 
-    from hammer.faults.chaos import ChaosSpecError, parse_chaos
-    from hammer.faults.spec import FaultSpecError, build_plan
-    from hammer.learning.config import ConfigError, load_yaml, merge_config
-    from hammer.protocol.fault_injection import FaultSpec
-    from hammer.runtime.settings import RuntimeSettings
+    from hammer.deploy.plan import plan_up
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -258,61 +93,16 @@ def up_command(
             fail(f"--resume: only --episodes may be changed when resuming (got {', '.join(bad)}); "
                   "fix: drop the other options")
         cfg, settings = _resume_inputs(resume, episodes)
-        run_up(cfg, settings, resume, dashboard, console, resume=True)
+        run_up(cfg, settings, resume, dashboard, console, resume=True, view=view, view_token=view_token)
         return
     try:
-        data = load_yaml(config) if config is not None else {}
-        fault_section, chaos_section = data.pop("faults", None), data.pop("chaos", None) or []
-        runtime_section = data.pop("runtime", None) or {}
-        flags = {"variant": variant, "central_mode": central_mode, "seed": seed, "episodes": episodes, "out": out}
-        extra = {**data, **{k: v for k, v in flags.items() if v is not None}}
-        extra.setdefault("variant", "hammer")
-        extra.setdefault("out", "runs")
-        cfg = merge_config(preset or "cn3", None, set_ or [], extra)
-    except ConfigError as e:
+        p = plan_up(config, preset=preset, set_=set_, runtime=runtime, faults_file=faults, fault=fault,
+                    fault_seed=fault_seed, chaos=chaos, run_dir=run_dir, external=external, secure=secure,
+                    insecure=insecure, fields={"variant": variant, "central_mode": central_mode, "seed": seed,
+                                               "episodes": episodes, "out": out})
+    except ValueError as e:  # ConfigError, FaultSpecError, ChaosSpecError, a bad --runtime item: one line
         fail(str(e))
-    try:
-        plan = build_plan(fault, fault_seed, fault_section)
-        chaos_items = [*chaos_section, *(chaos or [])]
-        for c in chaos_items:
-            parse_chaos(c)
-    except (FaultSpecError, ChaosSpecError) as e:
-        fail(str(e))
-    if not isinstance(runtime_section, dict):
-        fail(f"{config}: runtime: must be a mapping of RuntimeSettings fields")
-    path = run_dir or Path(cfg.out) / f"up-{cfg.run_name()}-{time.strftime('%Y%m%d-%H%M%S')}"
-    rt: dict = {"run_id": path.name.replace("_", "-")[:64], **runtime_section}
-    if plan.links:
-        if faults is not None:
-            fail("--faults FILE and --fault/faults: link rules cannot be combined; fix: use one of them")
-        rt["faults"] = plan.to_spec()
-        rt["fault_links"] = [lf.model_dump() for lf in plan.links]
-    if chaos_items:
-        rt["chaos"] = chaos_items
-    if external:
-        rt["external"] = external
-    if secure:
-        rt["secure"] = True
-    if insecure:
-        rt["insecure"] = True
-    for item in runtime or []:
-        key, eq, val = item.partition("=")
-        if not eq:
-            fail(f"--runtime {item!r}: expected FIELD=VALUE, e.g. msg_deadline_ms=20")
-        rt[key.strip()] = yaml.safe_load(val)
-    if faults is not None:
-        try:
-            rt["faults"] = FaultSpec.model_validate(yaml.safe_load(faults.read_text()))
-        except yaml.YAMLError as e:
-            from hammer.learning.config import yaml_error_text
-
-            fail(f"--faults {faults}{yaml_error_text(e)}; fix the syntax there")
-        except Exception as e:  # noqa: BLE001 - report any parse/validation problem in one line
-            fail(f"--faults {faults}: {str(e).splitlines()[0]}")
-    try:
-        settings = RuntimeSettings.model_validate(rt)
-    except Exception as e:  # noqa: BLE001
-        fail(settings_error(e))
+    cfg, settings, path, plan = p.cfg, p.settings, p.run_dir, p.faults
     console.print(f"run dir: {path}")
     if plan.links:
         for lf in plan.links:
@@ -322,7 +112,7 @@ def up_command(
             console.print(f"fault rule: {r.model_dump()}")
     for c in settings.chaos:
         console.print(f"chaos: {c}")
-    run_up(cfg, settings, path, dashboard, console)
+    run_up(cfg, settings, path, dashboard, console, view=view, view_token=view_token)
 
 
 def _report_stopped(res, cfg, path: Path, served: bool) -> None:
@@ -382,7 +172,8 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
 
 
 def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = False,
-            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None) -> None:
+            external_agents: tuple[int, ...] = (), external_help: dict[str, str] | None = None,
+            view: str | None = None, view_token: str | None = None) -> None:
     """Launch and report. SIGTERM (systemd, `docker stop`) stops every role as Ctrl-C does; a served
     run then ends cleanly (summary.json with `stopped_by`, exit 0: stopping a service is its normal
     end, and Ctrl-C does the same there), a training run is resumable and exits 143 (128 + SIGTERM),
@@ -401,6 +192,15 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
     console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,
                             external_agents), soft_wrap=True)
+    from hammer.deploy.live import LiveRun
+
+    try:  # the run's live files for `hammer view` (RUN/live.json), and the view itself with --view
+        watch = LiveRun(path, "serve" if served else "up", f"{cfg.env} N={cfg.n_agents} {cfg.wiring.label} seed {cfg.seed}",
+                        robots=cfg.n_agents, view=view, token=view_token)
+    except ValueError as e:
+        fail(str(e))
+    if watch.url:
+        console.print(f"view: {watch.url}", soft_wrap=True)
     started = time.monotonic()
     rate: dict = {}
     live = None
@@ -410,24 +210,19 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
         live.start()
 
     def tick(board) -> None:
+        watch.tick(board)
         if live is not None:
-            live.update(_dashboard_table(board, cfg, started, settings, rate, path if served else None))
+            live.update(dashboard_table(board, cfg, started, settings, rate, path if served else None))
         elif dashboard and time.monotonic() - last_line[0] > 5.0:
             last_line[0] = time.monotonic()
-            env = board.heartbeats.get("env")
-            c = {**env.counters, **env.gauges} if env else {}
-            console.print(f"episodes {int(c.get('episodes', 0))}/{cfg.episodes}  "
-                          f"env-steps/s {board.env_rate():,.0f}  metric(100) {c.get('paper_metric_100', 0):.2f}  "
-                          f"p50/p99 {c.get('step_p50_ms', 0):.2f}/{c.get('step_p99_ms', 0):.2f} ms  "
-                          f"defaults {int(c.get('default_actions', 0))}  fallbacks {int(c.get('msg_fallback_copies', 0))}"
-                          f"  eta {_eta(board, cfg, rate)}"
-                          + (f"  [{_attendance_text(board)}]" if _attendance_text(board) else "")
-                          + "".join(f"  [{e['event']}]" for e in board.chaos_log[-1:]))
+            console.print(status_line(board, cfg, rate))
 
     signals = (signal.SIGTERM, signal.SIGINT) if served else (signal.SIGTERM,)
+    ended = "failed"
     try:
         res = launch(cfg, settings, path, on_tick=tick, resume=resume, external_agents=external_agents,
                      external_help=external_help, stop_signals=signals)
+        ended = "completed" if res.stopped_by is None else f"stopped by {res.stopped_by}"
     except Stopped as e:  # before any role started: nothing ran
         if live is not None:
             live.stop()
@@ -447,7 +242,10 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
         if live is not None:
             live.stop()
         console.print("interrupted: every role was stopped")
+        ended = "interrupted"
         raise typer.Exit(130) from None
+    finally:
+        watch.close(ended)
     if live is not None:
         live.stop()
     s = res.summary
