@@ -375,7 +375,12 @@ def _short(summary: dict) -> dict:
     return {"completed": summary.get("completed"), "stopped_by": summary.get("stopped_by"),
             "degraded_reasons": summary.get("degraded_reasons"), "ticks": w.get("ticks"),
             "ticks_skipped": w.get("ticks_skipped"), "paper_metric_mean": w.get("paper_metric_mean"),
-            "defaults": {k: r.get("defaults") for k, r in summary.get("robots", {}).items()}}
+            "defaults": {k: r.get("defaults") for k, r in summary.get("robots", {}).items()},
+            # what the loop costs: a tick's start to the robot's action on it; the message a robot acted on
+            "msgs": {k: w.get(k) for k in ("msgs_attached", "msgs_late", "msgs_missed")},
+            "latency_ms": {k: {f: r.get(f) for f in ("step_to_action_ms_p50", "step_to_action_ms_p99",
+                                                     "msg_age_p50_ms", "msg_age_p99_ms")}
+                           for k, r in summary.get("robots", {}).items()}}
 
 
 def trial_ok(t: dict) -> bool:

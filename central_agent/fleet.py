@@ -14,8 +14,20 @@ leaves (goes missing) and rejoins are log lines with its name and a counter, and
 
 Messages go out at every tick to every robot (`central/msg/<i>`) through reliable publishers with
 congestion control DROP: a robot whose link is down loses its own messages and holds up no one.
-The message is stamped with the tick as its step (from 0 at this role's start); the wire carries no
-send time or sequence number, so the robot dates it by arrival and takes the newest.
+The wire carries no send time or sequence number, so a robot dates a message by arrival and takes
+the newest.
+
+Whose clock: a simulated fleet's world (env_host/world.py) is its clock. It sends the state of each
+of its ticks (`env/state`: every robot's observation, the actions it just applied, who it hears)
+over the serving machine's loopback, and this role answers each at once, its messages stamped with
+the world's tick, which the world puts into the robots' observations of that tick (one message down
+per robot per tick). Its robots send no uplinks: the world already holds what they would say. A
+robot that uplinks (the SDK on a robot with its own sensors) has its row from its uplinks while
+they come (within `missing_after_s`), and reads its messages from `central/msg/<i>` itself. Until a
+world is heard (none at all: robots on the SDK only), this role ticks on its own clock at `hz`,
+stamped with its own tick count (from 0 at its start: a restarted central agent starts again at 0);
+once one is, it serves the world's ticks only (the world's end is the fleet's). A robot counts as
+heard when its uplink arrives or a state of the world says the world hears it (the world's `hold_s`).
 
 Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
 network whole (this role's link is on the server side). No step names versions in a fleet: each
@@ -40,7 +52,7 @@ from hammer.learning.config import RunConfig
 from hammer.learning.numpy_policy import numpy_central
 from hammer.learning.sampling import ActingStreams
 from hammer.protocol.dims import Dims
-from hammer.protocol.schemas import CentralMsg, Heartbeat, Uplink
+from hammer.protocol.schemas import CentralMsg, GlobalState, Heartbeat, Uplink
 from hammer.protocol.session import HammerSession
 from hammer.runtime.clock import Clock
 from hammer.runtime.presence import Presence, flat_member_rejections, rejections_by_member
@@ -73,18 +85,26 @@ class FleetCentral(Role):
         self.clock = Clock(hz)
         self.poll_s = min(self.poll_s, self.clock.period)
         self.obs = np.zeros((1, self.n, spec.obs_dim), np.float32)
-        self.actions = np.zeros((1, self.n, *spec.action_shape), np.int64 if spec.discrete else np.float32)
+        self.prev = np.zeros((1, self.n, spec.action_dim), np.float32)  # each robot's last action, encoded
+        self.uplinked = np.full(self.n, -np.inf)  # when each robot's latest uplink arrived
+        self.missing_after_s = missing_after_s
         self.presence = Presence([f"local-{i}" for i in range(self.n)], missing_after_s, self.log)
         self.uplinks = session.subscribe_latest(
             self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
                                             action_dim=spec.action_dim, discrete=spec.discrete))
+        self.states = session.subscribe_latest(
+            self.keys.state(), GlobalState, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
+                                                 action_dim=spec.action_dim))
+        self.world_t = -np.inf  # when the world's latest state arrived
+        self.ticks = self.world_ticks = 0  # ticks served (all; on a state of the world)
         self.pubs = [session.publisher(self.keys.msg(i), express=True, block=False) for i in range(self.n)]
         self.env_idx = np.zeros(1, np.int64)
         self.sent = 0
-        self.stall_what = "robot uplinks"
+        self.stall_what = "states of the world or robot uplinks"
 
     def counters(self) -> dict[str, int]:
-        return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "msgs_sent": self.sent,
+        return {"ticks": self.ticks, "world_ticks": self.world_ticks, "ticks_skipped": self.clock.skipped,
+                "msgs_sent": self.sent, "states_superseded": self.states.superseded,
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
                 "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
                 "policy_switched_unheld": self.switched_unheld,
@@ -138,35 +158,62 @@ class FleetCentral(Role):
         self.weights.take_newest()
 
     def poll(self, timeout: float) -> bool:
-        """Serve a tick if one is due, on the uplinks that came until then."""
+        """Serve each state of the world at once; with no world, a tick of the own clock when due."""
         self.take_uplinks()
-        if not self.clock.due(timeout):
-            return False
-        self.take_uplinks()  # what arrived while the clock slept is the freshest
+        if self.world_t > -np.inf:  # a world drives this fleet: its ticks, and only they (its end is the run's)
+            if not self.states.wait(timeout):
+                return False
+            due = False
+        else:
+            due = not self.states.wait(0) and self.clock.due(timeout)
+        self.take_uplinks()  # what arrived while this waited is the freshest
         now = time.monotonic()
+        step = self.take_state()
+        if step is None:
+            if not due:
+                return False  # a state refused (counted), or none
+            step = self.clock.ticks
+        else:
+            self.clock.next = now + self.clock.period  # the world's tick stands for the own clock's
         self.take_weights(now)
-        self.tick(now)
+        self.tick(now, step)
         return True
 
     def take_uplinks(self) -> None:
         for up, t in self.uplinks.take():
             self.obs[0, up.agent] = up.obs[0]
             if up.action is not None:
-                self.actions[0, up.agent] = up.action[0]
+                self.prev[0, up.agent] = encode_actions(self.spec, up.action[None], np.ones((1, 1), bool))[0, 0]
+            self.uplinked[up.agent] = t
             self.presence.seen(up.agent, t)
 
-    def tick(self, now: float) -> None:
-        """One message per robot from the state of the latest uplinks (missing robots as zeros)."""
+    def take_state(self) -> int | None:
+        """The world's newest state: the rows of the robots it hears and that send no uplinks of their
+        own; its tick (None: no new state)."""
+        got = self.states.take()
+        if not got:
+            return None
+        state, t = got[-1]
+        self.world_t, self.world_ticks = t, self.world_ticks + 1
+        heard = state.active[0] & (t - self.uplinked > self.missing_after_s)
+        self.obs[0, heard] = state.obs[0, heard]
+        self.prev[0, heard] = state.prev_actions[0, heard]
+        for i in np.flatnonzero(heard):
+            self.presence.seen(int(i), t)
+        return state.step
+
+    def tick(self, now: float, step: int) -> None:
+        """One message per robot, stamped `step`, from the state of the latest rows (missing robots as zeros)."""
         present = self.presence.update(now)[None]  # (1, N)
-        prev = encode_actions(self.spec, self.actions, present)
-        state = self.acting.global_state(self.obs, prev, present)  # the missing rule: zeros
+        state = self.acting.global_state(self.obs, self.prev, present)  # the missing rule: zeros
         net = self.net
         out = self.acting.messages(state, self.streams, 0.0, net.message_mean if net is not None else None,
                                    net.values if self.acting.rl else None)
         for i, pub in enumerate(self.pubs):
-            pub.publish(CentralMsg(step=self.clock.ticks, env_idx=self.env_idx, agent=i,
+            pub.publish(CentralMsg(step=step, env_idx=self.env_idx, agent=i,
                                    msg=np.ascontiguousarray(out.sent[:, i])))
         self.sent += self.n
+        self.ticks += 1
         if present.any():
             self.progressed()
 

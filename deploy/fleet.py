@@ -1,9 +1,10 @@
 """`hammer serve --realtime HZ`: a trained team run as a fleet, every robot its own process.
 
 The processes (docs/fleet.md): the realtime world (env_host/world.py, the simulator stepping at HZ
-on the robots' latest actions), the fleet-fed central agent (central_agent/fleet.py, its state from
-the robots' uplinks, messages on its own clock at the same rate) and one robot per agent
-(`hammer local --bundle ... --fleet`: serve/edge_agent.py, torch-free). Nothing waits for anyone:
+on the robots' latest actions), the fleet's central agent (central_agent/fleet.py, answering the
+state of each of the world's ticks with a message per robot, which the world puts into that tick's
+observations) and one robot per agent (`hammer local --bundle ... --fleet`: serve/edge_agent.py,
+torch-free). No robot waits for anyone:
 a robot that is paused, killed or cut off costs the others nothing, which is what the summary
 shows (per robot: control rate, action and message ages, defaults, fallbacks; joins, leaves and
 rejoins by name). Training stays lock-stepped (`hammer up`); this is deployment.
@@ -48,6 +49,7 @@ from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.transport_log import refused_counts, watch_refused
+from hammer.runtime.clock import MSG_WAIT_S
 from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
 
 log = logging.getLogger("hammer.fleet")
@@ -64,6 +66,7 @@ class FleetPlan:
     hold_s: float = 0.5  # the world holds a robot's last action this long, then applies the default
     missing_after_s: float = 0.5  # the central agent counts a robot silent this long as missing (zeros)
     max_msg_age_s: float = 0.5  # a robot acts on a central message no older than this, else its fallback
+    msg_wait_s: float = MSG_WAIT_S  # a tick's observations wait this long for the central agent's messages of it
     seed: int | None = None
     chaos: list[str] = field(default_factory=list)
     hub_port: int = 0
@@ -80,6 +83,8 @@ class FleetPlan:
         for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.msg_wait_s < 1 / self.hz:
+            raise ValueError(f"msg_wait_s: must be >= 0 and under a tick ({1 / self.hz:g} s), got {self.msg_wait_s}")
         if self.seconds is None and self.episodes is None:
             raise ValueError("a fleet run needs an end: seconds or episodes")
         if self.secure and self.insecure:
@@ -93,7 +98,7 @@ class FleetPlan:
 
 
 # The plan's bounds, also settable as `--runtime FIELD=VALUE` on `hammer serve --realtime`.
-PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s")
+PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s", "msg_wait_s")
 # The RuntimeSettings items every process of a fleet takes (each role's and robot's own link).
 LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
 
@@ -155,7 +160,8 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
 
     common = {"bundle": plan.bundle, "run_id": run_id, "connect": connect,
               "identity": plan.secure and identity_dir(run_dir), "seed": plan.seed, "runtime": link_items(plan)}
-    specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, run_dir=run_dir,
+    specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, msg_wait_s=plan.msg_wait_s,
+                                       run_dir=run_dir,
                                        timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
              RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:

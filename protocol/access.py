@@ -94,8 +94,9 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
                         watch_liveliness=True),
         "env": Grant(
             publish=(keys.obs("*"), keys.state(), keys.exp("team"), keys.heartbeat("env")),
-            subscribe=(keys.act("*"), keys.weights("local"), keys.weights_announce("local"), keys.ctl("all"),
-                       keys.heartbeat("*")),
+            # central/msg: a fleet's world puts each robot's central message into its observation
+            subscribe=(keys.act("*"), keys.msg("*"), keys.weights("local"), keys.weights_announce("local"),
+                       keys.ctl("all"), keys.heartbeat("*")),
             liveliness=(keys.alive("env"),)),
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),

@@ -67,7 +67,7 @@ if TYPE_CHECKING:
 # edge agent, which keeps its arrays as `WireArray`s checked in pure Python (protocol/fields.py).
 np: Any = None
 
-SCHEMA_VERSION = 6  # 6: LocalObs.echo (the env host says whether it wants the message acted on back)
+SCHEMA_VERSION = 7  # 7: LocalObs.msg (a fleet's world sends each robot its observation and central message as one)
 
 # Scalar wire types (msgspec checks them while decoding).
 NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
@@ -276,7 +276,7 @@ class LocalObs(Message, tag=1, kw_only=True):
     """Env host -> local agent `agent`: its observation in each env copy."""
 
     TYPE: ClassVar[str] = "local_obs"
-    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"obs": OBS2, "active": BOOL1}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"obs": OBS2, "active": BOOL1, "msg": MSG2}
     agent: NonNegInt
     obs: Arr(OBS2, "(K, D) float32")
     policy_version: Annotated[NonNegInt, Meta(
@@ -286,12 +286,16 @@ class LocalObs(Message, tag=1, kw_only=True):
     echo: Annotated[bool, Meta(description="send the message acted on back in the action's `msg`: the env host "
                                            "records it (training, or a trace)")] = False
     active: Arr(BOOL1, "(K,) bool: the agent is present in that copy; nil: in every copy") | None = None
+    # A fleet's world sends the central agent's message for this observation in it: one message down
+    # per robot per tick instead of two, each with its own packet (docs/fleet.md). Never in training.
+    msg: Arr(MSG2, "(K, M) float32 in [-1, 1]: the central message for this observation (a fleet's world); "
+                   "nil: none came with it") | None = None
 
     @classmethod
     def _array_bytes(cls, dims: Dims) -> int | None:
         if dims.num_envs is None or dims.obs_dim is None:
             return None
-        return dims.num_envs * (8 + 4 * dims.obs_dim + 1)  # env_idx, obs, active
+        return dims.num_envs * (8 + 4 * dims.obs_dim + 1 + 4 * (dims.msg_dim or 0))  # env_idx, obs, active, msg
 
     def __post_init__(self) -> None:
         self.env_idx = idx = _env_idx(self.env_idx)
@@ -303,10 +307,17 @@ class LocalObs(Message, tag=1, kw_only=True):
         else:
             self.active = BOOL1.take(self.active, "active")
             self._need("active", self.active, (k,))
+        if self.msg is not None:
+            self.msg = MSG2.take(self.msg, "msg")
+            self._need("msg", self.msg, (k, None))
+            if not _in_unit_range(self.msg):
+                raise RangeError("message values must lie in [-1, 1]", "msg")
 
     def _check_dims(self, dims: Dims) -> None:
         self._check_agent(self.agent, dims)
         expect("obs", "obs_dim", self.obs.shape[1], dims.obs_dim)
+        if self.msg is not None:
+            expect("msg", "msg_dim", self.msg.shape[1], dims.msg_dim)
 
 
 class GlobalState(Message, tag=2, kw_only=True):

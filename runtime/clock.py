@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import time
 
+# A simulated fleet's tick: its observations wait this long (at most) for the central agent's messages
+# of the tick, which they carry (env_host/world.py; `--runtime msg_wait_s=S` on `hammer serve --realtime`).
+MSG_WAIT_S = 0.01
+
 
 class Clock:
     """Ticks at `hz`; `due(timeout)` sleeps until the next tick (at most `timeout` s)."""

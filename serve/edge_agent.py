@@ -75,13 +75,15 @@ class EdgeAgent:
     `runtime`: RuntimeSettings items as `hammer local --runtime` takes them (`zenoh_lease_s=30`, ...).
     `trust`: ed25519 public keys (`hammer keygen`'s NAME.pub); given any, the bundle loads only if one
     of them signed it (serve/signing.py), else BundleError.
+    `fed_by_world`: a simulated robot (`robot_role`): its sensors are the world's observation, which
+    carries the central message (`act_on_world`), so it neither uplinks nor listens to `central/msg/<i>`.
     """
 
     def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
                  max_msg_age_s: float = 0.5, fallback: str | None = None, seed: int | None = None,
                  connect_retry_s: float = 300.0, runtime: tuple[str, ...] = (),
-                 trust: tuple[str | Path, ...] = (), wait: bool = False) -> None:
+                 trust: tuple[str | Path, ...] = (), wait: bool = False, fed_by_world: bool = False) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
         from hammer.serve.bundle import LOCAL, load_bundle
         from hammer.serve.edge import agent_spec, edge_settings, edge_transport
@@ -95,7 +97,7 @@ class EdgeAgent:
         self.settings = edge_settings(b, run_id, None, [*runtime, *([f"fallback={fallback}"] if fallback else [])])
         self.transport = edge_transport(self.settings, f"local-{agent}", self.spec.n_agents, connect, zenoh_config,
                                         identity, insecure, client=True)
-        self.agent, self.max_msg_age_s = agent, max_msg_age_s
+        self.agent, self.max_msg_age_s, self.fed_by_world = agent, max_msg_age_s, fed_by_world
         self.name = f"local-{agent}"
         self.obs_dim = int(env["obs_dim"])
         self.low, self.high = env.get("action_low"), env.get("action_high")
@@ -141,10 +143,12 @@ class EdgeAgent:
             return
         try:
             keys = session.keys
-            msgs = session.subscribe_latest(
-                keys.msg(self.agent), CentralMsg,
-                Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
-            up = session.publisher(keys.up(self.agent), express=True, block=False)
+            msgs = up = None
+            if not self.fed_by_world:
+                msgs = session.subscribe_latest(
+                    keys.msg(self.agent), CentralMsg,
+                    Dims(num_envs=1, n_agents=self.spec.n_agents, msg_dim=self.spec.msg_dim))
+                up = session.publisher(keys.up(self.agent), express=True, block=False)
             self.weights = self._intake(session)
             session.declare_alive(self.name)
         except BaseException:
@@ -228,6 +232,18 @@ class EdgeAgent:
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
         o = o[None]
         self._uplink(o)
+        return self._decide(o)
+
+    def act_on_world(self, obs: np.ndarray, msg: np.ndarray | None, arrived: float) -> np.ndarray:
+        """The action for a simulated fleet's observation (1, D), `msg` (1, M) the central message it
+        carried (None: none came with it), both arrived at `arrived` (time.monotonic()): a message
+        held like one from `central/msg/<i>`; no uplink (the world holds what it would say)."""
+        if msg is not None:
+            self._msg, self._msg_t = msg, arrived
+            self.counts.msgs_received += 1
+        return self._decide(obs)
+
+    def _decide(self, o: np.ndarray) -> np.ndarray:
         msg = self.last_msg = self.message()
         self._take_weights()
         action = self.core.act(o, msg)[0]
@@ -240,7 +256,7 @@ class EdgeAgent:
     def message(self) -> np.ndarray:
         """(1, M) float32: the freshest central message if young enough, else the fallback (counted)."""
         now = time.monotonic()
-        for got, t in self._msgs.take() if self.session is not None else ():  # at most one, the newest
+        for got, t in self._msgs.take() if self._msgs is not None else ():  # at most one, the newest
             self._msg, self._msg_t = got.msg, t
             self.counts.msgs_received += 1
         self.last_fresh = self._msg is not None and now - self._msg_t <= self.max_msg_age_s
@@ -271,8 +287,8 @@ class EdgeAgent:
     def _uplink(self, obs: np.ndarray) -> None:
         from hammer.protocol.schemas import Uplink
 
-        if self.session is None:
-            return  # not joined yet: nobody to send it to
+        if self._up is None:
+            return  # not joined yet (nobody to send it to), or fed by the world
         prev = None if self._prev is None else (self._prev.reshape(1) if self.spec.discrete else self._prev[None])
         self._up.publish(Uplink(step=self.counts.acts, env_idx=self._env_idx, agent=self.agent, obs=obs,
                                 action=prev))
@@ -330,7 +346,9 @@ def fleet_check(bundle) -> None:
 def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None = None):
     """The robot of a simulated fleet as a role process (`hammer local --bundle ... --fleet`): its
     sensors are the realtime world's observation for it (`env/obs/<i>`), its actuator the world's
-    action key (`agent/act/<i>`); in between, `agent.act`. A heartbeat carries its counters.
+    action key (`agent/act/<i>`); in between, `agent.act_on_world` on the observation and the central
+    message it carries (one message down per tick; the action is the one message up). An agent made
+    `fed_by_world` neither uplinks nor listens to `central/msg/<i>`. A heartbeat carries its counters.
 
     Losing the fleet (a cut link, a server restarted or stopped): the robot waits, acting on nothing
     (a simulated robot's sensors are the world's). Its Zenoh session keeps dialling the hub, so it acts
@@ -348,7 +366,8 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
             super().__init__(agent.session, agent.name)
             keys = agent.session.keys
             self.sensors = agent.session.subscribe_latest(keys.obs(agent.agent), LocalObs,
-                                                          Dims(num_envs=1, obs_dim=agent.obs_dim))
+                                                          Dims(num_envs=1, obs_dim=agent.obs_dim,
+                                                               msg_dim=agent.spec.msg_dim))
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"
             self.last_act: float | None = None
@@ -388,7 +407,7 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
                 return False
             for obs, t in self.sensors.take():
                 switches = agent.counts.policy_switches
-                action = agent.act(obs.obs[0])
+                action = agent.act_on_world(obs.obs, obs.msg, t)
                 if agent.counts.policy_switches != switches:
                     self.heartbeat_soon()  # the launcher sees the switch now, not a heartbeat later
                 if self.last_act is not None and t - self.last_act > 1.0:  # the world was out of reach

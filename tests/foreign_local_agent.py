@@ -16,8 +16,9 @@ counted as rejected and ignored).
 
 The second is robot AGENT of a fleet (`hammer serve BUNDLE --realtime HZ --external AGENT`): from the
 bundle alone (its manifest, docs/deploy.md, and local.safetensors) and the hub's ENDPOINT, it acts on
-each observation the world sends it with the freshest central message, sends its uplinks, and
-takes a push to the fleet by pulling it in chunks, one per act.
+each observation the world sends it with the central message that observation carries (else the
+freshest it holds, if young enough), sends its action (no uplink: the world holds what it would
+say), and takes a push to the fleet by pulling it in chunks, one per act.
 """
 
 from __future__ import annotations
@@ -35,13 +36,13 @@ import msgpack
 import numpy as np
 import zenoh
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 TAGS = {"local_obs": 1, "global_state": 2, "central_msg": 3, "action": 4, "experience": 5, "weights": 6,
         "control": 7, "heartbeat": 8, "uplink": 9, "weights_announce": 10, "weights_chunk": 11}
 HEADER = ("v", "step", "env_idx", "sender")
 # Each message's fields in wire order after the type tag, and the defaults of those that may be left off the end.
 FIELDS = {
-    "local_obs": (*HEADER, "agent", "obs", "policy_version", "echo", "active"),
+    "local_obs": (*HEADER, "agent", "obs", "policy_version", "echo", "active", "msg"),
     "central_msg": (*HEADER, "agent", "msg", "policy_version"),
     "action": (*HEADER, "agent", "action", "policy_version", "fallback", "msg"),
     "weights": (*HEADER, "role", "version", "blob", "sha256", "format"),
@@ -439,7 +440,6 @@ class ForeignRobot:
         self.pull: Pull | None = None
         self.msg, self.msg_t, self.last_msg, self.msg_age = None, 0.0, np.zeros((1, self.msg_dim), np.float32), 0
         self.ages: list[float] = []
-        self.prev: np.ndarray | None = None
         self.counters = {"acts": 0, "msg_fresh": 0, "msg_stale": 0, "msg_none": 0, "msgs_received": 0,
                          "uplinks_sent": 0, "policy_switches": 0, "weights_rejected": 0, "chunk_queries": 0,
                          "chunks_received": 0, "chunks_refused": 0, "versions_pulled": 0, "rejected": 0}
@@ -454,18 +454,17 @@ class ForeignRobot:
         self.p = p = f"hammer/{run_id}"
         self.queues: dict[str, queue.SimpleQueue] = {}
         self.subs = [self._subscribe(name, key) for name, key in [
-            ("obs", f"{p}/env/obs/{agent}"), ("msg", f"{p}/central/msg/{agent}"),
+            ("obs", f"{p}/env/obs/{agent}"),
             ("weights", f"{p}/learn/local/weights"), ("announce", f"{p}/learn/local/announce"),
             ("ctl", f"{p}/ctl/all")]]
         self.queues["chunk"] = queue.SimpleQueue()  # replies to our chunk queries
-        self.binding = {"obs": {"agent": agent, "sender": "env"}, "msg": {"agent": agent, "sender": "central"},
+        self.binding = {"obs": {"agent": agent, "sender": "env"},
                         "weights": {"role": "local", "sender": "learner"},
                         "announce": {"role": "local", "sender": "learner"},
                         "chunk": {"role": "local", "sender": "learner"}, "ctl": {}}
         # A fleet's streams: reliable, congestion control DROP, express (docs/fleet.md): a dead link
         # drops our messages instead of holding up the robot.
         drop = zenoh.CongestionControl.DROP
-        self.up_pub = self.z.declare_publisher(f"{p}/agent/up/{agent}", congestion_control=drop, express=True)
         self.act_pub = self.z.declare_publisher(f"{p}/agent/act/{agent}", congestion_control=drop, express=True)
         self.hb_key = f"{p}/ctl/hb/{self.name}"
         self.hb_pub = self.z.declare_publisher(self.hb_key, congestion_control=drop,
@@ -539,17 +538,13 @@ class ForeignRobot:
             self.blobs = {v: b for v, b in self.blobs.items() if v >= newest or v == 0}
 
     # ----- one act ----------------------------------------------------------------------------------
-    def message(self) -> tuple[np.ndarray, bool]:
-        """The newest central message that arrived (no step to match in a fleet), if young enough."""
-        while (m := self.take("msg", "central_msg")) is not None:
-            try:
-                msg = to_array(m["msg"], "float32", 2)
-            except Rejected:
-                self.counters["rejected"] += 1
-                continue
+    def message(self, o: dict) -> tuple[np.ndarray, bool]:
+        """The central message the observation carries, else the newest held (no step to match in a
+        fleet), if young enough."""
+        if o.get("msg") is not None:
+            msg = to_array(o["msg"], "float32", 2)
             if msg.shape != (1, self.msg_dim) or np.abs(msg).max(initial=0) > 1:
-                self.counters["rejected"] += 1
-                continue
+                raise Rejected("central message shape or range")
             self.msg, self.msg_t = msg, time.monotonic()
             self.counters["msgs_received"] += 1
         if self.msg is None:
@@ -571,12 +566,7 @@ class ForeignRobot:
         obs = to_array(o["obs"], "float32", 2)
         if obs.shape != (1, self.obs_dim):
             raise Rejected("observation shape")
-        prev = None if self.prev is None else from_array(self.prev, "uint8" if self.discrete else "float32")
-        up = [*header("uplink", self.counters["acts"], np.zeros(1, np.int64)), self.agent, from_array(obs, "float32"),
-              prev]
-        self.up_pub.put(msgpack.packb(up, use_bin_type=True))
-        self.counters["uplinks_sent"] += 1
-        msg, fresh = self.message() if self.msg_dim else (None, False)
+        msg, fresh = self.message(o) if self.msg_dim else (None, False)
         self.take_weights()
         self.pump()
         self.switch()
@@ -590,7 +580,6 @@ class ForeignRobot:
         else:
             action = (out + np.exp(self.policy.log_std) * self.rng.standard_normal((1, self.action_dim)))
             wire_action = from_array(action, "float32")
-        self.prev = action
         a = [*header("action", o["step"], o["env_idx"]), self.agent, wire_action, self.version,
              from_array(np.array([not fresh]), "bool"),
              from_array(msg, "float32") if msg is not None and o["echo"] is True else None]

@@ -173,6 +173,11 @@ def test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_aw
     for name, r in robots.items():
         assert r["msg_stale"] > 0, name  # the central agent's pause
         assert r["msg_fresh"] > r["msg_stale"], name
+    # one message down per robot per tick: each observation carries the central message of its tick
+    # (the world waited for it over loopback), and the robots send no uplinks (the world holds their
+    # observations and actions, and gives them to the central agent)
+    assert world["msgs_attached"] > 0.5 * len(robots) * world["ticks"], world
+    assert s["central"]["uplinks"] == 0 and s["central"]["world_ticks"] >= 0.5 * world["ticks"], s["central"]
     env_log = (run / "logs" / "env.log").read_text()
     assert "local-1 missing" in env_log and "local-1 rejoined" in env_log
     assert "local-0 missing" not in env_log and "local-2 missing" not in env_log

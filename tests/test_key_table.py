@@ -175,7 +175,8 @@ def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(t
     seen |= _check_declared(declared, run_id, {"env", "central", "learner", LAUNCHER,
                                                *(f"local-{i}" for i in range(N))})
 
-    # a fleet that takes a push: uplinks, the announcement, the chunks the robots ask for
+    # a fleet that takes a push: the world's state and the central messages it puts into the robots'
+    # observations, the announcement, the chunks the robots ask for
     run = tmp_path / "fleet"
     done = {}
 
@@ -193,7 +194,7 @@ def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(t
 
     # the runs used what they exist for (so the check above was not run on a subset)
     for expected in [("local-0", "subscribe", "learn/local/announce"), ("local-0", "query", "learn/local/chunk"),
-                     ("local-0", "publish", "agent/up/0"), ("learner", "answer", "learn/local/chunk"),
+                     ("env", "subscribe", "central/msg/*"), ("learner", "answer", "learn/local/chunk"),
                      ("learner", "publish", "learn/local/announce"), ("env", "subscribe", "learn/local/announce"),
                      ("central", "publish", "learn/central/exp"), ("learner", "subscribe", "learn/team/exp"),
                      ("central", "subscribe", "ctl/hb/local-0"), ("env", "subscribe", "ctl/hb/local-0")]:

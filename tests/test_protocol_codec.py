@@ -303,12 +303,35 @@ def test_the_echoed_message_is_required_only_where_declared():
     codec.decode(codec.encode(without), Action, Dims(num_envs=4, msg_dim=0, echo=True))  # no messages at all
 
 
+def test_an_observation_carries_its_central_message_checked_as_a_central_message_is():
+    """A fleet's world puts the central message into each robot's observation (one message down per
+    tick): range and width are checked as a central_msg's are; without one the field is left off."""
+    one = np.arange(1)
+    obs = LocalObs(step=3, env_idx=one, agent=0, obs=np.zeros((1, 2), np.float32), msg=np.full((1, 4), 0.5, np.float32))
+    got = codec.decode(codec.encode(obs), LocalObs, Dims(num_envs=1, obs_dim=2, msg_dim=4))
+    assert got.msg.tolist() == [[0.5] * 4] and got.active.tolist() == [True]
+    with pytest.raises(ShapeError, match="msg_dim is 4, expected 3"):
+        codec.decode(codec.encode(obs), LocalObs, Dims(num_envs=1, obs_dim=2, msg_dim=3))
+    with pytest.raises(RangeError, match=r"\[-1, 1\]"):
+        LocalObs(step=3, env_idx=one, agent=0, obs=np.zeros((1, 2), np.float32), msg=np.full((1, 4), 1.5, np.float32))
+    with pytest.raises(ShapeError, match="msg"):
+        LocalObs(step=3, env_idx=np.arange(2), agent=0, obs=np.zeros((2, 2), np.float32),
+                 msg=np.zeros((1, 4), np.float32))
+    bare = replace(obs, msg=None)
+    assert codec.decode(codec.encode(bare), LocalObs).msg is None
+    # the floats, their array header, and the three defaults before them that `bare` leaves off
+    assert len(codec.encode(obs)) - len(codec.encode(bare)) == 16 + 7 + 3
+    # the cap a receiver's dims give an observation leaves room for the message it may carry
+    assert LocalObs.cap_for_dims(Dims(num_envs=1, obs_dim=2, msg_dim=4)) >= len(codec.encode(obs))
+
+
 @pytest.mark.parametrize("extra", [1, 2])
 def test_extra_elements_are_counted_without_the_type_tag(extra):
     """A message with `extra` elements more than its type has is refused naming that count (the type
     tag is not one of the fields)."""
     for msg in (MSGS[-3], MSGS[0]):
         wire = msgpack.unpackb(codec.encode(msg))
+        wire += [None] * (1 + len(fields_of(type(msg))) - len(wire))  # every field, the optional ones as nil
         with pytest.raises(FieldError, match=rf"unknown: {extra} more element\(s\) than {msg.TYPE} has"):
             codec.decode(msgpack.packb([*wire, *([None] * extra)]), type(msg))
 
@@ -400,7 +423,7 @@ def test_hand_built_array_from_the_docs_decodes():
     assert msg.env_idx.tolist() == [0] and msg.policy_version == 3 and msg.step == 12
     assert struct.pack("<2f", 1.0, -2.0) == bytes.fromhex("0000803f000000c0")
     assert msgpack.unpackb(codec.encode(msg)) == wire
-    assert codec.encode(msg).hex() == "980106 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
+    assert codec.encode(msg).hex() == "980107 0c 01 a0 01 93 05 920102 c408 0000803f000000c0 03".replace(" ", "")
 
 
 def test_the_wire_path_imports_no_pydantic():

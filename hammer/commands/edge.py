@@ -118,7 +118,7 @@ def _robot(a: argparse.Namespace) -> int:
         agent = EdgeAgent(a.bundle, a.agent, run_id=a.run_id, connect=a.connect, zenoh_config=a.zenoh_config,
                           identity=a.identity, insecure=a.insecure, max_msg_age_s=a.max_msg_age_s, seed=a.seed,
                           runtime=tuple(a.runtime), trust=tuple(a.trust), connect_retry_s=lost_s or float("inf"),
-                          wait=True)
+                          wait=True, fed_by_world=True)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -16,6 +16,7 @@ import typer
 
 from hammer.commands.common import InsecureOpt, fail
 from hammer.protocol.transport_log import watch_refused
+from hammer.runtime.clock import MSG_WAIT_S
 from hammer.runtime.process import return_large_blocks, setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
@@ -61,6 +62,9 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   hz: HzOpt = 20.0,
                   hold_s: Annotated[float, typer.Option(help="Hold a robot's last action this long, then "
                                                              "apply the default.")] = 0.5,
+                  msg_wait_s: Annotated[float, typer.Option(help="Wait this long for the central agent's "
+                                                                 "messages of a tick before its observations go "
+                                                                 "out (they carry them).")] = MSG_WAIT_S,
                   seconds: Annotated[float | None, typer.Option(help="Run this long.")] = None,
                   episodes: Annotated[int | None, typer.Option(help="Run this many episodes.")] = None,
                   run_dir: Annotated[Path | None, typer.Option(help="Where world.json goes.")] = None,
@@ -84,7 +88,7 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     try:
         with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
             world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline,
-                                  msg_dim=cfg.msg_dim)
+                                  msg_dim=cfg.msg_dim, central=cfg.wiring.uses_central, msg_wait_s=msg_wait_s)
             world.run()
     except KeyboardInterrupt:
         pass
@@ -99,7 +103,8 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                                                                        "(zeros in the state).")] = 0.5,
                     seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None,
                     runtime: RuntimeOpt = None) -> None:
-    """The fleet's central agent: its state from the robots' uplinks, a message per robot at --hz."""
+    """The fleet's central agent: a message per robot for each state of the world (its state from the
+    world's, or from a robot's own uplinks); with no world, at --hz."""
     setup_process("central")
     watch_refused()
     return_large_blocks()

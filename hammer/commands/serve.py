@@ -106,7 +106,7 @@ def serve_command(
         "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S], e.g. 'kill:central@step=200'.")] = None,
     runtime: Annotated[list[str] | None, typer.Option(
         "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447; with "
-                    "--realtime also the fleet's bounds (hold_s, missing_after_s, max_msg_age_s, max_absence_s) and "
+                    "--realtime also the fleet's bounds (hold_s, missing_after_s, max_msg_age_s, max_absence_s, msg_wait_s) and "
                     "its links' zenoh_lease_s, reconnect_max_s (docs/fleet.md).")] = None,
     external: Annotated[str | None, typer.Option(
         help="Roles started elsewhere, not launched here (the run waits for them): agent indices (`hammer local "
