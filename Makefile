@@ -226,7 +226,7 @@ faults-ownobs: $(LINKS)
 # a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.
 edge-chain: $(LINKS)
-	$(PY) -m hammer.benchmarks.edge_chain $(ARGS)
+	$(PY) -m tests.harness.edge_chain $(ARGS)
 
 lint: $(LINKS)
 	$(VENV)/bin/ruff check .
