@@ -196,8 +196,7 @@ WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backpro
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
 # archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said
 # so). Each team's result is kept in the JSON beside its table, so a re-run recomputes only teams whose
-# weights changed: ~15 s when all are cached; from scratch ~18 s a team on the 2 cores under load
-# (cn3-ownobs: 20 teams, 6 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~40 min once). The dose-grid table is
+# weights changed (the times are in docs/results/README.md). The dose-grid table is
 # the plan's whole family (Holm across every setting x target), cn3-ownobs included.
 MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
 messages: $(LINKS)
@@ -221,7 +220,7 @@ faults-ownobs: $(LINKS)
 	for d in hammer hammer-backprop il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
 	$(PY) docs/results/faults_ownobs.py
 
-# Issue 19's chain on this machine (root: network namespaces): the archived trained cn3 team exported,
+# The edge chain on this machine (root: network namespaces): the archived trained cn3 team exported,
 # served with its central agent and each edge agent (a torch-free venv) in namespaces of their own,
 # a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.

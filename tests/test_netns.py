@@ -1,4 +1,4 @@
-"""Issue 19's chain across Linux network namespaces (tests/harness/edge_chain.py, benchmarks/netns.py): a team
+"""The edge chain across Linux network namespaces (tests/harness/edge_chain.py, benchmarks/netns.py): a team
 trained with `hammer train`, exported with `hammer export`, served with `hammer serve` in the hub namespace
 (router, env host, policy server), its central agent in a namespace of its own and each edge agent
 (`hammer local --bundle`, from a torch-free venv) in its own, joined by veth pairs with addresses private

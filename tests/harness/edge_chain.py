@@ -1,4 +1,4 @@
-"""Issue 19's "done when", end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
+"""The whole deployment chain, end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
 
     python -m tests.harness.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
                                     [--episodes 2400] [--work runs/edge-chain] [--edge-venv PY]   (root)
