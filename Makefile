@@ -1,6 +1,7 @@
-# Two entry points, both self-installing on a fresh machine with only Python 3.11:
-#   make up    set everything up, then run the main job (`hammer up`, default cn3 HAMMER, loopback)
-#   make test  set everything up, then run the test suite
+# Entry points, each self-installing on a fresh machine with only Python 3.11:
+#   make up     set everything up, then run the main job (`hammer up`, default cn3 HAMMER, loopback)
+#   make test   set everything up, then run the whole test suite (CI's command)
+#   make check  the fast tier of the suite (no process started, no training to a threshold, no installs)
 # torch is installed first and pinned to the CPU wheel (2.13.0); the project's range admits it,
 # so pip never resolves a multi-GB CUDA build.
 PYTHON ?= python3
@@ -8,7 +9,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages edge-chain
+.PHONY: setup up test check bench lint clean paper paper-report paper-dose paper-warehouse snapshot status faults-ownobs messages edge-chain
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -37,8 +38,16 @@ setup: $(LINKS)
 up: $(LINKS)
 	$(VENV)/bin/hammer up $(ARGS)
 
+# The suite on $(JOBS) xdist workers; tests/conftest.py keeps a module's tests on one worker (its
+# fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
+JOBS ?= 2
+XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup)
 test: $(LINKS)
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q $(XDIST) --durations=20 $(ARGS)
+
+# The development loop's default: the tests without a tier mark (tests/tiers.py).
+check: $(LINKS)
+	$(PY) -m pytest -q --fast $(XDIST) $(ARGS)
 
 bench: $(LINKS)
 	$(VENV)/bin/hammer bench $(ARGS)

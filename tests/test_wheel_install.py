@@ -22,7 +22,7 @@ from hammer.protocol.session import free_loopback_port
 
 from tests.runtime_helpers import ROOT
 
-pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(600)]
+pytestmark = pytest.mark.timeout(600)
 
 SHADOWS = ("experiments", "learning", "protocol", "deploy", "envs", "runtime", "benchmarks", "serve", "faults")
 
