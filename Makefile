@@ -41,7 +41,7 @@ up: $(LINKS)
 # The suite on $(JOBS) xdist workers; tests/conftest.py keeps a module's tests on one worker (its
 # fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
 JOBS ?= 2
-XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup)
+XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup --no-loadscope-reorder)
 test: $(LINKS)
 	$(PY) -m pytest -q $(XDIST) --durations=20 $(ARGS)
 

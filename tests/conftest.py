@@ -64,13 +64,17 @@ def pytest_addoption(parser):
 def pytest_collection_modifyitems(config, items):
     """Applies tests/tiers.py's marks; groups each module's tests on one xdist worker (a module's
     fixtures, trained teams and served runs, are then built once), and every test that needs the
-    session's edge venv on one worker (it is built once per worker); with --fast, keeps the fast tier."""
+    session's edge venv on one worker (it is built once per worker); puts the longest groups first
+    (`make test` keeps that order: --no-loadscope-reorder); with --fast, keeps the fast tier."""
+    group = {}
     for item in items:
         module = item.path.stem
         for mark in tiers.marks_for(module, getattr(item, "originalname", item.name)):
             item.add_marker(mark)
-        group = "edge-venv" if "edge_venv" in getattr(item, "fixturenames", ()) else module
-        item.add_marker(pytest.mark.xdist_group(group))
+        group[item] = "edge-venv" if "edge_venv" in getattr(item, "fixturenames", ()) else module
+        item.add_marker(pytest.mark.xdist_group(group[item]))
+    first = {g: i for i, g in enumerate(tiers.LONGEST_FIRST)}
+    items.sort(key=lambda i: first.get(group[i], len(first)))  # stable: file order otherwise
     if config.getoption("--fast"):
         keep = [i for i in items if not any(i.get_closest_marker(m) for m in tiers.FULL_ONLY)]
         config.hook.pytest_deselected(items=[i for i in items if i not in keep])

@@ -71,6 +71,16 @@ SLOW_TESTS = {
 
 FULL_ONLY = ("spawns", "learns", "installs", "slow")
 
+# The longest groups of `make test` (a module, or "edge-venv": every test on the session's edge venv),
+# longest first: xdist hands them out first, so that no long one starts last while the other worker
+# idles. The rest follow in file order.
+LONGEST_FIRST = (
+    "edge-venv", "test_wheel_install", "test_fleet", "test_fleet_life", "test_security",
+    "test_serve_lifecycle", "test_experiments_sweep_ray", "test_key_table", "test_foreign_client",
+    "test_messages_warehouse", "test_runtime_up", "test_serve_canary", "test_trainer_learning",
+    "test_central_set", "test_serve_bundle", "test_edge_entry", "test_live_fuzz", "test_long_runs",
+)
+
 
 def marks_for(module: str, test: str) -> list[str]:
     """The tier marks of one test: `module` the file's stem, `test` the function's name."""
