@@ -1,6 +1,7 @@
-# Two entry points, both self-installing on a fresh machine with only Python 3.11:
-#   make up    set everything up, then run the main job (`hammer up`, default cn3 HAMMER, loopback)
-#   make test  set everything up, then run the test suite
+# Entry points, each self-installing on a fresh machine with only Python 3.11:
+#   make up     set everything up, then run the main job (`hammer up`, default cn3 HAMMER, loopback)
+#   make test   set everything up, then run the whole test suite (CI's command)
+#   make check  the fast tier of the suite (no process started, no training to a threshold, no installs)
 # torch is installed first and pinned to the CPU wheel (2.13.0); the project's range admits it,
 # so pip never resolves a multi-GB CUDA build.
 PYTHON ?= python3
@@ -8,7 +9,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup up test bench lint clean paper paper-report paper-dose paper-warehouse paper-warehouse-5m snapshot status faults-ownobs messages edge-chain
+.PHONY: setup up test check bench lint clean paper paper-report paper-dose paper-warehouse paper-warehouse-5m snapshot status faults-ownobs messages edge-chain
 # A literal comma for arguments inside $(if ...).
 , := ,
 
@@ -37,8 +38,16 @@ setup: $(LINKS)
 up: $(LINKS)
 	$(VENV)/bin/hammer up $(ARGS)
 
+# The suite on $(JOBS) xdist workers; tests/conftest.py keeps a module's tests on one worker (its
+# fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
+JOBS ?= 2
+XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup --no-loadscope-reorder)
 test: $(LINKS)
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q $(XDIST) --durations=20 $(ARGS)
+
+# The development loop's default: the tests without a tier mark (tests/tiers.py).
+check: $(LINKS)
+	$(PY) -m pytest -q --fast $(XDIST) $(ARGS)
 
 bench: $(LINKS)
 	$(VENV)/bin/hammer bench $(ARGS)
@@ -208,8 +217,7 @@ WAREHOUSE_MESSAGES = $(H) messages $(A)/$(1) --teams hammer-rl$(,)hammer-backpro
 # What the messages say (docs/results/plan-messages.md): ridge probes and per-agent message cuts of every
 # archived hammer / random team with final/ weights (cn3 everything-visible has none archived: skipped, said
 # so). Each team's result is kept in the JSON beside its table, so a re-run recomputes only teams whose
-# weights changed: ~15 s when all are cached; from scratch ~18 s a team on the 2 cores under load
-# (cn3-ownobs: 20 teams, 6 min; the dose grid's hammer-rl and random teams, 6 settings x 20, ~40 min once). The dose-grid table is
+# weights changed (the times are in docs/results/README.md). The dose-grid table is
 # the plan's whole family (Holm across every setting x target), cn3-ownobs included.
 MESSAGE_RUNS := $(A)/cn3-ownobs $(A)/cn3-ownobs-rep $(A)/cn3
 messages: $(LINKS)
@@ -233,12 +241,12 @@ faults-ownobs: $(LINKS)
 	for d in hammer hammer-backprop il; do mkdir -p docs/results/faults-ownobs/$$d && cp runs/faults-ownobs/$$d/sweep.csv runs/faults-ownobs/$$d/sweep.md runs/faults-ownobs/$$d/sweep.png docs/results/faults-ownobs/$$d/; done
 	$(PY) docs/results/faults_ownobs.py
 
-# Issue 19's chain on this machine (root: network namespaces): the archived trained cn3 team exported,
+# The edge chain on this machine (root: network namespaces): the archived trained cn3 team exported,
 # served with its central agent and each edge agent (a torch-free venv) in namespaces of their own,
 # a hot update and a rollback through the CLI, then `hammer play`; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate.
 edge-chain: $(LINKS)
-	$(PY) -m hammer.benchmarks.edge_chain $(ARGS)
+	$(PY) -m tests.harness.edge_chain $(ARGS)
 
 lint: $(LINKS)
 	$(VENV)/bin/ruff check .

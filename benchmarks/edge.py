@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-RSS_TARGET_MB, COLD_TARGET_S = 40.0, 0.5  # issue 31
+RSS_TARGET_MB, COLD_TARGET_S = 40.0, 0.5  # an edge agent's budget (docs/deploy.md "Footprint")
 
 
 @dataclass

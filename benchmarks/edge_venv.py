@@ -5,7 +5,7 @@
 Built with pip: the project (from this checkout, not an editable link) with --no-deps, then exactly
 its base dependencies from pyproject.toml, so nothing of the `train` extra (torch, PettingZoo,
 matplotlib, ...) can come in through a transitive requirement. Used by `tests/test_edge_install.py`,
-`tests/test_netns.py` and `benchmarks/edge_chain.py` (edge agents that run without torch).
+`tests/test_netns.py` and `tests/harness/edge_chain.py` (edge agents that run without torch).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """`hammer bench kernels`: how fast one training update could be with torch's own CPU kernels.
 
-Issue 32 asks `hammer train --set compile=true` for 1.5x JaxMARL's rate at the matched cn3 schedule.
-Before chasing Python overhead, this asks what the arithmetic alone costs: it times, one core, at
+The target for `hammer train --set compile=true` is a multiple of JaxMARL's rate at the matched cn3
+schedule (docs/fast-envs.md). Before chasing Python overhead, this asks what the arithmetic alone costs: it times, one core, at
 the exact shapes of a run (a minibatch's rows through every Linear layer of the local policy and
 critic, and of the central network where there is one), the matmuls of a forward and a backward
 (forward x W^T, then dY W and dY^T x), each hidden layer's tanh as the trainer computes it (torch's

@@ -1,6 +1,6 @@
 """The most any design of env workers could reach on this machine (`benchmarks/bench_workers.py`).
 
-Two busy processes on a 2-core VM need not get 2x one: cores share caches and memory bandwidth,
+Two busy processes on two cores need not get 2x one: cores share caches and memory bandwidth,
 and the host may be busy. So a worker pool's speed-up is measured against this ceiling too:
 `workers` independent processes, each stepping the in-process benchmark's exact workload (same
 copies, seed and actions) with no pipes, shared memory or waiting on each other, started together.

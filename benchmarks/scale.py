@@ -16,8 +16,8 @@ step and peak RSS per role. The step's time is split three ways from the same fi
 floor (Zenoh and scheduling), typed floor minus raw (serialisation and validation) and the real
 loop minus the typed floor (the roles' own work: env step, forwards, bookkeeping).
 
-Each point is short (a fixed number of episodes), so figures on a shared 2-core machine vary by
-10-20 % between sittings; the JSON keeps the load average before and after every point.
+Each point is short (a fixed number of episodes), so figures on a shared machine vary between
+sittings; the JSON keeps the load average before and after every point.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ PPO updates, and the latency of one distributed step: observations out -> every 
 p50/p99). Medians over the repeats. The two profiles must produce the same metrics.csv (the
 secure profile changes who may talk, not what is said), and the table says whether they did.
 
-The flood (profile `secure+flood`, issue 28): a peer holding agent 1's real identity publishes
+The flood (profile `secure+flood`): a peer holding agent 1's real identity publishes
 4 MB payloads on agent 1's own action key, 25 a second, for the whole run. The access rules let it
 (that key is agent 1's to publish on); the env host must refuse each one on arrival, by size,
 before copying or decoding it, and keep its step rate. Its figures say how many it sent and how

@@ -1,8 +1,8 @@
 """`hammer bench train`: how fast the in-process trainer runs, PPO updates included.
 
 Every figure is env-copy steps per second of the real training loop (acting, env stepping, GAE and
-the PPO epochs), measured in this process, next to the 1-min load average when it was taken: the
-machine is shared, and a second busy process on 2 cores roughly halves any figure here.
+the PPO epochs), measured in this process, next to the 1-min load average when it was taken: on a
+shared machine another busy process takes its share of every figure here.
 
   cn3     the preset (`hammer train --preset cn3`) on the vectorised `cn` env and on the `cn-mpe2`
           reference backend (PettingZoo, one copy at a time), same config, same run: the ratio is

@@ -76,7 +76,7 @@ class Supervisor:
         self.roles: dict[str, RoleProcess] = {}
         self._env = dict(os.environ if env is None else env)
         self._env[PARENT_ENV] = str(os.getpid())
-        # Roles must not oversubscribe 2 cores with torch/BLAS threads.
+        # One torch/BLAS thread a role: a run's roles already outnumber the cores.
         self._env.setdefault("OMP_NUM_THREADS", "1")
         self._env.setdefault("MKL_NUM_THREADS", "1")
 

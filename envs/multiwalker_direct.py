@@ -1,10 +1,10 @@
-"""Multiwalker's parallel step without PettingZoo's AEC machinery: the same env, ~25 % less work.
+"""Multiwalker's parallel step without PettingZoo's AEC machinery: the same env, less work.
 
 `pettingzoo.sisl.multiwalker_v9.parallel_env()` is an AEC env (`raw_env` around the Box2D
 `MultiWalkerEnv`) inside three wrappers (clip, order enforcing, AEC-to-parallel). A parallel step
 walks the agents one by one through all of them: `last()`, the wrapper chain, reward clearing and
-accumulation, agent selection. Profiled in a mw3 training run, that bookkeeping was ~27 % of the env
-step, which is most of a multiwalker run's time.
+accumulation, agent selection. That bookkeeping is a large part of the env step, which is most of a
+multiwalker run's time (the profile is in docs/fast-envs.md).
 
 `DirectMultiwalker` wraps the real parallel env and does exactly what that chain does to the Box2D
 env, in one loop: each walker's action goes to `MultiWalkerEnv.step(action, i, is_last)` as a

@@ -146,7 +146,7 @@ class SubprocVecEnv(VecEnv):
     parent_slice=True: the calling process steps slice 0 itself while the W-1 workers step theirs.
     Stepping is synchronous, so the caller would otherwise sit idle until the slowest worker
     replies; doing a share of the work instead saves one process's IPC and lets W slices use W
-    cores with only W-1 extra processes (on 2 cores: the trainer + one worker)."""
+    cores with only W-1 extra processes (W=2: the trainer and one worker)."""
 
     def __init__(self, desc: EnvDescription, num_envs: int, workers: int, *, start_timeout: float = 120.0,
                  parent_slice: bool = False) -> None:

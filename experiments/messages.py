@@ -1,4 +1,4 @@
-"""What the messages say (issue 23 item 5, docs/results/plan-messages.md): a trained team acts with its
+"""What the messages say (docs/results/plan-messages.md): a trained team acts with its
 frozen weights, every step's messages, local observations and the world state are recorded, and
 linear probes ask whether a message tells its receiver what the receiver cannot see.
 

@@ -1,10 +1,10 @@
 """compile=true: one vector step of the whole team's acting as one compiled graph.
 
 Eager acting is a dozen torch calls per vector step (the central network, the local actor, the
-local critic, each a few layers) and then the sampling in numpy: about 330 µs a step for cn3's 96
-agents, 2.5× the env step itself. Each call is cheap; their count, the numpy round trips between
-them and torch's tanh kernel (~3 ns an element on an AVX2 core) are not. Here the stream draws
-come first, in the order and amounts the randomness contract fixes (`learning.sampling`: central,
+local critic, each a few layers) and then the sampling in numpy, which costs more than the env step
+itself (docs/fast-envs.md, "The floor under those targets"). Each call is cheap; their count, the
+numpy round trips between them and torch's tanh kernel are not. Here the stream draws come
+first, in the order and amounts the randomness contract fixes (`learning.sampling`: central,
 dropout, local), and everything after them is one `torch.compile` graph: the central message means
 and values, the Gaussian message sample and its log-density, dropout, the local input, the local
 actor and critic and the categorical (or Gaussian) action sample with its log-probability.

@@ -1,6 +1,6 @@
 """The local policy of a discrete MLP team in pure Python: the lite edge agent's forward.
 
-Why: numpy costs the edge agent ~18 MB of its 40 MB budget (docs/deploy.md "Footprint"); a robot
+Why: numpy is a large share of the edge agent's memory budget (docs/deploy.md "Footprint"); a robot
 acting on one env copy (K=1) with a discrete MLP policy needs a few thousand multiply-adds per step,
 which plain Python does in well under a millisecond. What numpy_policy.py and sampling.py do, here
 without numpy:

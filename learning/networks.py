@@ -65,8 +65,8 @@ _FAST_TANH_MIN = 8192  # elements; below this the plain kernel wins (call overhe
 def tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh for the hidden layers.
 
-    torch's float32 tanh kernel is much slower than its sigmoid on our CPUs, and tanh was the most
-    expensive op of a PPO update (more than the matmuls), so large tensors use 2σ(2x) − 1, which
+    torch's float32 tanh kernel is much slower than its sigmoid on x86 CPUs (docs/fast-envs.md),
+    and tanh can be the most expensive op of a PPO update (more than the matmuls), so large tensors use 2σ(2x) − 1, which
     is tanh up to ~2e-7 absolute (float32 rounding; numpy_policy's np.tanh matches to 1e-6).
     """
     if torch.compiler.is_compiling():

@@ -3,7 +3,7 @@
 Why: the randomness contract (learning/sampling.py) gives every local agent the stream
 `np.random.default_rng([seed, LOCAL_STREAM, agent])` and a discrete agent draws one uniform per
 env copy and step (`rng.random(K)`). The edge agent of a discrete K=1 team runs without numpy
-(numpy and numpy.random are ~24 MB of a 40 MB budget, docs/deploy.md "Footprint"), so it needs the
+(numpy and numpy.random are a large share of its memory budget, docs/deploy.md "Footprint"), so it needs the
 same numbers without numpy: this is the same integer maths (numpy/random/bit_generator.pyx
 SeedSequence, numpy/random/src/pcg64 with the 128-bit default multiplier and XSL-RR output) and
 numpy's uniform double ((next64 >> 11) * 2**-53). tests/test_lite_acting.py checks it against numpy.

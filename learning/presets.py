@@ -1,4 +1,4 @@
-"""The paper's four settings (and the warehouse of issue 23) as named presets (see docs/learning.md for why each value).
+"""The paper's four settings (and the multi-robot warehouse) as named presets (see docs/learning.md for why each value).
 
 From the paper: gamma 0.95, PPO clip 0.2, message lengths 4/8 (CN N=3/5) and 8/10 (MW N=3/5),
 budgets 30,000 episodes (CN) and 10,000 (MW), central lr 3e-4. Everything else (rollout size,

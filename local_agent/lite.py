@@ -1,7 +1,7 @@
 """The local agent without numpy: the edge agent of a discrete MLP team at K=1 (serve/edge.py).
 
-Why: an edge agent's budget is 40 MB resident (issue 31) and numpy with numpy.random costs ~24 MB
-of it, more than everything else the agent needs. So where the task allows (discrete actions, an
+Why: an edge agent has a small budget of resident memory, and numpy with numpy.random takes more
+of it than everything else the agent needs (docs/deploy.md "Footprint" has the figures). So where the task allows (discrete actions, an
 MLP policy, one env copy: the usual robot) the edge agent runs this instead of
 `client.LocalAgentClient`: the same process core (`steps.ClientCore`: step window, message
 deadline and matching, fallbacks, weights intake, counters, step log, heartbeat), the same wire

@@ -1,7 +1,7 @@
 """The config models of the edge path without pydantic: a small base offering the part of pydantic's
 API hammer's settings use, so a torch-free edge agent loads neither pydantic nor pydantic-core.
 
-What it covers, pydantic's spelling kept so a model reads (and merges) as before:
+What it covers, in pydantic's spelling, so a model reads (and merges) as a pydantic one would:
 
 * fields from the class annotations, `Field(default, default_factory=, ge=, gt=, le=, lt=, description=)`
   or a plain default; `ConfigDict(extra="forbid")` refuses unknown keys;
@@ -17,12 +17,12 @@ What it covers, pydantic's spelling kept so a model reads (and merges) as before
 * `ValidationError(ValueError)` with pydantic's `errors()` rows (`type`, `loc`, `msg`, `input`) and
   its wording for type and bound errors ("Input should be greater than 0"), as one line.
 
-Why not pydantic: on the edge agent pydantic + pydantic-core cost ~11 MB of RSS and 0.2-0.3 s of
-import for four small settings models (issue 31). Why not msgspec Structs: they cannot say which
+Why not pydantic: on the edge agent pydantic + pydantic-core cost more memory and start time than
+everything else these four small settings models need (docs/deploy.md "Footprint"). Why not msgspec Structs: they cannot say which
 fields a caller set (`model_fields_set`: which transport settings override a Zenoh config file,
 which runtime.json keys were written), and their errors would need rewording to name the field and
-the fix; this module (~300 lines of code) imports nothing beyond the standard library and keeps the models'
-definitions as they were.
+the fix; this module imports nothing beyond the standard library and keeps pydantic's spelling of
+the models' definitions.
 """
 
 from __future__ import annotations

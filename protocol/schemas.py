@@ -1,10 +1,8 @@
 """Every message the hammer roles exchange, defined once, as msgspec Structs.
 
-Why msgspec (issue 31): the edge agent pays for every import, and the wire path should not need
-pydantic (importing the codec: 40.9 -> 35.0 MB RSS; pydantic now loads on the edge only for its
-configs, docs/deploy.md "Footprint"); the typed decode of a Struct checks every scalar in C in the
-same pass that parses the bytes, so a message is decoded and validated once, faster than schema 3's
-hand-written fast path (`hammer bench codec`). There is one definition per message: the Struct
+Why msgspec: the edge agent pays for every import, and the wire path does not need pydantic
+(docs/deploy.md "Footprint"); the typed decode of a Struct checks every scalar in C in the same pass that parses the
+bytes, so a message is decoded and validated once (`hammer bench codec` prints the cost). There is one definition per message: the Struct
 says the wire layout and the scalar checks (msgspec applies them while decoding: strict ints,
 bounds, lengths, patterns, literals, no unknown or missing fields, no ext types), and its
 `__post_init__` makes the checks msgspec cannot (arrays: dtype, rank, byte count, finiteness,
@@ -17,7 +15,7 @@ Why batched: encoding and decoding a message has a fixed Python cost far above t
 (`hammer bench codec` prints it), so one message carries all K env copies of one vector step
 (arrays have a leading K axis), never one per copy.
 
-The wire form is compact (docs/wire-format.md, issue 31 part 2): a msgpack array, fields by
+The wire form is compact (docs/wire-format.md): a msgpack array, fields by
 position (`array_like`: no field names on the wire), first the type tag (a small int), then the
 header `v, step, env_idx, sender`, then the type's fields; optional fields left at their default
 at the end are not sent. The run id is the key's (`hammer/<run>/...`: a subscription covers only
@@ -67,7 +65,9 @@ if TYPE_CHECKING:
 # edge agent, which keeps its arrays as `WireArray`s checked in pure Python (protocol/fields.py).
 np: Any = None
 
-SCHEMA_VERSION = 7  # 7: LocalObs.msg (a fleet's world sends each robot its observation and central message as one)
+# Any change of a message's layout raises it: a peer of another version is refused by name, never misread
+# (docs/wire-format.md says what each version changed).
+SCHEMA_VERSION = 7
 
 # Scalar wire types (msgspec checks them while decoding).
 NonNegInt = Annotated[int, Meta(ge=0)]  # no upper bound: the roles bound steps and versions (runtime/bounds.py)
@@ -531,7 +531,7 @@ class ExperienceChunk(Message, tag=5, kw_only=True):
     @classmethod
     def cap_for(cls, layout: RolloutLayout) -> int:
         """The size cap of one run's rollout chunk: the default cap, or the chunk's arrays plus 1 MiB
-        of framing when they are larger (cn with N=50 agents: ~100 MB per update). Sender and learner
+        of framing when they are larger (cn at large N: docs/scale.md). Sender and learner
         both derive it from the run's layout, so a payload beyond it is still refused on arrival."""
         return max(cls.MAX_BYTES, layout.chunk_nbytes() + MiB)
 

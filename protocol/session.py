@@ -3,7 +3,7 @@
 `HammerSession` wraps one Zenoh session of one run: typed publishing (stamps run, send time,
 sequence number and sender), validated subscriptions, liveliness, and the seeded fault layer.
 
-Rules it enforces (learned the hard way, see shared/zenoh-notes.md):
+Rules it enforces (each one a way Zenoh loses or stalls messages otherwise):
 - Multicast scouting is always off unless the user hands a Zenoh JSON5 config file; peers find
   each other through explicit `listen` / `connect` endpoints (tcp/127.0.0.1:PORT here).
 - Must-arrive traffic uses reliable publishers with CongestionControl.BLOCK (DROP loses

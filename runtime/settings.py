@@ -317,7 +317,7 @@ class RuntimeSettings(Model):
     def echo(self) -> bool:
         """Whether an action carries back the message it acted on: the env host records it in the
         rollout (training) and in a trace; serving needs neither, and the message stays off the
-        wire (issue 31). The env host declares it (`Dims.echo`) and refuses an action without it."""
+        wire (constrained links pay for every byte). The env host declares it (`Dims.echo`) and refuses an action without it."""
         return self.mode == "train" or self.trace
 
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,

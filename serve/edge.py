@@ -5,8 +5,8 @@ Why apart: an edge device pays for every import. The team's RunConfig (pydantic)
 the bundle's manifest holds what the agent needs (spaces, variant wiring, message length, seed,
 fallback), read with json. What stays is the runtime itself: the protocol (msgspec Structs), the
 Zenoh session, and the agent: `local_agent.lite.LiteLocalAgentClient` where it applies (discrete
-actions, an MLP policy, K=1: the usual robot), which never imports numpy (issue 31: numpy and
-numpy.random are ~24 MB of the 40 MB budget), else `LocalAgentClient` (numpy). `lite_choice` says
+actions, an MLP policy, K=1: the usual robot), which never imports numpy (numpy and numpy.random
+are a large share of an edge agent's memory budget, docs/deploy.md "Footprint"), else `LocalAgentClient` (numpy). `lite_choice` says
 which and why, and the agent logs it; HAMMER_EDGE_NUMPY=1 forces the numpy agent.
 
 The run's settings come from the bundle (fallback) and the run id, or from a copy of the served
@@ -107,9 +107,9 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         transport = settings.link(TransportConfig(zenoh_config_file=zenoh_config))
     else:
         check_endpoint(connect)
-        # A hub on this host: stay on loopback. No Zenoh shared memory: its 16 MB pool is mapped (and counted
+        # A hub on this host: stay on loopback. No Zenoh shared memory: its pool is mapped (and counted
         # in the RSS) as soon as a peer on the same host sends a large message, and a robot's peers are
-        # on other machines (issue 31); a --zenoh-config file decides for itself.
+        # on other machines; a --zenoh-config file decides for itself.
         transport = settings.transport_to(connect, client).model_copy(update={"shared_memory": False})
     if settings.secure and identity is None:
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "

@@ -29,7 +29,7 @@ the env host names it after `weights_name_timeout_s`) and every local agent pull
 chunks by query (`learn/local/chunk?v=<version>&i=<index>`, `_answer_chunk`), one at a time, after
 its step's action (runtime/weights.py), so a push never puts more than one chunk ahead of a thin
 link's step traffic. The central agent's link is on the server side: it gets the whole weights.
-Version 0 and a late joiner's query are answered whole, as before.
+Version 0 and a late joiner's query are answered whole.
 """
 
 from __future__ import annotations

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import multiprocessing.process
+import os
+import shutil
 import signal
+import subprocess
+import tempfile
 
 import pytest
+
+from tests import tiers
+from tests.runtime_helpers import TEAMS_ENV
 
 # Tests stop real processes with SIGINT (Ctrl-C, as a person would). A shell that starts a job in
 # the background (`make test &`, nohup) leaves SIGINT ignored, children inherit an ignored signal
@@ -27,3 +35,99 @@ def edge_venv(tmp_path_factory):
         if e.offline:
             pytest.skip(f"the package index is unreachable, so no edge venv can be built: {e}")
         raise
+
+
+def pytest_configure(config):
+    """The session's cache of trained teams (tests/runtime_helpers.trained_run), made by the main
+    process before any xdist worker starts, so that every worker inherits it; in the fast tier, the
+    watch on started processes (in each xdist worker, not in the main process that starts them)."""
+    if config.getoption("--fast") and (hasattr(config, "workerinput") or not config.getoption("numprocesses", None)):
+        _watch_processes()
+    if not hasattr(config, "workerinput") and TEAMS_ENV not in os.environ:
+        os.environ[TEAMS_ENV] = config._hammer_teams = tempfile.mkdtemp(prefix="hammer-test-teams-")
+
+
+def pytest_unconfigure(config):
+    teams = getattr(config, "_hammer_teams", None)
+    if teams:
+        shutil.rmtree(teams, ignore_errors=True)
+        os.environ.pop(TEAMS_ENV, None)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--fast", action="store_true",
+                     help="the fast tier only (`make check`): no test marked " + ", ".join(tiers.FULL_ONLY)
+                          + " (tests/tiers.py), and a test that starts a process there fails")
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    """Applies tests/tiers.py's marks; groups each module's tests on one xdist worker (a module's
+    fixtures, trained teams and served runs, are then built once), and every test that needs the
+    session's edge venv on one worker (it is built once per worker); puts the longest groups first
+    (`make test` keeps that order: --no-loadscope-reorder); with --fast, keeps the fast tier."""
+    group = {}
+    for item in items:
+        module = item.path.stem
+        for mark in tiers.marks_for(module, getattr(item, "originalname", item.name)):
+            item.add_marker(mark)
+        group[item] = "edge-venv" if "edge_venv" in getattr(item, "fixturenames", ()) else module
+        item.add_marker(pytest.mark.xdist_group(group[item]))
+    first = {g: i for i, g in enumerate(tiers.LONGEST_FIRST)}
+    items.sort(key=lambda i: first.get(group[i], len(first)))  # stable: file order otherwise
+    if config.getoption("--fast"):
+        keep = [i for i in items if not any(i.get_closest_marker(m) for m in tiers.FULL_ONLY)]
+        config.hook.pytest_deselected(items=[i for i in items if i not in keep])
+        items[:] = keep
+
+
+# What tests started in the fast tier, in order (see `_watch_processes`).
+_started: list[str] = []
+# Programs the standard library runs for itself: platform.platform() asks `uname -p` once a process.
+_LIBRARY_PROGRAMS = {"uname"}
+
+
+def _watch_processes() -> None:
+    """In the fast tier, notes every process a test starts, for the whole session (module fixtures
+    included); the test then fails naming tests/tiers.py. The process still starts, so the test
+    behaves as in `make test` and the failure is only that it is in the wrong tier."""
+    execute_child = subprocess.Popen._execute_child
+
+    def watched_child(self, args, *rest, **kwargs):
+        argv = [args] if isinstance(args, (str, bytes, os.PathLike)) else list(args)
+        if os.path.basename(str(argv[0]).split()[0]) not in _LIBRARY_PROGRAMS:
+            _started.append(f"subprocess {os.path.basename(str(argv[0]))}")
+        return execute_child(self, args, *rest, **kwargs)
+
+    start = multiprocessing.process.BaseProcess.start
+
+    def watched_start(self, *args, **kwargs):
+        _started.append("multiprocessing")
+        return start(self, *args, **kwargs)
+
+    subprocess.Popen._execute_child = watched_child
+    multiprocessing.process.BaseProcess.start = watched_start
+    for name in ("fork", "forkpty", "system"):  # subprocess may posix_spawn itself: watched above
+        if hasattr(os, name):
+            setattr(os, name, _noted(getattr(os, name), f"os.{name}"))
+
+
+def _noted(fn, what):
+    def noted(*args, **kwargs):
+        _started.append(what)
+        return fn(*args, **kwargs)
+    return noted
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    item.started_before = len(_started)  # its module's fixtures are set up after this
+
+
+@pytest.fixture(autouse=True)
+def _fast_tier_starts_no_process(request):
+    yield
+    start = getattr(request.node, "started_before", len(_started))
+    if len(_started) > start:
+        pytest.fail(f"{request.node.nodeid} starts a process ({', '.join(sorted(set(_started[start:])))}) "
+                    "in the fast tier: mark it in tests/tiers.py", pytrace=False)

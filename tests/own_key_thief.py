@@ -1,4 +1,4 @@
-"""A thief of one agent's identity, attacking through that agent's own keys (issue 28).
+"""A thief of one agent's identity, attacking through that agent's own keys.
 
 Zenoh's access rules let the holder of `local-1.key` publish on `agent/act/1` and `ctl/hb/local-1`;
 everything this peer tries goes there, so only what the receivers check stands in its way:

@@ -62,16 +62,50 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
     return None
 
 
-def trained_bundle(directory: Path, episodes: int) -> Path:
-    """A briefly trained cn3 team (8 env copies, seed 4) exported as a bundle under `directory`."""
+# Where trained teams are kept for the whole session (tests/conftest.py sets it; every xdist worker
+# inherits it), so that modules training the same team train it once.
+TEAMS_ENV = "HAMMER_TEST_TEAMS"
+SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
+
+
+def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> Path:
+    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides`. Each
+    distinct team is trained once a session, under a file lock in the shared cache, and copied here:
+    the copy is the test's own to change."""
+    import fcntl
+    import hashlib
+    import shutil
+
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir
     from hammer.learning.trainer import train
+
+    def train_at(d: Path) -> None:
+        cfg = merge_config(preset, overrides=list(overrides))
+        train(cfg, RunDir.create(d, cfg), tensorboard=False)
+
+    cache = os.environ.get(TEAMS_ENV)
+    if not cache:
+        train_at(run)
+        return run
+    key = hashlib.sha256(repr((preset, tuple(overrides))).encode()).hexdigest()[:16]
+    kept = Path(cache) / key / "run"
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    with open(kept.parent / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker may be training this team now
+        if not (kept.parent / "done").exists():
+            shutil.rmtree(kept, ignore_errors=True)
+            train_at(kept)
+            (kept.parent / "done").touch()
+    shutil.copytree(kept, run)
+    return run
+
+
+def trained_bundle(directory: Path, episodes: int) -> Path:
+    """A briefly trained cn3 team (8 env copies, seed 4) exported as a bundle under `directory`."""
     from hammer.serve.bundle import export_bundle
 
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         f"episodes={episodes}", "seed=4"])
-    train(cfg, RunDir.create(directory / "run", cfg), tensorboard=False)
+    trained_run(directory / "run", (*SHORT_RUN, f"episodes={episodes}", "seed=4"))
     return export_bundle(directory / "run", directory / "bundle").path
 
 

@@ -1,5 +1,5 @@
 """A buggy or hostile peer in the plain profile that tries, once each, every message that used to
-stall or silence a role (issue 18): absurd step numbers, a far-future weights version, a stop from
+stall or silence a role: absurd step numbers, a far-future weights version, a stop from
 a non-launcher, actions for future steps, a policy version no learner has published, and a 50 MB
 payload. It copies real messages of the live run and changes one header, so each forged message
 is well formed and passes validation: only the roles' bounds (runtime/bounds.py) stand in the way.

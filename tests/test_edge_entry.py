@@ -83,7 +83,7 @@ print(json.dumps({"importers": sorted(importers), "loaded": "pydantic" in sys.mo
 def test_the_edge_agents_settings_load_no_pydantic(team, tmp_path):
     """RuntimeSettings, TransportConfig, FaultSpec, the link faults: the edge agent reads them (runtime.json with
     faults, --runtime items) through protocol/config_model.py and the wire messages are msgspec Structs: no module
-    of the edge path imports pydantic (~11 MB of RSS and 0.2 s of start, issue 31)."""
+    of the edge path imports pydantic (its memory and start time: docs/deploy.md "Footprint")."""
     import json
 
     bundle, _ = team
@@ -115,7 +115,7 @@ def test_the_served_runs_runtime_json_and_runtime_items_set_the_edge_agent(team,
         edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None)
     _, t, _, _ = edge_inputs(bundle.path, 0, "plain", "tcp/192.0.2.1:7447", None, None, insecure=True)
     assert t.connect == ["tcp/192.0.2.1:7447"] and t.listen == ["tcp/0.0.0.0:0"]
-    # no Zenoh shared-memory pool (16 MB of RSS with a peer on the same host; issue 31)
+    # no Zenoh shared-memory pool (mapped, and counted in the RSS, once a peer on the same host sends)
     assert t.shared_memory is False and t.to_zenoh().get_json("transport/shared_memory/enabled") == "false"
     RuntimeSettings(run_id="sec", secure=True).save(tmp_path)
     with pytest.raises(ValueError, match="--identity"):  # a secure run without the agent's identity files
@@ -167,7 +167,7 @@ def test_a_secure_served_run_takes_an_edge_agent_with_only_its_identity_files(se
 
 @pytest.mark.parametrize("served", SERVED)
 def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(served, request, tmp_path):
-    """Issue 28 in the served profile: the real agent 1 on the edge entry with its three files, and a
+    """A stolen identity in the served profile: the real agent 1 on the edge entry with its three files, and a
     thief holding the same three files attacking through agent 1's own keys (tests/own_key_thief.py).
     The run completes with no default action, every attempt refused and named in the summary."""
     from hammer.protocol.session import TransportConfig
@@ -220,7 +220,7 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(served,
 
 
 def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(team1, tmp_path):
-    """Issue 31 part 4: the edge agent of a discrete K=1 team, from a signed bundle it checks with
+    """The lite edge agent of a discrete K=1 team, from a signed bundle it checks with
     --trust, acts every step of a served run and never maps numpy (its memory maps are read while it
     acts, so an import anywhere on the acting path, lazy or not, would show)."""
     from hammer.serve.bundle import export_bundle
@@ -265,7 +265,7 @@ def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(te
 
 
 def test_a_push_reaches_a_lite_edge_agent_in_chunks_and_is_named_once_held(team1, tmp_path):
-    """Issue 31 parts 3 and 4 together: a served run whose agent 0 is the lite edge agent (K=1, no
+    """A paced push to the lite edge agent: a served run whose agent 0 is the lite edge agent (K=1, no
     numpy) takes a push mid-run; the agent pulls the new weights in paced chunks like the numpy
     agents, says it holds them, and the env host names the version for every agent only then."""
     import numpy as np

@@ -18,7 +18,7 @@ from hammer.protocol.session import free_loopback_port
 from hammer.serve.bundle import export_bundle
 from hammer.serve.settings import serve_settings
 
-pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(240)]
+pytestmark = pytest.mark.timeout(240)
 
 
 def _bundle(tmp_path, episodes: int):

@@ -1,4 +1,4 @@
-"""A trained team as a fleet (issue 30): the robot SDK (serve/edge_agent.py), the fleet-fed central
+"""A trained team as a fleet: the robot SDK (serve/edge_agent.py), the fleet-fed central
 agent (central_agent/fleet.py), the realtime world (env_host/world.py) and their launcher
 (deploy/fleet.py). Real Zenoh on 127.0.0.1, a real trained cn3 team, real processes for the fleet.
 Rates and ages are figures of `hammer bench fleet`, not asserted here; what is asserted is who acted

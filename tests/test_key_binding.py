@@ -1,4 +1,4 @@
-"""Every message says what its key says, and intake is bounded before decoding (issue 28).
+"""Every message says what its key says, and intake is bounded before decoding.
 
 Real Zenoh sessions on 127.0.0.1. A peer allowed on its own key (in a secure run, a stolen
 identity) must not speak for another agent or role through the payload, must not flood the
@@ -58,7 +58,7 @@ def test_what_the_key_says_is_accepted(key, cls, sender, fields):
 
 
 @pytest.mark.parametrize(("key", "cls", "sender", "fields", "what"), [
-    # the attacks of issue 28: a stolen local-1 identity on its own keys
+    # a stolen local-1 identity on its own keys
     ("agent/act/1", Action, "local-1", {"agent": 0}, "agent"),
     ("agent/act/1", Action, "local-1", {"agent": 2}, "agent"),
     ("ctl/hb/local-1", Heartbeat, "local-1", {"role": "env"}, "role"),

@@ -5,7 +5,7 @@ type, built with the run's real dimensions: random bytes, flipped / cut / insert
 replaced, dropped or added, an array's dtype, shape or bytes changed (NaN included). Only
 payloads the key's receiver rejects are kept (decided by the receiver's own decode, with its
 type, declared dimensions and run id), so nothing valid (a forged stop, a far-future step) is
-injected: this test is about robustness, not about forgeries (issue #18 items 1-2). They are
+injected: this test is about robustness, not about forgeries (tests/test_key_binding.py has those). They are
 published while the run steps; the run must complete, and every receiver must have counted each
 payload under the reason the decoder gives it (the subscription logs its first 10 rejections per
 reason, numbered; the learner reports its total as `bad_chunks`).

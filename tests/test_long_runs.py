@@ -1,4 +1,4 @@
-"""Outages you can see and runs that last hours (issue 30): every role's leaves and rejoins are
+"""Outages you can see and runs that last hours: every role's leaves and rejoins are
 logged, counted and degrade a run when too long; what a served run writes is bounded (step logs,
 trace, role logs) and what the env host keeps is not every episode.
 

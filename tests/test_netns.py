@@ -1,4 +1,4 @@
-"""Issue 19's chain across Linux network namespaces (benchmarks/edge_chain.py, benchmarks/netns.py): a team
+"""The edge chain across Linux network namespaces (tests/harness/edge_chain.py, benchmarks/netns.py): a team
 trained with `hammer train`, exported with `hammer export`, served with `hammer serve` in the hub namespace
 (router, env host, policy server), its central agent in a namespace of its own and each edge agent
 (`hammer local --bundle`, from a torch-free venv) in its own, joined by veth pairs with addresses private
@@ -13,10 +13,10 @@ import subprocess
 
 import numpy as np
 import pytest
-from hammer.benchmarks.edge_chain import chain, replay_check, summary_lines, train_team
 from hammer.benchmarks.netns import NetnsUnavailable
 from safetensors.numpy import load_file, save_file
 
+from tests.harness.edge_chain import chain, replay_check, summary_lines, train_team
 from tests.runtime_helpers import netns_reason
 
 pytestmark = pytest.mark.timeout(300)

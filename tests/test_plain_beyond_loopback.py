@@ -1,4 +1,4 @@
-"""Secure by default beyond loopback (issue 28): a plain run trusts whoever reaches its port, so every
+"""Secure by default beyond loopback: a plain run trusts whoever reaches its port, so every
 command that listens on or connects to an address other than loopback refuses the plain profile in
 one line naming the endpoint and the fixes, unless told `--insecure`; loopback keeps the plain default."""
 

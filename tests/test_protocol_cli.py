@@ -84,7 +84,7 @@ def test_bench_wire_counts_each_links_bytes_against_the_minimum(tmp_path):
         assert row["action"] > row["action_without_echoed_msg"]  # the echo is counted, and visible
         assert row["agent_link"] > row["agent_link_min"]
     assert rows[1]["agent_link_ratio"] > rows[32]["agent_link_ratio"]  # headers weigh most on one copy
-    # Issue 31: at one env copy a serving agent's link and the central link carry at most twice the
+    # Constrained links: at one env copy a serving agent's link and the central link carry at most twice the
     # numbers themselves (training adds the echoed message the rollout records).
     assert rows[1]["agent_link_eval"] <= 2 * rows[1]["agent_link_min"], rows[1]
     assert rows[1]["central_link"] <= 2 * rows[1]["central_link_min"], rows[1]

@@ -246,7 +246,7 @@ def test_building_invalid_messages_fails_at_the_sender():
     assert o.active.tolist() == [True, True]
 
 
-# --- the compact wire (issue 31 part 2) -----------------------------------------------------------
+# --- the compact wire ------------------------------------------------------------------------------
 
 
 def _wire(msg) -> list:
@@ -427,8 +427,7 @@ def test_hand_built_array_from_the_docs_decodes():
 
 
 def test_the_wire_path_imports_no_pydantic():
-    """The codec, the messages and their field types load without pydantic (the edge agent's memory,
-    issue 31): a typed msgspec Struct per message instead of a pydantic model."""
+    """The codec, the messages and their field types load without pydantic (the edge agent's memory): a typed msgspec Struct per message instead of a pydantic model."""
     import subprocess
     import sys
 

@@ -1,4 +1,4 @@
-"""No single message can stall a role, and a degraded run says so (issue 18, items 2, 3 and 5).
+"""No single message can stall a role, and a degraded run says so.
 
 Real `hammer up` runs of cn3 on 127.0.0.1 (real processes, Zenoh, env and torch), plain profile:
 a peer sends each message that used to freeze a role or end the run (tests/stall_peer.py) into a

@@ -389,7 +389,7 @@ def _thief(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
 
 
 def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
-    """Issue 28, as a hostile peer with local-1's real identity files would try it through local-1's
+    """What a hostile peer with local-1's real identity files would try through local-1's
     own keys: act for agents 0 and 2, file heartbeats under `env`, negative and falling counters, a
     4 MB flood. None takes effect; each is counted and named in summary.json; the run completes with
     exactly the calm run's metrics."""

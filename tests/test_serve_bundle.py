@@ -22,7 +22,7 @@ from hammer.serve.settings import serve_settings
 from typer.testing import CliRunner
 
 from hammer.cli import app
-from tests.runtime_helpers import ENV, ROOT
+from tests.runtime_helpers import ENV, ROOT, SHORT_RUN, trained_run
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -30,11 +30,7 @@ pytestmark = pytest.mark.timeout(180)
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A short real cn3 HAMMER (rl mode) training run: final/ has a local and a central policy."""
-    d = tmp_path_factory.mktemp("team") / "run"
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         "episodes=48", "seed=4"])
-    train(cfg, RunDir.create(d, cfg), tensorboard=False)
-    return d
+    return trained_run(tmp_path_factory.mktemp("team") / "run", (*SHORT_RUN, "episodes=48", "seed=4"))
 
 
 def _copy(bundle, tmp_path):

@@ -15,9 +15,6 @@ import threading
 import numpy as np
 import pytest
 from hammer.deploy.up import launch
-from hammer.learning.config import merge_config
-from hammer.learning.rundir import RunDir
-from hammer.learning.trainer import train
 from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.canary import CanaryError, Gate, Snapshot, judge, parse_gate, parse_stages, staged_push
 from hammer.serve.push import check_push, push, read_history, rollback
@@ -26,6 +23,7 @@ from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 
 from hammer.cli import app
+from tests.runtime_helpers import SHORT_RUN, trained_run
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -43,9 +41,7 @@ def teams(tmp_path_factory):
     whose central network differs (a canary of it would pair A's central agent with a local policy
     trained for another)."""
     root = tmp_path_factory.mktemp("canary-teams")
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         "episodes=24", "seed=6"])
-    train(cfg, RunDir.create(root / "a", cfg), tensorboard=False)
+    trained_run(root / "a", (*SHORT_RUN, "episodes=24", "seed=6"))
     for name in ("worse", "other"):
         shutil.copytree(root / "a", root / name)
     w = load_file(str(root / "worse" / "final" / "local.safetensors"))

@@ -1,4 +1,4 @@
-"""A served run's lifecycle and running it across machines (issue 30): `hammer serve --listen` on a veth
+"""A served run's lifecycle and running it across machines: `hammer serve --listen` on a veth
 address with the edge agent started from the command serve prints, in another network namespace; an
 edge agent started before its hub waits and says so; SIGTERM ends `hammer serve` cleanly (stop broadcast
 to external agents too, summary.json, exit 0); `--stay` makes the edge agent a service across two served

@@ -1,4 +1,4 @@
-"""A push pulled in paced chunks (issue 31 part 3): real Zenoh on 127.0.0.1, explicit endpoints, no
+"""A push pulled in paced chunks: real Zenoh on 127.0.0.1, explicit endpoints, no
 scouting, the real policy server and the real weights intake of a local agent.
 
 The policy server announces a pushed version (WeightsAnnounce) instead of publishing it whole; the

@@ -11,11 +11,8 @@ import numpy as np
 import pytest
 from hammer.deploy.up import launch
 from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
-from hammer.learning.config import merge_config
 from hammer.learning.numpy_policy import NumpyCentralAgent
-from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import ActingStreams
-from hammer.learning.trainer import train
 from hammer.local_agent.client import AgentSpec, LocalAgent
 from hammer.runtime.settings import RuntimeSettings
 from hammer.serve.bundle import BundleError, export_bundle
@@ -25,6 +22,7 @@ from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 
 from hammer.cli import app
+from tests.runtime_helpers import SHORT_RUN, trained_run
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -35,9 +33,7 @@ def bundles(tmp_path_factory):
     trained head is near uniform) and another central message head, so B acts and messages clearly
     differently on the same inputs."""
     root = tmp_path_factory.mktemp("teams")
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2",
-                                         "episodes=24", "seed=6"])
-    train(cfg, RunDir.create(root / "a", cfg), tensorboard=False)
+    trained_run(root / "a", (*SHORT_RUN, "episodes=24", "seed=6"))
     shutil.copytree(root / "a", root / "b")
     w = load_file(str(root / "b" / "final" / "local.safetensors"))
     last = max(int(k.split(".")[2]) for k in w if k.startswith("actor.layers."))

@@ -1,4 +1,4 @@
-"""One import package (issue 29): the wheel, installed (not editable) into a fresh venv, puts exactly
+"""One import package: the wheel, installed (not editable) into a fresh venv, puts exactly
 one top-level import package into site-packages, and `hammer up` and an edge agent run from a
 research project's folder that holds packages of its own named like hammer's parts. Each of those
 packages raises on import, so any shadowing fails the run loudly.
@@ -22,7 +22,7 @@ from hammer.protocol.session import free_loopback_port
 
 from tests.runtime_helpers import ROOT
 
-pytestmark = [pytest.mark.edge_install, pytest.mark.timeout(600)]
+pytestmark = pytest.mark.timeout(600)
 
 SHADOWS = ("experiments", "learning", "protocol", "deploy", "envs", "runtime", "benchmarks", "serve", "faults")
 

@@ -1,6 +1,6 @@
-"""Issue 19's "done when", end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
+"""The whole deployment chain, end to end on one machine: a trained cn3 team to torch-free edge agents on real links.
 
-    python -m hammer.benchmarks.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
+    python -m tests.harness.edge_chain [--team RUN_A --update RUN_B | --train-episodes N] [--rates 1024]
                                     [--episodes 2400] [--work runs/edge-chain] [--edge-venv PY]   (root)
     make edge-chain                                                                  (the same, defaults)
 
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ARCHIVE = ROOT / "docs" / "results" / "runs" / "cn3-ownobs"
 ARCHIVED_TEAM = "cn3-hammer-rl-env_kwargs_observe_others=false-s{seed}"
 

@@ -1,0 +1,90 @@
+"""Which tests are outside the fast tier, and why: the one table (tests/conftest.py applies it).
+
+`make check` runs the fast tier: every test without one of these marks (pyproject.toml registers them):
+
+  spawns    starts a process (a role, the CLI, a worker pool, a fresh interpreter, a Ray node)
+  learns    trains until a learning threshold or a long run's figures
+  installs  builds a venv or a wheel with pip
+  slow      long in any other way
+
+`make test` (the README's and CI's command) runs them all. A whole module is named by its file's stem;
+single tests as "stem::test_name" (parametrised cases included). In the fast tier a test that starts a
+process anyway fails, naming this table, so a new spawning test cannot slip in unmarked.
+"""
+
+from __future__ import annotations
+
+# Every test of these modules starts processes.
+SPAWNS_MODULES = {
+    "test_api", "test_bench_loop_floor", "test_bench_runtime", "test_bench_soak", "test_bench_train",
+    "test_bench_workers",
+    "test_central_numpy", "test_dashboard_width", "test_edge_entry", "test_envs_workers", "test_exactness",
+    "test_experiments_dose", "test_experiments_snapshot", "test_experiments_sweep", "test_experiments_sweep_ray",
+    "test_faults_runtime", "test_faults_sweep_cli", "test_fleet", "test_fleet_life", "test_foreign_client",
+    "test_fused_acting", "test_key_table", "test_learning_compile", "test_live_fuzz", "test_local_pool",
+    "test_long_runs", "test_netns", "test_runtime_edge", "test_runtime_hub", "test_runtime_resume",
+    "test_runtime_stall", "test_runtime_up", "test_serve_bundle", "test_serve_canary",
+    "test_serve_lifecycle", "test_serve_push", "test_serve_wire", "test_trainer_runs",
+}
+# Single tests that start processes in modules that otherwise do not (torch.compile runs a C++ compiler:
+# test_fused_acting and test_learning_compile are whole modules above).
+SPAWNS_TESTS = {
+    "test_config_model::test_the_config_models_import_no_pydantic",
+    "test_docs_help::test_a_misspelled_config_field_points_at_help_that_lists_every_field",
+    "test_docs_help::test_both_entry_points_send_local_bundle_to_the_one_edge_parser",
+    "test_docs_help::test_hammer_local_help_lists_every_option_of_the_edge_agent",
+    "test_docs_help::test_push_help_quotes_the_gates_defaults",
+    "test_envs_adapters::test_discrete_observations_one_hot_and_the_same_in_worker_processes",
+    "test_learning_config::test_invalid_yaml_is_reported_with_its_line_and_column",
+    "test_learning_networks::test_edge_modules_do_not_import_torch",
+    "test_local_view::test_up_with_a_local_view_completes_and_matches_the_trainer",
+    "test_messages::test_cli_writes_tables_json_figure_and_reuses_results",
+    "test_protocol_cli::test_bench_transport_runs_and_writes_json",
+    "test_protocol_codec::test_the_wire_path_imports_no_pydantic",
+    "test_protocol_session::test_round_trip_across_two_spawned_processes",
+    "test_rware::test_hammer_train_runs_a_few_episodes",
+    "test_rware::test_up_equals_train",
+    "test_rware::test_workers_equal_in_process",
+    "test_security::test_a_stolen_agent_key_is_that_agent_and_nothing_more",
+    "test_security::test_hammer_up_secure_flag_makes_a_secure_run",
+    "test_security::test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity",
+    "test_security::test_the_same_peer_ends_a_plain_run_early",
+    "test_seed_batch::test_batched_mw_seed_matches_solo_run",
+    "test_seed_batch::test_sweep_batches_points_that_differ_only_in_seed",
+    "test_serve_pace::test_a_push_is_pulled_in_a_secure_run",
+    "test_serve_pace::test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout",
+}
+
+LEARNS_MODULES = {"test_trainer_learning"}
+LEARNS_TESTS = {
+    "test_central_set::test_hammer_with_the_set_net_improves_on_cn3",
+}
+
+INSTALLS_MODULES = {"test_edge_install", "test_wheel_install"}
+
+# A minute or more of analysis each on an archived team.
+SLOW_MODULES: set[str] = set()
+SLOW_TESTS = {
+    "test_messages_warehouse::test_a_warehouse_team_is_analysed_with_its_targets_and_cuts",
+    "test_messages_warehouse::test_the_probe_finds_a_planted_robot_and_not_what_the_trained_team_does_not_say",
+}
+
+FULL_ONLY = ("spawns", "learns", "installs", "slow")
+
+# The longest groups of `make test` (a module, or "edge-venv": every test on the session's edge venv),
+# longest first: xdist hands them out first, so that no long one starts last while the other worker
+# idles. The rest follow in file order.
+LONGEST_FIRST = (
+    "edge-venv", "test_wheel_install", "test_fleet", "test_fleet_life", "test_security",
+    "test_serve_lifecycle", "test_experiments_sweep_ray", "test_key_table", "test_foreign_client",
+    "test_messages_warehouse", "test_runtime_up", "test_serve_canary", "test_trainer_learning",
+    "test_central_set", "test_serve_bundle", "test_edge_entry", "test_live_fuzz", "test_long_runs",
+)
+
+
+def marks_for(module: str, test: str) -> list[str]:
+    """The tier marks of one test: `module` the file's stem, `test` the function's name."""
+    key = f"{module}::{test}"
+    table = (("spawns", SPAWNS_MODULES, SPAWNS_TESTS), ("learns", LEARNS_MODULES, LEARNS_TESTS),
+             ("installs", INSTALLS_MODULES, set()), ("slow", SLOW_MODULES, SLOW_TESTS))
+    return [mark for mark, modules, tests in table if module in modules or key in tests]
