@@ -42,8 +42,11 @@ up: $(LINKS)
 # fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
 JOBS ?= 2
 XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup --no-loadscope-reorder)
+# Two stages: the tests judged on time (mark `serial`, tests/tiers.py) alone first, then the rest on
+# the workers; the 20 slowest of the second stage close the output.
 test: $(LINKS)
-	$(PY) -m pytest -q $(XDIST) --durations=20 $(ARGS)
+	$(PY) -m pytest -q -m serial $(ARGS) || [ $$? -eq 5 ]  # 5: none selected (e.g. ARGS="-k codec")
+	$(PY) -m pytest -q -m "not serial" $(XDIST) --durations=20 $(ARGS) || [ $$? -eq 5 ]
 
 # The development loop's default: the tests without a tier mark (tests/tiers.py).
 check: $(LINKS)

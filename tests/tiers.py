@@ -6,6 +6,9 @@
   learns    trains until a learning threshold or a long run's figures
   installs  builds a venv or a wheel with pip
   slow      long in any other way
+  serial    judged on time (a rate, a deadline, a page that must change within seconds) with processes
+            of its own: `make test` runs these first, one at a time, before the xdist workers start,
+            so the other worker's load cannot fail them
 
 `make test` (the README's and CI's command) runs them all. A whole module is named by its file's stem;
 single tests as "stem::test_name" (parametrised cases included). In the fast tier a test that starts a
@@ -24,7 +27,8 @@ SPAWNS_MODULES = {
     "test_fused_acting", "test_key_table", "test_learning_compile", "test_live_fuzz", "test_local_pool",
     "test_long_runs", "test_netns", "test_runtime_edge", "test_runtime_hub", "test_runtime_resume",
     "test_runtime_stall", "test_runtime_up", "test_serve_bundle", "test_serve_canary",
-    "test_serve_lifecycle", "test_serve_push", "test_serve_wire", "test_trainer_runs",
+    "test_serve_lifecycle", "test_serve_push", "test_serve_wire", "test_trainer_runs", "test_view",
+    "test_view_browser",
 }
 # Single tests that start processes in modules that otherwise do not (torch.compile runs a C++ compiler:
 # test_fused_acting and test_learning_compile are whole modules above).
@@ -45,6 +49,8 @@ SPAWNS_TESTS = {
     "test_rware::test_hammer_train_runs_a_few_episodes",
     "test_rware::test_up_equals_train",
     "test_rware::test_workers_equal_in_process",
+    "test_rware_exact::test_hammer_train_is_the_same_run_with_either_impl",
+    "test_rware_exact::test_slices_and_errors",
     "test_security::test_a_stolen_agent_key_is_that_agent_and_nothing_more",
     "test_security::test_hammer_up_secure_flag_makes_a_secure_run",
     "test_security::test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity",
@@ -69,7 +75,15 @@ SLOW_TESTS = {
     "test_messages_warehouse::test_the_probe_finds_a_planted_robot_and_not_what_the_trained_team_does_not_say",
 }
 
-FULL_ONLY = ("spawns", "learns", "installs", "slow")
+# Pass or fail on time with their own processes running: the fleet's rate contract across namespaces,
+# a browser page that must turn a row missing within 2 s, an analysis under a timeout.
+SERIAL_MODULES = {"test_view_browser"}
+SERIAL_TESTS = {
+    "test_fleet::test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract",
+    "test_messages_warehouse::test_a_warehouse_team_is_analysed_with_its_targets_and_cuts",
+}
+
+FULL_ONLY = ("spawns", "learns", "installs", "slow", "serial")
 
 # The longest groups of `make test` (a module, or "edge-venv": every test on the session's edge venv),
 # longest first: xdist hands them out first, so that no long one starts last while the other worker
@@ -86,5 +100,6 @@ def marks_for(module: str, test: str) -> list[str]:
     """The tier marks of one test: `module` the file's stem, `test` the function's name."""
     key = f"{module}::{test}"
     table = (("spawns", SPAWNS_MODULES, SPAWNS_TESTS), ("learns", LEARNS_MODULES, LEARNS_TESTS),
-             ("installs", INSTALLS_MODULES, set()), ("slow", SLOW_MODULES, SLOW_TESTS))
+             ("installs", INSTALLS_MODULES, set()), ("slow", SLOW_MODULES, SLOW_TESTS),
+             ("serial", SERIAL_MODULES, SERIAL_TESTS))
     return [mark for mark, modules, tests in table if module in modules or key in tests]
