@@ -8,6 +8,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from hammer.protocol.structs import parse
+
 
 def eta(start: tuple[float, int], episodes: int, budget: int) -> str:
     """Time left at this session's episode rate, as h:mm:ss ('-' until there is a rate)."""
@@ -29,7 +31,7 @@ def links_table(board, cfg, settings):
     from hammer.faults.links import COUNTERS_NOTE, collect_role_counters, link_table
     from hammer.faults.spec import LinkFault
 
-    plan = [LinkFault.model_validate(d) for d in settings.fault_links]
+    plan = [parse(LinkFault, d) for d in settings.fault_links]
     title = "faults: " + ("; ".join(lf.describe() for lf in plan) if plan else
                           "custom rules" if settings.faults and settings.faults.enabled else "none")
     if settings.chaos:

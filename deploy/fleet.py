@@ -48,6 +48,7 @@ from hammer.deploy.up import Board, Launcher, UpError, stop_on_signals
 from hammer.protocol.access import HUB, LAUNCHER
 from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.protocol.structs import replace
 from hammer.protocol.transport_log import refused_counts, watch_refused
 from hammer.runtime.clock import MSG_WAIT_S
 from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
@@ -209,7 +210,7 @@ def write_served_files(b, plan: FleetPlan, run_dir: Path, settings) -> None:
     from hammer.runtime.settings import write_env_spec
 
     # absolute: `hammer push` / `hammer rollback` may run from another directory than the launcher
-    settings = settings.model_copy(update={"policy_dir": str(Path(b.policy_dir).resolve())})
+    settings = replace(settings, policy_dir=str(Path(b.policy_dir).resolve()))
     settings.save(run_dir)
     cfg = b.config(num_envs=1, **({} if plan.seed is None else {"seed": plan.seed}))
     (run_dir / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))

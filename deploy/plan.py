@@ -12,6 +12,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from hammer.protocol.structs import dump, parse, replace
+
 
 @dataclass
 class UpPlan:
@@ -54,7 +56,7 @@ def plan_up(config: Path | None = None, *, preset: str | None = None, set_: list
         if faults_file is not None:
             raise ValueError("--faults FILE and --fault/faults: link rules cannot be combined; fix: use one of them")
         rt["faults"] = links.to_spec()
-        rt["fault_links"] = [lf.model_dump() for lf in links.links]
+        rt["fault_links"] = [dump(lf) for lf in links.links]
     if chaos_items:
         rt["chaos"] = chaos_items
     if external:
@@ -62,7 +64,7 @@ def plan_up(config: Path | None = None, *, preset: str | None = None, set_: list
     fixed: dict = {**({"secure": True} if secure else {}), **({"insecure": True} if insecure else {})}
     if faults_file is not None:
         try:
-            fixed["faults"] = FaultSpec.model_validate(yaml.safe_load(Path(faults_file).read_text()))
+            fixed["faults"] = parse(FaultSpec, yaml.safe_load(Path(faults_file).read_text()))
         except yaml.YAMLError as e:
             raise ValueError(f"--faults {faults_file}{yaml_error_text(e)}; fix the syntax there") from None
         except Exception as e:  # noqa: BLE001 - any parse/validation problem in one line
@@ -102,11 +104,11 @@ def plan_serve(bundle: Path, *, episodes: int = 100, seed: int | None = None, fa
                                      fixed={**({"secure": True} if secure else {}),
                                             **({"insecure": True} if insecure else {})})
     if roles:
-        settings = settings.model_copy(update={"external": sorted({*settings.external, *roles})})
+        settings = replace(settings, external=sorted({*settings.external, *roles}))
     if (skip or roles) and settings.hub_port == 0 and not settings.zenoh_config_file:  # they need the port now
         from hammer.protocol.session import free_loopback_port
 
-        settings = settings.model_copy(update={"hub_port": free_loopback_port()})
+        settings = replace(settings, hub_port=free_loopback_port())
     settings.refuse_plain_beyond_loopback(settings.hub_transport())
     return ServePlan(b, cfg, settings, path, links, skip,
                      external_help(Path(bundle), b, cfg, settings, path, skip, roles, seed))

@@ -30,6 +30,7 @@ from hammer.deploy.supervisor import RoleSpec, Supervisor, role_args
 from hammer.protocol.access import LAUNCHER
 from hammer.protocol.schemas import Control, Heartbeat
 from hammer.protocol.session import HammerSession, free_loopback_port
+from hammer.protocol.structs import replace
 from hammer.runtime.bounds import RUN_STEP_ENV, RUN_VERSION_ENV
 from hammer.runtime.heartbeats import HeartbeatLedger
 from hammer.runtime.process import Stopped, on_signals
@@ -105,7 +106,7 @@ def resolve_agents_per_process(cfg, settings: RuntimeSettings) -> RuntimeSetting
 
     if settings.agents_per_process:
         return settings
-    return settings.model_copy(update={"agents_per_process": auto_agents_per_process(cfg.n_agents)})
+    return replace(settings, agents_per_process=auto_agents_per_process(cfg.n_agents))
 
 
 def external_commands(cfg, run_dir: Path, external: list[str], settings: RuntimeSettings | None = None) -> dict[str, str]:
@@ -251,10 +252,8 @@ def prepare_resume(cfg, settings: RuntimeSettings, run_dir: Path) -> RuntimeSett
     # Chaos events at a step the run has passed already happened (or were lost with the session).
     chaos = [c for c in settings.chaos if (ev := parse_chaos(c)).at_step is None or ev.at_step > step]
     base = re.sub(r"-r\d+-[0-9a-f]{6}$", "", settings.run_id)[:50]
-    new = settings.model_copy(update={
-        "run_id": f"{base}-r{u}-{secrets.token_hex(3)}", "resume_from": u, "resume_step": step, "chaos": chaos,
-        "hub_port": 0 if not settings.zenoh_config_file else settings.hub_port})
-    new = RuntimeSettings.model_validate(new.model_dump())
+    new = replace(settings, run_id=f"{base}-r{u}-{secrets.token_hex(3)}", resume_from=u, resume_step=step, chaos=chaos,
+                  hub_port=0 if not settings.zenoh_config_file else settings.hub_port)
     log.info("resuming %s at update %d (%d episodes), step counter from %d", run_dir, u, state["episodes"], step + 1)
     return new
 
@@ -328,8 +327,8 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
     if resume:
         settings = prepare_resume(cfg, settings, run_dir)
     if external_agents:
-        settings = settings.model_copy(update={"external": [*settings.external, *(
-            f"local-{i}" for i in external_agents if f"local-{i}" not in settings.external)]})
+        settings = replace(settings, external=[*settings.external, *(
+            f"local-{i}" for i in external_agents if f"local-{i}" not in settings.external)])
     if not resume:
         settings = resolve_agents_per_process(cfg, settings)
     specs = role_specs(cfg, run_dir, settings)
@@ -342,7 +341,7 @@ def _launch(cfg, settings: RuntimeSettings, run_dir: Path, on_tick, chaos, resum
         chaos.bind_pools(specs)
         chaos.validate_roles({s.name for s in specs})
     if settings.hub_port == 0 and not settings.zenoh_config_file:
-        settings = settings.model_copy(update={"hub_port": free_loopback_port()})
+        settings = replace(settings, hub_port=free_loopback_port())
     if resume:
         settings.save(run_dir)
     else:

@@ -26,6 +26,8 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+from hammer.protocol.structs import dump, replace
+
 log = logging.getLogger("hammer.experiments.fault_sweep")
 
 
@@ -106,7 +108,7 @@ def eval_settings(run: Path, run_id: str, fault: list[str] | None = None, fault_
     for c in chaos or []:
         parse_chaos(c)
     rt = {"run_id": run_id, "mode": "eval", "policy_dir": str(team_source(run)[1]),
-          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [lf.model_dump() for lf in plan.links]}
+          "faults": plan.to_spec(), "chaos": chaos or [], "fault_links": [dump(lf) for lf in plan.links]}
     return build_settings(rt, runtime), plan
 
 
@@ -116,9 +118,9 @@ def point_settings(p: Point, msg_deadline_ms: float, fault_seed_base: int = 1000
 
     links = [] if p.drop == 0 and p.delay_ms == 0 else [LinkFault(link="central->local", drop=p.drop, delay_ms=p.delay_ms)]
     plan = FaultPlan(seed=fault_seed_base + p.seed, links=links)
-    faults = {"faults": plan.to_spec(), "fault_links": [lf.model_dump() for lf in links]}
+    faults = {"faults": plan.to_spec(), "fault_links": [dump(lf) for lf in links]}
     base, _ = eval_settings(Path(p.run), p.name.replace(".", "_")[:64], runtime=[f"msg_deadline_ms={msg_deadline_ms}"])
-    return base.model_copy(update=faults)
+    return replace(base, **faults)
 
 
 POINT_FILE = "point.json"  # a finished point's result, written last: its presence marks the point done

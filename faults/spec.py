@@ -21,11 +21,12 @@ link-wide ones whatever order they were given in (the first matching rule applie
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
+import msgspec
 from hammer.faults.links import LINKS
-from hammer.protocol.config_model import ConfigDict, Field, Model, ValidationError, model_validator
-from hammer.protocol.fault_injection import FaultRule, FaultSpec
+from hammer.protocol.fault_injection import FaultRule, FaultSpec, HoldMillis, Millis, Probability, Window
+from hammer.protocol.structs import Meta, Settings, SettingsError, parse
 
 PER_AGENT = {"env->local", "central->local", "local->env"}
 _FIELDS = ("drop", "duplicate", "delay_ms", "jitter_ms", "reorder", "reorder_window", "reorder_max_hold_ms")
@@ -35,28 +36,24 @@ class FaultSpecError(ValueError):
     """A fault spec that cannot be parsed; the message names the part and the fix."""
 
 
-class LinkFault(Model):
+class LinkFault(Settings):
     """Faults on one link of the step loop, for every agent or for one agent only."""
 
-    model_config = ConfigDict(extra="forbid")
+    link: str  # env->central | env->local | central->local | local->env
+    agent: Annotated[int, Meta(ge=0)] | None = None  # only this local agent's key (None: every agent)
+    drop: Probability = 0.0
+    duplicate: Probability = 0.0
+    delay_ms: Millis = 0.0
+    jitter_ms: Millis = 0.0
+    reorder: Probability = 0.0
+    reorder_window: Window = 1
+    reorder_max_hold_ms: HoldMillis = 100.0
 
-    link: str = Field(description="env->central | env->local | central->local | local->env")
-    agent: int | None = Field(None, ge=0, description="only this local agent's key (None: every agent)")
-    drop: float = Field(0.0, ge=0.0, le=1.0)
-    duplicate: float = Field(0.0, ge=0.0, le=1.0)
-    delay_ms: float = Field(0.0, ge=0.0, le=60_000.0)
-    jitter_ms: float = Field(0.0, ge=0.0, le=60_000.0)
-    reorder: float = Field(0.0, ge=0.0, le=1.0)
-    reorder_window: int = Field(1, ge=1, le=1000)
-    reorder_max_hold_ms: float = Field(100.0, gt=0.0, le=60_000.0)
-
-    @model_validator(mode="after")
-    def _check(self) -> LinkFault:
+    def check(self) -> None:
         if self.link not in LINKS:
             raise ValueError(f"link {self.link!r}: unknown; fix: use one of {', '.join(LINKS)}")
         if self.agent is not None and self.link not in PER_AGENT:
             raise ValueError(f"link {self.link}: has no per-agent keys; fix: drop 'agent='")
-        return self
 
     @property
     def match(self) -> str:
@@ -78,13 +75,11 @@ class LinkFault(Model):
         return f"{self.link}{' (' + who + ')' if who else ''}: {', '.join(parts) or 'no faults'}"
 
 
-class FaultPlan(Model):
+class FaultPlan(Settings):
     """Every link fault of a run plus its seed (the YAML `faults:` section has this shape)."""
 
-    model_config = ConfigDict(extra="forbid")
-
     seed: int = 0
-    links: list[LinkFault] = Field(default_factory=list)
+    links: list[LinkFault] = msgspec.field(default_factory=list)
 
     def to_spec(self) -> FaultSpec | None:
         """The protocol-level spec; agent-specific rules first so they win over link-wide ones."""
@@ -114,11 +109,9 @@ def parse_link_fault(text: str) -> LinkFault:
             val = str(float(val[:-1]) / 100)
         fields[key] = val
     try:
-        return LinkFault.model_validate(fields)
-    except ValidationError as e:
-        err = e.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "link"
-        raise FaultSpecError(f"--fault {text!r}: {where}: {err['msg']}") from None
+        return parse(LinkFault, fields)
+    except SettingsError as e:
+        raise FaultSpecError(f"--fault {text!r}: {e.field or 'link'}: {e.msg}") from None
 
 
 def build_plan(faults: list[str] | None = None, seed: int | None = None, section: Any = None) -> FaultPlan:
@@ -132,9 +125,8 @@ def build_plan(faults: list[str] | None = None, seed: int | None = None, section
             raise FaultSpecError("faults: section must be a mapping {seed: N, links: [...]} or a list of link faults")
         links = [parse_link_fault(x) if isinstance(x, str) else x for x in section.get("links", [])]
         try:
-            plan = FaultPlan.model_validate({**section, "links": links})
-        except ValidationError as e:
-            err = e.errors()[0]
-            raise FaultSpecError(f"faults.{'.'.join(str(p) for p in err['loc'])}: {err['msg']}") from None
+            plan = parse(FaultPlan, {**section, "links": links})
+        except SettingsError as e:
+            raise FaultSpecError(f"faults.{e.field}: {e.msg}" if e.field else f"faults: {e.msg}") from None
     links = list(plan.links) + [parse_link_fault(f) for f in faults or []]
     return FaultPlan(seed=plan.seed if seed is None else seed, links=links)

@@ -30,8 +30,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Annotated
 
-from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator
+import msgspec
+from hammer.protocol.structs import Meta, Settings
 
 Send = Callable[[bytes], None]
 log = logging.getLogger(__name__)
@@ -68,40 +70,40 @@ def key_matches(pattern: str, key: str) -> bool:
     return m(0, 0)
 
 
-Probability = float
+Probability = Annotated[float, Meta(ge=0.0, le=1.0)]
+Millis = Annotated[float, Meta(ge=0.0, le=60_000.0)]
+Window = Annotated[int, Meta(ge=1, le=1000)]
+HoldMillis = Annotated[float, Meta(gt=0.0, le=60_000.0)]
 
 
-class FaultRule(Model):
+class FaultRule(Settings):
     """Faults for the keys matching `match` (relative to `hammer/<run>/`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    match: str = "**"  # key pattern relative to hammer/<run>/, e.g. 'agent/act/*'
+    drop: Probability = 0.0  # probability a message is lost
+    duplicate: Probability = 0.0  # probability a message is sent twice
+    delay_ms: Millis = 0.0  # mean extra latency in ms
+    jitter_ms: Millis = 0.0  # latency varies uniformly by +-jitter_ms
+    reorder: Probability = 0.0  # probability a message is held back
+    reorder_window: Window = 1  # later messages that overtake a held one
+    reorder_max_hold_ms: HoldMillis = 100.0  # a held message goes out after this
 
-    match: str = Field("**", description="key pattern relative to hammer/<run>/, e.g. 'agent/act/*'")
-    drop: float = Field(0.0, ge=0.0, le=1.0, description="probability a message is lost")
-    duplicate: float = Field(0.0, ge=0.0, le=1.0, description="probability a message is sent twice")
-    delay_ms: float = Field(0.0, ge=0.0, le=60_000.0, description="mean extra latency in ms")
-    jitter_ms: float = Field(0.0, ge=0.0, le=60_000.0, description="latency varies uniformly by +-jitter_ms")
-    reorder: float = Field(0.0, ge=0.0, le=1.0, description="probability a message is held back")
-    reorder_window: int = Field(1, ge=1, le=1000, description="later messages that overtake a held one")
-    reorder_max_hold_ms: float = Field(100.0, gt=0.0, le=60_000.0, description="a held message goes out after this")
-
-    @field_validator("match")
-    @classmethod
-    def _pattern(cls, v: str) -> str:
-        return validate_pattern(v)
+    def check(self) -> None:
+        try:
+            validate_pattern(self.match)
+        except ValueError as e:
+            raise ValueError(f"match: {e}") from None
 
     @property
     def label(self) -> str:
         return self.match
 
 
-class FaultSpec(Model):
+class FaultSpec(Settings):
     """A seed and an ordered list of rules (first match wins). No rules = no faults."""
 
-    model_config = ConfigDict(extra="forbid")
-
     seed: int = 0
-    rules: list[FaultRule] = Field(default_factory=list)
+    rules: list[FaultRule] = msgspec.field(default_factory=list)
 
     @property
     def enabled(self) -> bool:

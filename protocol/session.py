@@ -31,18 +31,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import Annotated, Any, Literal, Self
 
+import msgspec
 import zenoh
 from hammer.protocol.access import SecureLink
 from hammer.protocol.binding import check_key, sender_of
 from hammer.protocol.codec import Expected, _expected_types, decode, encode
-from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
 from hammer.protocol.dims import Dims
 from hammer.protocol.errors import ProtocolError
 from hammer.protocol.fault_injection import FaultInjector, FaultSpec
 from hammer.protocol.keys import Keys
 from hammer.protocol.schemas import Message
+from hammer.protocol.structs import Meta, Settings
 
 log = logging.getLogger(__name__)
 
@@ -136,48 +137,49 @@ def _endpoint_list(raw: str, mode: str) -> list[str]:
     return list(value) if isinstance(value, list) else []
 
 
-class TransportConfig(Model):
+class TransportConfig(Settings):
     """How a process reaches the others.
 
     Default: a peer with no endpoints (talks to nobody). Typical loopback setup: one process
     `listen=["tcp/127.0.0.1:7447"]`, the others `connect=["tcp/127.0.0.1:7447"]`. For real
     deployments (router, client mode, TLS, auth) give `zenoh_config_file` (JSON5); then that file
-    decides scouting too, and `mode` / `listen` / `connect` given here override it when set.
+    decides scouting too, and `mode` / `listen` / `connect` / `reconnect_max_ms` given here override it.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # None: the Zenoh config file's mode, else a peer
+    mode: Literal["peer", "client", "router"] | None = None
+    # endpoints to listen on, e.g. tcp/127.0.0.1:7447
+    listen: list[str] = msgspec.field(default_factory=list)
+    # Zenoh's lease: a link silent this long is closed (None: Zenoh's 10 s)
+    lease_ms: Annotated[int, Meta(ge=500)] | None = None
+    # the longest wait between tries to reach a lost endpoint (None: the Zenoh config file's, else 500 ms)
+    reconnect_max_ms: Annotated[int, Meta(ge=100)] | None = None
+    # one attempt to open a link is given up after this long (None: Zenoh's 10 s)
+    open_timeout_ms: Annotated[int, Meta(ge=100)] | None = None
+    # endpoints to connect to
+    connect: list[str] = msgspec.field(default_factory=list)
+    # Zenoh JSON5 config for real deployments (a Path is taken too)
+    zenoh_config_file: str | None = None
+    # mutual TLS identity + access rules (protocol.access)
+    security: SecureLink | None = None
+    # Zenoh's shared memory with peers on this machine (None: Zenoh's default, on: a put over 3 KB to a local
+    # peer goes through a 16 MB pool this process maps); an edge agent turns it off (serve/edge.py): 16 MB of
+    # its RSS on loopback, nothing across machines
+    shared_memory: bool | None = None
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
-    lease_ms: int | None = Field(None, ge=500, description="Zenoh's lease: a link silent this long is closed "
-                                                           "(None: Zenoh's 10 s)")
-    reconnect_max_ms: int = Field(RECONNECT["period_max_ms"], ge=100, description="the longest wait between "
-                                                                                  "tries to reach a lost endpoint")
-    open_timeout_ms: int | None = Field(None, ge=100, description="one attempt to open a link is given up after "
-                                                                 "this long (None: Zenoh's 10 s)")
-    connect: list[str] = Field(default_factory=list, description="endpoints to connect to")
-    zenoh_config_file: Path | None = Field(None, description="Zenoh JSON5 config for real deployments")
-    security: SecureLink | None = Field(None, description="mutual TLS identity + access rules (protocol.access)")
-    shared_memory: bool | None = Field(
-        None, description="Zenoh's shared memory with peers on this machine (None: Zenoh's default, on: a put over "
-                          "3 KB to a local peer goes through a 16 MB pool this process maps); an edge agent turns it "
-                          "off (serve/edge.py): 16 MB of its RSS on loopback, nothing across machines")
+    def __post_init__(self) -> None:
+        if isinstance(self.zenoh_config_file, Path):
+            self.zenoh_config_file = str(self.zenoh_config_file)
+        super().__post_init__()
 
-    @field_validator("listen", "connect")
-    @classmethod
-    def _endpoints(cls, v: list[str]) -> list[str]:
-        for e in v:
-            if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
+    def check(self) -> None:
+        for e in (*self.listen, *self.connect):
+            if not _ENDPOINT_RE.match(e):
                 raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447' (protocol/address:port)")
-        return v
-
-    @model_validator(mode="after")
-    def _consistent(self) -> TransportConfig:
         if self.zenoh_config_file is None and self.mode == "client" and not self.connect:
             raise ValueError("mode 'client' needs at least one connect endpoint (the router's address)")
-        if self.zenoh_config_file is not None and not self.zenoh_config_file.is_file():
-            raise ValueError(f"zenoh_config_file {str(self.zenoh_config_file)!r} does not exist")
-        return self
+        if self.zenoh_config_file is not None and not Path(self.zenoh_config_file).is_file():
+            raise ValueError(f"zenoh_config_file {self.zenoh_config_file!r} does not exist")
 
     @classmethod
     def listener(cls, port: int | None = None) -> TransportConfig:
@@ -207,12 +209,12 @@ class TransportConfig(Model):
 
     def to_zenoh(self) -> zenoh.Config:
         if self.zenoh_config_file is not None:
-            cfg = zenoh.Config.from_file(str(self.zenoh_config_file))
-            if "mode" in self.model_fields_set:
+            cfg = zenoh.Config.from_file(self.zenoh_config_file)
+            if self.mode is not None:
                 cfg.insert_json5("mode", json.dumps(self.mode))
         else:
             cfg = zenoh.Config()
-            cfg.insert_json5("mode", json.dumps(self.mode))
+            cfg.insert_json5("mode", json.dumps(self.mode or "peer"))
             cfg.insert_json5("scouting/multicast/enabled", "false")
             # A router stamps every sample it relays with its clock and id (~26 B a message) unless told
             # not to; hammer reads no Zenoh timestamp (a receiver dates a message by its arrival), and on
@@ -222,10 +224,10 @@ class TransportConfig(Model):
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         if self.connect or self.zenoh_config_file is None:
             cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
-        if self.zenoh_config_file is None or "reconnect_max_ms" in self.model_fields_set:
-            period = min(RECONNECT["period_init_ms"], self.reconnect_max_ms)
-            cfg.insert_json5("connect/retry", json.dumps({**RECONNECT, "period_init_ms": period,
-                                                          "period_max_ms": self.reconnect_max_ms}))
+        if self.zenoh_config_file is None or self.reconnect_max_ms is not None:
+            most = self.reconnect_max_ms or RECONNECT["period_max_ms"]
+            cfg.insert_json5("connect/retry", json.dumps({**RECONNECT, "period_max_ms": most,
+                                                          "period_init_ms": min(RECONNECT["period_init_ms"], most)}))
         if self.shared_memory is not None:
             cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.lease_ms is not None:

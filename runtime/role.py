@@ -69,7 +69,7 @@ class Role:
         self._last_progress_log = time.monotonic()
         t = session.transport
         self.log.info("%s started: %s, pid %d, run %s, %s listen %s connect %s%s", name, type(self).__name__,
-                      os.getpid(), session.run_id, t.mode, t.listen or "-", t.connect or "-",
+                      os.getpid(), session.run_id, t.mode or "peer", t.listen or "-", t.connect or "-",
                       f", zenoh config {t.zenoh_config_file}" if t.zenoh_config_file else "")
         self.rejected: collections.Counter[str] = collections.Counter()  # refused by this role, by reason
         self.stall_warn_s = stall_warn_s

@@ -5,7 +5,8 @@ decide how the processes talk: where the hub listens, per-hop deadlines, fallbac
 Both are written into the run directory by `hammer up` (config.json, runtime.json) and every
 role reads them from there, so all roles of a run agree by construction.
 
-Imports stay light (protocol only, no pydantic: `protocol.config_model`): the edge agent reads this too.
+Imports stay light (protocol only; the settings are msgspec Structs, `protocol.structs`, no pydantic):
+the edge agent reads this too.
 """
 
 from __future__ import annotations
@@ -16,9 +17,9 @@ import os
 import re
 from dataclasses import asdict
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from hammer.protocol.config_model import ConfigDict, Field, Model, field_validator, model_validator
+import msgspec
 from hammer.protocol.fault_injection import FaultSpec
 from hammer.protocol.session import (
     FLEET_LEASE_MS,
@@ -27,6 +28,16 @@ from hammer.protocol.session import (
     TransportConfig,
     is_loopback_endpoint,
     loopback_endpoint,
+)
+from hammer.protocol.structs import (
+    Meta,
+    Settings,
+    SettingsError,
+    default_of,
+    dump,
+    field_names,
+    parse,
+    replace,
 )
 
 Fallback = Literal["zeros", "last", "last_k"]
@@ -67,187 +78,158 @@ def refuse_plain_beyond_loopback(transport: TransportConfig, secure: bool, insec
                          f"for any agent, publish weights or stop the run; fix: {fix}")
 
 
-class RuntimeSettings(Model):
+class RuntimeSettings(Settings):
     """How the roles of one run talk. Defaults suit one host on loopback."""
 
-    model_config = ConfigDict(extra="forbid")
+    # run id: every key is under hammer/<run_id>/
+    run_id: str
+    # the launcher's Zenoh listen port on 127.0.0.1
+    hub_port: Annotated[int, Meta(ge=0, le=65535)] = 0
+    # Zenoh JSON5 config for multi-machine runs (router/client/TLS); overrides hub_port
+    zenoh_config_file: str | None = None
+    # more endpoints the launcher's hub listens on besides 127.0.0.1:hub_port (`hammer serve --listen`), e.g.
+    # tcp/192.0.2.1:7447, for agents on other machines; the run's own roles keep loopback; beyond loopback it needs
+    # secure=true or insecure=true
+    hub_listen: list[str] = msgspec.field(default_factory=list)
+    # how long a local agent waits for its central message before a fallback
+    msg_deadline_ms: Annotated[float, Meta(gt=0)] = 50.0
+    # how long the env host waits for actions before using default actions
+    act_deadline_ms: Annotated[float, Meta(gt=0)] = 500.0
+    # how long an actor waits for a new policy version
+    weights_timeout_s: Annotated[float, Meta(gt=0)] = 60.0
+    # 0: synchronous on-policy (actors wait for every update; reproduces `hammer train`). 1+: the env host collects
+    # the next rollout with the previous version while the learner updates; the learner corrects with that version's
+    # log-probs and reports the lag
+    max_policy_lag: Annotated[int, Meta(ge=0, le=4)] = 0
+    # message used when it is late: zeros, last, or last_k
+    fallback: Fallback = "zeros"
+    # last_k: reuse the last message for at most k steps, then zeros
+    fallback_k: Annotated[int, Meta(ge=0)] = 3
+    # seeded fault injection on publishes (off when None)
+    faults: FaultSpec | None = None
+    # wait this long for every role to be alive
+    startup_timeout_s: Annotated[float, Meta(gt=0)] = 60.0
+    # train: learn to the budget; eval: run a frozen policy (policy_dir)
+    mode: Mode = "train"
+    # eval: directory with local.safetensors (+ central.safetensors), e.g. RUN/final
+    policy_dir: str | None = None
+    # env host writes trace.npz (obs, messages, actions, masks per step)
+    trace: bool = False
+    # process chaos events, e.g. 'kill:central@step=200'
+    chaos: list[str] = msgspec.field(default_factory=list)
+    # the link-level fault plan (for display)
+    fault_links: list[dict] = msgspec.field(default_factory=list)
+    # continue from this update: the learner loads checkpoints/ckpt_<U>, the env host host_state/ckpt_<U>.json (set by
+    # `hammer up --resume`, never by hand)
+    resume_from: Annotated[int, Meta(ge=0)] | None = None
+    # mutual TLS with per-run identities (RUN/identity/) and per-role access rules (protocol.access); see
+    # docs/security.md
+    secure: bool = False
+    # accept the plain profile beyond loopback (`--insecure`): without it a run whose endpoints reach past this
+    # machine refuses to start unless secure=true
+    insecure: bool = False
+    # secure run whose roles meet through a `hammer hub --run-dir RUN` router (several machines): a `hub` identity is
+    # created and every role accepts what the router relays
+    secure_hub: bool = False
+    # roles `hammer up` does not start (started by hand, e.g. local-2): it waits for their liveliness like any other,
+    # never restarts them
+    external: list[str] = msgspec.field(default_factory=list)
+    # resume: the env host's step counter starts after this, above every step number an earlier session may have used
+    # (step logs are joined to episodes by step)
+    resume_step: Annotated[int, Meta(ge=0)] | None = None
 
-    run_id: str = Field(description="run id: every key is under hammer/<run_id>/")
-    hub_port: int = Field(0, ge=0, le=65535, description="the launcher's Zenoh listen port on 127.0.0.1")
-    zenoh_config_file: str | None = Field(
-        None, description="Zenoh JSON5 config for multi-machine runs (router/client/TLS); overrides hub_port")
-    hub_listen: list[str] = Field(
-        default_factory=list,
-        description="more endpoints the launcher's hub listens on besides 127.0.0.1:hub_port (`hammer serve --listen`), "
-                    "e.g. tcp/192.0.2.1:7447, for agents on other machines; the run's own roles keep loopback; "
-                    "beyond loopback it needs secure=true or insecure=true")
-    msg_deadline_ms: float = Field(
-        50.0, gt=0, description="how long a local agent waits for its central message before a fallback")
-    act_deadline_ms: float = Field(
-        500.0, gt=0, description="how long the env host waits for actions before using default actions")
-    weights_timeout_s: float = Field(60.0, gt=0, description="how long an actor waits for a new policy version")
-    max_policy_lag: int = Field(
-        0, ge=0, le=4,
-        description="0: synchronous on-policy (actors wait for every update; reproduces `hammer train`). "
-                    "1+: the env host collects the next rollout with the previous version while the learner "
-                    "updates; the learner corrects with that version's log-probs and reports the lag")
-    fallback: Fallback = Field("zeros", description="message used when it is late: zeros, last, or last_k")
-    fallback_k: int = Field(3, ge=0, description="last_k: reuse the last message for at most k steps, then zeros")
-    faults: FaultSpec | None = Field(None, description="seeded fault injection on publishes (off when None)")
-    startup_timeout_s: float = Field(60.0, gt=0, description="wait this long for every role to be alive")
-    mode: Mode = Field("train", description="train: learn to the budget; eval: run a frozen policy (policy_dir)")
-    policy_dir: str | None = Field(
-        None, description="eval: directory with local.safetensors (+ central.safetensors), e.g. RUN/final")
-    trace: bool = Field(False, description="env host writes trace.npz (obs, messages, actions, masks per step)")
-    chaos: list[str] = Field(default_factory=list, description="process chaos events, e.g. 'kill:central@step=200'")
-    fault_links: list[dict] = Field(default_factory=list, description="the link-level fault plan (for display)")
-    resume_from: int | None = Field(
-        None, ge=0, description="continue from this update: the learner loads checkpoints/ckpt_<U>, the env host "
-                                "host_state/ckpt_<U>.json (set by `hammer up --resume`, never by hand)")
-    secure: bool = Field(
-        False, description="mutual TLS with per-run identities (RUN/identity/) and per-role access rules "
-                           "(protocol.access); see docs/security.md")
-    insecure: bool = Field(
-        False, description="accept the plain profile beyond loopback (`--insecure`): without it a run whose "
-                           "endpoints reach past this machine refuses to start unless secure=true")
-    secure_hub: bool = Field(
-        False, description="secure run whose roles meet through a `hammer hub --run-dir RUN` router (several "
-                           "machines): a `hub` identity is created and every role accepts what the router relays")
-    external: list[str] = Field(
-        default_factory=list, description="roles `hammer up` does not start (started by hand, e.g. local-2): it waits "
-                                          "for their liveliness like any other, never restarts them")
-    resume_step: int | None = Field(
-        None, ge=0, description="resume: the env host's step counter starts after this, above every step number "
-                                "an earlier session may have used (step logs are joined to episodes by step)")
+    # a role adopts step s only if last < s <= last + step_window (runtime/bounds.py): one message with an absurd step
+    # cannot freeze it
+    step_window: Annotated[int, Meta(ge=1)] = 10_000
+    # a role that made progress and then none for this long logs a WARNING and reports 'stalled' in its heartbeat
+    stall_warn_s: Annotated[float, Meta(gt=0)] = 30.0
+    # the run is reported degraded when default actions or fallback messages exceed this fraction of agent x env-copy
+    # steps
+    degraded_fraction: Annotated[float, Meta(ge=0, le=1)] = 0.05
+    # the run is reported degraded when the roles rejected more messages than this
+    degraded_rejections: Annotated[int, Meta(ge=0)] = 0
+    # the run is reported degraded when a role's liveliness token was gone longer than this at a time (a crashed agent
+    # the launcher restarts is back in a few seconds)
+    max_absence_s: Annotated[float, Meta(gt=0)] = 10.0
+    # disk one process's per-step link log (RUN/linksteps/) may take: beyond half of it the file is rotated and the
+    # one before dropped; episodes that began before the dropped steps get empty link columns in episode_links.csv
+    step_log_max_mb: Annotated[float, Meta(gt=0)] = 64.0
+    # trace=true: disk the env host's trace may take; beyond it the oldest steps are dropped (trace.npz keeps the
+    # latest, its `steps` say which)
+    trace_max_mb: Annotated[float, Meta(gt=0)] = 512.0
+    # Zenoh's lease: a link silent this long is closed and made anew when it returns (None: Zenoh's 10 s; a fleet's
+    # 1.2 s). Within the lease a link that comes back resumes at TCP's next retransmission, which backs off (0.2, 0.6,
+    # 1.4, 3 s ...); past it, the link is opened anew (docs/fleet.md "Recovery")
+    zenoh_lease_s: Annotated[float, Meta(ge=0.5)] | None = None
+    # one attempt to open a link (TCP, TLS, Zenoh's handshake) is given up after this long and tried again (None:
+    # Zenoh's 10 s; a fleet's: 0.5 s, docs/fleet.md)
+    zenoh_open_timeout_s: Annotated[float, Meta(ge=0.1)] | None = None
+    # the longest wait between tries to reach a lost hub or router (from 0.1 s, doubling; None: 0.5 s, a Zenoh config
+    # file's own, a fleet's 0.1 s; Zenoh's own default backs off to 4 s)
+    reconnect_max_s: Annotated[float, Meta(ge=0.1)] | None = None
+    # size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated (<role>.log.1, .2; older ones
+    # are deleted)
+    log_max_mb: Annotated[float, Meta(gt=0)] = 10.0
+    # local agents per process: 1 = one process each (what an edge device runs); k > 1 = pools of k agents, each pool
+    # one process and one event loop (local_agent/pool.py); 0 = from the machine's cores (`hammer up` resolves it:
+    # auto_agents_per_process)
+    agents_per_process: Annotated[int, Meta(ge=0)] = 0
 
-    step_window: int = Field(
-        10_000, ge=1, description="a role adopts step s only if last < s <= last + step_window (runtime/bounds.py): "
-                                  "one message with an absurd step cannot freeze it")
-    stall_warn_s: float = Field(
-        30.0, gt=0, description="a role that made progress and then none for this long logs a WARNING and "
-                                "reports 'stalled' in its heartbeat")
-    degraded_fraction: float = Field(
-        0.05, ge=0, le=1, description="the run is reported degraded when default actions or fallback messages "
-                                      "exceed this fraction of agent x env-copy steps")
-    degraded_rejections: int = Field(
-        0, ge=0, description="the run is reported degraded when the roles rejected more messages than this")
-    max_absence_s: float = Field(
-        10.0, gt=0, description="the run is reported degraded when a role's liveliness token was gone longer than "
-                                "this at a time (a crashed agent the launcher restarts is back in a few seconds)")
-    step_log_max_mb: float = Field(
-        64.0, gt=0, description="disk one process's per-step link log (RUN/linksteps/) may take: beyond half of it "
-                                "the file is rotated and the one before dropped; episodes that began before the "
-                                "dropped steps get empty link columns in episode_links.csv")
-    trace_max_mb: float = Field(
-        512.0, gt=0, description="trace=true: disk the env host's trace may take; beyond it the oldest steps are "
-                                 "dropped (trace.npz keeps the latest, its `steps` say which)")
-    zenoh_lease_s: float | None = Field(
-        None, ge=0.5, description="Zenoh's lease: a link silent this long is closed and made anew when it returns "
-                                  "(None: Zenoh's 10 s; a fleet's 1.2 s). Within the lease a link that comes back "
-                                  "resumes at TCP's next retransmission, which backs off (0.2, 0.6, 1.4, 3 s ...); "
-                                  "past it, the link is opened anew (docs/fleet.md \"Recovery\")")
-    zenoh_open_timeout_s: float | None = Field(
-        None, ge=0.1, description="one attempt to open a link (TCP, TLS, Zenoh's handshake) is given up after this "
-                                  "long and tried again (None: Zenoh's 10 s; a fleet's: 0.5 s, docs/fleet.md)")
-    reconnect_max_s: float = Field(
-        0.5, ge=0.1, description="the longest wait between tries to reach a lost hub or router (from 0.1 s, "
-                                 "doubling; Zenoh's own default backs off to 4 s; a fleet's: 0.1 s)")
-    log_max_mb: float = Field(
-        10.0, gt=0, description="size at which a role's log (RUN/logs/<role>.log) and the launcher's are rotated "
-                                "(<role>.log.1, .2; older ones are deleted)")
-    agents_per_process: int = Field(
-        0, ge=0, description="local agents per process: 1 = one process each (what an edge device runs); k > 1 = "
-                             "pools of k agents, each pool one process and one event loop (local_agent/pool.py); "
-                             "0 = from the machine's cores (`hammer up` resolves it: auto_agents_per_process)")
+    # eval: 0 (default): the policy server publishes each version once and a role that joins late asks for it (a
+    # query, over its own link only); > 0: it also republishes this long after a publish, then twice as long each time
+    weights_republish_s: Annotated[float, Meta(ge=0)] = 0.0
+    # eval: the policy server sends the weights as float16, half the bytes on every link (the agents compute in
+    # float32; how many actions change: docs/deploy.md)
+    weights_float16: bool = False
+    # eval: observations, global states and central messages go on the wire as float16, half their bytes (read as
+    # float32; what it does to the actions: `hammer bench wire BUNDLE`); never in training, whose results must be
+    # float32 exactly
+    wire_float16: bool = False
+    # eval: the longest wait between republishes (the back-off's ceiling); set it to weights_republish_s for a fixed
+    # period
+    weights_republish_max_s: Annotated[float, Meta(gt=0)] = 16.0
 
-    weights_republish_s: float = Field(
-        0.0, ge=0, description="eval: 0 (default): the policy server publishes each version once and a role that "
-                               "joins late asks for it (a query, over its own link only); > 0: it also republishes "
-                               "this long after a publish, then twice as long each time")
-    weights_float16: bool = Field(
-        False, description="eval: the policy server sends the weights as float16, half the bytes on every link "
-                           "(the agents compute in float32; how many actions change: docs/deploy.md)")
-    wire_float16: bool = Field(
-        False, description="eval: observations, global states and central messages go on the wire as float16, "
-                           "half their bytes (read as float32; what it does to the actions: `hammer bench wire "
-                           "BUNDLE`); never in training, whose results must be float32 exactly")
-    weights_republish_max_s: float = Field(
-        16.0, gt=0, description="eval: the longest wait between republishes (the back-off's ceiling); set it to "
-                                "weights_republish_s for a fixed period")
+    # eval: a pushed version reaches each local agent in chunks of this many bytes, each asked for by the agent once
+    # per step, before its action (one outstanding per agent), so at most one chunk sits ahead of a link's step
+    # traffic (512 B: 16 ms of a 256 kbit/s link; 1024 B left a few messages late there, docs/deploy.md); 0: the whole
+    # weights are published at once
+    weights_chunk_bytes: Annotated[int, Meta(ge=0, le=65536)] = 512
+    # eval: the env host names a pushed version once every agent it is for holds it, or after this long regardless
+    # (counted as push_named_unheld, logged)
+    weights_name_timeout_s: Annotated[float, Meta(gt=0)] = 20.0
 
-    weights_chunk_bytes: int = Field(
-        512, ge=0, le=65536,
-        description="eval: a pushed version reaches each local agent in chunks of this many bytes, each asked for by "
-                    "the agent once per step, before its action (one outstanding per agent), so at most one chunk sits "
-                    "ahead of a link's step traffic (512 B: 16 ms of a 256 kbit/s link; 1024 B left a few messages "
-                    "late there, docs/deploy.md); 0: the whole weights are published at once")
-    weights_name_timeout_s: float = Field(
-        20.0, gt=0, description="eval: the env host names a pushed version once every agent it is for holds it, or "
-                                "after this long regardless (counted as push_named_unheld, logged)")
-
-    @field_validator("weights_chunk_bytes")
-    @classmethod
-    def _chunk_bytes(cls, v: int) -> int:
-        if 0 < v < 64:
-            raise ValueError(f"weights_chunk_bytes={v}: a chunk of under 64 B costs more in headers than it carries; "
-                             "fix: 64..65536 (512 suits a 256 kbit/s link), or 0 to publish whole weights")
-        return v
-
-    @model_validator(mode="after")
-    def _eval_needs_policy(self) -> RuntimeSettings:
+    def check(self) -> None:
+        if 0 < self.weights_chunk_bytes < 64:
+            raise ValueError(f"weights_chunk_bytes={self.weights_chunk_bytes}: a chunk of under 64 B costs more in "
+                             "headers than it carries; fix: 64..65536 (512 suits a 256 kbit/s link), or 0 to publish "
+                             "whole weights")
+        for e in self.hub_listen:
+            try:
+                TransportConfig(listen=[e])
+            except ValueError:
+                raise ValueError(f"hub_listen: {e!r} is not an endpoint; fix: give one like tcp/192.0.2.1:7447 "
+                                 "(this machine's address the agents reach, and a port)") from None
         if self.mode == "eval" and not self.policy_dir:
             raise ValueError("mode=eval needs policy_dir: the directory holding local.safetensors (e.g. RUN/final)")
-        return self
-
-    @model_validator(mode="after")
-    def _float16_only_serving(self) -> RuntimeSettings:
         if self.wire_float16 and self.mode != "eval":
             raise ValueError("wire_float16=true is for serving (mode=eval): a training run must see float32 exactly")
-        return self
-
-    @model_validator(mode="after")
-    def _secure_or_insecure(self) -> RuntimeSettings:
         if self.secure and self.insecure:
             raise ValueError("secure=true and insecure=true contradict each other: pass one of --secure, --insecure")
-        return self
+        if self.hub_listen and self.zenoh_config_file:
+            raise ValueError("hub_listen (--listen) and zenoh_config_file: the Zenoh config decides where the hub "
+                             "listens; fix: pass one of them")
+        if self.secure_hub and not self.secure:
+            raise ValueError("secure_hub=true needs secure=true (it adds the router's identity to a secure run)")
+        if (self.resume_from is None) != (self.resume_step is None):
+            raise ValueError("resume_from and resume_step go together (both set by `hammer up --resume`)")
+        if self.resume_from is not None and self.mode != "train":
+            raise ValueError("resume_from: only a training run (mode=train) can be resumed")
 
     def refuse_plain_beyond_loopback(self, transport: TransportConfig, insecure: bool = False,
                                      fix: str = PLAIN_FIX) -> None:
         """Raise ValueError (one line) when `transport` reaches past this machine in the plain profile
         and neither this run nor the command (`insecure`) accepted that (CockroachDB's convention)."""
         refuse_plain_beyond_loopback(transport, self.secure, self.insecure or insecure, fix)
-
-    @field_validator("hub_listen")
-    @classmethod
-    def _hub_listen_endpoints(cls, v: list[str]) -> list[str]:
-        for e in v:
-            try:
-                TransportConfig(listen=[e])
-            except ValueError:
-                raise ValueError(f"hub_listen: {e!r} is not an endpoint; fix: give one like tcp/192.0.2.1:7447 "
-                                 "(this machine's address the agents reach, and a port)") from None
-        return v
-
-    @model_validator(mode="after")
-    def _one_hub_config(self) -> RuntimeSettings:
-        if self.hub_listen and self.zenoh_config_file:
-            raise ValueError("hub_listen (--listen) and zenoh_config_file: the Zenoh config decides where the hub "
-                             "listens; fix: pass one of them")
-        return self
-
-    @model_validator(mode="after")
-    def _hub_is_secure(self) -> RuntimeSettings:
-        if self.secure_hub and not self.secure:
-            raise ValueError("secure_hub=true needs secure=true (it adds the router's identity to a secure run)")
-        return self
-
-    @model_validator(mode="after")
-    def _resume_is_complete(self) -> RuntimeSettings:
-        if (self.resume_from is None) != (self.resume_step is None):
-            raise ValueError("resume_from and resume_step go together (both set by `hammer up --resume`)")
-        if self.resume_from is not None and self.mode != "train":
-            raise ValueError("resume_from: only a training run (mode=train) can be resumed")
-        return self
 
     def agent_groups(self, n_agents: int) -> list[list[int]]:
         """The local agents of each local-agent process `hammer up` starts, in order: chunks of
@@ -268,7 +250,7 @@ class RuntimeSettings(Model):
     def link(self, transport: TransportConfig, fleet: bool = False) -> TransportConfig:
         """`transport` with this run's lease, open timeout and reconnect period (`zenoh_lease_s`,
         `zenoh_open_timeout_s`, `reconnect_max_s`); a Zenoh config file keeps its own retry periods
-        unless `reconnect_max_s` is set here. `fleet`: a fleet's link, whose unset lease, open timeout
+        unless `reconnect_max_s` is set here (unset: 0.5 s). `fleet`: a fleet's link, whose unset lease, open timeout
         and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS,
         FLEET_RECONNECT_MAX_MS)."""
         update: dict = {}
@@ -280,17 +262,17 @@ class RuntimeSettings(Model):
             update["open_timeout_ms"] = round(self.zenoh_open_timeout_s * 1000)
         elif fleet:
             update["open_timeout_ms"] = FLEET_OPEN_TIMEOUT_MS
-        if fleet and "reconnect_max_s" not in self.model_fields_set:
-            update["reconnect_max_ms"] = FLEET_RECONNECT_MAX_MS
-        elif "reconnect_max_s" in self.model_fields_set or transport.zenoh_config_file is None:
+        if self.reconnect_max_s is not None:
             update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
-        return TransportConfig.model_validate({**transport.model_dump(exclude_unset=True), **update})
+        elif fleet:
+            update["reconnect_max_ms"] = FLEET_RECONNECT_MAX_MS
+        return replace(transport, **update)
 
     def transport(self) -> TransportConfig:
         """Each role is a peer connecting to the hub; peers then meet directly (gossip), so the
         step loop has no extra router hop."""
         if self.zenoh_config_file:
-            return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
+            return self.link(TransportConfig(zenoh_config_file=self.zenoh_config_file))
         return self.link(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(self.hub_port)]))
 
     def transport_to(self, connect: str, client: bool = False) -> TransportConfig:
@@ -310,7 +292,7 @@ class RuntimeSettings(Model):
 
     def hub_transport(self) -> TransportConfig:
         if self.zenoh_config_file:
-            return self.link(TransportConfig(zenoh_config_file=Path(self.zenoh_config_file)))
+            return self.link(TransportConfig(zenoh_config_file=self.zenoh_config_file))
         return self.link(TransportConfig(listen=[loopback_endpoint(self.hub_port), *self.hub_listen]))
 
     @property
@@ -332,27 +314,25 @@ class RuntimeSettings(Model):
         from hammer.protocol.keys import Keys
 
         where = identity_directory if identity_directory is not None else identity_dir(run_dir)
-        return transport.model_copy(update={
-            "listen": [tls_endpoint(e) for e in transport.listen],
-            "connect": [tls_endpoint(e) for e in transport.connect],
-            "security": secure_link(where, role, Keys(self.run_id), n_agents, self.pools(n_agents),
-                                    router=self.secure_hub)})
+        return replace(transport, listen=[tls_endpoint(e) for e in transport.listen],
+                       connect=[tls_endpoint(e) for e in transport.connect],
+                       security=secure_link(where, role, Keys(self.run_id), n_agents, self.pools(n_agents),
+                                            router=self.secure_hub))
 
     def save(self, run_dir: Path) -> None:
         # `secure`, `secure_hub`, `external` and the bounds are written only when set: a default runtime.json is what it always was.
-        fields = type(self).model_fields
         exclude = {f for f in ("secure", "secure_hub", "external", "hub_listen", *_BOUNDS)
-                   if getattr(self, f) == fields[f].get_default(call_default_factory=True)}
+                   if getattr(self, f) == default_of(type(self), f)}
         if self.agents_per_process <= 1:  # one agent per process: what a runtime.json without it means
             exclude.add("agents_per_process")
-        (Path(run_dir) / "runtime.json").write_text(self.model_dump_json(indent=1, exclude=exclude))
+        (Path(run_dir) / "runtime.json").write_text(json.dumps(dump(self, exclude), indent=1, ensure_ascii=False))
 
     @classmethod
     def load(cls, run_dir: Path) -> RuntimeSettings:
         path = Path(run_dir) / "runtime.json"
         if not path.is_file():
             raise FileNotFoundError(f"{path} is missing: start roles with `hammer up`, or pass --run-dir of a run it made")
-        return cls.model_validate(json.loads(path.read_text()))
+        return parse(cls, json.loads(path.read_text()))
 
 
 def runtime_items(items, flag: str = "--runtime") -> dict:
@@ -374,24 +354,18 @@ def runtime_items(items, flag: str = "--runtime") -> dict:
 
 
 def settings_error(err: Exception, flag: str = "--runtime") -> str:
-    """A RuntimeSettings validation error as one line naming each field, with did-you-mean for typos."""
+    """A RuntimeSettings validation error as one line naming the field, with did-you-mean for typos."""
     import difflib
 
-    from hammer.protocol.config_model import ValidationError
-
-    if not isinstance(err, ValidationError):
+    if not isinstance(err, SettingsError):
         return f"{flag}: {' '.join(str(err).split())}"
-    parts = []
-    for e in err.errors(include_url=False):
-        field = ".".join(str(x) for x in e["loc"]) or "settings"
-        if e["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(e["loc"][0]), RuntimeSettings.model_fields, n=1)
-            hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(RuntimeSettings.model_fields)}"
-            parts.append(f"{flag} {field}: unknown field; fix: {hint}")
-        else:
-            got = f" (got {e['input']!r})" if e["loc"] and "input" in e else ""
-            parts.append(f"{flag} {field}: {e['msg'].removeprefix('Value error, ')}{got}")
-    return "; ".join(parts)
+    fields = field_names(RuntimeSettings)
+    if err.kind == "unknown":
+        close = difflib.get_close_matches(err.field, fields, n=1)
+        hint = f"did you mean '{close[0]}'?" if close else f"valid fields: {', '.join(fields)}"
+        return f"{flag} {err.field}: unknown field; fix: {hint}"
+    got = f" (got {err.value!r})" if err.value is not None else ""
+    return f"{flag} {err.field or 'settings'}: {err.msg}{got}"
 
 
 def build_settings(base: dict, items=(), *, fixed: dict | None = None, flag: str = "--runtime") -> RuntimeSettings:
@@ -399,7 +373,7 @@ def build_settings(base: dict, items=(), *, fixed: dict | None = None, flag: str
     decided), then the `--runtime` items over it, then `fixed` (what no item may change here).
     ValueError with one line naming each bad field."""
     try:
-        return RuntimeSettings.model_validate({**base, **runtime_items(items, flag), **(fixed or {})})
+        return parse(RuntimeSettings, {**base, **runtime_items(items, flag), **(fixed or {})})
     except ValueError as e:
         raise ValueError(settings_error(e, flag)) from None
 

@@ -29,6 +29,8 @@ import re
 import time
 from pathlib import Path
 
+from hammer.protocol.structs import replace
+
 DEFAULT_CONNECT_RETRY_S = 300.0  # an agent started long before its server is a configuration mistake
 WAIT_LOG_EVERY_S = 10.0
 GONE_WAIT_S = 15.0  # after a stop: the longest wait for the stopped session's roles to go (they exit within ~10 s)
@@ -110,7 +112,7 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
         # A hub on this host: stay on loopback. No Zenoh shared memory: its pool is mapped (and counted
         # in the RSS) as soon as a peer on the same host sends a large message, and a robot's peers are
         # on other machines; a --zenoh-config file decides for itself.
-        transport = settings.transport_to(connect, client).model_copy(update={"shared_memory": False})
+        transport = replace(settings.transport_to(connect, client), shared_memory=False)
     if settings.secure and identity is None:
         raise ValueError("a secure run (secure=true): pass --identity DIR with ca.pem, "
                          f"{role}.pem and {role}.key from the launcher's RUN/identity/")
@@ -125,7 +127,8 @@ def edge_transport(settings, role: str, n_agents: int, connect: str | None, zeno
     if missing:
         raise ValueError(f"--identity {identity}: {', '.join(p.name for p in missing)} missing; fix: copy them "
                          "from the launcher's RUN/identity/")
-    return settings.model_copy(update={"secure": True, "secure_hub": settings.secure_hub or client}).secured(
+    # the identity makes this agent's link secure, whatever a plain run's settings accepted (insecure)
+    return replace(settings, secure=True, insecure=False, secure_hub=settings.secure_hub or client).secured(
         transport, role, None, n_agents, identity_directory=identity)
 
 

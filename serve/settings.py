@@ -13,6 +13,7 @@ def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_se
     --insecure). Raises ValueError with a one-line reason."""
     from hammer.faults.chaos import parse_chaos
     from hammer.faults.spec import build_plan
+    from hammer.protocol.structs import dump
     from hammer.runtime.settings import build_settings
 
     plan = build_plan(fault, fault_seed)
@@ -22,7 +23,7 @@ def serve_settings(bundle, run_id: str, fault: list[str] | None = None, fault_se
     rt = {"run_id": run_id.replace("_", "-")[:64], "mode": "eval", "policy_dir": str(bundle.policy_dir),
           "fallback": fb.get("mode", "zeros"), "fallback_k": fb.get("k", 3), "chaos": chaos or []}
     if plan.links:
-        rt.update(faults=plan.to_spec(), fault_links=[lf.model_dump() for lf in plan.links])
+        rt.update(faults=plan.to_spec(), fault_links=[dump(lf) for lf in plan.links])
     if listen:
         rt["hub_listen"] = list(listen)
     return build_settings(rt, runtime, fixed=fixed), plan

@@ -75,15 +75,15 @@ bundle, settings = sys.argv[1:3]
 parser().parse_args(["--bundle", bundle, "--agent", "0"])
 s, t, spec, k = edge_inputs(Path(bundle), 0, None, "tcp/127.0.0.1:7447", None, None, settings_file=Path(settings),
                             runtime=["fallback_k=5", "msg_deadline_ms=20"])
-assert s.faults.enabled and s.fallback_k == 5 and t.model_fields_set >= {"connect"}
+assert s.faults.enabled and s.fallback_k == 5 and t.connect == ["tcp/127.0.0.1:7447"]
 print(json.dumps({"importers": sorted(importers), "loaded": "pydantic" in sys.modules}))
 """
 
 
 def test_the_edge_agents_settings_load_no_pydantic(team, tmp_path):
     """RuntimeSettings, TransportConfig, FaultSpec, the link faults: the edge agent reads them (runtime.json with
-    faults, --runtime items) through protocol/config_model.py and the wire messages are msgspec Structs: no module
-    of the edge path imports pydantic (its memory and start time: docs/deploy.md "Footprint")."""
+    faults, --runtime items) as msgspec Structs (protocol/structs.py), like the wire messages: no module of the
+    edge path imports pydantic (its memory and start time: docs/deploy.md "Footprint")."""
     import json
 
     bundle, _ = team

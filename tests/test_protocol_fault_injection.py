@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 import pytest
-from hammer.protocol.config_model import ValidationError
 from hammer.protocol.fault_injection import FaultInjector, FaultRule, FaultSpec, key_matches
 from hammer.protocol.schemas import LocalObs
 from hammer.protocol.session import HammerSession, TransportConfig
+from hammer.protocol.structs import SettingsError, parse
 
 
 def _run(spec: FaultSpec, n: int, key: str = "agent/act/0", pace_s: float = 0.0
@@ -97,9 +97,9 @@ def test_key_matching_and_rule_validation():
     assert key_matches("**/act/*", "agent/act/1") and not key_matches("central/**", "agent/act/1")
     for bad in [{"drop": 1.5}, {"duplicate": -0.1}, {"delay_ms": -1}, {"match": "a//b"},
                 {"match": "a/b*"}, {"reorder_window": 0}, {"unknown": 1}]:
-        with pytest.raises(ValidationError):
-            FaultRule(**bad)
-    with pytest.raises(ValidationError, match="less than or equal to 1"):
+        with pytest.raises(SettingsError):
+            parse(FaultRule, bad)
+    with pytest.raises(SettingsError, match="drop: should be a number <= 1"):
         FaultRule(drop=2)
     assert not FaultSpec().enabled and not FaultSpec(rules=[FaultRule()]).enabled
     assert FaultSpec(rules=[FaultRule(drop=0.1)]).enabled

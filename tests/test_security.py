@@ -9,6 +9,7 @@ import stat
 import time
 from pathlib import Path
 
+import msgspec
 import pytest
 from hammer.protocol.access import access_control, grants, role_names, secure_link
 from hammer.protocol.identity import create_identities, identity_of
@@ -287,7 +288,7 @@ def test_stranger_over_tls_without_a_certificate_is_refused(team, idents):
             cfg.insert_json5("transport/link/tls", json.dumps(cfg_ca))
             return cfg
 
-    _probe_stranger(team, NoCert(**bare.model_dump()))
+    _probe_stranger(team, NoCert(**msgspec.structs.asdict(bare)))
 
 
 def test_certificate_from_another_ca_is_refused(team, other_ca):

@@ -33,7 +33,6 @@ SPAWNS_MODULES = {
 # Single tests that start processes in modules that otherwise do not (torch.compile runs a C++ compiler:
 # test_fused_acting and test_learning_compile are whole modules above).
 SPAWNS_TESTS = {
-    "test_config_model::test_the_config_models_import_no_pydantic",
     "test_docs_help::test_a_misspelled_config_field_points_at_help_that_lists_every_field",
     "test_docs_help::test_both_entry_points_send_local_bundle_to_the_one_edge_parser",
     "test_docs_help::test_hammer_local_help_lists_every_option_of_the_edge_agent",
@@ -59,6 +58,7 @@ SPAWNS_TESTS = {
     "test_seed_batch::test_sweep_batches_points_that_differ_only_in_seed",
     "test_serve_pace::test_a_push_is_pulled_in_a_secure_run",
     "test_serve_pace::test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout",
+    "test_settings_structs::test_the_settings_import_no_pydantic",
 }
 
 LEARNS_MODULES = {"test_trainer_learning"}

@@ -18,6 +18,7 @@ from typing import Annotated
 import typer
 
 from hammer.commands.common import ConnectOpt, RunDirOpt, ZenohCfgOpt, fail
+from hammer.protocol.structs import replace
 from hammer.runtime.bounds import known_step, known_version
 from hammer.runtime.process import setup_process
 from hammer.runtime.settings import read_env_spec
@@ -30,7 +31,7 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
 
     s = RuntimeSettings.load(run_dir)
     if zenoh_config is not None:
-        s = s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
+        s = replace(s, zenoh_config_file=str(zenoh_config))
     transport = s.transport_to(connect) if connect is not None and zenoh_config is None else s.transport()
     if s.secure:
         transport = s.secured(transport, role, run_dir, _read_config(run_dir).n_agents)
@@ -143,7 +144,7 @@ def _read_settings(run_dir: Path, zenoh_config: Path | None):
     from hammer.runtime.settings import RuntimeSettings
 
     s = RuntimeSettings.load(run_dir)
-    return s if zenoh_config is None else s.model_copy(update={"zenoh_config_file": str(zenoh_config)})
+    return s if zenoh_config is None else replace(s, zenoh_config_file=str(zenoh_config))
 
 
 def _local_transport(settings, run_dir: Path, connect: str | None, zenoh_config: Path | None,

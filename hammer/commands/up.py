@@ -102,6 +102,8 @@ def up_command(
                                                "episodes": episodes, "out": out})
     except ValueError as e:  # ConfigError, FaultSpecError, ChaosSpecError, a bad --runtime item: one line
         fail(str(e))
+    from hammer.protocol.structs import dump
+
     cfg, settings, path, plan = p.cfg, p.settings, p.run_dir, p.faults
     console.print(f"run dir: {path}")
     if plan.links:
@@ -109,7 +111,7 @@ def up_command(
             console.print(f"fault: {lf.describe()} (seed {plan.seed})")
     elif settings.faults is not None and settings.faults.enabled:
         for r in settings.faults.rules:
-            console.print(f"fault rule: {r.model_dump()}")
+            console.print(f"fault rule: {dump(r)}")
     for c in settings.chaos:
         console.print(f"chaos: {c}")
     run_up(cfg, settings, path, dashboard, console, view=view, view_token=view_token)
