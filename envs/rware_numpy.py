@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 from hammer.envs.base import EnvSpec, EpisodeTracker, VecEnv, VecStep
-from hammer.envs.rware_vec import RwareSettings
+from hammer.envs.rware_vec import RwareSettings, warehouse_step
 
 # rware's Direction order: UP, DOWN, LEFT, RIGHT
 DX = np.array([0, 0, -1, 1], dtype=np.int64)
@@ -203,15 +203,7 @@ class NumpyRwareVecEnv(VecEnv):
                 self._reset_copy(int(k), None)  # unseeded: this copy's own stream goes on
             self._grids()
             self._observe(self._obs)
-        truncated = np.repeat(done[:, None], n, axis=1)
-        terminated = np.zeros((k_, n), dtype=bool)
-        active = np.ones((k_, n), dtype=bool)
-        episodes = self.tracker.record(reward, active, done)
-        if self.index_offset:
-            episodes = [type(e)(e.env_index + self.index_offset, e.paper_metric, e.team_return, e.length)
-                        for e in episodes]
-        return VecStep(obs=self._obs.copy(), reward=reward, terminated=terminated, truncated=truncated,
-                       active=active, next_active=active.copy(), final_obs=final_obs, done=done, episodes=episodes)
+        return warehouse_step(self.tracker, self.index_offset, self._obs, reward, done, final_obs)
 
     # ---- one step of rware on every copy ------------------------------------------------------
     def _advance(self, acts: np.ndarray) -> np.ndarray:

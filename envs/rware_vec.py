@@ -205,15 +205,7 @@ class RwareVecEnv(VecEnv):
                 done[k] = True
                 obs, _ = env.reset()  # unseeded: this copy's own stream goes on
                 self._write(k, obs)
-        truncated = np.repeat(done[:, None], n, axis=1)
-        terminated = np.zeros((k_, n), dtype=bool)
-        active = np.ones((k_, n), dtype=bool)
-        episodes = self.tracker.record(reward, active, done)
-        if self.index_offset:
-            episodes = [type(e)(e.env_index + self.index_offset, e.paper_metric, e.team_return, e.length)
-                        for e in episodes]
-        return VecStep(obs=self._obs.copy(), reward=reward, terminated=terminated, truncated=truncated,
-                       active=active, next_active=active.copy(), final_obs=final_obs, done=done, episodes=episodes)
+        return warehouse_step(self.tracker, self.index_offset, self._obs, reward, done, final_obs)
 
 
 def installed_settings(desc: EnvDescription) -> RwareSettings:
@@ -226,3 +218,17 @@ def installed_settings(desc: EnvDescription) -> RwareSettings:
         raise EnvConfigError(f"env {desc.name!r}: the rware package is not installed ({e}); fix: "
                              "pip install 'hammer-marl[train]' (or pip install rware==2.0.0 --no-deps networkx)") from e
     return settings_from(desc)
+
+
+def warehouse_step(tracker: EpisodeTracker, index_offset: int, obs: np.ndarray, reward: np.ndarray,
+                   done: np.ndarray, final_obs: np.ndarray) -> VecStep:
+    """A warehouse step's result, either implementation: every robot always active, an episode's end
+    only ever rware's time limit (truncated, never terminated); episode indices shifted by the offset."""
+    k_, n = reward.shape
+    truncated = np.repeat(done[:, None], n, axis=1)
+    active = np.ones((k_, n), dtype=bool)
+    episodes = tracker.record(reward, active, done)
+    if index_offset:
+        episodes = [type(e)(e.env_index + index_offset, e.paper_metric, e.team_return, e.length) for e in episodes]
+    return VecStep(obs=obs.copy(), reward=reward, terminated=np.zeros((k_, n), dtype=bool), truncated=truncated,
+                   active=active, next_active=active.copy(), final_obs=final_obs, done=done, episodes=episodes)

@@ -153,22 +153,17 @@ def run_picture(root: Path, d: Path) -> dict:
 
 
 def read_series(d: Path, limit: int = MAX_SERIES_LINES) -> list[dict]:
-    try:
-        lines = (d / SERIES_FILE).read_text().splitlines()[-limit:]
-    except OSError:
-        return []
-    out = []
-    for line in lines:
-        try:
-            out.append(json.loads(line))
-        except ValueError:
-            continue  # a line being written
-    return out
+    return _read_jsonl(d / SERIES_FILE, limit)
 
 
 def read_events(d: Path, limit: int = 500) -> list[dict]:
+    return _read_jsonl(d / EVENTS_FILE, limit)
+
+
+def _read_jsonl(path: Path, limit: int) -> list[dict]:
+    """The last `limit` lines of a JSON-lines file the launcher appends to; a line being written is skipped."""
     try:
-        lines = (d / EVENTS_FILE).read_text().splitlines()[-limit:]
+        lines = path.read_text().splitlines()[-limit:]
     except OSError:
         return []
     out = []
