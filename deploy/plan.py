@@ -120,7 +120,8 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
                run_dir: Path | None = None, secure: bool = False, insecure: bool = False,
                listen: list[str] | None = None, num_envs: int | None = None, timeline: Path | None = None,
                site: Path | None = None):
-    """What `hammer serve BUNDLE --realtime HZ` will run: (FleetPlan, run directory, external robots),
+    """What `hammer serve BUNDLE --realtime HZ` will run: (FleetPlan, run directory, external robots,
+    the loaded bundle),
     its `--runtime` items applied (the bounds to the plan, the rest checked as the fleet's
     RuntimeSettings) and the router's port fixed (the robots' commands name it). Raises ValueError
     (BundleError) with one line for what does not apply to a fleet or is malformed; writes nothing."""
@@ -148,8 +149,9 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
             raise ValueError(f"--runtime {key}: a fleet's router is set by --listen (and --secure); "
                              "fix: leave it out")
     plan.check()
-    fleet_settings(load_bundle(bundle), plan, path.name)  # a bad --runtime value: one line, before anything
-    return plan, path, robots
+    team = load_bundle(bundle)
+    fleet_settings(team, plan, path.name)  # a bad --runtime value: one line, before anything
+    return plan, path, robots, team
 
 
 def listen_endpoints(listen: list[str] | None) -> list[str]:

@@ -188,18 +188,15 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
     from hammer.deploy.dashboard import fleet_status_line
     from hammer.deploy.fleet import robot_command, run_fleet
+    from hammer.deploy.live import LiveRun
     from hammer.deploy.plan import plan_fleet
     from hammer.serve.bundle import BundleError
 
     try:
-        plan, path, robots = plan_fleet(bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault,
-                                        chaos=chaos, runtime=runtime, external=external, out=out, run_dir=run_dir,
-                                        secure=secure, insecure=insecure, listen=listen, num_envs=num_envs,
-                                        timeline=timeline, site=site)
-        from hammer.deploy.live import LiveRun
-        from hammer.serve.bundle import load_bundle
-
-        team = load_bundle(bundle)
+        plan, path, robots, team = plan_fleet(
+            bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault, chaos=chaos, runtime=runtime,
+            external=external, out=out, run_dir=run_dir, secure=secure, insecure=insecure, listen=listen,
+            num_envs=num_envs, timeline=timeline, site=site)
         roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
         # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
         watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
