@@ -56,6 +56,7 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 # flushes: the loop floor of many agents falls, that of three does not (`hammer bench loop-floor`,
 # figures in docs/scale.md). Shorter bursts stay express.
 BATCH_MIN = 5
+CALLBACK_RELEASE_S = 2.0  # how long close() waits for Zenoh to let go of this session's callbacks
 DECLARED_KEYS_ENV = "HAMMER_DECLARED_KEYS"  # a directory: each session writes the keys it declared there at close
 
 
@@ -634,6 +635,10 @@ class HammerSession:
         self._subs: list[Any] = []
         self._tokens: list[Any] = []
         self._queryables: list[Any] = []
+        # One event per callback handed to Zenoh, set when Zenoh releases it. close() waits for them:
+        # a Zenoh thread that calls into Python after the interpreter has begun to finalize aborts
+        # the process ("FATAL: exception not rethrown"), so no callback may outlive the session.
+        self._released: list[threading.Event] = []
         self._lock = threading.Lock()
         # What this session declared: (publish | subscribe | query | answer | alive | watch, key expression).
         # With HAMMER_DECLARED_KEYS=DIR each session writes it to DIR at close: an audit of what a run's
@@ -677,6 +682,19 @@ class HammerSession:
         self._publishers.clear()
         self._z.close()
         self._z = None
+        deadline = time.monotonic() + CALLBACK_RELEASE_S
+        for released in self._released:
+            if not released.wait(max(deadline - time.monotonic(), 0.0)):
+                log.warning("a Zenoh callback was still held %.0f s after the session closed", CALLBACK_RELEASE_S)
+                break
+        self._released.clear()
+
+    def _handler(self, callback: Callable[[Any], None]) -> zenoh.handlers.Callback:
+        """`callback` as Zenoh's handler, with the event close() waits for when Zenoh lets it go."""
+        released = threading.Event()
+        self._released = [e for e in self._released if not e.is_set()]
+        self._released.append(released)
+        return zenoh.handlers.Callback(callback, released.set)
 
     def _write_declared(self) -> None:
         directory = os.environ.get(DECLARED_KEYS_ENV)
@@ -744,7 +762,7 @@ class HammerSession:
         inbox: deliver into that shared queue (`Inbox.get`) instead of this subscription's own."""
         sub = Subscription(self._own(key_expr), expected, dims, self.run_id, maxsize, max_bytes, inbox)
         self.declared.add(("subscribe", key_expr))
-        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, self._handler(sub._on_sample))
         self._subs.append(sub)
         return sub
 
@@ -753,7 +771,7 @@ class HammerSession:
         """The newest valid message of each key on `key_expr` with its arrival time (`take()`)."""
         sub = LatestSubscription(self._own(key_expr), expected, dims, self.run_id, max_bytes)
         self.declared.add(("subscribe", key_expr))
-        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, self._handler(sub._on_sample))
         self._subs.append(sub)
         return sub
 
@@ -780,7 +798,7 @@ class HammerSession:
                 if msg is not None:
                     query.reply(key, pub.stamped(msg)[1])
 
-        self._queryables.append(self.zenoh.declare_queryable(self._own(key), on_query))
+        self._queryables.append(self.zenoh.declare_queryable(self._own(key), self._handler(on_query)))
 
     def fetch(self, key: str, into: Subscription, timeout: float = 2.0, parameters: str = "") -> None:
         """Ask whoever answers `key` for its current message; returns at once. Each reply goes through
@@ -794,12 +812,13 @@ class HammerSession:
                 into._on_sample(ok)
 
         self.declared.add(("query", key))
-        self.zenoh.get(self._own(key) + (f"?{parameters}" if parameters else ""), on_reply, timeout=timeout)
+        self.zenoh.get(self._own(key) + (f"?{parameters}" if parameters else ""), self._handler(on_reply),
+                       timeout=timeout)
 
     def subscribe_raw(self, key_expr: str, *, maxsize: int = QUEUE_DEPTH) -> RawSubscription:
         sub = RawSubscription(self._own(key_expr), maxsize)
         self.declared.add(("subscribe", key_expr))
-        sub._zsub = self.zenoh.declare_subscriber(key_expr, sub._on_sample)
+        sub._zsub = self.zenoh.declare_subscriber(key_expr, self._handler(sub._on_sample))
         self._subs.append(sub)
         return sub
 
@@ -818,7 +837,7 @@ class HammerSession:
         watch = LivelinessWatch(self.keys)
         self.declared.add(("watch", self.keys.alive("**")))
         watch._zsub = self.zenoh.liveliness().declare_subscriber(
-            self.keys.alive("**"), watch._on_sample, history=history
+            self.keys.alive("**"), self._handler(watch._on_sample), history=history
         )
         self._subs.append(watch)
         return watch

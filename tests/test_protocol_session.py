@@ -250,3 +250,20 @@ def test_a_session_opted_into_float16_halves_observations_and_messages_only(pair
     with pytest.raises(ValueError, match="wire_float16"):
         RuntimeSettings(run_id="r", wire_float16=True)
     assert RuntimeSettings(run_id="r", mode="eval", policy_dir="p", wire_float16=True).wire_float16
+
+
+def test_close_returns_only_once_zenoh_has_let_go_of_every_callback(pair):
+    """A Zenoh thread calling a Python callback while the interpreter finalizes aborts the process
+    ("FATAL: exception not rethrown", a robot's exit code -6): close() waits until Zenoh has released
+    every callback the session gave it, a query still waiting for its answer included."""
+    a, b = pair
+    a.answer(a.keys.bench("quiet"), lambda: None)  # answers nothing: the query stays open until closed
+    sub = b.subscribe(b.keys.bench("quiet"))
+    b.watch_alive()
+    _settle()
+    b.fetch(b.keys.bench("quiet"), sub, timeout=30.0)
+    held = list(b._released)
+    assert len(held) == 3 and not any(e.is_set() for e in held)  # subscriber, watch and the open query
+    t0 = time.monotonic()
+    b.close()
+    assert time.monotonic() - t0 < 2.0 and all(e.is_set() for e in held)
