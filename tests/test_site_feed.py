@@ -1,0 +1,231 @@
+"""The site feed: what a fleet's central agent sees that no robot observes (a warehouse's requested
+shelves and goals), from the site (serve/site_feed.py, `hammer.site.SiteFeed`; docs/fleet.md "The site
+feed"). Real Zenoh on 127.0.0.1, a real trained rware team exported with `hammer export`, real rware
+rows, real processes for the fleets. What is asserted is where each column of the central agent's
+state came from, the silent rule (held, then zeros, named) and who may publish the feed."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from hammer.central_agent.fleet import FleetCentral
+from hammer.protocol import codec
+from hammer.protocol.binding import check_key
+from hammer.protocol.dims import Dims
+from hammer.protocol.errors import KeyMismatchError, NonFiniteError, ProtocolError
+from hammer.protocol.fields import HEADER_BYTES
+from hammer.protocol.schemas import SiteState, Uplink
+from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
+from hammer.serve.bundle import CENTRAL, export_bundle, load_bundle
+from hammer.serve.edge_agent import EdgeAgent
+
+from hammer.site import SiteFeed
+from tests.runtime_helpers import ENV, ROOT, trained_run
+
+pytestmark = pytest.mark.timeout(240)
+RUN = "site-feed"
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    """A briefly trained rware-tiny-2ag team (backprop: its messages are the central network's mean,
+    deterministic), exported as `hammer export` does."""
+    d = tmp_path_factory.mktemp("warehouse")
+    trained_run(d / "run", ("episodes=8", "env_kwargs.max_steps=100", "num_envs=4", "rollout_steps=50",
+                            "central_mode=backprop", "seed=3"), preset="rware-tiny-2ag")
+    return export_bundle(d / "run", d / "bundle").path
+
+
+def _wait(cond, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _rows(b) -> np.ndarray:
+    """Real rware rows of the team's warehouse after a few random steps: (N, D)."""
+    from hammer.learning.run_env import make_env
+
+    cfg = b.config(num_envs=1)
+    with make_env(cfg) as env:
+        obs, _ = env.reset(11)
+        rng = np.random.default_rng(0)
+        for _ in range(5):
+            obs = env.step(rng.integers(0, 5, (1, cfg.n_agents))).obs
+    return obs[0]
+
+
+def test_a_site_state_is_typed_capped_and_bound_to_its_key(bundle):
+    b = load_bundle(bundle)
+    d, local = b.env_spec_data["obs_dim"], b.env_spec_data["local_obs_dim"]
+    c = SiteFeed.columns(bundle)
+    assert c == d - local > 0
+    cols = _rows(b)[0, local:][None]
+    msg = SiteState(step=3, env_idx=np.zeros(1, np.int64), cols=cols)
+    back = codec.decode(codec.encode(msg), SiteState, Dims(num_envs=1, site_dim=c))
+    assert np.array_equal(back.cols, cols) and back.step == 3
+    with pytest.raises(ProtocolError, match="site_dim"):  # another team's width: refused, named
+        codec.decode(codec.encode(msg), SiteState, Dims(num_envs=1, site_dim=c + 1))
+    with pytest.raises(NonFiniteError):
+        SiteState(env_idx=np.zeros(1, np.int64), cols=np.full((1, c), np.nan, np.float32))
+    # the size a receiver that declares the feed's width refuses beyond, before decoding
+    assert SiteState.cap_for_dims(Dims(num_envs=1, site_dim=c)) == HEADER_BYTES + 8 + 4 * c
+    # bound to its key: only the site's, and nothing else on a robot's key
+    check_key(SiteState(env_idx=np.zeros(1, np.int64), cols=cols), "site/state")
+    with pytest.raises(KeyMismatchError, match="sender"):
+        check_key(SiteState(env_idx=np.zeros(1, np.int64), cols=cols, sender="local-1"), "site/state")
+    with pytest.raises(KeyMismatchError, match="type"):
+        check_key(SiteState(env_idx=np.zeros(1, np.int64), cols=cols), "agent/up/1")
+    with pytest.raises(KeyMismatchError, match="type"):
+        check_key(Uplink(env_idx=np.zeros(1, np.int64), agent=1, obs=np.zeros((1, d), np.float32)), "site/state")
+
+
+@contextlib.contextmanager
+def _central_agent(port: int, b, bundle, site_hold_s: float):
+    """A fleet's central agent (50 Hz, no world: its own clock) in a thread, with a session of its own."""
+    s = HammerSession(RUN, TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)]),
+                      sender="central")
+    with s:
+        central = FleetCentral(s, b.config(num_envs=1), b.env_spec(), (bundle / CENTRAL).read_bytes(), hz=50,
+                               missing_after_s=2.0, site_hold_s=site_hold_s)
+        t = threading.Thread(target=central.run, daemon=True)
+        t.start()
+        try:
+            yield central
+        finally:
+            central.stop_reason = "test over"
+            t.join(5)
+        assert not t.is_alive()
+
+
+def test_the_central_agent_composes_its_state_from_the_robots_and_the_feed_then_holds_then_zeros(bundle, caplog):
+    """Two robots on the SDK uplink their own columns only (L floats), the site feed (the SDK) the rest:
+    the central agent's rows are the warehouse's rows exactly. The feed stops: held for site_hold_s,
+    then zeros (logged, counted: the messages then differ), and back when it is."""
+    caplog.set_level(logging.INFO)
+    b = load_bundle(bundle)
+    local = b.env_spec_data["local_obs_dim"]
+    rows = _rows(b)
+    port = free_loopback_port()
+    with HammerSession(RUN, TransportConfig(listen=[loopback_endpoint(port)]), sender="hub"), \
+            _central_agent(port, b, bundle, site_hold_s=0.4) as central:
+        robots = [EdgeAgent(bundle, i, run_id=RUN, connect=loopback_endpoint(port), wait=True) for i in range(2)]
+        with SiteFeed(bundle, run_id=RUN, connect=loopback_endpoint(port), wait=True) as site, \
+                robots[0], robots[1]:
+            with pytest.raises(ValueError, match=f"state: expected {SiteFeed.columns(bundle)} finite floats"):
+                site.publish(np.zeros(3))
+            with pytest.raises(ValueError, match="NaN"):
+                site.publish(np.full(SiteFeed.columns(bundle), np.nan))
+
+            def feed_and_act() -> None:
+                site.publish(rows[0, local:])
+                for i, r in enumerate(robots):
+                    r.act(rows[i, :local])  # a robot's own columns only: it never sees the rest
+
+            assert _wait(lambda: (feed_and_act(), np.array_equal(central.obs[0], rows))[1]), \
+                "the central agent's rows are not the robots' columns plus the feed's"
+            assert central.site_presence.present[0] and central.site_presence.leaves == 0
+            silent_before = central.site_silent_ticks  # ticks before the feed was first heard: zeros too
+            with_feed = central.net.message_mean(central.acting.global_state(central.obs.copy(), central.prev))
+
+            # the feed goes silent, the robots go on: held for site_hold_s, then zeros in every row
+            stopped = time.monotonic()
+            assert _wait(lambda: ([r.act(rows[i, :local]) for i, r in enumerate(robots)],
+                                  not central.site_presence.present[0])[1])
+            assert time.monotonic() - stopped >= 0.3  # held first (site_hold_s 0.4)
+            assert _wait(lambda: (central.obs[0, :, local:] == 0).all() and central.site_silent_ticks > silent_before)
+            assert np.array_equal(central.obs[0, :, :local], rows[:, :local])  # the robots' own columns stay
+            without = central.net.message_mean(central.acting.global_state(central.obs.copy(), central.prev))
+            assert not np.allclose(with_feed, without)  # the feed is what the messages are made from
+            counters = central.counters()
+            assert counters["site_silences"] == 1 and counters["site.joined"] == 1
+            assert counters["site.absent_max_s"] >= 0
+            # back: the feed's columns again
+            assert _wait(lambda: (feed_and_act(), np.array_equal(central.obs[0], rows))[1])
+            assert central.site_presence.rejoins == 1
+    text = caplog.text
+    assert "site missing: nothing from it" in text and "the site feed is silent" in text
+    assert re.search(r"site rejoined after [\d.]+ s silent", text)
+
+
+def test_a_warehouse_team_runs_as_a_fleet_with_the_world_as_its_site(bundle, tmp_path):
+    """`hammer serve BUNDLE --realtime 20` on an exported rware team: the world, the central agent and
+    one `hammer local --bundle ... --fleet` per robot; the world publishes the feed as the site, the
+    central agent takes it, nothing is degraded."""
+    run = tmp_path / "fleet"
+    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "serve", str(bundle), "--realtime", "20",
+                        "--seconds", "8", "--run-dir", str(run), "--runtime", "site_hold_s=2"],
+                       cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=180, check=False)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    s = json.loads((run / "summary.json").read_text())
+    assert s["completed"] and not s["degraded"], s["degraded_reasons"]
+    site = s["site"]
+    assert site["published_by_world"] > 100 and site["states"] > 100 and not site["never_heard"], site
+    assert site["silences"] == 0, site
+    assert all(rb["fresh"] > 0 and rb["msg_fresh"] > 0 for rb in s["robots"].values()), s["robots"]
+    plan = json.loads((run / "fleet.json").read_text())
+    assert plan["plan"]["site_hold_s"] == 2 and "--site-hold-s 2.0" in plan["commands"]["central"]
+    assert "local-0" in plan["commands"] and "--fleet" in plan["commands"]["local-0"]
+
+
+def _docs_block() -> tuple[str, str]:
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    section = text[text.index("## The site feed"):]
+    code = re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
+    command = re.search(r"`(hammer serve bundles/lib-rware --realtime [^`]*)`", section).group(1)
+    return code, command
+
+
+def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
+    """docs/fleet.md's site feed block, as it stands (only the port made free), against the command it
+    names (`--external-site`: the site is the block), from a folder of the user's own; then SIGTERM to
+    `hammer serve`: the summary's site has the block's states."""
+    code, command = _docs_block()
+    port = str(free_loopback_port())
+    shutil.copytree(bundle, tmp_path / "bundles" / "lib-rware")
+    serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
+                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        central_log = tmp_path / "runs" / "site-w" / "logs" / "central.log"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "central alive" not in (
+                central_log.read_text() if central_log.is_file() else ""):
+            assert serve.poll() is None, "hammer serve exited before its central agent was up"
+            time.sleep(0.1)
+        r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=tmp_path, env=ENV,
+                           capture_output=True, text=True, timeout=120, check=False)
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.stdout.split() == ["60"]
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        out = serve.communicate(timeout=60)[0].decode()
+    assert serve.returncode == 0, out[-2000:]
+    assert "waiting for the site feed: hammer.site.SiteFeed('bundles/lib-rware'" in out, out[-2000:]
+    s = json.loads((tmp_path / "runs" / "site-w" / "summary.json").read_text())
+    assert s["interrupted"] and s["site"]["states"] > 0 and not s["site"]["never_heard"], s["site"]
+    assert s["site"]["published_by_world"] is None  # the world did not publish it: the block did
+
+
+def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle, tmp_path):
+    """`--external-site` with nobody publishing: the fleet runs, the central agent's state has zeros in
+    the site's columns all along, and the verdict says so by name."""
+    from hammer.deploy.fleet import FleetPlan, run_fleet
+
+    s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=4, site_external=True), tmp_path / "nobody")
+    assert s["completed"] and s["site"]["never_heard"] and s["site"]["states"] == 0, s["site"]
+    assert s["site"]["silent_ticks"] > 0
+    assert any(r.startswith("the site feed never reached the central agent") for r in s["degraded_reasons"]), s
