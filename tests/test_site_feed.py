@@ -229,3 +229,68 @@ def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle
     assert s["completed"] and s["site"]["never_heard"] and s["site"]["states"] == 0, s["site"]
     assert s["site"]["silent_ticks"] > 0
     assert any(r.startswith("the site feed never reached the central agent") for r in s["degraded_reasons"]), s
+
+
+def test_only_the_site_may_publish_the_feed_in_a_secure_fleet_not_a_stolen_robot_key(bundle, tmp_path):
+    """`hammer serve --realtime --secure --external-site`: the launcher makes the `site` identity, and
+    the access rules let only it publish `site/state`. A thief with robot 1's stolen identity floods
+    forged site states on `site/state` (dropped by the rules: the central agent never takes one) and
+    on robot 1's own uplink key (refused there, named in the verdict as a holder of local-1's key);
+    then the real site, with its own identity, reaches the central agent."""
+    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.protocol.identity import identity_dir
+    from hammer.protocol.schemas import CentralMsg
+    from hammer.runtime.settings import RuntimeSettings
+
+    n, c = 2, SiteFeed.columns(bundle)
+    run = tmp_path / "fleet-secure"
+    plan = FleetPlan(bundle=bundle, hz=20, seconds=20, secure=True, site_external=True, max_absence_s=60)
+    seen: dict[str, dict] = {}
+    out = {"forged": 0}
+
+    def watch(board, t: float) -> None:
+        central = board.heartbeats.get("central")
+        if central is not None:
+            seen["central"] = dict(central.counters)
+
+    def attack_then_site() -> None:  # the launcher takes the main thread (it handles SIGTERM)
+        assert _wait(lambda: (run / "fleet.json").is_file(), 60), "the fleet did not start"
+        hub = json.loads((run / "fleet.json").read_text())["hub"]
+        connect = "tcp/" + hub.split("/", 1)[1]
+        stolen = RuntimeSettings(run_id=run.name, secure=True, secure_hub=True).secured(
+            TransportConfig(mode="client", connect=[connect]), "local-1", None, n,
+            identity_directory=identity_dir(run))
+        forged = SiteState(env_idx=np.zeros(1, np.int64), cols=np.full((1, c), 7.0, np.float32))
+        with HammerSession(run.name, stolen, sender="local-1") as s:
+            k = s.keys
+            msgs = s.subscribe(k.msg(1), CentralMsg)  # robot 1's: the stolen key does its robot's job
+            feed, own = s.publisher(k.site_state(), block=False), s.publisher(k.up(1), block=False)
+            assert _wait(lambda: bool(msgs.drain()), 60), "the central agent never served robot 1"
+            end = time.monotonic() + 4
+            while time.monotonic() < end:
+                feed.publish(forged)
+                own.publish(forged)
+                out["forged"] += 1
+                time.sleep(0.02)
+        time.sleep(2.5)  # a heartbeat of the central agent after the last forgery
+        out["central_after_thief"] = dict(seen.get("central", {}))
+        with SiteFeed(bundle, run_id=run.name, connect=connect, identity=identity_dir(run), wait=True) as site:
+            end = time.monotonic() + 4
+            while time.monotonic() < end:
+                site.publish(np.zeros(c, np.float32))
+                time.sleep(0.05)
+            out["real"] = site.counts["published"]
+
+    t = threading.Thread(target=attack_then_site, daemon=True)
+    t.start()
+    s = run_fleet(plan, run, on_tick=watch)
+    t.join(30)
+    assert (identity_dir(run) / "site.pem").is_file() and (identity_dir(run) / "site.key").is_file()
+    assert out["forged"] > 100 and out["real"] > 40, out
+    before = out["central_after_thief"]
+    assert before.get("site_states", -1) == 0 and before.get("site.joined") == 0, before  # no forgery taken
+    site = s["site"]
+    assert site["states"] > 0 and not site["never_heard"], site  # the real site's, after
+    # the forgeries on robot 1's own key were refused there, and named as a holder of local-1's key
+    assert sum(s["rejected_on"]["local-1"]["central"].values()) > 0, s["rejected_on"]
+    assert any("refused on local-1's own keys" in r and "stolen" in r for r in s["degraded_reasons"]), s
