@@ -294,3 +294,71 @@ def test_only_the_site_may_publish_the_feed_in_a_secure_fleet_not_a_stolen_robot
     # the forgeries on robot 1's own key were refused there, and named as a holder of local-1's key
     assert sum(s["rejected_on"]["local-1"]["central"].values()) > 0, s["rejected_on"]
     assert any("refused on local-1's own keys" in r and "stolen" in r for r in s["degraded_reasons"]), s
+
+
+def test_training_simulates_the_feed_s_absence_as_it_simulates_a_missing_robot():
+    """site_missing_prob: in windows of missing_window steps the central agent's state has zeros in
+    the site's columns of every row (the fleet's silent rule), decided by a hash as a robot's absence
+    is; the robots' absences are the same with or without it; 0 (the default) changes nothing; an env
+    without a site feed refuses it in one line."""
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.central_acting import CentralActing
+    from hammer.learning.config import ConfigError, merge_config
+    from hammer.learning.team import Team
+
+    over = ["num_envs=4", "missing_prob=0.2", "missing_window=5"]
+    cfg = merge_config("rware-tiny-2ag", overrides=[*over, "site_missing_prob=0.3"])
+    plain = CentralActing.from_config(merge_config("rware-tiny-2ag", overrides=over))
+    acting = CentralActing.from_config(cfg)
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs)
+    spec = env.spec
+    local = spec.local_obs_dim
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(16, 2, spec.obs_dim)).astype(np.float32)
+    prev = rng.normal(size=(16, 2, spec.action_dim)).astype(np.float32)
+    idx = np.arange(16)
+    there = np.stack([acting.training_site_presence(s, idx) for s in range(1, 1001)])
+    assert 0.27 < 1 - there.mean() < 0.33 and (there[:5] == there[0]).all() and (there[5:10] == there[5]).all()
+    for step in (1, 6, 11, 16):
+        state = acting.training_state(obs, prev, step, idx, local)
+        rows = state[:, :2 * spec.obs_dim].reshape(16, 2, spec.obs_dim)
+        robots = acting.training_presence(step, idx)
+        assert np.array_equal(robots, plain.training_presence(step, idx))  # the robots' absences unchanged
+        gone = ~there[step - 1]
+        assert (rows[gone][:, :, local:] == 0).all()
+        both = ~gone[:, None] & robots
+        assert np.array_equal(rows[both], obs[both])  # the feed there, the robot there: the row as is
+        # the default: exactly what it was
+        assert np.array_equal(plain.training_state(obs, prev, step, idx, local),
+                              plain.global_state(obs, prev, plain.training_presence(step, idx)))
+    assert plain.training_site_presence(3, idx) is None
+    with pytest.raises(ConfigError, match="site_missing_prob: .* has no site feed"):
+        cn = merge_config("cn3", overrides=["site_missing_prob=0.1"])
+        Team(cn, make_vec_env(cn.env, cn.n_agents, 1, env_kwargs=cn.env_kwargs).spec)
+
+
+def test_hammer_up_reproduces_hammer_train_with_the_feed_s_absences(tmp_path):
+    """The trainer, `hammer up`'s central server and its learner (which rebuilds the states it trains
+    on) take the same feed away at the same steps: the same episodes and the same weights."""
+    from safetensors.numpy import load as load_safetensors
+
+    common = ["--preset", "rware-tiny-2ag", "--central-mode", "rl", "--episodes", "8",
+              "--set", "env_kwargs.max_steps=100", "--set", "num_envs=4", "--set", "rollout_steps=50",
+              "--set", "site_missing_prob=0.4", "--set", "missing_window=10"]
+    up, tr = tmp_path / "up", tmp_path / "train"
+
+    def hammer(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "hammer.cli", *args], cwd=ROOT, env=ENV, capture_output=True,
+                              text=True, timeout=600, check=False)
+
+    r = hammer("up", *common, "--run-dir", str(up), "--no-dashboard", "--runtime", "msg_deadline_ms=5000",
+               "--runtime", "act_deadline_ms=10000")
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = hammer("train", *common, "--variant", "hammer", "--run-dir", str(tr), "--quiet")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tr / "config.json").read_text())["site_missing_prob"] == 0.4
+    for part in ("local", "central"):
+        wa = load_safetensors((up / "final" / f"{part}.safetensors").read_bytes())
+        wb = load_safetensors((tr / "final" / f"{part}.safetensors").read_bytes())
+        for key in wa:
+            np.testing.assert_array_equal(wa[key], wb[key], err_msg=f"{part}/{key}")
