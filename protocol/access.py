@@ -29,12 +29,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hammer.protocol.identity import Identity
+from hammer.protocol.identity import SITE_FEED, Identity
 from hammer.protocol.keys import Keys
 
 LAUNCHER = "launcher"
 HUB = "hub"  # the `hammer hub` router of a secure multi-machine run: relays the run's traffic
-SITE = "site"  # a fleet's site feed: what the central agent sees that no robot observes (docs/fleet.md)
+SITE = SITE_FEED  # a fleet's site feed: what the central agent sees that no robot observes (docs/fleet.md)
 
 
 @dataclass(frozen=True)

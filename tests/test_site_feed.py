@@ -362,3 +362,30 @@ def test_hammer_up_reproduces_hammer_train_with_the_feed_s_absences(tmp_path):
         wb = load_safetensors((tr / "final" / f"{part}.safetensors").read_bytes())
         for key in wa:
             np.testing.assert_array_equal(wa[key], wb[key], err_msg=f"{part}/{key}")
+
+
+def test_a_site_issues_the_feed_a_kept_identity_as_it_does_a_robot(tmp_path):
+    """`hammer site issue DIR site`: the site feed's identity is kept like a robot's (an external
+    warehouse management system keeps its files across fleet restarts); without one, the fleet makes
+    the feed's certificate anew from the site CA (the world publishes it); a revoked one is dropped
+    from the trust; the fleet's own roles are still not issued."""
+    from hammer.protocol.identity import SiteError, init_site, issue_robot, revoke_robot, site_run_identities
+
+    site = init_site(tmp_path / "site")
+    run_ids = tmp_path / "run-ids"
+    site_run_identities(site, run_ids, ["env", "central", "site"])
+    made = (run_ids / "site.pem").read_bytes()
+    ident = issue_robot(site, "site")
+    kept = ident.cert.read_bytes()
+    assert ident.cert == site / "robots" / "site" / "site.pem" and kept != made
+    issuer = (site / "robots" / "site" / "issuer.pem").read_bytes()
+    assert issuer in (site / "trust.pem").read_bytes()
+    site_run_identities(site, run_ids, ["env", "central", "site"])  # a restart: the kept files, as they are
+    assert (run_ids / "site.pem").read_bytes() == kept
+    assert (run_ids / "site.key").read_bytes() == (site / "robots" / "site" / "site.key").read_bytes()
+    revoke_robot(site, "site")
+    assert issuer not in (site / "trust.pem").read_bytes()
+    site_run_identities(site, run_ids, ["env", "central", "site"])
+    assert (run_ids / "site.pem").read_bytes() != kept
+    with pytest.raises(SiteError, match="site feed's, site"):
+        issue_robot(site, "central")
