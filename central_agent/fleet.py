@@ -100,8 +100,11 @@ class FleetCentral(Role):
         self.uplinked = np.full(self.n, -np.inf)  # when each robot's latest uplink arrived
         self.missing_after_s = missing_after_s
         self.presence = Presence([f"local-{i}" for i in range(self.n)], missing_after_s, self.log)
+        # a robot of a team with a site feed uplinks its own columns [0, L) only (local_obs_dim)
+        local = spec.local_obs_dim if spec.local_obs_dim not in (None, spec.obs_dim) else None
+        self.up_dim = local or spec.obs_dim
         self.uplinks = session.subscribe_latest(
-            self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
+            self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=self.up_dim,
                                             action_dim=spec.action_dim, discrete=spec.discrete))
         self.states = session.subscribe_latest(
             self.keys.state(), GlobalState, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
@@ -211,7 +214,7 @@ class FleetCentral(Role):
 
     def take_uplinks(self) -> None:
         for up, t in self.uplinks.take():
-            self.obs[0, up.agent] = up.obs[0]
+            self.obs[0, up.agent, :self.up_dim] = up.obs[0]
             if up.action is not None:
                 self.prev[0, up.agent] = encode_actions(self.spec, up.action[None], np.ones((1, 1), bool))[0, 0]
             self.uplinked[up.agent] = t

@@ -24,8 +24,9 @@ The site (docs/fleet.md, "The site feed"): a team whose rows have central-only c
 (rware's requested shelves and goals) has them from the site, not from any robot. So the world
 publishes them as the site does (`site`: an object with `publish(cols)`, the site feed SDK
 `serve/site_feed.SiteFeed` on its own session and identity, which the world command opens) at every
-tick before the state, and those columns are zeros in what it sends the robots and the central
-agent: the central agent composes its state from the robots' rows and the feed, as with a real site.
+tick before the state; a robot's observation holds its own columns [0, L) only (the site's would be
+zeros: bytes on its link for nothing), and the state's rows have zeros there: the central agent
+composes its state from the robots' rows and the feed, as with a real site.
 
 What it measures is what a fleet is judged by: per robot, the actions that arrived (its control
 rate) and their age when applied; the ticks it overran; the episodes' paper metric. `timeline`: a
@@ -223,10 +224,11 @@ class RealtimeWorld(Role):
         if self.site is not None:  # first: the central agent composes this tick's state with it
             self.site_published += bool(self.site.publish(self.site_cols))
         msgs = self.central_messages(tick) if self.state_pub is not None else [None] * self.n
+        width = self.local_dim or self.spec.obs_dim  # a team with a site feed: a robot's own columns only
         for i, pub in enumerate(self.obs_pubs):
             pub.publish(LocalObs(step=tick, env_idx=self.env_idx, agent=i,
-                                 obs=np.ascontiguousarray(self.obs[:, i]), active=np.ascontiguousarray(self.active[:, i]),
-                                 msg=msgs[i]))
+                                 obs=np.ascontiguousarray(self.obs[:, i, :width]),
+                                 active=np.ascontiguousarray(self.active[:, i]), msg=msgs[i]))
 
     def central_messages(self, tick: int) -> list[np.ndarray | None]:
         """The state of `tick` to the central agent, then its message for each robot, waiting for them

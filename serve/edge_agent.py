@@ -102,6 +102,7 @@ class EdgeAgent:
         self.obs_dim = int(env["obs_dim"])
         cols = site_columns(env)
         self.local_dim = None if cols is None else cols[0]  # the robot's own columns; the rest: the site feed's
+        self.row_dim = self.obs_dim if cols is None else cols[0]  # what crosses the robot's link: its own columns
         self.low, self.high = env.get("action_low"), env.get("action_high")
         self.core = LocalAgent(self.spec)
         self._bundle_blob = (b.path / LOCAL).read_bytes()
@@ -224,22 +225,28 @@ class EdgeAgent:
         if o.shape[0] not in sizes or not np.isfinite(o).all():
             raise ValueError(f"obs: expected {' or '.join(map(str, sizes))} finite floats, got shape {np.shape(obs)}"
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
-        if self.local_dim is not None:  # the rest of the row is the site feed's, never the robot's (zeros, as trained)
-            row = np.zeros(self.obs_dim, np.float32)
-            row[:self.local_dim] = o[:self.local_dim]
-            o = row
-        o = o[None]
+        o = o[None, :self.row_dim]
         self._uplink(o)
-        return self._decide(o)
+        return self._decide(self._row(o))
+
+    def _row(self, o: np.ndarray) -> np.ndarray:
+        """(1, D): the robot's own columns, and zeros where a team with a site feed has the site's
+        columns (the robot never sees them; its policy was trained on them zeroed)."""
+        if self.local_dim is None:
+            return o
+        row = np.zeros((1, self.obs_dim), np.float32)
+        row[:, :self.local_dim] = o[:, :self.local_dim]
+        return row
 
     def act_on_world(self, obs: np.ndarray, msg: np.ndarray | None, arrived: float) -> np.ndarray:
-        """The action for a simulated fleet's observation (1, D), `msg` (1, M) the central message it
-        carried (None: none came with it), both arrived at `arrived` (time.monotonic()): a message
-        held like one from `central/msg/<i>`; no uplink (the world holds what it would say)."""
+        """The action for a simulated fleet's observation (1, D; a team with a site feed: the robot's own
+        (1, L)), `msg` (1, M) the central message it carried (None: none came with it), both arrived at
+        `arrived` (time.monotonic()): a message held like one from `central/msg/<i>`; no uplink (the
+        world holds what it would say)."""
         if msg is not None:
             self._msg, self._msg_t = msg, arrived
             self.counts.msgs_received += 1
-        return self._decide(obs)
+        return self._decide(self._row(obs))
 
     def _decide(self, o: np.ndarray) -> np.ndarray:
         msg = self.last_msg = self.message()
@@ -384,7 +391,7 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
             super().__init__(agent.session, agent.name)
             keys = agent.session.keys
             self.sensors = agent.session.subscribe_latest(keys.obs(agent.agent), LocalObs,
-                                                          Dims(num_envs=1, obs_dim=agent.obs_dim,
+                                                          Dims(num_envs=1, obs_dim=agent.row_dim,
                                                                msg_dim=agent.spec.msg_dim))
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"
