@@ -94,9 +94,10 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
         if site_feed and cfg.wiring.uses_central and site_columns(b.env_spec_data) is not None:
             from hammer.serve.site_feed import SiteFeed
 
+            # open before the world's first state (the router is up before the roles): no state without it
             feed = SiteFeed(bundle, run_id=run_id, connect=connect, zenoh_config=zenoh_config, identity=identity,
-                            insecure=insecure, runtime=tuple(runtime or ()))
-    except (FileNotFoundError, ValueError) as e:
+                            insecure=insecure, runtime=tuple(runtime or ()), wait=True, connect_retry_s=60)
+    except (FileNotFoundError, ValueError, ConnectionError) as e:
         fail(str(e))
     world = None
     try:
