@@ -25,8 +25,7 @@ import numpy as np
 
 def measure(bundle: Path, run: Path, cut_at: float, cut_s: float, seconds: float, hz: float = 20.0) -> dict:
     from hammer.deploy.fleet import FleetPlan, run_fleet
-
-    from hammer.site import SiteFeed
+    from hammer.serve.site_feed import SiteFeed
 
     c = SiteFeed.columns(bundle)
     sent = {"published": 0}
@@ -52,7 +51,7 @@ def measure(bundle: Path, run: Path, cut_at: float, cut_s: float, seconds: float
     load = os.getloadavg()[0]
     s = run_fleet(FleetPlan(bundle=bundle, hz=hz, seconds=seconds, site_external=True), run)
     log = (run / "logs" / "central.log").read_text(errors="replace").splitlines()
-    return {"site": s["site"], "degraded_reasons": s["degraded_reasons"], "cut_at_s": cut_at, "cut_s": cut_s,
+    return {"site": s["site"], "site_published": sent["published"], "degraded_reasons": s["degraded_reasons"], "cut_at_s": cut_at, "cut_s": cut_s,
             "control_hz": {k: r["control_hz"] for k, r in s["robots"].items()}, "load_1min": round(load, 2),
             "central_log": [line for line in log if "site" in line and ("missing" in line or "rejoined" in line
                                                                           or "silent" in line)]}
