@@ -306,14 +306,17 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
 
 def information_bytes(bundle: Path) -> int:
     """What one control step must carry on a robot's link at the least: its observation up, the
-    central message down (float32 each), its action (one byte for a discrete one, float32 each else)."""
+    central message down (float32 each), its action (one byte for a discrete one, float32 each else).
+    A team with a site feed: the robot's own columns only (the rest is the site's, not on its link)."""
     from hammer.serve.bundle import load_bundle
+    from hammer.serve.edge_agent import site_columns
 
     b = load_bundle(bundle)
     env = b.env_spec_data
     msg_dim = int(b.config().msg_dim) if b.wiring().uses_central else 0
     act = 1 if env.get("discrete", True) and env.get("action_low") is None else 4 * int(env["action_dim"])
-    return 4 * int(env["obs_dim"]) + 4 * msg_dim + act
+    cols = site_columns(env)
+    return 4 * (int(env["obs_dim"]) if cols is None else cols[0]) + 4 * msg_dim + act
 
 
 def run_trials(bundle: Path, work: Path, trials: list[tuple[str, float, int]], *, hz: float = 20.0,
@@ -380,7 +383,9 @@ def _short(summary: dict) -> dict:
             "msgs": {k: w.get(k) for k in ("msgs_attached", "msgs_late", "msgs_missed")},
             "latency_ms": {k: {f: r.get(f) for f in ("step_to_action_ms_p50", "step_to_action_ms_p99",
                                                      "msg_age_p50_ms", "msg_age_p99_ms")}
-                           for k, r in summary.get("robots", {}).items()}}
+                           for k, r in summary.get("robots", {}).items()},
+            # a team with a site feed (docs/fleet.md "The site feed"): what the central agent took of it
+            "site": summary.get("site")}
 
 
 def trial_ok(t: dict) -> bool:
