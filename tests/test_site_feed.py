@@ -389,3 +389,16 @@ def test_a_site_issues_the_feed_a_kept_identity_as_it_does_a_robot(tmp_path):
     assert (run_ids / "site.pem").read_bytes() != kept
     with pytest.raises(SiteError, match="site feed's, site"):
         issue_robot(site, "central")
+
+
+def test_an_il_warehouse_team_runs_as_a_fleet_without_a_feed(tmp_path):
+    """Variant il has no central agent, so no one needs the site's columns: the fleet runs with no feed
+    (no `site` in the summary), each robot on its own columns."""
+    from hammer.deploy.fleet import FleetPlan, run_fleet
+
+    trained_run(tmp_path / "run", ("episodes=4", "env_kwargs.max_steps=100", "num_envs=4", "rollout_steps=50",
+                                   "variant=il"), preset="rware-tiny-2ag")
+    bundle = export_bundle(tmp_path / "run", tmp_path / "bundle").path
+    s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=4), tmp_path / "fleet")
+    assert s["completed"] and not s["degraded"] and s["site"] is None, s["degraded_reasons"]
+    assert all(r["fresh"] > 0 for r in s["robots"].values()), s["robots"]
