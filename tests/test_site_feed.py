@@ -402,3 +402,29 @@ def test_an_il_warehouse_team_runs_as_a_fleet_without_a_feed(tmp_path):
     s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=4), tmp_path / "fleet")
     assert s["completed"] and not s["degraded"] and s["site"] is None, s["degraded_reasons"]
     assert all(r["fresh"] > 0 for r in s["robots"].values()), s["robots"]
+
+
+def test_the_feed_s_own_link_cut_across_namespaces_and_restored(bundle, tmp_path):
+    """`hammer bench fleet --trials site:3`: a secure warehouse fleet on a LAN of namespaces, the site
+    (`hammer.site.SiteFeed`, its copy of its identity) in a namespace of its own; its switch port down
+    3 s. The central agent loses the feed (held, then zeros: a silence counted) and takes it again
+    within the recovery contract once the port is back; no robot is cut."""
+    from tests.runtime_helpers import netns_reason
+
+    reason = netns_reason(("ip",))
+    if reason:
+        pytest.skip(reason)
+    from hammer.benchmarks.fleet import CONTRACT, run_trials, trial_line
+    from hammer.benchmarks.netns import NetnsUnavailable
+
+    try:
+        r = run_trials(bundle, tmp_path, [("site", 3.0, 1)], hz=20, secure=True, results=tmp_path / "trials.jsonl",
+                       progress=lambda line: None)
+    except NetnsUnavailable as e:
+        pytest.skip(str(e))
+    (t,) = r["trials"]
+    assert t["kind"] == "site" and t["cut"] == ["site"], t
+    assert not t["stranded"] and t["back_max_s"] <= CONTRACT["back_s"], trial_line(t)
+    site = r["fleets"][0]["summary"]["site"]
+    assert site["silences"] >= 1 and site["longest_silence_s"] >= 2.0 and site["states"] > 0, site
+    assert site["published_by_world"] is None  # the namespace's site published it, not the world
