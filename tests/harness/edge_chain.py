@@ -19,8 +19,9 @@ Every step is the real CLI (a fresh process each):
   6. a warehouse fleet: a rware-tiny-2ag team (--warehouse RUN, or `hammer train` of
      --warehouse-episodes, default 8; 0 skips it) exported and served as a secure fleet
      (`hammer serve --realtime 20 --secure`, the world publishing its site feed as the site), each
-     robot `hammer local --bundle --fleet` from the edge venv in its own namespace; robot 0's link and
-     the hub's cut and restored (benchmarks.fleet.run_trials); the site feed's figures in its summary
+     robot `hammer local --bundle --fleet` from the edge venv in its own namespace and the site feed
+     (`hammer.site.SiteFeed`, the warehouse's layout at reset) in its own; robot 0's link and the
+     feed's link cut and restored (benchmarks.fleet.run_trials); the site feed's figures in its summary
 Writes WORK/chain.json (every figure) and prints it.
 """
 
@@ -58,13 +59,13 @@ def train_team(run_dir: Path, seed: int, episodes: int, sets: tuple[str, ...] = 
 
 def warehouse_fleet(work: Path, run: Path, edge_python: Path) -> dict:
     """Step 6: the warehouse team `run` exported and run as a secure fleet with its site feed across
-    namespaces, robot 0's port and the hub cut 2 s each (the trials of `hammer bench fleet`)."""
+    namespaces, robot 0's port cut 2 s and the site feed's 3 s (the trials of `hammer bench fleet`)."""
     from hammer.benchmarks.fleet import run_trials
 
     bundle = work / "bundle-warehouse"
     export = hammer("export", str(run), "--out", str(bundle), "--force")
     (work / "warehouse-trials.jsonl").unlink(missing_ok=True)
-    r = run_trials(bundle, work / "warehouse", [("port", 2.0, 1), ("hub", 2.0, 1)], edge_python=edge_python,
+    r = run_trials(bundle, work / "warehouse", [("port", 2.0, 1), ("site", 3.0, 1)], edge_python=edge_python,
                    results=work / "warehouse-trials.jsonl", bytes_s=10.0, progress=lambda _: None)
     return {"run": str(run), "export": export, **r}
 
@@ -166,7 +167,7 @@ def summary_lines(report: dict, work: Path) -> list[str]:
         trials = "; ".join(f"{t['kind']} {t['seconds']:g} s cut: back in {t['back_max_s']} s, healthy "
                            f"{t['healthy_min_fraction']} of rate" for t in wh["trials"])
         link = wh.get("link") or {}
-        lines.append(f"warehouse fleet (secure, site feed from the world): {trials}; site feed states taken "
+        lines.append(f"warehouse fleet (secure, its site feed from a namespace of its own): {trials}; feed states taken "
                      f"{site.get('states')}, silences {site.get('silences')}; robot 0's link "
                      f"{link.get('bytes_per_step')} B, {link.get('packets_per_step')} packets per step")
     lines.append(f"every figure: {work / 'chain.json'}")
