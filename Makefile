@@ -149,6 +149,8 @@ snapshot: $(LINKS)
 	$(H) sweep $(G_RWARE_PILOT) --snapshot
 	$(H) sweep $(call G_RWARE_CMP) --snapshot
 	$(H) sweep $(call G_RWARE_CMP4) --snapshot
+	$(H) sweep $(G_RW5M_2) --snapshot
+	$(H) sweep $(G_RW5M_4) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(LINKS)
@@ -166,6 +168,8 @@ status: $(LINKS)
 	@$(H) sweep $(G_RWARE_PILOT) --status
 	@$(H) sweep $(call G_RWARE_CMP) --status
 	@$(H) sweep $(call G_RWARE_CMP4) --status
+	@$(H) sweep $(G_RW5M_2) --status
+	@$(H) sweep $(G_RW5M_4) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.

@@ -60,6 +60,16 @@ def pytest_addoption(parser):
                           + " (tests/tiers.py), and a test that starts a process there fails")
 
 
+def pytest_ignore_collect(collection_path, config):
+    """`-m serial` alone (make test's first stage) imports only the files that hold a serial test:
+    importing the others (torch, the envs, every module's helpers) would only end in deselecting
+    them, seconds spent before the stage's first test."""
+    if (config.getoption("markexpr", "") == "serial" and collection_path.suffix == ".py"
+            and collection_path.name.startswith("test_") and not tiers.may_hold_serial(collection_path.stem)):
+        return True
+    return None
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     """Applies tests/tiers.py's marks; groups each module's tests on one xdist worker (a module's

@@ -24,6 +24,10 @@ from hammer.serve.policy_server import PolicyServer
 
 pytestmark = pytest.mark.timeout(120)
 CHUNK = 1024
+# The served runs that take a push at step 100: 4 env copies, so 2,500 steps. The switch came
+# within a few hundred steps of the push (the launcher's tick, the server's history check, ~70 chunks
+# of 512 B or one whole-weights query), so the run outlasts it several times over.
+PUSH_RUN_EPISODES = 400
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +233,7 @@ def test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout(bundle
     from hammer.serve.settings import serve_settings
 
     a, b = bundles
-    cfg = a.config(episodes=1200, msg_dropout=0.0)
+    cfg = a.config(episodes=PUSH_RUN_EPISODES, msg_dropout=0.0)
     # 64 B chunks: ~550 of them, one per step, a pull far longer than the timeout even on loopback
     settings, _ = serve_settings(a, "paceearly", runtime=["trace=true", "weights_name_timeout_s=0.001",
                                                           "weights_chunk_bytes=64"])
@@ -272,7 +276,7 @@ def test_a_push_is_pulled_in_a_secure_run(bundles, tmp_path):
             push(b.path, run)
             done.append(1)
 
-    res = launch(a.config(episodes=1200, msg_dropout=0.0), settings, run, chaos=update)
+    res = launch(a.config(episodes=PUSH_RUN_EPISODES, msg_dropout=0.0), settings, run, chaos=update)
     assert res.summary["completed"] and done
     pushes = json.loads((run / "env_summary.json").read_text())["pushes"]
     assert pushes["named"] == 1 and pushes["named_unheld"] == 0, pushes

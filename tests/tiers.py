@@ -96,6 +96,11 @@ LONGEST_FIRST = (
 )
 
 
+def may_hold_serial(module: str) -> bool:
+    """Whether a module has a test marked `serial` (make test's first stage imports only those)."""
+    return module in SERIAL_MODULES or any(t.split("::", 1)[0] == module for t in SERIAL_TESTS)
+
+
 def marks_for(module: str, test: str) -> list[str]:
     """The tier marks of one test: `module` the file's stem, `test` the function's name."""
     key = f"{module}::{test}"
