@@ -14,7 +14,12 @@ printed and wrote to RUN/fleet.json. Secure by default; `--insecure` runs the pl
 Trials (`--trials KIND:SECONDS[xN],...`), one after another, GAP_S apart, robots in turn: `port`
 takes the cut robot's switch port down (the switch or access point lost it), `nic` the robot's own
 interface (it drove out of range), `hub` the serving machine's port (every robot cut). Each trial
-is appended to a JSON-lines file as it finishes (`<out>.trials.jsonl`); run the same command again
+is appended to a JSON-lines file as it finishes (`<out>.trials.jsonl`). `site` (a team with a site
+feed, docs/fleet.md "The site feed"): the site is a `hammer.site.SiteFeed` in a namespace of its own
+(`hammer serve --external-site`), publishing the warehouse's columns at its reset at HZ (a static
+management system: this measures the feed's link, not the policy), and its switch port goes down;
+per trial the robots' rates during the cut and how long after the return the central agent took the
+feed again. run the same command again
 and it runs only the trials still missing. Per trial: every healthy robot's control rate during the
 cut (fresh actions the world applied per second, against the world's rate), and for every cut
 robot how long after the link returned the robot acted on a fresh central message again, the
@@ -45,7 +50,18 @@ SETTLE_S = 5.0  # from the world's clock starting to the first cut
 RECOVER_WAIT_S = 30.0  # how long after a return a role may take before it counts as stranded
 CONTRACT = {"healthy_fraction": 0.98, "back_s": 1.5}  # docs/fleet.md "Recovery"
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
-KINDS = ("port", "nic", "hub")
+KINDS = ("port", "nic", "hub", "site")
+SITE_SCRIPT = """
+import sys, time, numpy as np
+from hammer.site import SiteFeed
+bundle, run_id, connect, cols, hz, profile = sys.argv[1:7]
+state = np.load(cols)
+with SiteFeed(bundle, run_id=run_id, connect=connect, identity="identity" if profile == "secure" else None,
+              insecure=profile != "secure", runtime=tuple(sys.argv[7:])) as site:
+    while True:
+        site.publish(state)
+        time.sleep(1 / float(hz))
+"""
 
 
 def parse_trials(text: str) -> list[tuple[str, float, int]]:
@@ -140,9 +156,10 @@ class Fleet:
     its own namespace from its own folder. `cut(kind, robot, seconds)` runs one trial."""
 
     def __init__(self, bundle: Path, work: Path, net, hz: float, secure: bool, edge_python: Path | None,
-                 runtime: tuple[str, ...] = (), seconds: float = 86400) -> None:
+                 runtime: tuple[str, ...] = (), seconds: float = 86400, site: bool = False) -> None:
         self.bundle, self.work, self.net, self.hz, self.secure = bundle, work, net, hz, secure
-        self.n = len(net.robots)
+        self.site = site  # the site feed from a namespace of its own: the LAN's last "robot" namespace
+        self.n = len(net.robots) - site
         self.run = work / "run"
         self.procs = Procs(work)
         self.edge_python, self.runtime, self.seconds = edge_python, runtime, seconds
@@ -154,7 +171,8 @@ class Fleet:
             *py, "serve", str(self.bundle), "--realtime", f"{self.hz:g}", "--seconds", f"{self.seconds:g}",
             "--external", ",".join(map(str, range(self.n))), "--listen", f"tcp/{self.net.address}:{PORT}",
             "--secure" if self.secure else "--insecure", "--run-dir", str(self.run),
-            "--timeline", str(self.run / "timeline.jsonl"), *(x for r in self.runtime for x in ("--runtime", r))],
+            "--timeline", str(self.run / "timeline.jsonl"), *(x for r in self.runtime for x in ("--runtime", r)),
+            *(["--external-site"] if self.site else [])],
             "serve.log")
         fleet_json = self.run / "fleet.json"
         _wait_for("the launcher's fleet.json", fleet_json.is_file, 120, [self.serve])
@@ -165,7 +183,9 @@ class Fleet:
             from hammer.benchmarks.edge_venv import clean_env
 
             env = clean_env()
-        for i, ns in enumerate(self.net.robots):
+        if self.site:
+            self._start_site(json.loads(fleet_json.read_text())["endpoint"])
+        for i, ns in enumerate(self.net.robots[:self.n]):
             home = self.work / f"robot-{i}"
             shutil.rmtree(home, ignore_errors=True)
             home.mkdir(parents=True)
@@ -181,6 +201,34 @@ class Fleet:
         _wait_for("the world's clock", lambda: "world clock starts" in self.log("env").read_text(errors="replace")
                   if self.log("env").is_file() else False, 120, [self.serve])
 
+    def _start_site(self, endpoint: str) -> None:
+        """The site feed in its namespace, from a folder holding its copy of its three identity files."""
+        import numpy as np
+        from hammer.learning.run_env import make_env
+        from hammer.serve.bundle import load_bundle
+
+        b = load_bundle(self.bundle)
+        cfg = b.config(num_envs=1)
+        with make_env(cfg) as env:
+            obs, _ = env.reset(cfg.seed)
+        home = self.work / "site"
+        shutil.rmtree(home, ignore_errors=True)
+        home.mkdir(parents=True)
+        np.save(home / "cols.npy", obs[0, 0, b.env_spec_data["local_obs_dim"]:])
+        from hammer.deploy.fleet import LINK_FIELDS
+
+        links = [r for r in self.runtime if r.split("=", 1)[0] in LINK_FIELDS]  # the link settings robots get
+        args = [str(self.bundle.resolve()), self.run.name, endpoint, str(home / "cols.npy"), f"{self.hz:g}",
+                "secure" if self.secure else "plain", *links]
+        if self.secure:
+            (home / "identity").mkdir()
+            for name in ("ca.pem", "site.pem", "site.key"):
+                shutil.copy(self.run / "identity" / name, home / "identity" / name)
+        with open(self.work / "site.log", "wb") as f:
+            self.procs.procs.append(subprocess.Popen(
+                ["ip", "netns", "exec", self.net.robots[self.n], sys.executable, "-P", "-c", SITE_SCRIPT, *args],
+                cwd=home, stdout=f, stderr=subprocess.STDOUT))
+
     def log(self, role: str) -> Path:
         return self.work / f"{role}.log" if role.startswith("local-") else self.run / "logs" / f"{role}.log"
 
@@ -188,9 +236,10 @@ class Fleet:
         """One trial: the link down `seconds`, back up; the figures once every cut robot is back (or
         RECOVER_WAIT_S passed), and at least GAP_S after the return."""
         ns, dev = ((self.net.switch, self.net.ports["server"]) if kind == "hub" else
+                   (self.net.switch, self.net.ports[f"local-{self.n}"]) if kind == "site" else
                    (self.net.switch, self.net.ports[f"local-{robot}"]) if kind == "port" else
                    self.net.nics[f"local-{robot}"])
-        cut = list(range(self.n)) if kind == "hub" else [robot]
+        cut = list(range(self.n)) if kind == "hub" else [] if kind == "site" else [robot]
         load = os.getloadavg()[0]
         down = time.time()
         subprocess.run(["ip", "-n", ns, "link", "set", dev, "down"], check=True, timeout=10)
@@ -199,6 +248,9 @@ class Fleet:
         up = time.time()
 
         def back() -> dict:
+            if kind == "site":  # the central agent takes the feed again (it logs the silence and the return)
+                return {"site": {"central": _back_after(self.log("central"), "site missing", "site rejoined",
+                                                        down, up)}}
             return {f"local-{i}": {
                 "robot": robot_back(self.log(f"local-{i}"), seconds, down, up),
                 "world": _back_after(self.log("env"), f"local-{i} missing", f"local-{i} rejoined", down, up),
@@ -218,7 +270,7 @@ class Fleet:
         healthy = [i for i in range(self.n) if i not in cut]
         hz_during = None if during is None else {f"local-{i}": during[i] for i in healthy}
         worst = [v for r in b.values() for v in r.values()]
-        return {"kind": kind, "seconds": seconds, "cut": [f"local-{i}" for i in cut], "down": round(down, 3),
+        return {"kind": kind, "seconds": seconds, "cut": ["site"] if kind == "site" else [f"local-{i}" for i in cut], "down": round(down, 3),
                 "up": round(up, 3), "load1": round(load, 2), "healthy_hz_during": hz_during,
                 "healthy_min_fraction": (None if not healthy or during is None else
                                          round(min(during[i] for i in healthy) / self.hz, 3)),
@@ -306,14 +358,17 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
 
 def information_bytes(bundle: Path) -> int:
     """What one control step must carry on a robot's link at the least: its observation up, the
-    central message down (float32 each), its action (one byte for a discrete one, float32 each else)."""
+    central message down (float32 each), its action (one byte for a discrete one, float32 each else).
+    A team with a site feed: the robot's own columns only (the rest is the site's, not on its link)."""
     from hammer.serve.bundle import load_bundle
+    from hammer.serve.edge_agent import site_columns
 
     b = load_bundle(bundle)
     env = b.env_spec_data
     msg_dim = int(b.config().msg_dim) if b.wiring().uses_central else 0
     act = 1 if env.get("discrete", True) and env.get("action_low") is None else 4 * int(env["action_dim"])
-    return 4 * int(env["obs_dim"]) + 4 * msg_dim + act
+    cols = site_columns(env)
+    return 4 * (int(env["obs_dim"]) if cols is None else cols[0]) + 4 * msg_dim + act
 
 
 def run_trials(bundle: Path, work: Path, trials: list[tuple[str, float, int]], *, hz: float = 20.0,
@@ -326,6 +381,7 @@ def run_trials(bundle: Path, work: Path, trials: list[tuple[str, float, int]], *
     from hammer.serve.bundle import load_bundle
 
     n = int(load_bundle(bundle).env_spec_data["n_agents"])
+    site = any(kind == "site" for kind, _, _ in trials)  # the site feed from a namespace of its own
     results = results or work / "trials.jsonl"
     done = [json.loads(x) for x in results.read_text().splitlines() if x.strip()] if results.is_file() else []
     todo, g = [], 0  # g: the trial's place in the whole plan, which picks the robot cut (robots in turn)
@@ -338,12 +394,12 @@ def run_trials(bundle: Path, work: Path, trials: list[tuple[str, float, int]], *
     while todo or (bytes_s and link is None):
         batch, todo = todo[:per_fleet], todo[per_fleet:]
         tag = f"{os.getpid() % 1000}{len(fleets)}"
-        with lan(n, tag, rate_kbit) as net:
+        with lan(n + site, tag, rate_kbit) as net:
             if neigh_retrans_ms is not None:
                 for ns, dev in net.nics.values():
                     subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-qw",
                                     f"net.ipv4.neigh.{dev}.retrans_time_ms={neigh_retrans_ms}"], check=True, timeout=10)
-            fleet = Fleet(bundle, work / f"fleet-{tag}", net, hz, secure, edge_python, runtime)
+            fleet = Fleet(bundle, work / f"fleet-{tag}", net, hz, secure, edge_python, runtime, site=site)
             shutil.rmtree(fleet.work, ignore_errors=True)
             fleet.work.mkdir(parents=True)
             try:
@@ -380,7 +436,9 @@ def _short(summary: dict) -> dict:
             "msgs": {k: w.get(k) for k in ("msgs_attached", "msgs_late", "msgs_missed")},
             "latency_ms": {k: {f: r.get(f) for f in ("step_to_action_ms_p50", "step_to_action_ms_p99",
                                                      "msg_age_p50_ms", "msg_age_p99_ms")}
-                           for k, r in summary.get("robots", {}).items()}}
+                           for k, r in summary.get("robots", {}).items()},
+            # a team with a site feed (docs/fleet.md "The site feed"): what the central agent took of it
+            "site": summary.get("site")}
 
 
 def trial_ok(t: dict) -> bool:
@@ -392,8 +450,10 @@ def trial_ok(t: dict) -> bool:
 
 
 def trial_line(t: dict) -> str:
-    backs = "; ".join(f"{r}: robot {b['robot']}, world {b['world']}, central {b['central']} s"
+    backs = "; ".join(", ".join(f"{who} {v}" for who, v in b.items()) if r == "site" else
+                      f"{r}: robot {b['robot']}, world {b['world']}, central {b['central']} s"
                       for r, b in t["back_s"].items())
+    backs = backs if "site" not in t["back_s"] else f"site feed: {backs} s"
     return (f"{t['kind']:4} {t['seconds']:5g} s  #{t['trial']:<2} cut {','.join(t['cut'])}  healthy "
             f"{t['healthy_min_fraction']} of rate (before the cut {t.get('healthy_min_fraction_before')})  back "
             f"{backs}  load {t['load1']}  "
@@ -406,7 +466,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hz", type=float, default=20.0)
     ap.add_argument("--trials", default="port:0.5x2,port:5x2,port:8x2,port:30x2,nic:8x2,nic:30x1,hub:8x2",
                     help="KIND:SECONDS[xN], comma-separated: port (the cut robot's switch port), nic (the robot's "
-                         "own interface), hub (the serving machine's port: every robot); robots in turn.")
+                         "own interface), hub (the serving machine's port: every robot), site (the site feed's "
+                         "port: a team with a site feed; the site then runs in a namespace of its own); robots in turn.")
     ap.add_argument("--insecure", action="store_true", help="The plain profile (default: --secure, as documented).")
     ap.add_argument("--per-fleet", type=int, default=10, help="Trials per fleet session (a fresh fleet after).")
     ap.add_argument("--bytes-s", type=float, default=0.0, help="First measure bytes and packets per control step "

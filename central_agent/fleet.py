@@ -29,6 +29,15 @@ stamped with its own tick count (from 0 at its start: a restarted central agent 
 once one is, it serves the world's ticks only (the world's end is the fleet's). A robot counts as
 heard when its uplink arrives or a state of the world says the world hears it (the world's `hold_s`).
 
+The site feed (docs/fleet.md, "The site feed"): a team whose rows have central-only columns [L, D)
+(rware's requested shelves and goals) gets them from the site (`site/state`, a `SiteState` from the
+site's own identity: a warehouse management system on `hammer.site.SiteFeed`, or in simulation the
+world as the site), not from any robot, so this role puts the newest feed into those columns of every
+row. The silent rule (one, declared: `SITE_SILENT_RULE = "zeros"`): a feed silent for longer than
+`site_hold_s` is held no longer, and the columns are zeros, as in a training run that simulates the
+feed's absence (`site_missing_prob`); its silences and returns are log lines and counters
+(`site.absent_max_s`, `site.joined`, `site_silent_ticks`), named in the fleet's verdict.
+
 Hot updates (`hammer push` to a fleet): the fleet's policy server publishes a pushed version's central
 network whole (this role's link is on the server side). No step names versions in a fleet: each
 robot switches as soon as it holds the pushed local policy (it pulls it in chunks, seconds on a
@@ -52,14 +61,15 @@ from hammer.learning.config import RunConfig
 from hammer.learning.numpy_policy import numpy_central
 from hammer.learning.sampling import ActingStreams
 from hammer.protocol.dims import Dims
-from hammer.protocol.schemas import CentralMsg, GlobalState, Heartbeat, Uplink
+from hammer.protocol.schemas import CentralMsg, GlobalState, Heartbeat, SiteState, Uplink
 from hammer.protocol.session import HammerSession
-from hammer.runtime.clock import Clock
+from hammer.runtime.clock import SITE_HOLD_S, Clock
 from hammer.runtime.presence import Presence, flat_member_rejections, rejections_by_member
 from hammer.runtime.role import Role
 from hammer.runtime.weights import WeightsIntake
 
 MISSING_RULE = "zeros"  # a missing robot's observation and action in the state
+SITE_SILENT_RULE = "zeros"  # a silent site feed's columns in the state
 HOLD_TIMEOUT_S = 20.0  # a pushed central network is taken this long after it came even if a robot lacks its local one
 
 
@@ -67,7 +77,8 @@ class FleetCentral(Role):
     """Uplinks in, one message per robot out at `hz`; `central_weights`: the bundle's central.safetensors."""
 
     def __init__(self, session: HammerSession, cfg: RunConfig, spec: EnvSpec, central_weights: bytes | None,
-                 hz: float, missing_after_s: float, hold_timeout_s: float = HOLD_TIMEOUT_S) -> None:
+                 hz: float, missing_after_s: float, hold_timeout_s: float = HOLD_TIMEOUT_S,
+                 site_hold_s: float = SITE_HOLD_S) -> None:
         super().__init__(session, "central")
         self.cfg, self.spec, self.n = cfg, spec, cfg.n_agents
         self.acting = CentralActing.from_config(cfg)
@@ -89,12 +100,25 @@ class FleetCentral(Role):
         self.uplinked = np.full(self.n, -np.inf)  # when each robot's latest uplink arrived
         self.missing_after_s = missing_after_s
         self.presence = Presence([f"local-{i}" for i in range(self.n)], missing_after_s, self.log)
+        # a robot of a team with a site feed uplinks its own columns [0, L) only (local_obs_dim)
+        local = spec.local_obs_dim if spec.local_obs_dim not in (None, spec.obs_dim) else None
+        self.up_dim = local or spec.obs_dim
         self.uplinks = session.subscribe_latest(
-            self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
+            self.keys.up("*"), Uplink, Dims(num_envs=1, n_agents=self.n, obs_dim=self.up_dim,
                                             action_dim=spec.action_dim, discrete=spec.discrete))
         self.states = session.subscribe_latest(
             self.keys.state(), GlobalState, Dims(num_envs=1, n_agents=self.n, obs_dim=spec.obs_dim,
                                                  action_dim=spec.action_dim))
+        # the site feed: the central-only columns [L, D) of every row (None: the robots observe whole rows)
+        self.local_dim = spec.local_obs_dim if spec.local_obs_dim not in (None, spec.obs_dim) else None
+        self.site = self.site_presence = None
+        self.site_cols = None
+        self.site_silent_ticks = 0
+        if self.local_dim is not None:
+            self.site = session.subscribe_latest(self.keys.site_state(), SiteState,
+                                                 Dims(num_envs=1, site_dim=spec.obs_dim - self.local_dim))
+            self.site_presence = Presence(["site"], site_hold_s, self.log)
+            self.site_cols = np.zeros(spec.obs_dim - self.local_dim, np.float32)
         self.world_t = -np.inf  # when the world's latest state arrived
         self.ticks = self.world_ticks = 0  # ticks served (all; on a state of the world)
         self.pubs = [session.publisher(self.keys.msg(i), express=True, block=False) for i in range(self.n)]
@@ -107,11 +131,20 @@ class FleetCentral(Role):
                 "msgs_sent": self.sent, "states_superseded": self.states.superseded,
                 "uplinks": self.uplinks.stats.delivered, "uplinks_superseded": self.uplinks.superseded,
                 "policy_switches": self.switches, "weights_rejected": self.weights_rejected,
-                "policy_switched_unheld": self.switched_unheld,
+                "policy_switched_unheld": self.switched_unheld, **self.site_counters(),
                 # per robot, the 8 longest absent and the 8 largest refusals: a heartbeat holds 64 counters
                 **self.presence.counters(), **self.presence.member_counters(limit=8),
                 **flat_member_rejections(rejections_by_member(self.session.rejections_by_key(), self.presence.names),
                                          limit=8)}
+
+    def site_counters(self) -> dict[str, float]:
+        """The site feed's: states taken, ticks on zeros (silent), its silences, its longest silence
+        (`site.absent_max_s`) and whether it was ever heard (`site.joined`); none without a feed."""
+        if self.site is None:
+            return {}
+        p = self.site_presence
+        return {"site_states": self.site.stats.delivered, "site_silent_ticks": self.site_silent_ticks,
+                "site_silences": p.leaves, **p.member_counters(limit=1)}
 
     def gauges(self) -> dict[str, int]:
         held = self.version if self.weights is None else max(self.version, self.weights.known)
@@ -181,7 +214,7 @@ class FleetCentral(Role):
 
     def take_uplinks(self) -> None:
         for up, t in self.uplinks.take():
-            self.obs[0, up.agent] = up.obs[0]
+            self.obs[0, up.agent, :self.up_dim] = up.obs[0]
             if up.action is not None:
                 self.prev[0, up.agent] = encode_actions(self.spec, up.action[None], np.ones((1, 1), bool))[0, 0]
             self.uplinked[up.agent] = t
@@ -202,8 +235,28 @@ class FleetCentral(Role):
             self.presence.seen(int(i), t)
         return state.step
 
+    def take_site(self, now: float) -> None:
+        """The site's columns into every row: the newest feed while it is no older than `site_hold_s`,
+        else zeros (the silent rule, SITE_SILENT_RULE; each silence a log line and a counter)."""
+        for got, t in self.site.take():
+            self.site_cols = got.cols[0]
+            self.site_presence.seen(0, t)
+        was = bool(self.site_presence.present[0])
+        heard = bool(self.site_presence.update(now)[0])
+        if was and not heard:
+            self.log.warning("central: the site feed is silent (> site_hold_s %.2f s): its columns are %s in the "
+                             "state until it is back", self.site_presence.bound, SITE_SILENT_RULE)
+        if heard:
+            self.obs[0, :, self.local_dim:] = self.site_cols
+        else:
+            self.obs[0, :, self.local_dim:] = 0.0
+            self.site_silent_ticks += 1
+
     def tick(self, now: float, step: int) -> None:
-        """One message per robot, stamped `step`, from the state of the latest rows (missing robots as zeros)."""
+        """One message per robot, stamped `step`, from the state of the latest rows (missing robots as
+        zeros) and the site's columns (a silent feed as zeros)."""
+        if self.site is not None:
+            self.take_site(now)
         present = self.presence.update(now)[None]  # (1, N)
         state = self.acting.global_state(self.obs, self.prev, present)  # the missing rule: zeros
         net = self.net

@@ -87,6 +87,7 @@ class CentralServer(Role):
         # a record of each step; a served run has no learner, so no record goes out
         self.training = training
         self.streams = ActingStreams(cfg.seed, cfg.n_agents)
+        self.local_obs_dim = spec.local_obs_dim  # the site feed's columns from here on (site_missing_prob)
         self.state_dim = cfg.n_agents * (spec.obs_dim + (spec.action_dim if cfg.use_prev_actions else 0))
         self.load_when_idle = load_when_idle
         self.counts = CentralCounters()
@@ -140,8 +141,10 @@ class CentralServer(Role):
             self.skip_without_policy(state.step)
             return
         net = self.net
-        present = self.acting.training_presence(state.step, state.env_idx) if self.training else None
-        out = self.acting.messages(self.acting.global_state(state.obs, state.prev_actions, present), self.streams,
+        gstate = (self.acting.training_state(state.obs, state.prev_actions, state.step, state.env_idx,
+                                             self.local_obs_dim) if self.training
+                  else self.acting.global_state(state.obs, state.prev_actions))
+        out = self.acting.messages(gstate, self.streams,
                                    self.cfg.msg_dropout, net.message_mean if net is not None else None,
                                    net.values if self.acting.rl else None)
         self.publish_messages(state, out)

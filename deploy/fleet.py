@@ -50,7 +50,7 @@ from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.structs import replace
 from hammer.protocol.transport_log import refused_counts, watch_refused
-from hammer.runtime.clock import MSG_WAIT_S
+from hammer.runtime.clock import MSG_WAIT_S, SITE_HOLD_S
 from hammer.runtime.settings import refuse_plain_beyond_loopback, runtime_items
 
 log = logging.getLogger("hammer.fleet")
@@ -68,6 +68,8 @@ class FleetPlan:
     missing_after_s: float = 0.5  # the central agent counts a robot silent this long as missing (zeros)
     max_msg_age_s: float = 0.5  # a robot acts on a central message no older than this, else its fallback
     msg_wait_s: float = MSG_WAIT_S  # a tick's observations wait this long for the central agent's messages of it
+    site_hold_s: float = SITE_HOLD_S  # the central agent holds the site feed this long, then uses zeros
+    site_external: bool = False  # a real site publishes the feed (`hammer.site.SiteFeed`), not the world
     seed: int | None = None
     chaos: list[str] = field(default_factory=list)
     hub_port: int = 0
@@ -81,7 +83,7 @@ class FleetPlan:
     site: Path | None = None  # secure: identities from this site (`hammer site init`), kept across restarts
 
     def check(self) -> None:
-        for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s"):
+        for name in ("hz", "hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s", "site_hold_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
         if not 0 <= self.msg_wait_s < 1 / self.hz:
@@ -99,7 +101,7 @@ class FleetPlan:
 
 
 # The plan's bounds, also settable as `--runtime FIELD=VALUE` on `hammer serve --realtime`.
-PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s", "msg_wait_s")
+PLAN_BOUNDS = ("hold_s", "missing_after_s", "max_msg_age_s", "max_absence_s", "msg_wait_s", "site_hold_s")
 # The RuntimeSettings items every process of a fleet takes (each role's and robot's own link).
 LINK_FIELDS = ("zenoh_lease_s", "zenoh_open_timeout_s", "reconnect_max_s")
 
@@ -162,12 +164,12 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     common = {"bundle": plan.bundle, "run_id": run_id, "connect": connect,
               "identity": plan.secure and identity_dir(run_dir), "seed": plan.seed, "runtime": link_items(plan)}
     specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, msg_wait_s=plan.msg_wait_s,
-                                       run_dir=run_dir,
+                                       run_dir=run_dir, no_site_feed=plan.site_external,
                                        timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
              RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:
         specs.append(RoleSpec("central", role_args("fleet-central", **common, hz=plan.hz,
-                                                   missing_after_s=plan.missing_after_s),
+                                                   missing_after_s=plan.missing_after_s, site_hold_s=plan.site_hold_s),
                               restart=True, essential=False))
     for i in range(n_agents):
         if i in plan.external:
@@ -221,11 +223,12 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     """Run the fleet until the world is done; returns (and writes) RUN/summary.json."""
     from hammer.faults.chaos import ChaosScheduler
     from hammer.serve.bundle import load_bundle
-    from hammer.serve.edge_agent import fleet_check
+    from hammer.serve.edge_agent import fleet_check, site_columns
 
     plan.check()
     b = load_bundle(plan.bundle)
     fleet_check(b)
+    site_feed = b.wiring().uses_central and site_columns(b.env_spec_data) is not None
     chaos = ChaosScheduler.from_strings(plan.chaos) if plan.chaos else None
     n = int(b.env_spec_data["n_agents"])
     if any(not 0 <= i < n for i in plan.external):
@@ -244,7 +247,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
         from hammer.deploy.up import secure_identities
 
         hub_transport = secure_identities(n, settings, run_dir, hub_transport, fresh=True, site=plan.site,
-                                          as_role=HUB)
+                                          as_role=HUB, site_feed=site_feed)
     specs = role_specs(plan, run_id, connect, n, b.wiring().uses_central, run_dir)
     if chaos is not None:
         chaos.validate_roles({s.name for s in specs})
@@ -289,7 +292,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
             stopped_by = getattr(e, "signal_name", "SIGINT")
         finally:
             state["ending"] = True  # a repeated signal must not cut the summary short
-    return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s)
+    return _summary(run_dir, board, stopped_by, time.monotonic() - t0, plan.max_absence_s, site_feed)
 
 
 @dataclass
@@ -312,7 +315,8 @@ def _note_version(board, h: Heartbeat, t: float) -> None:
         log.info("%s acts with policy version %d (was %d)", h.role, v, before)
 
 
-def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_absence_s: float) -> dict:
+def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_absence_s: float,
+             site_feed: bool = False) -> dict:
     """summary.json: the world's figures per robot with what each robot said of itself, and the
     outages by name (a robot missing longer than `max_absence_s` makes the run degraded, named)."""
     world_file = run_dir / "world.json"
@@ -328,7 +332,8 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                                                                  "chunks_refused", "weights_rejected")})
         r["version_switches"] = board.switches.get(name, [])
     absences = world.get("absences", {})
-    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, roles, max_absence_s, refused_counts())
+    verdict = fleet_verdict(list(robots) or sorted(absences), absences, world, roles, max_absence_s, refused_counts(),
+                            site_feed=site_feed)
     summary = {"completed": stopped_by is None and bool(world), "interrupted": stopped_by in ("SIGTERM", "SIGINT"),
                "stopped_by": stopped_by, "wall_s": round(wall_s, 3),
                "degraded": bool(verdict["reasons"]), "degraded_reasons": verdict["reasons"], "absences": absences,
@@ -339,6 +344,7 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()
                               if k.startswith("policy_")},
                            "version_switches": board.switches.get("central", [])},
+               "site": verdict["site"],
                "policy_server": {**roles.get("learner", {}).get("counters", {}),
                                  **roles.get("learner", {}).get("gauges", {})},
                "pushes": _pushes(run_dir),

@@ -11,7 +11,10 @@ Four kinds of reason, each naming the robot or the role it is about (docs/fleet.
   misbehaving, which an operator must not read as a link failure; with the robot also missing, the
   reason says the flood came first;
 - every other refusal by a role, by reason, and connections refused at the transport (TLS handshakes
-  of strangers, a revoked identity: `refused_connections`, read from the roles' Zenoh logs).
+  of strangers, a revoked identity: `refused_connections`, read from the roles' Zenoh logs);
+- a team with a site feed (what no robot observes, docs/fleet.md "The site feed"): the feed never
+  reached the central agent, or was silent longer than `max_absence_s` at a time (its columns were
+  zeros in the central agent's state meanwhile: the silent rule).
 """
 
 from __future__ import annotations
@@ -55,11 +58,25 @@ def refused_connections(roles: dict[str, dict], launcher: dict[str, int]) -> dic
     return {role: {**r, "total": sum(r.values())} for role, r in sorted(out.items()) if r}
 
 
+def site_feed_view(central_counters: dict, world: dict) -> dict:
+    """The site feed as summary.json's `site` shows it: what the central agent took of it (states,
+    ticks on zeros, silences, longest silence, whether it ever came) and what the world published
+    (in simulation)."""
+    return {"states": int(central_counters.get("site_states", 0)),
+            "silent_ticks": int(central_counters.get("site_silent_ticks", 0)),
+            "silences": int(central_counters.get("site_silences", 0)),
+            "longest_silence_s": float(central_counters.get("site.absent_max_s", 0.0)),
+            "never_heard": not central_counters.get("site.joined", 1),
+            "published_by_world": world.get("site_published")}
+
+
 def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, roles: dict[str, dict],
-                  max_absence_s: float, launcher_refused: dict[str, int] | None = None) -> dict:
-    """{reasons, central_absences, rejections, rejected_on, refused_connections}: the degraded reasons
-    (empty: not degraded) and what they were judged from, for summary.json. `roles`: each role's last
-    heartbeat ({role: {"counters": ..., "gauges": ...}}); `world`: the world's report (world.json)."""
+                  max_absence_s: float, launcher_refused: dict[str, int] | None = None,
+                  site_feed: bool = False) -> dict:
+    """{reasons, central_absences, rejections, rejected_on, refused_connections, site}: the degraded
+    reasons (empty: not degraded) and what they were judged from, for summary.json. `roles`: each
+    role's last heartbeat ({role: {"counters": ..., "gauges": ...}}); `world`: the world's report
+    (world.json); `site_feed`: the team has one (its `site` view, else None)."""
     central_counters = roles.get("central", {}).get("counters", {})
     refused = refused_connections(roles, launcher_refused or {})
     reasons: list[str] = []
@@ -103,6 +120,15 @@ def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, role
         reasons.append(f"{flooded[name]:,} payloads refused on {name}'s own keys ({what}): sent by a holder of "
                        f"{name}'s key (stolen?) or a faulty {name}, not a link failure{missing}")
 
+    site = site_feed_view(central_counters, world) if site_feed and "central" in roles else None
+    if site is not None and site["never_heard"]:
+        reasons.append("the site feed never reached the central agent: the columns no robot observes were zeros "
+                       "in its state the whole run (silent rule)")
+    elif site is not None and site["longest_silence_s"] > max_absence_s:
+        reasons.append(f"the site feed was silent {site['longest_silence_s']:.1f} s at most (> max_absence_s "
+                       f"{max_absence_s:g} s; {site['silences']} time(s)): the central agent's state had zeros for "
+                       f"the columns no robot observes meanwhile (silent rule)")
+
     # every role's refusals (the world's from its report, which outlives its last heartbeat)
     rejections = {role: _role_rejections(r.get("counters", {})) for role, r in roles.items()}
     rejections["env"] = world.get("rejected") or rejections.get("env", {})
@@ -117,4 +143,4 @@ def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, role
         reasons.append(f"{r['total']:,} connections refused by {role} (" + _fmt({k: v for k, v in r.items() if k != "total"})
                        + "): strangers or revoked identities tried to join, not a link failure")
     return {"reasons": reasons, "central_absences": central, "rejections": rejections, "rejected_on": rejected_on,
-            "refused_connections": refused}
+            "refused_connections": refused, "site": site}

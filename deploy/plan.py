@@ -119,7 +119,7 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
                runtime: list[str] | None = None, external: str | None = None, out: Path = Path("runs"),
                run_dir: Path | None = None, secure: bool = False, insecure: bool = False,
                listen: list[str] | None = None, num_envs: int | None = None, timeline: Path | None = None,
-               site: Path | None = None):
+               site: Path | None = None, external_site: bool = False):
     """What `hammer serve BUNDLE --realtime HZ` will run: (FleetPlan, run directory, external robots,
     the loaded bundle),
     its `--runtime` items applied (the bounds to the plan, the rest checked as the fleet's
@@ -141,7 +141,7 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
     path = run_dir or Path(out) / f"fleet-{Path(bundle).name}-{time.strftime('%Y%m%d-%H%M%S')}"
     plan = FleetPlan(bundle=bundle, hz=hz, seconds=seconds, episodes=None if seconds is not None else episodes,
                      seed=seed, chaos=list(chaos or []), listen=listen_endpoints(listen), external=robots,
-                     secure=secure, insecure=insecure, timeline=timeline, site=site)
+                     secure=secure, insecure=insecure, timeline=timeline, site=site, site_external=external_site)
     plan.hub_port = free_loopback_port()  # fixed now: the robots' commands name it
     apply_runtime(plan, list(runtime or []))
     for key in plan.runtime:  # the router's port is this command's own choice (--listen PORT for robots)
@@ -150,6 +150,11 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
                              "fix: leave it out")
     plan.check()
     team = load_bundle(bundle)
+    from hammer.serve.edge_agent import site_columns
+
+    if external_site and (not team.wiring().uses_central or site_columns(team.env_spec_data) is None):
+        raise ValueError(f"--external-site: {Path(bundle).name} has no site feed (only a team with a central agent "
+                         "and central-only columns, e.g. rware, has one); fix: leave it out")
     fleet_settings(team, plan, path.name)  # a bad --runtime value: one line, before anything
     return plan, path, robots, team
 

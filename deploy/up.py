@@ -607,19 +607,20 @@ class Launcher:
 
 
 def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, hub_transport, fresh: bool,
-                      site: Path | None = None, as_role: str | None = None):
+                      site: Path | None = None, as_role: str | None = None, site_feed: bool = False):
     """A secure run (`hammer up`, `hammer serve`, a fleet): a new CA and role identities in
     RUN/identity/ (kept on resume, so remote roles keep the files they were given), and
     RUN/access_control.json, the rules every process applies (a client in another language inserts
     it into its Zenoh config; docs/wire-format.md). With `site` (a fleet's `--site`): the identities
     come from the site instead (protocol.identity: the robots' kept ones, the server roles' from its
     CA), so a restarted fleet admits the robots it admitted before. Returns the launcher's own
-    secured transport, as `as_role` (default the launcher; a fleet's launcher is its router, `hub`)."""
+    secured transport, as `as_role` (default the launcher; a fleet's launcher is its router, `hub`).
+    `site_feed`: a fleet whose team has a site feed also gets the `site` identity (its publisher)."""
     from hammer.protocol.access import LAUNCHER, access_control, role_names
     from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
 
-    roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub)
+    roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub, site_feed=site_feed)
     if site is not None:
         site_run_identities(site, identity_dir(run_dir), roles)
     elif fresh or not has_identities(identity_dir(run_dir), roles):

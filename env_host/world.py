@@ -20,6 +20,14 @@ on the message it holds, or on its fallback once that is older than its `max_msg
 central agent is away (`msgs_missed`). A central agent not heard for `CENTRAL_QUIET_S` is not
 waited for. `msg_wait_s` = 0: never wait, every observation carries the message of the tick before.
 
+The site (docs/fleet.md, "The site feed"): a team whose rows have central-only columns [L, D)
+(rware's requested shelves and goals) has them from the site, not from any robot. So the world
+publishes them as the site does (`site`: an object with `publish(cols)`, the site feed SDK
+`serve/site_feed.SiteFeed` on its own session and identity, which the world command opens) at every
+tick before the state; a robot's observation holds its own columns [0, L) only (the site's would be
+zeros: bytes on its link for nothing), and the state's rows have zeros there: the central agent
+composes its state from the robots' rows and the feed, as with a real site.
+
 What it measures is what a fleet is judged by: per robot, the actions that arrived (its control
 rate) and their age when applied; the ticks it overran; the episodes' paper metric. `timeline`: a
 file that gets one JSON line a second (wall time, per-robot totals), for a bench to cut by outage.
@@ -52,7 +60,7 @@ class RealtimeWorld(Role):
     def __init__(self, session: HammerSession, env: VecEnv, hz: float, hold_s: float, seed: int,
                  episodes: int | None = None, seconds: float | None = None, startup_s: float = 30.0,
                  timeline: Path | None = None, msg_dim: int = 0, central: bool = False,
-                 msg_wait_s: float = MSG_WAIT_S) -> None:
+                 msg_wait_s: float = MSG_WAIT_S, site=None) -> None:
         super().__init__(session, "env")
         self.env, self.spec, self.k, self.n = env, env.spec, env.num_envs, env.spec.n_agents
         self.clock = Clock(hz)
@@ -91,7 +99,10 @@ class RealtimeWorld(Role):
         self.episodes = 0  # running totals, not lists: a world that runs for days stays flat
         self.metric_sum = self.return_sum = 0.0
         self.recent: collections.deque[float] = collections.deque(maxlen=100)
-        self.obs, self.active = env.reset(seed)
+        local = self.spec.local_obs_dim
+        self.local_dim = local if local not in (None, self.spec.obs_dim) else None  # [L, D): the site's columns
+        self.site, self.site_published = (site if self.local_dim is not None else None), 0
+        self.obs, self.active = self._site_split(*env.reset(seed))
         self.startup_s = startup_s
         self.timeline = None if timeline is None else open(timeline, "a", buffering=1)  # noqa: SIM115 - closed in on_stop
         self._timeline_t = 0.0
@@ -104,7 +115,8 @@ class RealtimeWorld(Role):
                      for what, a in (("applied", self.applied), ("fresh", self.fresh), ("defaults", self.defaults))}
         return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "default_actions": int(self.defaults.sum()), "msgs_attached": self.msgs_attached,
-                "msgs_missed": self.msgs_missed, "msgs_late": self.msgs_late, **self.presence.counters(), **per_robot}
+                "msgs_missed": self.msgs_missed, "msgs_late": self.msgs_late, **self.presence.counters(), **per_robot,
+                **({"site_published": self.site_published} if self.site is not None else {})}
 
     def gauges(self) -> dict[str, float]:
         return {"paper_metric_100": float(np.mean(self.recent)) if self.recent else 0.0,
@@ -166,7 +178,7 @@ class RealtimeWorld(Role):
             self.ages[i].append(now - self.arrived[i])
         self.new_action[:] = False
         step = self.env.step(self.spec.env_action(actions))
-        self.obs, self.active = step.obs, step.next_active
+        self.obs, self.active = self._site_split(step.obs, step.next_active)
         if self.state_pub is not None:
             self.prev = encode_actions(self.spec, actions, present[None])
         for e in step.episodes:
@@ -186,6 +198,16 @@ class RealtimeWorld(Role):
         elif self.seconds is not None and now - self.started >= self.seconds:
             self.stop_reason = f"{self.seconds:g} s done"
 
+    def _site_split(self, obs: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rows with the site's columns zeroed (no robot observes them), kept for the site feed
+        (copy 0's: a fleet's world is one warehouse; identical in every row)."""
+        if self.local_dim is None:
+            return obs, active
+        self.site_cols = obs[0, 0, self.local_dim:].copy()
+        obs = obs.copy()
+        obs[..., self.local_dim:] = 0.0
+        return obs, active
+
     def on_stop(self) -> None:
         # while the session is open: the report is written after it closes
         self._refused = self.refusals()
@@ -199,11 +221,14 @@ class RealtimeWorld(Role):
 
     def publish_obs(self, tick: int) -> None:
         """Each robot its observation of `tick`, with the central agent's message for it if it came in time."""
+        if self.site is not None:  # first: the central agent composes this tick's state with it
+            self.site_published += bool(self.site.publish(self.site_cols))
         msgs = self.central_messages(tick) if self.state_pub is not None else [None] * self.n
+        width = self.local_dim or self.spec.obs_dim  # a team with a site feed: a robot's own columns only
         for i, pub in enumerate(self.obs_pubs):
             pub.publish(LocalObs(step=tick, env_idx=self.env_idx, agent=i,
-                                 obs=np.ascontiguousarray(self.obs[:, i]), active=np.ascontiguousarray(self.active[:, i]),
-                                 msg=msgs[i]))
+                                 obs=np.ascontiguousarray(self.obs[:, i, :width]),
+                                 active=np.ascontiguousarray(self.active[:, i]), msg=msgs[i]))
 
     def central_messages(self, tick: int) -> list[np.ndarray | None]:
         """The state of `tick` to the central agent, then its message for each robot, waiting for them
@@ -254,6 +279,7 @@ class RealtimeWorld(Role):
         return {"hz": round(1 / self.clock.period, 3), "seconds": round(elapsed, 3), "ticks": self.clock.ticks,
                 "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "msgs_attached": self.msgs_attached, "msgs_missed": self.msgs_missed, "msgs_late": self.msgs_late,
+                **({"site_published": self.site_published} if self.site is not None else {}),
                 "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
                 "team_return_mean": self.return_sum / self.episodes if self.episodes else None,
                 "presence": self.presence.counters(), "absences": self.presence.absences(),

@@ -80,10 +80,32 @@ class CentralActing:
     seed: int = 0
     missing_prob: float = 0.0
     missing_window: int = 20
+    site_missing_prob: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: RunConfig) -> CentralActing:
-        return cls(cfg.wiring, cfg.msg_std, cfg.use_prev_actions, cfg.seed, cfg.missing_prob, cfg.missing_window)
+        return cls(cfg.wiring, cfg.msg_std, cfg.use_prev_actions, cfg.seed, cfg.missing_prob, cfg.missing_window,
+                   cfg.site_missing_prob)
+
+    def training_site_presence(self, step: int, env_idx: np.ndarray) -> np.ndarray | None:
+        """(K,) bool: whether the site feed is there at `step` of a training run that simulates its
+        absence (`site_missing_prob`), in windows of `missing_window` steps like a robot's; None when it
+        does not. The site is hashed as member N of `missing_mask` (robots are 0..N-1), so the robots'
+        absences are the same with or without it."""
+        if self.site_missing_prob <= 0:
+            return None
+        return ~missing_mask(self.seed, step, env_idx, self.n_agents + 1, self.site_missing_prob,
+                             self.missing_window)[:, -1]
+
+    def training_state(self, obs: np.ndarray, prev_actions: np.ndarray, step: int, env_idx: np.ndarray,
+                       local_obs_dim: int | None) -> np.ndarray:
+        """The central agent's state at vector `step` of a training run (copies `env_idx`): the robots
+        `missing_prob` takes away, and for an env with central-only columns [local_obs_dim, D) the site
+        feed `site_missing_prob` takes away, as zeros (the trainer, `hammer up`'s central server and
+        its learner all build it here)."""
+        site = self.training_site_presence(step, env_idx) if local_obs_dim is not None else None
+        return self.global_state(obs, prev_actions, self.training_presence(step, env_idx),
+                                 None if site is None else (local_obs_dim, site))
 
     def training_presence(self, step: int, env_idx: np.ndarray) -> np.ndarray | None:
         """(K, N) bool: the robots present to the central agent at `step` of a training run that
@@ -108,13 +130,20 @@ class CentralActing:
     def rl(self) -> bool:
         return self.wiring.central_rl
 
-    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+    def global_state(self, obs: np.ndarray, prev_actions: np.ndarray, present: np.ndarray | None = None,
+                     site: tuple[int, np.ndarray] | None = None) -> np.ndarray:
         """s = o_1 ⊕ … ⊕ o_N ⊕ a_1(t-1) ⊕ … ⊕ a_N(t-1) (actions optional). (K, S) float32.
 
         `present` (K, N) bool: the missing rule, the one a fleet's central agent applies to a silent
         robot and training simulates (`training_presence`): a robot not present is zeros, its
-        observation and its previous action."""
+        observation and its previous action. `site` (L, (K,) bool): the site feed's silent rule as
+        training simulates it (`training_site_presence`): where it is absent, columns [L, D) of every
+        row are zeros (a fleet's central agent writes the zeros into its rows itself)."""
         k = obs.shape[0]
+        if site is not None and not site[1].all():
+            local, there = site
+            obs = obs.copy()
+            obs[~there, :, local:] = 0.0
         if present is not None and not present.all():
             obs = np.where(present[..., None], obs, np.float32(0))
             prev_actions = np.where(present[..., None], prev_actions, np.float32(0))

@@ -61,6 +61,11 @@ class RunConfig(BaseModel):
                                      "for a window of missing_window vector steps (its observation and previous "
                                      "action zeroed in the global state: a fleet's missing rule, docs/fleet.md)")
     missing_window: int = Field(20, ge=1, description="vector steps a simulated absence (missing_prob) lasts")
+    site_missing_prob: float = Field(
+        0.0, ge=0, lt=1, description="training only, an env with central-only columns (rware): the chance that the "
+                                     "central agent's site feed is absent for a window of missing_window vector "
+                                     "steps (those columns zeroed in every row of its state: a fleet's silent "
+                                     "rule for the feed, docs/fleet.md)")
 
     # --- PPO ---------------------------------------------------------------------------------
     rollout_steps: int = Field(50, ge=1, description="vector steps T per update")
@@ -151,6 +156,7 @@ _FIXES = {
     "msg_dropout": "use a probability in [0, 1]",
     "missing_prob": "use a probability in [0, 1), e.g. --set missing_prob=0.1 (0: no simulated absences)",
     "missing_window": "use a number of vector steps >= 1, e.g. --set missing_window=20",
+    "site_missing_prob": "use a probability in [0, 1), e.g. --set site_missing_prob=0.1 (0: the site feed always there)",
     "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
     "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
     "device": "use cpu, cuda or cuda:N, e.g. --set device=cuda",

@@ -51,6 +51,9 @@ class Team:
         self.device = torch_device(cfg)
         torch.manual_seed(cfg.seed)
         self.cfg, self.spec = cfg, spec
+        if cfg.site_missing_prob > 0 and spec.local_obs_dim in (None, spec.obs_dim):
+            raise ConfigError(f"site_missing_prob: {spec.name} has no site feed (every robot observes its whole "
+                              "row); fix: leave it at 0 (it is for envs with central-only columns, e.g. rware)")
         self.n, self.obs_dim = spec.n_agents, spec.obs_dim
         self.discrete = spec.discrete
         self.act_dim = spec.action_dim  # one-hot width (discrete) or vector length (continuous)
@@ -105,11 +108,13 @@ class Team:
     def global_state(self, obs: np.ndarray, prev_actions: np.ndarray, step: int | None = None,
                      env_idx: np.ndarray | None = None) -> np.ndarray:
         """The central agent's state; at vector `step` of training (of copies `env_idx`, default all),
-        with the robots that `missing_prob` takes away at that step zeroed (CentralActing)."""
-        present = None
-        if step is not None:
-            present = self.acting.training_presence(step, np.arange(obs.shape[0]) if env_idx is None else env_idx)
-        return self.acting.global_state(obs, prev_actions, present)
+        with the robots that `missing_prob` and the site feed that `site_missing_prob` take away at
+        that step zeroed (CentralActing.training_state)."""
+        if step is None:
+            return self.acting.global_state(obs, prev_actions)
+        return self.acting.training_state(obs, prev_actions, step,
+                                          np.arange(obs.shape[0]) if env_idx is None else env_idx,
+                                          self.spec.local_obs_dim)
 
     # ----- host <-> device ----------------------------------------------------------------------
     def tensor(self, a: np.ndarray) -> torch.Tensor:

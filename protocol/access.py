@@ -29,11 +29,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hammer.protocol.identity import Identity
+from hammer.protocol.identity import SITE_FEED, Identity
 from hammer.protocol.keys import Keys
 
 LAUNCHER = "launcher"
 HUB = "hub"  # the `hammer hub` router of a secure multi-machine run: relays the run's traffic
+SITE = SITE_FEED  # a fleet's site feed: what the central agent sees that no robot observes (docs/fleet.md)
 
 
 @dataclass(frozen=True)
@@ -59,11 +60,12 @@ def pool_name(agents: list[int]) -> str:
     return "locals-" + "_".join(map(str, agents))
 
 
-def role_names(n_agents: int, uses_central: bool = True, pools: Pools = (), router: bool = False) -> list[str]:
+def role_names(n_agents: int, uses_central: bool = True, pools: Pools = (), router: bool = False,
+               site_feed: bool = False) -> list[str]:
     """Every identity a secure run creates: an agent pool has one identity of its own; `hub` only
-    for a run whose roles meet through a router."""
+    for a run whose roles meet through a router; `site` only for a fleet whose team has a site feed."""
     return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
-            *(name for name, _ in pools), "learner", *([HUB] if router else [])]
+            *(name for name, _ in pools), "learner", *([HUB] if router else []), *([SITE] if site_feed else [])]
 
 
 def agent_weights(keys: Keys) -> tuple[str, ...]:
@@ -102,9 +104,11 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
             # the agents' heartbeats: a fleet's central agent switches to a pushed version once the
             # robots present hold it (their `policy_held`, central_agent/fleet.py)
-            subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all"),
+            subscribe=(keys.state(), keys.up("*"), keys.site_state(), keys.weights("central"), keys.ctl("all"),
                        *(keys.heartbeat(f"local-{i}") for i in range(n_agents))),
             liveliness=(keys.alive("central"),)),
+        # the site feed, and nothing else: no robot key may publish it, and the site reads nothing
+        SITE: Grant(publish=(keys.site_state(),), liveliness=(keys.alive(SITE),)),
         "learner": Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.weights_announce("local"),
                      keys.heartbeat("learner")),

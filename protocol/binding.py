@@ -17,6 +17,7 @@ What each key says (keys under `hammer/<run>/`; `<pool>` is an agent pool `local
 |---|---|---|---|
 | `env/obs/<i>` | local_obs | agent = i | env |
 | `env/state` | global_state | | env |
+| `site/state` | site_state | | site |
 | `central/msg/<i>` | central_msg | agent = i | central |
 | `agent/act/<i>` | action | agent = i | local-i or its pool |
 | `agent/up/<i>` | uplink | agent = i | local-i or its pool |
@@ -78,6 +79,8 @@ def rule_for(rel: str) -> Rule:
         return Rule(_AGENT_TYPES[head], agent=i, sender=head[0] if head[0] == "central" else "env")
     if parts == ["env", "state"]:
         return Rule("global_state", sender="env")
+    if parts == ["site", "state"]:
+        return Rule("site_state", sender="site")
     if parts[0] == "learn" and len(parts) == 3 and parts[2] in _LEARN_TYPES:
         if parts[2] == "exp":
             return Rule("experience", role=parts[1], sender=_EXP_SENDER.get(parts[1], "env"))

@@ -19,7 +19,8 @@ class Dims:
     msg_dim: M; action_dim: number of discrete actions, or length of the continuous action vector;
     discrete: whether actions are discrete ids (int64) or continuous vectors (float32);
     rollout_steps: T of an experience chunk. With all seven declared, experience chunks are
-    checked array by array against the rollout layout (`rollout_layout`). echo: an action must
+    checked array by array against the rollout layout (`rollout_layout`). site_dim: C, the columns
+    of a fleet's site feed (what no robot observes). echo: an action must
     carry the message it acted on (an env host that trains records it; serving needs none).
     """
 
@@ -31,6 +32,7 @@ class Dims:
     discrete: bool | None = None
     rollout_steps: int | None = None
     echo: bool | None = None
+    site_dim: int | None = None
 
     @classmethod
     def from_layout(cls, layout: RolloutLayout) -> Dims:

@@ -283,8 +283,9 @@ def revoked(site: Path) -> list[dict]:
 def site_run_identities(site: Path, directory: Path, roles: list[str], hosts: tuple[str, ...] = ()) -> None:
     """A secure run's identity directory from a site: the server roles (every role but the robots)
     get certificates signed by the site CA, made anew for the run; each robot role gets its kept
-    identity from the site (issued now if it has none: a robot the launcher starts itself); ca.pem is
-    the site's trust.pem, so the run accepts exactly the robots in good standing."""
+    identity from the site (issued now if it has none: a robot the launcher starts itself), and so
+    does the site feed (`site`) where the site issued it one; ca.pem is the site's trust.pem, so the
+    run accepts exactly the robots (and site feed) in good standing."""
     import shutil
 
     s = Path(site)
@@ -293,7 +294,10 @@ def site_run_identities(site: Path, directory: Path, roles: list[str], hosts: tu
     d.mkdir(parents=True, exist_ok=True)
     d.chmod(0o700)
     for role in roles:
-        if _is_robot(role):
+        # a robot's kept identity (issued now for one the launcher starts itself); the site feed's kept one
+        # where the site was issued one (an external site), else made anew like a server role's (the world)
+        kept = _is_robot(role) or (role == SITE_FEED and (robot_dir(s, role) / f"{role}.pem").is_file())
+        if kept:
             if not (robot_dir(s, role) / f"{role}.pem").is_file():
                 issue_robot(s, role, hosts)
             for name in (f"{role}.pem", f"{role}.key"):
@@ -312,10 +316,13 @@ def _is_robot(role: str) -> bool:
     return role.startswith("local-") and role[6:].isdigit()
 
 
+SITE_FEED = "site"  # the site feed's publisher (protocol.access.SITE): kept like a robot's where issued
+
+
 def _check_robot_role(role: str) -> None:
-    if not _is_robot(role):
-        raise SiteError(f"{role!r}: a site issues robot identities only, local-<i> (e.g. local-0); the fleet's own "
-                        "roles get theirs from the site CA at every start")
+    if not _is_robot(role) and role != SITE_FEED:
+        raise SiteError(f"{role!r}: a site issues robot identities, local-<i> (e.g. local-0), and the site feed's, "
+                        "site; the fleet's own roles get theirs from the site CA at every start")
 
 
 def _write_trust(site: Path) -> None:

@@ -8,6 +8,7 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/env/state                GlobalState to the central agent
   hammer/<run>/central/msg/<agent>      CentralMsg to local agent <agent>
   hammer/<run>/agent/act/<agent>        Action from local agent <agent>
+  hammer/<run>/site/state               SiteState from the site (what no robot observes) to a fleet's central agent
   hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner: role "team" (env host's rollout),
                                         "central" (the central agent's per-step record)
   hammer/<run>/learn/<role>/weights     Weights from the learner: role "local" or "central"
@@ -19,7 +20,7 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/alive/<role>             liveliness token of one process
   hammer/<run>/bench/<name>             benchmark traffic
 
-Role names: env, central, learner, local-<i>; the launcher sends as "launcher" and has no token.
+Role names: env, central, learner, local-<i>, site (a fleet's site feed); the launcher sends as "launcher" and has no token.
 docs/wire-format.md is this contract written for a client in another language.
 """
 
@@ -88,6 +89,11 @@ class Keys:
     def up(self, agent: int | str) -> str:
         """A robot's uplink to the central agent in a fleet (its observation and last action)."""
         return f"{self.prefix}/agent/up/{_agent(agent)}"
+
+    def site_state(self) -> str:
+        """The site feed of a fleet: what the central agent sees that no robot observes (a warehouse
+        management system's requested shelves and goals), from the site's own identity."""
+        return f"{self.prefix}/site/state"
 
     def exp(self, role: str) -> str:
         return f"{self.prefix}/learn/{_name(role, 'role')}/exp"

@@ -29,6 +29,7 @@ A = action vector length):
   LocalObs     obs (K,D) float32, active (K,) bool
   GlobalState  obs (K,N,D) float32, prev_actions (K,N,A) float32, active (K,N) bool
   CentralMsg   msg (K,M) float32 in [-1,1]
+  SiteState    cols (K,C) float32 (C = the central-only columns of an observation row)
   Action       action (K,) int64 (discrete) or (K,A) float32 (continuous), fallback (K,) bool, msg (K,M) float32
   ExperienceChunk  the arrays of protocol/rollout_layout.py
 """
@@ -726,10 +727,35 @@ class Uplink(Message, tag=9, kw_only=True):
             check_actions(self.action, dims)
 
 
+class SiteState(Message, tag=12, kw_only=True):
+    """Site -> a fleet's central agent (docs/fleet.md, "The site feed"): the part of the central
+    agent's state that no robot observes (a warehouse's requested shelves and goal cells, from its
+    management system), the columns [L, D) of every observation row. The central agent dates it by
+    arrival, holds it for `site_hold_s`, then uses zeros (the silent rule)."""
+
+    TYPE: ClassVar[str] = "site_state"
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"cols": OBS2}
+    cols: Arr(OBS2, "(K, C) float32: the central-only columns, as the env writes them (K = 1 in a fleet)")
+
+    @classmethod
+    def _array_bytes(cls, dims: Dims) -> int | None:
+        if dims.num_envs is None or dims.site_dim is None:
+            return None
+        return dims.num_envs * (8 + 4 * dims.site_dim)  # env_idx, cols
+
+    def __post_init__(self) -> None:
+        self.env_idx = idx = _env_idx(self.env_idx)
+        self.cols = OBS2.take(self.cols, "cols")
+        self._need("cols", self.cols, (idx.shape[0], None))
+
+    def _check_dims(self, dims: Dims) -> None:
+        expect("cols", "site_dim", self.cols.shape[1], dims.site_dim)
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (LocalObs, GlobalState, CentralMsg, Action, ExperienceChunk, Weights, Control, Heartbeat, Uplink,
-                WeightsAnnounce, WeightsChunk)
+                WeightsAnnounce, WeightsChunk, SiteState)
 }
 for _cls in MESSAGE_TYPES.values():
     _cls.TAG = _cls.__struct_config__.tag

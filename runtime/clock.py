@@ -13,6 +13,9 @@ import time
 # A simulated fleet's tick: its observations wait this long (at most) for the central agent's messages
 # of the tick, which they carry (env_host/world.py; `--runtime msg_wait_s=S` on `hammer serve --realtime`).
 MSG_WAIT_S = 0.01
+# A fleet's central agent holds the site feed (what no robot observes) this long after its latest state
+# arrived, then puts zeros in its columns (central_agent/fleet.py; `--runtime site_hold_s=S`).
+SITE_HOLD_S = 1.0
 
 
 class Clock:

@@ -100,6 +100,9 @@ class EdgeAgent:
         self.agent, self.max_msg_age_s, self.fed_by_world = agent, max_msg_age_s, fed_by_world
         self.name = f"local-{agent}"
         self.obs_dim = int(env["obs_dim"])
+        cols = site_columns(env)
+        self.local_dim = None if cols is None else cols[0]  # the robot's own columns; the rest: the site feed's
+        self.row_dim = self.obs_dim if cols is None else cols[0]  # what crosses the robot's link: its own columns
         self.low, self.high = env.get("action_low"), env.get("action_high")
         self.core = LocalAgent(self.spec)
         self._bundle_blob = (b.path / LOCAL).read_bytes()
@@ -210,38 +213,40 @@ class EdgeAgent:
                 "policy_pulling": -1 if pulling is None else pulling}
 
     def _open(self, session_type, retry_s: float):
-        from hammer.protocol.session import OpenTimeout, open_retrying
-
-        try:
-            return open_retrying(
-                lambda: session_type(self.settings.run_id, self.transport, self.settings.faults, sender=self.name),
-                time.monotonic() + retry_s, self._closed.is_set,
-                lambda reason: log.info("%s waiting for the run's router (%s)", self.name, reason),
-                pause=self._closed.wait, retry_s=0.5)
-        except OpenTimeout as e:
-            raise ConnectionError(f"{self.name}: the run's router not reachable within {retry_s:g} s "
-                                  f"({e.reason}); fix: check the address and that the router is up") from None
+        return open_fleet_client(session_type, self.settings, self.transport, self.name, retry_s, self._closed)
 
     # ----- the control step -----------------------------------------------------------------------
     def act(self, obs: Any) -> np.ndarray:
-        """The action for observation `obs` (the robot's D floats): an int64 id (discrete) or a
+        """The action for observation `obs` (the robot's D floats; for a team with a site feed, its own
+        L floats, or D of which the rest is ignored): an int64 id (discrete) or a
         float32 vector clipped to the action box. Sends the uplink first; never waits on the network."""
         o = np.asarray(obs, dtype=np.float32).reshape(-1)
-        if o.shape[0] != self.obs_dim or not np.isfinite(o).all():
-            raise ValueError(f"obs: expected {self.obs_dim} finite floats, got shape {np.shape(obs)}"
+        sizes = (self.obs_dim,) if self.local_dim is None else (self.local_dim, self.obs_dim)
+        if o.shape[0] not in sizes or not np.isfinite(o).all():
+            raise ValueError(f"obs: expected {' or '.join(map(str, sizes))} finite floats, got shape {np.shape(obs)}"
                              f"{'' if np.isfinite(o).all() else ' with NaN/inf'}")
-        o = o[None]
+        o = o[None, :self.row_dim]
         self._uplink(o)
-        return self._decide(o)
+        return self._decide(self._row(o))
+
+    def _row(self, o: np.ndarray) -> np.ndarray:
+        """(1, D): the robot's own columns, and zeros where a team with a site feed has the site's
+        columns (the robot never sees them; its policy was trained on them zeroed)."""
+        if self.local_dim is None:
+            return o
+        row = np.zeros((1, self.obs_dim), np.float32)
+        row[:, :self.local_dim] = o[:, :self.local_dim]
+        return row
 
     def act_on_world(self, obs: np.ndarray, msg: np.ndarray | None, arrived: float) -> np.ndarray:
-        """The action for a simulated fleet's observation (1, D), `msg` (1, M) the central message it
-        carried (None: none came with it), both arrived at `arrived` (time.monotonic()): a message
-        held like one from `central/msg/<i>`; no uplink (the world holds what it would say)."""
+        """The action for a simulated fleet's observation (1, D; a team with a site feed: the robot's own
+        (1, L)), `msg` (1, M) the central message it carried (None: none came with it), both arrived at
+        `arrived` (time.monotonic()): a message held like one from `central/msg/<i>`; no uplink (the
+        world holds what it would say)."""
         if msg is not None:
             self._msg, self._msg_t = msg, arrived
             self.counts.msgs_received += 1
-        return self._decide(obs)
+        return self._decide(self._row(obs))
 
     def _decide(self, o: np.ndarray) -> np.ndarray:
         msg = self.last_msg = self.message()
@@ -330,14 +335,34 @@ class EdgeAgent:
         self.close()
 
 
+def open_fleet_client(session_type, settings, transport, name: str, retry_s: float, closed: threading.Event):
+    """A fleet client's session (a robot's, the site feed's: `serve/site_feed.py`), opened as soon as
+    the fleet's router answers, trying for `retry_s`; None if `closed` is set meanwhile;
+    ConnectionError with the fix when the router never answered."""
+    from hammer.protocol.session import OpenTimeout, open_retrying
+
+    try:
+        return open_retrying(
+            lambda: session_type(settings.run_id, transport, settings.faults, sender=name),
+            time.monotonic() + retry_s, closed.is_set,
+            lambda reason: log.info("%s waiting for the run's router (%s)", name, reason),
+            pause=closed.wait, retry_s=0.5)
+    except OpenTimeout as e:
+        raise ConnectionError(f"{name}: the run's router not reachable within {retry_s:g} s "
+                              f"({e.reason}); fix: check the address and that the router is up") from None
+
+
+def site_columns(env: dict) -> tuple[int, int] | None:
+    """(L, D): the central-only columns [L, D) of a team's observation rows, which a fleet's site feed
+    carries (`serve/site_feed.py`); None for a team whose robots observe their whole row."""
+    local, d = env.get("local_obs_dim"), int(env["obs_dim"])
+    return None if local in (None, d) else (int(local), d)
+
+
 def fleet_check(bundle) -> None:
-    """What a team needs to run as a fleet, in one line each: every robot sees its whole observation
-    row (no central-only columns: those need a site feed, not built yet) and acts on its own
-    observation (not the joint one of variant centralized)."""
-    env = bundle.env_spec_data
-    if env.get("local_obs_dim") not in (None, env["obs_dim"]):
-        raise ValueError(f"bundle {bundle.path}: {bundle.manifest['env']['id']} has central-only observation "
-                         "columns, which no robot observes; a fleet needs a site feed for them (not built yet)")
+    """What a team needs to run as a fleet, in one line: every robot acts on its own observation (not
+    the joint one of variant centralized). Central-only columns (rware's requested shelves) come from
+    the site feed (`site_columns`, docs/fleet.md "The site feed"), not from any robot."""
     if bundle.wiring().joint_obs:
         raise ValueError(f"bundle {bundle.path}: variant {bundle.manifest['variant']} acts on the joint "
                          "observation of all agents, which no robot has; a fleet runs il or hammer teams")
@@ -366,7 +391,7 @@ def robot_role(agent: EdgeAgent, stay: bool = False, lost_exit_s: float | None =
             super().__init__(agent.session, agent.name)
             keys = agent.session.keys
             self.sensors = agent.session.subscribe_latest(keys.obs(agent.agent), LocalObs,
-                                                          Dims(num_envs=1, obs_dim=agent.obs_dim,
+                                                          Dims(num_envs=1, obs_dim=agent.row_dim,
                                                                msg_dim=agent.spec.msg_dim))
             self.actuator = agent.session.publisher(keys.act(agent.agent), express=True, block=False)
             self.stall_what = "observations from the world"

@@ -59,6 +59,13 @@ SPAWNS_TESTS = {
     "test_serve_pace::test_a_push_is_pulled_in_a_secure_run",
     "test_serve_pace::test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout",
     "test_settings_structs::test_the_settings_import_no_pydantic",
+    "test_site_feed::test_a_warehouse_team_runs_as_a_fleet_with_the_world_as_its_site",
+    "test_site_feed::test_the_docs_site_example_runs_against_a_served_fleet",
+    "test_site_feed::test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line",
+    "test_site_feed::test_only_the_site_may_publish_the_feed_in_a_secure_fleet_not_a_stolen_robot_key",
+    "test_site_feed::test_hammer_up_reproduces_hammer_train_with_the_feed_s_absences",
+    "test_site_feed::test_an_il_warehouse_team_runs_as_a_fleet_without_a_feed",
+    "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
 }
 
 LEARNS_MODULES = {"test_trainer_learning"}
@@ -80,6 +87,7 @@ SLOW_TESTS = {
 SERIAL_MODULES = {"test_view_browser"}
 SERIAL_TESTS = {
     "test_fleet::test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract",
+    "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
     "test_messages_warehouse::test_a_warehouse_team_is_analysed_with_its_targets_and_cuts",
 }
 
@@ -93,6 +101,7 @@ LONGEST_FIRST = (
     "test_serve_lifecycle", "test_experiments_sweep_ray", "test_key_table", "test_foreign_client",
     "test_messages_warehouse", "test_runtime_up", "test_serve_canary", "test_trainer_learning",
     "test_central_set", "test_serve_bundle", "test_edge_entry", "test_live_fuzz", "test_long_runs",
+    "test_site_feed",
 )
 
 

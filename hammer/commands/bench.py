@@ -525,7 +525,8 @@ def bench_fleet(
     hz: Annotated[float, typer.Option(min=0.1, help="the world's and the central agent's rate")] = 20.0,
     trials: Annotated[str | None, typer.Option(
         help="cuts, KIND:SECONDS[xN] comma-separated, robots in turn: port (the robot's switch port), nic (the "
-             "robot's own interface), hub (the serving machine's port: every robot); default "
+             "robot's own interface), hub (the serving machine's port: every robot), site (a team with a site feed: the "
+             "site in a namespace of its own, its port); default "
              "port:0.5x2,port:5x2,port:8x2,port:30x2,nic:8x2,nic:30x1,hub:8x2")] = None,
     insecure: Annotated[bool, typer.Option(help="the plain profile (default: --secure, as docs/fleet.md runs it)")] = False,
     per_fleet: Annotated[int, typer.Option(min=1, help="trials per fleet session")] = 10,

@@ -16,7 +16,7 @@ import typer
 
 from hammer.commands.common import InsecureOpt, fail
 from hammer.protocol.transport_log import watch_refused
-from hammer.runtime.clock import MSG_WAIT_S
+from hammer.runtime.clock import MSG_WAIT_S, SITE_HOLD_S
 from hammer.runtime.process import return_large_blocks, setup_process
 
 BundleOpt = Annotated[Path, typer.Option("--bundle", help="A bundle made by `hammer export`.")]
@@ -71,24 +71,40 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   timeline: Annotated[Path | None, typer.Option(help="Append a JSON line a second: per-robot "
                                                                      "totals (for benches).")] = None,
                   seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None,
-                  runtime: RuntimeOpt = None) -> None:
+                  runtime: RuntimeOpt = None,
+                  site_feed: Annotated[bool, typer.Option(help="A team with central-only columns (rware): publish "
+                                                                "them as the site (its identity `site`); "
+                                                                "--no-site-feed when a real site does.")] = True) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     watch_refused()
     return_large_blocks()
+    from contextlib import nullcontext
+
     from hammer.env_host.world import RealtimeWorld
     from hammer.learning.run_env import make_env
     from hammer.protocol.session import HammerSession
+    from hammer.serve.edge_agent import site_columns
 
     try:
-        _, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env", runtime)
-    except (FileNotFoundError, ValueError) as e:
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env",
+                                          runtime)
+        # in simulation the world is also the site: the feed on its own session, as the site's identity
+        feed = None
+        if site_feed and cfg.wiring.uses_central and site_columns(b.env_spec_data) is not None:
+            from hammer.serve.site_feed import SiteFeed
+
+            # open before the world's first state (the router is up before the roles): no state without it
+            feed = SiteFeed(bundle, run_id=run_id, connect=connect, zenoh_config=zenoh_config, identity=identity,
+                            insecure=insecure, runtime=tuple(runtime or ()), wait=True, connect_retry_s=60)
+    except (FileNotFoundError, ValueError, ConnectionError) as e:
         fail(str(e))
     world = None
     try:
-        with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s:
+        with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s, (feed or nullcontext()):
             world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline,
-                                  msg_dim=cfg.msg_dim, central=cfg.wiring.uses_central, msg_wait_s=msg_wait_s)
+                                  msg_dim=cfg.msg_dim, central=cfg.wiring.uses_central, msg_wait_s=msg_wait_s,
+                                  site=feed)
             world.run()
     except KeyboardInterrupt:
         pass
@@ -101,6 +117,8 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
                     hz: HzOpt = 20.0,
                     missing_after_s: Annotated[float, typer.Option(help="A robot silent this long is missing "
                                                                        "(zeros in the state).")] = 0.5,
+                    site_hold_s: Annotated[float, typer.Option(help="A site feed silent this long is held no "
+                                                                   "longer (its columns zeros in the state).")] = SITE_HOLD_S,
                     seed: SeedOpt = None, insecure: InsecureOpt = False, identity: IdentityOpt = None,
                     runtime: RuntimeOpt = None) -> None:
     """The fleet's central agent: a message per robot for each state of the world (its state from the
@@ -120,7 +138,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
         fail(str(e))
     try:
         with HammerSession(run_id, transport, sender="central") as s:
-            FleetCentral(s, cfg, b.env_spec(), blob, hz, missing_after_s).run()
+            FleetCentral(s, cfg, b.env_spec(), blob, hz, missing_after_s, site_hold_s=site_hold_s).run()
     except KeyboardInterrupt:
         pass
 

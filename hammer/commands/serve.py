@@ -106,7 +106,8 @@ def serve_command(
         "--chaos", help="Process chaos, repeatable: ACTION:ROLE@step=N|t=S[,for=S], e.g. 'kill:central@step=200'.")] = None,
     runtime: Annotated[list[str] | None, typer.Option(
         "--runtime", help="RuntimeSettings field=value, repeatable, e.g. msg_deadline_ms=20, hub_port=7447; with "
-                    "--realtime also the fleet's bounds (hold_s, missing_after_s, max_msg_age_s, max_absence_s, msg_wait_s) and "
+                    "--realtime also the fleet's bounds (hold_s, missing_after_s, max_msg_age_s, max_absence_s, msg_wait_s, "
+                    "site_hold_s) and "
                     "its links' zenoh_lease_s, reconnect_max_s (docs/fleet.md).")] = None,
     external: Annotated[str | None, typer.Option(
         help="Roles started elsewhere, not launched here (the run waits for them): agent indices (`hammer local "
@@ -130,6 +131,9 @@ def serve_command(
     site: Annotated[Path | None, typer.Option(
         help="--realtime --secure: the identities of this site (`hammer site init`), kept across restarts: robots "
              "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
+    external_site: Annotated[bool, typer.Option(
+        help="--realtime, a team with a site feed (rware): the site publishes it from elsewhere "
+             "(`hammer.site.SiteFeed`, identity `site`), not the simulated world (docs/fleet.md).")] = False,
     view: ViewOpt = None,
     view_token: ViewTokenOpt = None,
 ) -> None:
@@ -149,8 +153,10 @@ def serve_command(
     console = Console(stderr=True)
     if realtime is not None:
         _serve_fleet(console, bundle, realtime, seconds, episodes, seed, fault, chaos, runtime, external, out, run_dir,
-                     secure, insecure, listen, num_envs, timeline, site, view, view_token)
+                     secure, insecure, listen, num_envs, timeline, site, view, view_token, external_site)
         return
+    if external_site:
+        fail("--external-site goes with --realtime (a fleet's site feed)")
     if site is not None:
         fail("--site goes with --realtime --secure (a fleet); a lock-stepped served run makes its own identities")
     if seconds is not None:
@@ -184,10 +190,11 @@ def serve_command(
 def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episodes: int, seed: int | None,
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
-                 site: Path | None = None, view: str | None = None, view_token: str | None = None) -> None:
+                 site: Path | None = None, view: str | None = None, view_token: str | None = None,
+                 external_site: bool = False) -> None:
     """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
     from hammer.deploy.dashboard import fleet_status_line
-    from hammer.deploy.fleet import robot_command, run_fleet
+    from hammer.deploy.fleet import robot_command, robot_endpoint, run_fleet
     from hammer.deploy.live import LiveRun
     from hammer.deploy.plan import plan_fleet
     from hammer.serve.bundle import BundleError
@@ -196,7 +203,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         plan, path, robots, team = plan_fleet(
             bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault, chaos=chaos, runtime=runtime,
             external=external, out=out, run_dir=run_dir, secure=secure, insecure=insecure, listen=listen,
-            num_envs=num_envs, timeline=timeline, site=site)
+            num_envs=num_envs, timeline=timeline, site=site, external_site=external_site)
         roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
         # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
         watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
@@ -219,6 +226,11 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         console.print(f"waiting for robot {i}: {robot_command(plan, i, path)}"
                       + (f" (on another machine: --identity a directory holding a copy of {copy})" if secure else "")
                       + " (or hammer.edge.EdgeAgent)", soft_wrap=True)
+    if plan.site_external:
+        console.print(f"waiting for the site feed: hammer.site.SiteFeed({str(bundle)!r}, run_id={path.name!r}, "
+                      f"connect={robot_endpoint(plan)!r}"
+                      + (f", identity=<a directory holding a copy of {path}/identity/{{ca.pem,site.pem,site.key}}>"
+                         if secure else "") + ")", soft_wrap=True)
     if watch.url:
         console.print(f"view: {watch.url}", soft_wrap=True)
     ended = "failed"

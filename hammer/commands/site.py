@@ -17,7 +17,8 @@ import typer
 from hammer.commands.common import fail
 
 SiteArg = Annotated[Path, typer.Argument(help="The site's directory (holds its CA key: keep it on the serving machine).")]
-RoleArg = Annotated[str, typer.Argument(help="The robot's role, local-<i> (e.g. local-0).")]
+RoleArg = Annotated[str, typer.Argument(help="The robot's role, local-<i> (e.g. local-0), or site (the site feed's "
+                                               "publisher, a warehouse management system: docs/fleet.md).")]
 
 
 def register(app: typer.Typer) -> None:

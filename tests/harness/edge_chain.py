@@ -16,6 +16,12 @@ Every step is the real CLI (a fresh process each):
      (benchmarks.push_driver); the env host's trace is replayed with each version's weights: every
      step was acted on with the version it names, and after the rollback exactly as A acts
   5. `hammer play A --out WORK/team.gif`
+  6. a warehouse fleet: a rware-tiny-2ag team (--warehouse RUN, or `hammer train` of
+     --warehouse-episodes, default 8; 0 skips it) exported and served as a secure fleet
+     (`hammer serve --realtime 20 --secure`, the world publishing its site feed as the site), each
+     robot `hammer local --bundle --fleet` from the edge venv in its own namespace and the site feed
+     (`hammer.site.SiteFeed`, the warehouse's layout at reset) in its own; robot 0's link and the
+     feed's link cut and restored (benchmarks.fleet.run_trials); the site feed's figures in its summary
 Writes WORK/chain.json (every figure) and prints it.
 """
 
@@ -51,6 +57,27 @@ def train_team(run_dir: Path, seed: int, episodes: int, sets: tuple[str, ...] = 
     return run_dir
 
 
+def warehouse_fleet(work: Path, run: Path, edge_python: Path) -> dict:
+    """Step 6: the warehouse team `run` exported and run as a secure fleet with its site feed across
+    namespaces, robot 0's port cut 2 s and the site feed's 3 s (the trials of `hammer bench fleet`)."""
+    from hammer.benchmarks.fleet import run_trials
+
+    bundle = work / "bundle-warehouse"
+    export = hammer("export", str(run), "--out", str(bundle), "--force")
+    (work / "warehouse-trials.jsonl").unlink(missing_ok=True)
+    r = run_trials(bundle, work / "warehouse", [("port", 2.0, 1), ("site", 3.0, 1)], edge_python=edge_python,
+                   results=work / "warehouse-trials.jsonl", bytes_s=10.0, progress=lambda _: None)
+    return {"run": str(run), "export": export, **r}
+
+
+def train_warehouse(run_dir: Path, episodes: int) -> Path:
+    """`hammer train --preset rware-tiny-2ag` (HAMMER, RL central mode), short episodes, into `run_dir`."""
+    hammer("train", "--preset", "rware-tiny-2ag", "--central-mode", "rl", "--episodes", str(episodes),
+           "--set", "env_kwargs.max_steps=100", "--set", "num_envs=4", "--set", "rollout_steps=50",
+           "--run-dir", str(run_dir), "--quiet")
+    return run_dir
+
+
 def replay_check(trace_file: Path, bundles: dict[int, Path]) -> dict:
     """Replay every local agent on the trace's observations and messages with the weights of the
     version each step names (one random stream per agent, as the edge agents draw): the fraction of
@@ -78,8 +105,9 @@ def replay_check(trace_file: Path, bundles: dict[int, Path]) -> dict:
 
 
 def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[int, ...], episodes: int,
-          push_at: int = 150, play_episodes: int = 1, tag: str | None = None) -> dict:
-    """Steps 2-5 for two trained run directories; returns every figure (also written to WORK/chain.json)."""
+          push_at: int = 150, play_episodes: int = 1, tag: str | None = None, warehouse: Path | None = None) -> dict:
+    """Steps 2-6 for two trained run directories (and a warehouse team's, step 6); returns every figure
+    (also written to WORK/chain.json)."""
     from hammer.benchmarks.netns import served_run
 
     work.mkdir(parents=True, exist_ok=True)
@@ -100,6 +128,8 @@ def chain(work: Path, team: Path, update: Path, edge_python: Path, rates: tuple[
     gif = work / "team.gif"
     report["play"] = hammer("play", str(a), "--out", str(gif), "--episodes", str(play_episodes), "--max-steps", "25")
     report["gif"] = str(gif)
+    if warehouse is not None:
+        report["warehouse"] = warehouse_fleet(work, warehouse, edge_python)
     (work / "chain.json").write_text(json.dumps(report, indent=1))
     return report
 
@@ -131,6 +161,15 @@ def summary_lines(report: dict, work: Path) -> list[str]:
             lines.append(f"  replay with each version's weights: {rp['match']:.1%} of the actions match "
                          f"({rp['acted_in_time']:.1%} acted in time)")
     lines.append(f"play: {report['play']}")
+    wh = report.get("warehouse")
+    if wh is not None:
+        site = (wh["fleets"][0]["summary"].get("site") or {}) if wh["fleets"] else {}
+        trials = "; ".join(f"{t['kind']} {t['seconds']:g} s cut: back in {t['back_max_s']} s, healthy "
+                           f"{t['healthy_min_fraction']} of rate" for t in wh["trials"])
+        link = wh.get("link") or {}
+        lines.append(f"warehouse fleet (secure, its site feed from a namespace of its own): {trials}; feed states taken "
+                     f"{site.get('states')}, silences {site.get('silences')}; robot 0's link "
+                     f"{link.get('bytes_per_step')} B, {link.get('packets_per_step')} packets per step")
     lines.append(f"every figure: {work / 'chain.json'}")
     return lines
 
@@ -150,6 +189,9 @@ def main() -> None:
                     help="per run; the push and the rollback each take a CLI start and a heartbeat (~2 s)")
     ap.add_argument("--work", type=Path, default=Path("runs/edge-chain"))
     ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv (default: build WORK/edge-venv)")
+    ap.add_argument("--warehouse", type=Path, help="a trained rware team's run directory for step 6")
+    ap.add_argument("--warehouse-episodes", type=int, default=8,
+                    help="without --warehouse: train one this long for step 6 (0: no warehouse fleet)")
     a = ap.parse_args()
     import signal
 
@@ -162,7 +204,10 @@ def main() -> None:
             team = train_team(a.work / "train-a", 0, a.train_episodes)
             update = train_team(a.work / "train-b", 1, a.train_episodes)
         edge = a.edge_venv or build_edge_venv(a.work / "edge-venv")
-        r = chain(a.work, team, update, edge, tuple(int(x) for x in a.rates.split(",")), a.episodes)
+        warehouse = a.warehouse or (train_warehouse(a.work / "train-warehouse", a.warehouse_episodes)
+                                    if a.warehouse_episodes else None)
+        r = chain(a.work, team, update, edge, tuple(int(x) for x in a.rates.split(",")), a.episodes,
+                  warehouse=warehouse)
     except (RuntimeError, EdgeVenvError, NetnsUnavailable) as e:
         sys.exit(f"error: {e}")
     print("\n".join(summary_lines(r, a.work)))
