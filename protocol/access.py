@@ -101,7 +101,7 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
             # the agents' heartbeats: a fleet's central agent switches to a pushed version once the
-            # robots present hold it (their `policy_held`, central_agent/fleet.py)
+            # robots present hold it (their `policy_held`, central_agent/fleet_central.py)
             subscribe=(keys.state(), keys.up("*"), keys.weights("central"), keys.ctl("all"),
                        *(keys.heartbeat(f"local-{i}") for i in range(n_agents))),
             liveliness=(keys.alive("central"),)),

@@ -147,7 +147,7 @@ def teams(tmp_path_factory):
 
 
 def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(teams, tmp_path, monkeypatch):
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
     from hammer.serve.push import push
 
     bundle, pushed = teams

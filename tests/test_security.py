@@ -328,7 +328,7 @@ def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
     """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
     joins it with local-1's identity once the run is up and is appended to the list."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
 
@@ -423,7 +423,7 @@ def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
 
 def test_the_same_peer_ends_a_plain_run_early(tmp_path):
     """The plain profile trusts the sender header: the forged `stop` of `launcher` is obeyed."""
-    from hammer.deploy.up import UpError
+    from hammer.deploy.launcher import UpError
 
     hostile: list = []
     with pytest.raises(UpError, match="env host stopped before the budget"):

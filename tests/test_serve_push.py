@@ -9,7 +9,7 @@ import shutil
 
 import numpy as np
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
 from hammer.learning.numpy_policy import NumpyCentralAgent
 from hammer.learning.sampling import ActingStreams
@@ -17,7 +17,7 @@ from hammer.local_agent.client import AgentSpec, LocalAgent
 from hammer.runtime.settings import RuntimeSettings
 from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.push import push, read_history, rollback
-from hammer.serve.settings import serve_settings
+from hammer.serve.served_settings import serve_settings
 from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 

@@ -2,7 +2,7 @@
 central agent and the fleet's policy server (hot updates: `hammer push`, `hammer rollback`), one
 process each; the robots are `hammer local --bundle ... --fleet` (edge.py).
 
-Hidden from `--help`: the launcher (deploy/fleet.py) starts them, and RUN/fleet.json holds the
+Hidden from `--help`: the launcher (deploy/fleet_launch.py) starts them, and RUN/fleet.json holds the
 exact command of each, for a role that runs on another machine.
 """
 
@@ -42,10 +42,10 @@ def register(app: typer.Typer) -> None:
 def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
           insecure: bool, identity: Path | None, role: str, runtime: list[str] | None = None):
     """The bundle, the team's config at K = 1, and this role's transport: a Zenoh client of the
-    fleet's router as the robots are (serve/edge.py), TLS with the role's identity in a secure fleet,
+    fleet's router as the robots are (serve/edge_entry.py), TLS with the role's identity in a secure fleet,
     plain beyond loopback only with --insecure."""
     from hammer.serve.bundle import load_bundle
-    from hammer.serve.edge import edge_settings, edge_transport
+    from hammer.serve.edge_entry import edge_settings, edge_transport
     from hammer.serve.edge_agent import fleet_check
 
     b = load_bundle(bundle)
@@ -108,7 +108,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     setup_process("central")
     watch_refused()
     return_large_blocks()
-    from hammer.central_agent.fleet import FleetCentral
+    from hammer.central_agent.fleet_central import FleetCentral
     from hammer.protocol.session import HammerSession
     from hammer.serve.bundle import CENTRAL
 

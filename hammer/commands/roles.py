@@ -127,7 +127,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
     if not 0 <= agent < cfg.n_agents:
         fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
     from hammer.local_agent.client import AgentSpec
-    from hammer.serve.edge import run_agent
+    from hammer.serve.edge_entry import run_agent
 
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
@@ -197,7 +197,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
     setup_process("central", run_dir)
-    from hammer.central_agent.server import CentralServer
+    from hammer.central_agent.central_server import CentralServer
     from hammer.protocol.session import HammerSession
 
     try:

@@ -172,7 +172,7 @@ def serve_command(
     if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's settings and its own key
         console.print(f"an external agent on another machine needs copies of {path}/runtime.json and of its "
                       f"{path}/identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md)", soft_wrap=True)
-    from hammer.deploy.up import set_aside_served_session
+    from hammer.deploy.launcher import set_aside_served_session
 
     earlier = set_aside_served_session(path)  # a restarted service: same directory, same run id
     if earlier is not None:
@@ -185,9 +185,9 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                  fault, chaos, runtime, external: str | None, out: Path, run_dir: Path | None, secure: bool,
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
                  site: Path | None = None, view: str | None = None, view_token: str | None = None) -> None:
-    """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
+    """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet_launch.py); what does not apply is refused."""
     from hammer.deploy.dashboard import fleet_status_line
-    from hammer.deploy.fleet import robot_command, run_fleet
+    from hammer.deploy.fleet_launch import robot_command, run_fleet
     from hammer.deploy.live import LiveRun
     from hammer.deploy.plan import plan_fleet
     from hammer.serve.bundle import BundleError

@@ -184,12 +184,12 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
 
     from rich.live import Live
 
-    from hammer.deploy.up import Stopped, UpError, launch
+    from hammer.deploy.launcher import Stopped, UpError, launch
     from hammer.envs.registry import EnvConfigError
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    from hammer.deploy.up import resolve_agents_per_process
+    from hammer.deploy.launcher import resolve_agents_per_process
 
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
     console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,

@@ -36,7 +36,7 @@ class EdgeFigures:
 
 def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
     """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
-    from hammer.deploy.up import prepare_run_dir
+    from hammer.deploy.launcher import prepare_run_dir
     from hammer.envs.registry import make_vec_env
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir

@@ -395,7 +395,7 @@ def _stopped_summary(cfg, settings: RuntimeSettings, run_dir: Path, summary: dic
 
 class Launcher:
     """The launcher role, the one launch-and-supervise loop of every launcher (`hammer up`, `hammer
-    serve`, and with `wait_alive=False, watch_liveliness=False` a fleet's, deploy/fleet.py): starts
+    serve`, and with `wait_alive=False, watch_liveliness=False` a fleet's, deploy/fleet_launch.py): starts
     every role, waits for their liveliness, follows their heartbeats (`heard(h)`: each one believed),
     fires the chaos schedule, restarts the ones that may be restarted, and stops them all when the
     env host is done (or on any way out, Ctrl-C included). The only publisher of control commands.
