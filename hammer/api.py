@@ -128,8 +128,8 @@ def serve_bundle(bundle: Bundle | str | Path, *, episodes: int = 100, run_dir: s
           runtime: Iterable[str] = (), seed: int | None = None) -> UpResult:
     """Run a trained team as processes with frozen weights and no learner (`hammer serve`);
     `runtime`: RuntimeSettings items as on the command line (`"msg_deadline_ms=20"`)."""
-    from hammer.deploy.plan import plan_serve
     from hammer.deploy.launcher import launch
+    from hammer.deploy.plan import plan_serve
 
     p = plan_serve(bundle.path if isinstance(bundle, Bundle) else Path(bundle), episodes=episodes, seed=seed,
                    runtime=list(runtime), run_dir=None if run_dir is None else Path(run_dir))

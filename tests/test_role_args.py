@@ -11,8 +11,8 @@ import pytest
 import typer
 from hammer.deploy.fleet_launch import FleetPlan, apply_runtime, robot_command
 from hammer.deploy.fleet_launch import role_specs as fleet_specs
-from hammer.deploy.supervisor import role_args
 from hammer.deploy.launcher import role_specs as up_specs
+from hammer.deploy.supervisor import role_args
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 

@@ -104,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
 def _robot(a: argparse.Namespace) -> int:
     """A robot of a fleet: the SDK's EdgeAgent driven by the world's observations (serve/edge_agent.py)."""
     from hammer.runtime.process import setup_process
-    from hammer.serve.edge_entry import DEFAULT_CONNECT_RETRY_S
     from hammer.serve.edge_agent import EdgeAgent, robot_role
+    from hammer.serve.edge_entry import DEFAULT_CONNECT_RETRY_S
 
     if a.connect_retry_s is not None and a.connect_retry_s < 0:
         print(f"error: --connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: wait for ever)", file=sys.stderr)
