@@ -117,7 +117,7 @@ def live_cost(robots: int, ticks: int = 200) -> dict:
 
     clock = [0.0]
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
-        live = LiveStatus(Path(tmp), "fleet", "bench", robots=robots, roles=("env", "central", "learner"),
+        live = LiveStatus(Path(tmp), "fleet", "bench", robots=robots, roles=("env", "central", "policy"),
                           clock=lambda: clock[0])
         board = SimpleNamespace(heartbeats={}, restarts={}, chaos_log=[])
         spent = 0.0

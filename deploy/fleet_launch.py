@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hammer.deploy.fleet_verdict import fleet_verdict
-from hammer.deploy.supervisor import RoleSpec, role_args
 from hammer.deploy.launcher import Board, Launcher, UpError, stop_on_signals
-from hammer.protocol.access import HUB, LAUNCHER
+from hammer.deploy.supervisor import RoleSpec, role_args
+from hammer.protocol.access import HUB, LAUNCHER, POLICY
 from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.structs import replace
@@ -164,7 +164,7 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, msg_wait_s=plan.msg_wait_s,
                                        run_dir=run_dir,
                                        timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
-             RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
+             RoleSpec(POLICY, role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:
         specs.append(RoleSpec("central", role_args("fleet-central", **common, hz=plan.hz,
                                                    missing_after_s=plan.missing_after_s),
@@ -339,8 +339,8 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                            **{k: v for k, v in roles.get("central", {}).get("gauges", {}).items()
                               if k.startswith("policy_")},
                            "version_switches": board.switches.get("central", [])},
-               "policy_server": {**roles.get("learner", {}).get("counters", {}),
-                                 **roles.get("learner", {}).get("gauges", {})},
+               "policy_server": {**roles.get(POLICY, {}).get("counters", {}),
+                                 **roles.get(POLICY, {}).get("gauges", {})},
                "pushes": _pushes(run_dir),
                "restarts": board.restarts, "chaos": board.chaos_log}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))

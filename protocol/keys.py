@@ -10,7 +10,8 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/agent/act/<agent>        Action from local agent <agent>
   hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner: role "team" (env host's rollout),
                                         "central" (the central agent's per-step record)
-  hammer/<run>/learn/<role>/weights     Weights from the learner: role "local" or "central"
+  hammer/<run>/learn/<role>/weights     Weights from the learner (the policy server in a served run): role
+                                        "local" or "central"
   hammer/<run>/learn/<role>/announce    WeightsAnnounce from the policy server: a pushed version to pull
   hammer/<run>/learn/<role>/chunk       WeightsChunk: the policy server's reply to `chunk?v=<version>&i=<index>`
   hammer/<run>/ctl/<name>               Control: "all" is the one every role listens to (stop, target
@@ -19,7 +20,8 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/alive/<role>             liveliness token of one process
   hammer/<run>/bench/<name>             benchmark traffic
 
-Role names: env, central, learner, local-<i>; the launcher sends as "launcher" and has no token.
+Role names: env, central, learner (a served run: policy, the policy server), local-<i>; the launcher
+sends as "launcher" and has no token.
 docs/wire-format.md is this contract written for a client in another language.
 """
 

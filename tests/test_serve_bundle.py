@@ -189,7 +189,8 @@ def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.startswith("done: 8 episodes")
     assert json.loads((run / "runtime.json").read_text())["secure"] is True
-    assert (run / "identity" / "learner.key").is_file() and not (run / "identity" / "hub.key").exists()
+    assert (run / "identity" / "policy.key").is_file() and not (run / "identity" / "hub.key").exists()
+    assert not (run / "identity" / "learner.key").exists()  # a served run has a policy server, no learner
     assert len(_metrics(run)) == 8
 
 

@@ -89,7 +89,7 @@ class _Net:
 
 def _serve(net: _Net, policy_dir, run_dir, chunk_bytes=CHUNK) -> tuple[PolicyServer, threading.Thread]:
     settings = RuntimeSettings(run_id="pace", mode="eval", policy_dir=str(policy_dir), weights_chunk_bytes=chunk_bytes)
-    server = PolicyServer(net.session("learner"), policy_dir, True, settings, run_dir=run_dir)
+    server = PolicyServer(net.session("policy"), policy_dir, True, settings, run_dir=run_dir)
     runner = threading.Thread(target=server.run, daemon=True)
     return server, runner
 

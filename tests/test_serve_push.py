@@ -178,7 +178,7 @@ def test_the_policy_server_publishes_once_and_a_late_joiner_asks(bundles):
         port = free_loopback_port()
         peer = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)])
         with HammerSession("once", TransportConfig(listen=[loopback_endpoint(port)]), sender="launcher") as hub, \
-                HammerSession("once", peer, sender="learner") as s, HammerSession("once", peer, sender="local-1") as w:
+                HammerSession("once", peer, sender="policy") as s, HammerSession("once", peer, sender="local-1") as w:
             got = w.subscribe(w.keys.weights("local"), Weights)
             time.sleep(0.5)  # the subscription has reached the other sessions
             settings = RuntimeSettings(run_id="once", mode="eval", policy_dir=str(a.path), weights_republish_s=republish_s,

@@ -45,8 +45,8 @@ def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | N
     fleet's router as the robots are (serve/edge_entry.py), TLS with the role's identity in a secure fleet,
     plain beyond loopback only with --insecure."""
     from hammer.serve.bundle import load_bundle
-    from hammer.serve.edge_entry import edge_settings, edge_transport
     from hammer.serve.edge_agent import fleet_check
+    from hammer.serve.edge_entry import edge_settings, edge_transport
 
     b = load_bundle(bundle)
     fleet_check(b)
@@ -132,19 +132,21 @@ def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
                    insecure: InsecureOpt = False, identity: IdentityOpt = None, runtime: RuntimeOpt = None) -> None:
     """The fleet's policy server: the bundle as version 0, then each version `hammer push` / `hammer
     rollback` record in RUN/pushes.json (serve/policy_server.py, the class a lock-stepped served run uses)."""
-    setup_process("learner")
+    from hammer.protocol.access import POLICY
+
+    setup_process(POLICY)
     from hammer.protocol.session import HammerSession
     from hammer.runtime.settings import RuntimeSettings
     from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "learner",
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, POLICY,
                                                 runtime)
         settings = RuntimeSettings.load(run_dir)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     try:
-        with HammerSession(run_id, transport, sender="learner") as s:
+        with HammerSession(run_id, transport, sender=POLICY) as s:
             PolicyServer(s, b.policy_dir, cfg.wiring.has_central_network, settings, run_dir).run()
     except PolicyDirError as e:
         fail(str(e))

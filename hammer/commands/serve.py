@@ -190,6 +190,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
     from hammer.deploy.fleet_launch import robot_command, run_fleet
     from hammer.deploy.live import LiveRun
     from hammer.deploy.plan import plan_fleet
+    from hammer.protocol.access import POLICY
     from hammer.serve.bundle import BundleError
 
     try:
@@ -197,7 +198,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
             bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault, chaos=chaos, runtime=runtime,
             external=external, out=out, run_dir=run_dir, secure=secure, insecure=insecure, listen=listen,
             num_envs=num_envs, timeline=timeline, site=site)
-        roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
+        roles = ("env", *(("central",) if team.wiring().uses_central else ()), POLICY)
         # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
         watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
                         roles=roles, view=view, token=view_token)
