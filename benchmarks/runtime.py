@@ -1,7 +1,7 @@
 """`hammer bench runtime`: the distributed runtime against the in-process trainer, same config, same run.
 
 `bench_runtime` trains the same number of episodes twice per preset: in-process
-(`learning.trainer`) and as separate processes over Zenoh (`deploy.up.launch`), and reports the
+(`learning.trainer`) and as separate processes over Zenoh (`deploy.launcher.launch`), and reports the
 env-steps/s of both (PPO updates included in both), their ratio, the control-loop latency of the
 distributed step (env host publishes observations -> every action is back) p50/p99, and the peak
 resident memory of every role process. `raw_env_steps` measures the environment alone (the
@@ -90,7 +90,7 @@ def bench_runtime(presets: list[str], episodes: int, variant: str = "hammer", ce
                   out: Path | None = None, raw: bool = True, lagged: bool = True) -> list[dict]:
     """One row per preset. `lagged`: also run `hammer up` with max_policy_lag=1 (the env host
     collects the next rollout while the learner updates), reported as up_lag1_*."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
 

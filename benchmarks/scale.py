@@ -80,7 +80,7 @@ def run_train(n: int, episodes: int, path: Path) -> dict:
 def run_up(n: int, episodes: int, path: Path, per_process: int) -> dict:
     """`hammer up` (launch in this process): its summary figures plus traffic, CPU and RSS per role
     from the roles' final counters (links.json `roles`)."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.runtime.settings import RuntimeSettings
 
     settings = RuntimeSettings(run_id=f"scale{n}-{per_process}-{os.getpid()}", agents_per_process=per_process,

@@ -75,7 +75,7 @@ def _flood_hook(run_dir: Path, n_agents: int, peers: list):
 def bench_security(preset: str = "cn3", episodes: int = 100, repeats: int = 2) -> dict:
     """{"runs": [one dict per run], "median": {profile: {figure: value}}, "same_metrics": bool,
     "secure_over_plain": {figure: ratio}, "flood_over_secure": {figure: ratio}}."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
 

@@ -24,7 +24,7 @@ import numpy as np
 
 
 def measure(bundle: Path, run: Path, cut_at: float, cut_s: float, seconds: float, hz: float = 20.0) -> dict:
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
     from hammer.serve.site_feed import SiteFeed
 
     c = SiteFeed.columns(bundle)

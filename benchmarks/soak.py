@@ -130,7 +130,7 @@ def run_soak(minutes: float, every_s: float = 30.0, work: Path | None = None, bu
     work = Path(work or Path("runs") / f"soak-{time.strftime('%Y%m%d-%H%M%S')}")
     work.mkdir(parents=True, exist_ok=True)
     if bundle is None:
-        from hammer.benchmarks.edge import make_team
+        from hammer.benchmarks.edge_bench import make_team
 
         bundle = make_team(work / "team")[0].path
     run = work / "run"

@@ -5,7 +5,7 @@ that is the only sign of the outage a role that can no longer speak gives. Its p
 messages and fallbacks, which a run counts but cannot name; so the launcher records every token
 that goes and comes back after start-up as one log line with the role and a running counter, keeps
 per role how often and how long it was away, and a run with a role away longer than
-`max_absence_s` is degraded with that role named (deploy.up `_verdict`).
+`max_absence_s` is degraded with that role named (deploy.launcher `_verdict`).
 
 Only the run's own roles are followed: in the plain profile any peer can declare a token under any
 name, and a record that grew with every invented name would be one more thing a long run grows.

@@ -1,7 +1,7 @@
 """The live view of a launched run (`hammer up`, `hammer serve`): the dashboard table, the links table
-and the plain status line, all read from the launcher's board (deploy.up.Board: the roles' heartbeats,
+and the plain status line, all read from the launcher's board (deploy.launcher.Board: the roles' heartbeats,
 restarts, chaos, attendance). Shared by the commands that launch (`hammer up`, `hammer serve`) and open
-to a library user's `on_tick` of `deploy.up.launch`; rich is imported only when a table is drawn."""
+to a library user's `on_tick` of `deploy.launcher.launch`; rich is imported only when a table is drawn."""
 
 from __future__ import annotations
 

@@ -89,10 +89,10 @@ def plan_serve(bundle: Path, *, episodes: int = 100, seed: int | None = None, fa
                secure: bool = False, insecure: bool = False, listen: list[str] | None = None,
                num_envs: int | None = None) -> ServePlan:
     """What `hammer serve BUNDLE` (lock-stepped) will run: the bundle's team, the served run's settings
-    (serve.settings.serve_settings), the roles started elsewhere and their commands. Raises
+    (serve.served_settings.serve_settings), the roles started elsewhere and their commands. Raises
     ValueError (BundleError) with one line; writes nothing."""
     from hammer.serve.bundle import load_bundle
-    from hammer.serve.settings import serve_settings
+    from hammer.serve.served_settings import serve_settings
 
     b = load_bundle(bundle)
     cfg = b.config(episodes=episodes, msg_dropout=0.0, **({} if seed is None else {"seed": seed}),
@@ -125,7 +125,7 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
     its `--runtime` items applied (the bounds to the plan, the rest checked as the fleet's
     RuntimeSettings) and the router's port fixed (the robots' commands name it). Raises ValueError
     (BundleError) with one line for what does not apply to a fleet or is malformed; writes nothing."""
-    from hammer.deploy.fleet import FleetPlan, apply_runtime, fleet_settings
+    from hammer.deploy.fleet_launch import FleetPlan, apply_runtime, fleet_settings
     from hammer.protocol.session import free_loopback_port
     from hammer.serve.bundle import load_bundle
 
@@ -161,7 +161,7 @@ def plan_fleet(bundle: Path, hz: float, *, seconds: float | None = None, episode
 
 def listen_endpoints(listen: list[str] | None) -> list[str]:
     """--listen endpoints, checked: the agents must be told a fixed port (0 would be whatever the OS picks)."""
-    from hammer.serve.edge import check_endpoint
+    from hammer.serve.edge_entry import check_endpoint
 
     for e in listen or []:
         check_endpoint(e, "--listen", "give this machine's address the agents reach and a fixed port, e.g. "

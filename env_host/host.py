@@ -48,6 +48,7 @@ from hammer.learning.episodes import episode_rows
 from hammer.learning.rollout import RolloutWriter, next_prev_actions
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import env_reset_seed
+from hammer.protocol.access import POLICY
 from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout
 from hammer.protocol.schemas import (
@@ -76,6 +77,8 @@ class EnvHost(Role):
         act_deadline_s, weights_timeout_s, trace, echo = s.act_deadline_ms / 1e3, s.weights_timeout_s, s.trace, s.echo
         max_policy_lag, resume_from, resume_step = s.max_policy_lag, s.resume_from, s.resume_step
         self.name_timeout_s = s.weights_name_timeout_s
+        # who publishes the weights, as the stall line and the timeout name it
+        self.publisher = "the policy server (role policy)" if s.policy_role == POLICY else "the learner"
         self.cfg, self.env, self.rd, self.spec = cfg, env, rd, env.spec
         # Where this session's wall time went (summary `time_s`; `hammer bench scale` reads it).
         self.time_s = {"first_weights": 0.0, "wait_weights": 0.0, "loop": 0.0, "env_step": 0.0}
@@ -198,7 +201,7 @@ class EnvHost(Role):
         forged or a bug, rejected and counted (runtime.bounds)."""
         t0 = time.monotonic()
         deadline = t0 + self.weights_timeout_s
-        self.stall_what = f"policy version {version} from the learner"
+        self.stall_what = f"policy version {version} from {self.publisher}"
         asked = t0
         try:
             while self.weights_version < version:
@@ -212,7 +215,7 @@ class EnvHost(Role):
                     asked = time.monotonic()
                     self.session.fetch(self.keys.weights("local"), self.weights_in)
                 elif time.monotonic() > deadline:
-                    raise TimeoutError(f"learner did not publish policy version {version} within "
+                    raise TimeoutError(f"{self.publisher} did not publish policy version {version} within "
                                        f"{self.weights_timeout_s:.0f}s (is `hammer learner` running?)")
             return True
         finally:

@@ -92,7 +92,7 @@ def eval_settings(run: Path, run_id: str, fault: list[str] | None = None, fault_
                   chaos: list[str] | None = None, runtime: list[str] | None = None):
     """(RuntimeSettings, FaultPlan) of an evaluation of a trained team (`hammer faults eval`, each sweep
     point): eval mode, link faults, chaos, --runtime items. A bundle is served as `hammer serve` serves
-    it (serve.settings.serve_settings: its fallback applies); a run directory's final/ policy with the
+    it (serve.served_settings.serve_settings: its fallback applies); a run directory's final/ policy with the
     default fallback. ValueError (FaultSpecError, ChaosSpecError, BundleError) with one line."""
     from hammer.faults.chaos import parse_chaos
     from hammer.faults.spec import build_plan
@@ -101,7 +101,7 @@ def eval_settings(run: Path, run_id: str, fault: list[str] | None = None, fault_
 
     run = Path(run)
     if is_bundle(run):
-        from hammer.serve.settings import serve_settings
+        from hammer.serve.served_settings import serve_settings
 
         return serve_settings(load_bundle(run), run_id, fault, fault_seed, chaos, runtime)
     plan = build_plan(fault, fault_seed)
@@ -134,7 +134,7 @@ def run_point(p: Point, out: Path, episodes: int, msg_deadline_ms: float, fault_
               stop=None) -> PointResult:
     """Evaluate one point into out/points/<name> (launch's `stop` passed on) and record its result
     there (POINT_FILE)."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
 
     run = Path(p.run)
     trained, _ = team_source(run)

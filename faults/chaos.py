@@ -25,6 +25,8 @@ import signal
 import time
 from dataclasses import dataclass, field, replace
 
+from hammer.protocol.access import LEARNER, POLICY
+
 ACTIONS = ("kill", "pause", "resume", "restart")
 _EVENT_RE = re.compile(r"^(?P<action>[a-z]+):(?P<role>[A-Za-z0-9_\-]+)@(?P<when>[a-z]+)=(?P<at>[0-9.]+)s?"
                        r"(?:,for=(?P<for>[0-9.]+)s?)?$")
@@ -63,9 +65,9 @@ def parse_chaos(text: str) -> ChaosEvent:
         raise ChaosSpecError(f"--chaos {text!r}: {when}= unknown; fix: use step=N or t=SECONDS")
     if m["for"] is not None and action not in ("kill", "pause"):
         raise ChaosSpecError(f"--chaos {text!r}: for= only applies to kill and pause")
-    if role in ("env", "learner") and action != "pause":
+    if role in ("env", LEARNER, POLICY) and action != "pause":
         raise ChaosSpecError(f"--chaos {text!r}: only central and local-i can be killed or restarted "
-                             "(the env host and the learner hold the run's state); pause them instead")
+                             "(the env host, the learner and the policy server hold the run's state); pause them instead")
     return ChaosEvent(action, role, at_step=int(float(m["at"])) if when == "step" else None,
                       at_t=float(m["at"]) if when == "t" else None,
                       duration_s=float(m["for"]) if m["for"] is not None else None)

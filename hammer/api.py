@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hammer.deploy.up import UpResult
+from hammer.deploy.launcher import UpResult
 from hammer.learning.config import ConfigError, RunConfig
 from hammer.serve.bundle import Bundle, BundleError
 
@@ -98,9 +98,9 @@ def up(preset: str | RunConfig | None = "cn3", *, run_dir: str | Path | None = N
        file: str | Path | None = None, secure: bool = False, runtime: dict[str, Any] | None = None,
        **fields: Any) -> UpResult:
     """Train one team as separate processes over Zenoh on this host (`hammer up`); `runtime`:
-    RuntimeSettings fields (deadlines, faults, chaos, ...). Raises `hammer.deploy.up.UpError` when a
+    RuntimeSettings fields (deadlines, faults, chaos, ...). Raises `hammer.deploy.launcher.UpError` when a
     role fails or the run stops before its budget."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.runtime.settings import build_settings
 
     cfg = _config(preset, set, file, fields)
@@ -128,8 +128,8 @@ def serve_bundle(bundle: Bundle | str | Path, *, episodes: int = 100, run_dir: s
           runtime: Iterable[str] = (), seed: int | None = None) -> UpResult:
     """Run a trained team as processes with frozen weights and no learner (`hammer serve`);
     `runtime`: RuntimeSettings items as on the command line (`"msg_deadline_ms=20"`)."""
+    from hammer.deploy.launcher import launch
     from hammer.deploy.plan import plan_serve
-    from hammer.deploy.up import launch
 
     p = plan_serve(bundle.path if isinstance(bundle, Bundle) else Path(bundle), episodes=episodes, seed=seed,
                    runtime=list(runtime), run_dir=None if run_dir is None else Path(run_dir))

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 from hammer.envs.base import EnvSpec
-from hammer.learning.learner import TeamLearner
+from hammer.learning.ppo_update import TeamLearner
 from hammer.learning.team import Team
 
 

@@ -34,7 +34,7 @@ from hammer.learner.remote_rollout import BehaviourSnapshots, RemoteRollout
 from hammer.learner.tb_curve import TrainCurve
 from hammer.learning.config import RunConfig
 from hammer.learning.host_info import host_info
-from hammer.learning.learner import TeamLearner
+from hammer.learning.ppo_update import TeamLearner
 from hammer.learning.rundir import RunDir
 from hammer.protocol.dims import Dims
 from hammer.protocol.rollout_layout import RolloutLayout

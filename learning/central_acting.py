@@ -1,7 +1,7 @@
 """The central agent's acting maths (global state, message sampling), without torch.
 
 Two callers run it: `Team.central_messages` (in-process trainer) and the central server
-(`central_agent/server.py`), both with the numpy forward of `learning.numpy_policy` on the CPU
+(`central_agent/central_server.py`), both with the numpy forward of `learning.numpy_policy` on the CPU
 (the trainer's on a GPU is torch's); the server sits on the critical path of every vector step
 and must stay light. The forward pass is passed in as
 functions of the numpy state, so the sampling below — and the order and shapes of the stream

@@ -27,7 +27,7 @@ from torch import nn
 from torch.optim.adam import adam as functional_adam
 
 if TYPE_CHECKING:
-    from hammer.learning.learner import Masks
+    from hammer.learning.ppo_update import Masks
     from hammer.learning.team import Team
 
 Losses = Callable[..., tuple[torch.Tensor, "torch.Tensor | None", dict[str, torch.Tensor]]]

@@ -15,7 +15,7 @@ without numpy:
   the numpy agent's draw (`sampling.categorical_draw`) equals on every machine.
 
 What it cannot run (a continuous policy, a conv encoder) is refused by `lite_supported`; the edge
-agent then takes the numpy path (serve/edge.py).
+agent then takes the numpy path (serve/edge_entry.py).
 """
 
 from __future__ import annotations

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 import torch
 from hammer.learning.config import ConfigError, RunConfig, config_changes
-from hammer.learning.learner import Masks
 from hammer.learning.ppo import UpdateStats, clip_and_step, minibatch_indices, minibatch_slices
+from hammer.learning.ppo_update import Masks
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
 from hammer.learning.trainer import Progress, Trainer

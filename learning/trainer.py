@@ -25,7 +25,7 @@ from hammer.envs.base import VecEnv, VecStep
 from hammer.learning.central_acting import CentralOut
 from hammer.learning.config import RunConfig
 from hammer.learning.episodes import episode_rows
-from hammer.learning.learner import TeamLearner
+from hammer.learning.ppo_update import TeamLearner
 from hammer.learning.rollout import RolloutWriter
 from hammer.learning.run_env import make_env
 from hammer.learning.rundir import RunDir

@@ -1,4 +1,4 @@
-"""The local agent without numpy: the edge agent of a discrete MLP team at K=1 (serve/edge.py).
+"""The local agent without numpy: the edge agent of a discrete MLP team at K=1 (serve/edge_entry.py).
 
 Why: an edge agent has a small budget of resident memory, and numpy with numpy.random takes more
 of it than everything else the agent needs (docs/deploy.md "Footprint" has the figures). So where the task allows (discrete actions, an
@@ -13,7 +13,7 @@ float32 logit differs in its last bits and the uniform falls within that of a cl
 (measured: docs/deploy.md "Footprint").
 
 It handles any K correctly (lists of rows), but costs a Python loop per copy: the edge entry picks
-it only at K=1 (`serve.edge.lite_choice`).
+it only at K=1 (`serve.edge_entry.lite_choice`).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 bookkeeping (`StepCore`) and its process (`ClientCore`).
 
 Why apart from client.py: the edge agent of a discrete K=1 team runs without numpy
-(`lite.LiteLocalAgentClient`, serve/edge.py: numpy is a large share of its memory budget,
+(`lite.LiteLocalAgentClient`, serve/edge_entry.py: numpy is a large share of its memory budget,
 docs/deploy.md "Footprint"), and it must
 handle steps, messages, fallbacks, step windows and weights exactly as the numpy agent does. So
 both share this code; each brings only its arrays and its acting (`client.AgentSteps` numpy's,

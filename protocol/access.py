@@ -11,8 +11,15 @@ process applies the same rules to everyone it talks to:
   no business reading by declaring a subscriber);
 - R may declare subscribers only on its own subscriptions and a liveliness token only as itself;
 - R may ask (a Zenoh query) only for keys it may subscribe to, gets replies only on those, and only
-  a role that answers a key (the policy server, `learner`, for the weights) may declare a queryable
+  a role that answers a key (the policy server, `policy`, for the weights) may declare a queryable
   on it or reply on it: a stolen agent key cannot answer a late joiner's request for the policy.
+
+The weights come from `learner` in a training run and from `policy`, the policy server, in a served
+run (`hammer serve`, a fleet): it learns nothing, and its identity may do less (no experience, no
+liveliness watch). Both rows are in every run's table, so every process agrees on the rules whatever
+it knows of the run (an edge agent joining with only its bundle); a run makes the identity of the one
+it runs (`role_names`), and the key a publisher of weights stamps is the same for both
+(protocol/binding.py).
 
 Every process enforces the table on its own links, so the rules hold in both topologies:
 peers meeting directly (`hammer up --secure`) and clients behind a router (`hammer hub --run-dir`,
@@ -35,6 +42,14 @@ from hammer.protocol.keys import Keys
 LAUNCHER = "launcher"
 HUB = "hub"  # the `hammer hub` router of a secure multi-machine run: relays the run's traffic
 SITE = SITE_FEED  # a fleet's site feed: what the central agent sees that no robot observes (docs/fleet.md)
+LEARNER = "learner"  # the learner of a training run: experience in, weights out
+POLICY = "policy"  # the policy server of a served run: a frozen (pushed, rolled back) policy out, learns nothing
+
+
+def policy_role(served: bool) -> str:
+    """The role that publishes the run's weights: the policy server in a served run (mode=eval), else
+    the learner."""
+    return POLICY if served else LEARNER
 
 
 @dataclass(frozen=True)
@@ -61,11 +76,13 @@ def pool_name(agents: list[int]) -> str:
 
 
 def role_names(n_agents: int, uses_central: bool = True, pools: Pools = (), router: bool = False,
-               site_feed: bool = False) -> list[str]:
+               served: bool = False, site_feed: bool = False) -> list[str]:
     """Every identity a secure run creates: an agent pool has one identity of its own; `hub` only
-    for a run whose roles meet through a router; `site` only for a fleet whose team has a site feed."""
+    for a run whose roles meet through a router; the policy server's (`policy`) in a served run, the
+    learner's in a training run; `site` only for a fleet whose team has a site feed."""
     return [LAUNCHER, "env", *(["central"] if uses_central else []), *(f"local-{i}" for i in range(n_agents)),
-            *(name for name, _ in pools), "learner", *([HUB] if router else []), *([SITE] if site_feed else [])]
+            *(name for name, _ in pools), policy_role(served), *([HUB] if router else []),
+            *([SITE] if site_feed else [])]
 
 
 def agent_weights(keys: Keys) -> tuple[str, ...]:
@@ -103,18 +120,25 @@ def grants(keys: Keys, n_agents: int, pools: Pools = (), router: bool = False) -
         "central": Grant(
             publish=(keys.msg("*"), keys.exp("central"), keys.heartbeat("central")),
             # the agents' heartbeats: a fleet's central agent switches to a pushed version once the
-            # robots present hold it (their `policy_held`, central_agent/fleet.py)
+            # robots present hold it (their `policy_held`, central_agent/fleet_central.py)
             subscribe=(keys.state(), keys.up("*"), keys.site_state(), keys.weights("central"), keys.ctl("all"),
                        *(keys.heartbeat(f"local-{i}") for i in range(n_agents))),
             liveliness=(keys.alive("central"),)),
         # the site feed, and nothing else: no robot key may publish it, and the site reads nothing
         SITE: Grant(publish=(keys.site_state(),), liveliness=(keys.alive(SITE),)),
-        "learner": Grant(
+        LEARNER: Grant(
             publish=(keys.weights("local"), keys.weights("central"), keys.weights_announce("local"),
-                     keys.heartbeat("learner")),
+                     keys.heartbeat(LEARNER)),
             subscribe=(keys.exp("team"), keys.exp("central"), keys.ctl("all")),
-            # the policy server (the learner of a served run) answers a late joiner's query for the weights
-            liveliness=(keys.alive("learner"),), watch_liveliness=True,
+            liveliness=(keys.alive(LEARNER),), watch_liveliness=True,
+            answers=(keys.weights("local"), keys.weights("central"), keys.weights_chunk("local"))),
+        # a served run's policy server: the weights out (each version once, a push announced and pulled in
+        # chunks), a late joiner's query for them answered; no experience comes to it
+        POLICY: Grant(
+            publish=(keys.weights("local"), keys.weights("central"), keys.weights_announce("local"),
+                     keys.heartbeat(POLICY)),
+            subscribe=(keys.ctl("all"),),
+            liveliness=(keys.alive(POLICY),),
             answers=(keys.weights("local"), keys.weights("central"), keys.weights_chunk("local"))),
     }
     if router:

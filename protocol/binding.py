@@ -29,6 +29,10 @@ What each key says (keys under `hammer/<run>/`; `<pool>` is an agent pool `local
 | `ctl/hb/<r>` | heartbeat | role = r | r (an agent: also its pool) |
 | `ctl/all` | control | | any (a role obeys only the launcher's and the env host's stop) |
 
+`learner` on the `learn/` keys is the name the key implies, whoever holds the weights: in a served
+run its publisher is the policy server (identity `policy`, protocol/access.py), which sends the
+sender empty as the learner does, so the bytes are the same and a receiver reads `learner`.
+
 The run id needs no rule of its own: a subscription only covers its own run's prefix and `decode`
 refuses a payload whose `run` differs. Keys outside this layout (`bench/...`) carry no identity.
 """

@@ -11,7 +11,8 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/site/state               SiteState from the site (what no robot observes) to a fleet's central agent
   hammer/<run>/learn/<role>/exp         ExperienceChunk to the learner: role "team" (env host's rollout),
                                         "central" (the central agent's per-step record)
-  hammer/<run>/learn/<role>/weights     Weights from the learner: role "local" or "central"
+  hammer/<run>/learn/<role>/weights     Weights from the learner (the policy server in a served run): role
+                                        "local" or "central"
   hammer/<run>/learn/<role>/announce    WeightsAnnounce from the policy server: a pushed version to pull
   hammer/<run>/learn/<role>/chunk       WeightsChunk: the policy server's reply to `chunk?v=<version>&i=<index>`
   hammer/<run>/ctl/<name>               Control: "all" is the one every role listens to (stop, target
@@ -20,7 +21,8 @@ silently producing a wildcard or an empty key chunk.
   hammer/<run>/alive/<role>             liveliness token of one process
   hammer/<run>/bench/<name>             benchmark traffic
 
-Role names: env, central, learner, local-<i>, site (a fleet's site feed); the launcher sends as "launcher" and has no token.
+Role names: env, central, learner (a served run: policy, the policy server), local-<i>, site (a fleet's
+site feed); the launcher sends as "launcher" and has no token.
 docs/wire-format.md is this contract written for a client in another language.
 """
 

@@ -164,7 +164,7 @@ class TransportConfig(Settings):
     # mutual TLS identity + access rules (protocol.access)
     security: SecureLink | None = None
     # Zenoh's shared memory with peers on this machine (None: Zenoh's default, on: a put over 3 KB to a local
-    # peer goes through a 16 MB pool this process maps); an edge agent turns it off (serve/edge.py): 16 MB of
+    # peer goes through a 16 MB pool this process maps); an edge agent turns it off (serve/edge_entry.py): 16 MB of
     # its RSS on loopback, nothing across machines
     shared_memory: bool | None = None
 

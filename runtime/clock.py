@@ -14,7 +14,7 @@ import time
 # of the tick, which they carry (env_host/world.py; `--runtime msg_wait_s=S` on `hammer serve --realtime`).
 MSG_WAIT_S = 0.01
 # A fleet's central agent holds the site feed (what no robot observes) this long after its latest state
-# arrived, then puts zeros in its columns (central_agent/fleet.py; `--runtime site_hold_s=S`).
+# arrived, then puts zeros in its columns (central_agent/fleet_central.py; `--runtime site_hold_s=S`).
 SITE_HOLD_S = 1.0
 
 

@@ -302,6 +302,14 @@ class RuntimeSettings(Settings):
         wire (constrained links pay for every byte). The env host declares it (`Dims.echo`) and refuses an action without it."""
         return self.mode == "train" or self.trace
 
+    @property
+    def policy_role(self) -> str:
+        """The name of the role that publishes the weights: `policy`, the policy server, in a served
+        run (mode=eval), else `learner` (protocol.access.policy_role)."""
+        from hammer.protocol.access import policy_role
+
+        return policy_role(self.mode == "eval")
+
     def secured(self, transport: TransportConfig, role: str, run_dir: Path | None, n_agents: int, *,
                 identity_directory: Path | None = None) -> TransportConfig:
         """`transport` as role `role` of a secure run: TLS endpoints, the role's identity from

@@ -86,7 +86,7 @@ class EdgeAgent:
                  trust: tuple[str | Path, ...] = (), wait: bool = False, fed_by_world: bool = False) -> None:
         from hammer.local_agent.client import LocalAgent, MessageFallback
         from hammer.serve.bundle import LOCAL, load_bundle
-        from hammer.serve.edge import agent_spec, edge_settings, edge_transport
+        from hammer.serve.edge_entry import agent_spec, edge_settings, edge_transport
 
         if not max_msg_age_s > 0:
             raise ValueError(f"max_msg_age_s: must be > 0 s, got {max_msg_age_s}")

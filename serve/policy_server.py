@@ -1,7 +1,7 @@
 """Serving a trained team: its exported policy, published as the learner would; never learns.
 
 Deployment and evaluation run the real runtime (every hop, every fault) but must not change the
-policy, so the learner role is taken by this server: it publishes the exported
+policy, so this server (role `policy`) takes the learner's place: it publishes the exported
 `local.safetensors` (and `central.safetensors` for HAMMER) as policy version 0, once per version,
 and answers queries for the current one (`HammerSession.answer`): a role that joins late, or
 missed a version, asks (runtime/weights.py) and the copy crosses its own link only. Why: the
@@ -37,6 +37,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from hammer.protocol.access import POLICY
 from hammer.protocol.schemas import Weights, WeightsAnnounce, WeightsChunk
 from hammer.protocol.session import HammerSession
 from hammer.runtime.role import Role
@@ -74,7 +75,7 @@ class PolicyServer(Role):
         republish_s, republish_max_s = settings.weights_republish_s, settings.weights_republish_max_s
         chunk_bytes = self.chunk_bytes
         blobs = self._wire(policy_blobs(policy_dir, needs_central))  # a missing file fails before anything is declared
-        super().__init__(session, "learner", report_faults=False, stall_warn_s=settings.stall_warn_s)
+        super().__init__(session, POLICY, report_faults=False, stall_warn_s=settings.stall_warn_s)
         self.blobs, self.needs_central = blobs, needs_central
         self.republish_s = republish_s
         self.republish_max_s = max(republish_s, republish_max_s)

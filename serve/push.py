@@ -10,7 +10,7 @@ same step boundary and no step is acted on with two versions. A rollback is a ne
 carrying the weights in effect before the latest push: same weights, same actions for the same
 observations and random draws.
 
-A realtime fleet (`hammer serve --realtime`, deploy/fleet.py) takes pushes and rollbacks too: its
+A realtime fleet (`hammer serve --realtime`, deploy/fleet_launch.py) takes pushes and rollbacks too: its
 launcher writes the same files and runs the same policy server. It has no step to name a version
 at, so each robot and the central agent switch on their own once they hold it (docs/fleet.md);
 for a while some robots act with the new local policy on the old central network's messages, or
@@ -60,7 +60,7 @@ def _served(run_dir: Path) -> tuple[dict, dict]:
 def refuse_stopped(run_dir: Path, what: str = "push") -> None:
     """A served run that has ended (its launcher wrote summary.json: budget spent, SIGTERM, Ctrl-C) takes
     no push or rollback: nothing would serve it, and serving the folder again sets this session's history
-    aside and starts from the bundle given (deploy/up.py `set_aside_served_session`), so it would be lost."""
+    aside and starts from the bundle given (deploy/launcher.py `set_aside_served_session`), so it would be lost."""
     path = Path(run_dir) / "summary.json"
     if not path.is_file():
         return

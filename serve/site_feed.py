@@ -46,7 +46,7 @@ class SiteFeed:
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
                  connect_retry_s: float = 300.0, runtime: tuple[str, ...] = (), wait: bool = False) -> None:
         from hammer.serve.bundle import load_bundle
-        from hammer.serve.edge import edge_settings, edge_transport
+        from hammer.serve.edge_entry import edge_settings, edge_transport
 
         b = load_bundle(Path(bundle), check_config=False)
         env = b.env_spec_data

@@ -2,7 +2,7 @@
 
 import math
 
-from hammer.benchmarks.train import run_bench
+from hammer.benchmarks.train_bench import run_bench
 from typer.testing import CliRunner
 
 from hammer.commands.bench import print_train_table

@@ -121,7 +121,7 @@ import json, sys
 from hammer.envs.base import EnvSpec
 from hammer.learning.config import build_config
 from hammer.protocol.session import HammerSession, TransportConfig
-from hammer.central_agent.server import CentralServer
+from hammer.central_agent.central_server import CentralServer
 from hammer.runtime.settings import RuntimeSettings
 
 args = json.loads(sys.argv[1])

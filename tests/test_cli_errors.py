@@ -15,7 +15,7 @@ def _err(res) -> str:
 
 
 def test_train_resume_of_an_up_run_refuses_before_touching_it(tmp_path):
-    from hammer.deploy.up import prepare_run_dir
+    from hammer.deploy.launcher import prepare_run_dir
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
 

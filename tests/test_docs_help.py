@@ -159,7 +159,7 @@ def test_every_default_a_help_text_quotes_is_the_codes():
     """`default N` in an option's help is the option's default, or, where the option defaults to None
     and the code decides, what the code decides (the table below); a figure of the OS is not ours."""
     from hammer.serve.canary import Gate
-    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S
+    from hammer.serve.edge_entry import DEFAULT_CONNECT_RETRY_S
 
     from hammer.commands.edge import parser
 

@@ -1,4 +1,4 @@
-"""The edge entry (hammer/entry.py -> hammer/commands/edge.py -> serve/edge.py): `hammer local --bundle` starts without the CLI
+"""The edge entry (hammer/entry.py -> hammer/commands/edge.py -> serve/edge_entry.py): `hammer local --bundle` starts without the CLI
 framework or the training config, takes the served run's runtime settings, and joins a secure run with
 only its three identity files (no run directory). Real processes, real Zenoh on 127.0.0.1. The served
 runs go twice: a team of 32 env copies (the numpy agent) and of one (K=1: the lite agent, which never
@@ -14,12 +14,12 @@ import threading
 import time
 
 import pytest
-from hammer.benchmarks.edge import make_team
-from hammer.deploy.up import launch
+from hammer.benchmarks.edge_bench import make_team
+from hammer.deploy.launcher import launch
 from hammer.protocol.session import free_loopback_port
 from hammer.runtime.settings import RuntimeSettings
-from hammer.serve.edge import edge_inputs
-from hammer.serve.settings import serve_settings
+from hammer.serve.edge_entry import edge_inputs
+from hammer.serve.served_settings import serve_settings
 
 from tests.runtime_helpers import ENV, ROOT
 
@@ -52,7 +52,7 @@ def test_the_edge_entry_loads_neither_the_cli_framework_nor_the_training_config(
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and lines[-1] == "error: --agent 7: this team has agents 0..2", lines[-1]
     loaded = {ln.split("|")[-1].strip() for ln in lines if ln.startswith("import time:")}
-    assert "hammer.serve.edge" in loaded and "hammer.protocol.session" in loaded
+    assert "hammer.serve.edge_entry" in loaded and "hammer.protocol.session" in loaded
     assert not loaded & {"typer", "rich", "hammer.learning.config", "torch", "hammer.cli", "yaml"}, loaded & {
         "typer", "rich", "hammer.learning.config", "torch", "hammer.cli", "yaml"}
 
@@ -69,7 +69,7 @@ def hook(name, globals=None, locals=None, fromlist=(), level=0):
 builtins.__import__ = hook
 from pathlib import Path
 from hammer.commands.edge import parser
-from hammer.serve.edge import edge_inputs
+from hammer.serve.edge_entry import edge_inputs
 import hammer.faults.steplog, hammer.local_agent.client, hammer.runtime.process, hammer.serve.edge_agent
 bundle, settings = sys.argv[1:3]
 parser().parse_args(["--bundle", bundle, "--agent", "0"])

@@ -10,13 +10,13 @@ import subprocess
 
 import pytest
 from hammer.benchmarks.edge_venv import clean_env
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.learning.config import merge_config
 from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
 from hammer.serve.bundle import export_bundle
-from hammer.serve.settings import serve_settings
+from hammer.serve.served_settings import serve_settings
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.envs.registry import make_vec_env
 from hammer.faults.spec import build_plan
 from hammer.learning.config import merge_config

@@ -1,6 +1,6 @@
 """A trained team as a fleet: the robot SDK (serve/edge_agent.py), the fleet-fed central
-agent (central_agent/fleet.py), the realtime world (env_host/world.py) and their launcher
-(deploy/fleet.py). Real Zenoh on 127.0.0.1, a real trained cn3 team, real processes for the fleet.
+agent (central_agent/fleet_central.py), the realtime world (env_host/world.py) and their launcher
+(deploy/fleet_launch.py). Real Zenoh on 127.0.0.1, a real trained cn3 team, real processes for the fleet.
 Rates and ages are figures of `hammer bench fleet`, not asserted here; what is asserted is who acted
 on what (defaults, fallbacks, fresh messages) and that outages are named."""
 
@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 import pytest
-from hammer.central_agent.fleet import FleetCentral
-from hammer.deploy.fleet import FleetPlan, run_fleet
+from hammer.central_agent.fleet_central import FleetCentral
+from hammer.deploy.fleet_launch import FleetPlan, run_fleet
 from hammer.protocol.binding import rule_for
 from hammer.protocol.schemas import Uplink
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
@@ -437,7 +437,7 @@ def test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract(bundle, tm
     reason = netns_reason(("ip",))
     if reason:
         pytest.skip(reason)
-    from hammer.benchmarks.fleet import run_trials, trial_line, trial_ok
+    from hammer.benchmarks.fleet_bench import run_trials, trial_line, trial_ok
     from hammer.benchmarks.netns import NetnsUnavailable
 
     try:
@@ -458,7 +458,7 @@ def _kept_what_the_machine_gave(t: dict) -> bool:
     the cut, for a loaded test machine where CPU contention already holds them under 0.98 with every
     link up. What the contract guards against (healthy robots at 0 Hz for the seconds around a cut
     robot's lease expiry) costs far more than the slack allowed here; recovery is judged unchanged."""
-    from hammer.benchmarks.fleet import CONTRACT
+    from hammer.benchmarks.fleet_bench import CONTRACT
 
     during, before = t["healthy_min_fraction"], t.get("healthy_min_fraction_before")
     return (not t["stranded"] and t["back_max_s"] <= CONTRACT["back_s"] and during is not None
@@ -569,7 +569,7 @@ def test_the_lease_and_the_reconnect_period_are_settings(tmp_path):
 def test_a_fleet_takes_its_settings_from_the_command_line_and_refuses_bad_ones_in_one_line(bundle, tmp_path):
     """`hammer serve --realtime` takes `--runtime`: the bounds go to the plan, the link settings to
     every role's command and the printed robot command, a bad item is one line naming the field."""
-    from hammer.deploy.fleet import apply_runtime, robot_command, role_specs
+    from hammer.deploy.fleet_launch import apply_runtime, robot_command, role_specs
     from typer.testing import CliRunner
 
     from hammer.cli import app
@@ -591,7 +591,7 @@ def test_a_fleet_takes_its_settings_from_the_command_line_and_refuses_bad_ones_i
 
 
 def test_the_fleet_soak_bench_samples_every_process(bundle, tmp_path, capsys):
-    from hammer.benchmarks.fleet import main
+    from hammer.benchmarks.fleet_bench import main
 
     out = tmp_path / "soak.json"
     # 9 s, a sample a second: every role sampled does not depend on the soak's length

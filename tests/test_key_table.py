@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from hammer.protocol.access import LAUNCHER, Grant, grants
+from hammer.protocol.access import LAUNCHER, POLICY, Grant, grants
 from hammer.protocol.keys import Keys
 from hammer.protocol.session import DECLARED_KEYS_ENV
 
@@ -147,7 +147,7 @@ def teams(tmp_path_factory):
 
 
 def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(teams, tmp_path, monkeypatch):
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
     from hammer.serve.push import push
 
     bundle, pushed = teams
@@ -166,13 +166,13 @@ def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(t
     seen |= _check_declared(declared, run_id, {"env", "central", "learner", LAUNCHER,
                                                *(f"local-{i}" for i in range(N))})
 
-    # a lock-stepped served run: the policy server answers, the agents may ask
+    # a lock-stepped served run: the policy server (`policy`, no learner) answers, the agents may ask
     r = subprocess.run([sys.executable, "-m", "hammer.cli", "serve", str(bundle), "--episodes", "8", "--run-dir",
                         str(tmp_path / "served"), "--no-dashboard"], cwd=ROOT, env=env, capture_output=True,
                        text=True, timeout=240, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     run_id = json.loads((tmp_path / "served" / "runtime.json").read_text())["run_id"]
-    seen |= _check_declared(declared, run_id, {"env", "central", "learner", LAUNCHER,
+    seen |= _check_declared(declared, run_id, {"env", "central", POLICY, LAUNCHER,
                                                *(f"local-{i}" for i in range(N))})
 
     # a fleet that takes a push: the world's state and the central messages it puts into the robots'
@@ -189,13 +189,13 @@ def test_real_runs_declare_only_keys_their_roles_are_granted_and_the_docs_list(t
     s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=9), run, on_tick=update)
     assert s["completed"] and "push" in done, s
     assert all(r["versions_pulled"] >= 1 for r in s["robots"].values()), s["robots"]
-    seen |= _check_declared(declared, run.name.replace("_", "-"), {"env", "central", "learner", LAUNCHER,
+    seen |= _check_declared(declared, run.name.replace("_", "-"), {"env", "central", POLICY, LAUNCHER,
                                                                    *(f"local-{i}" for i in range(N))})
 
     # the runs used what they exist for (so the check above was not run on a subset)
     for expected in [("local-0", "subscribe", "learn/local/announce"), ("local-0", "query", "learn/local/chunk"),
-                     ("env", "subscribe", "central/msg/*"), ("learner", "answer", "learn/local/chunk"),
-                     ("learner", "publish", "learn/local/announce"), ("env", "subscribe", "learn/local/announce"),
+                     ("env", "subscribe", "central/msg/*"), (POLICY, "answer", "learn/local/chunk"),
+                     (POLICY, "publish", "learn/local/announce"), ("env", "subscribe", "learn/local/announce"),
                      ("central", "publish", "learn/central/exp"), ("learner", "subscribe", "learn/team/exp"),
                      ("central", "subscribe", "ctl/hb/local-0"), ("env", "subscribe", "ctl/hb/local-0")]:
         assert expected in seen, (expected, sorted(x for x in seen if x[0] == expected[0]))

@@ -11,7 +11,7 @@ import pytest
 import torch
 from hammer.envs.registry import make_vec_env
 from hammer.learning.config import merge_config
-from hammer.learning.learner import TeamLearner
+from hammer.learning.ppo_update import TeamLearner
 
 
 def _fill(learner: TeamLearner, rng: np.random.Generator, spec) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ def test_learner_evaluates_lagged_experience_with_the_behaviour_version():
     from hammer.envs.registry import make_vec_env
     from hammer.learner.remote_rollout import BehaviourSnapshots
     from hammer.learning.config import merge_config
-    from hammer.learning.learner import TeamLearner
+    from hammer.learning.ppo_update import TeamLearner
 
     cfg = merge_config("cn3", overrides=["num_envs=4", "variant=hammer"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hammer.deploy.up import launch, role_specs
+from hammer.deploy.launcher import launch, role_specs
 from hammer.learning.config import merge_config
 from hammer.learning.numpy_policy import NumpyLocalPolicy
 from hammer.local_agent.pool import LocalAgentPool, parse_agents

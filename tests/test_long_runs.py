@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hammer.deploy.attendance import Attendance
-from hammer.deploy.up import Board, launch
+from hammer.deploy.launcher import Board, launch
 from hammer.env_host.checkpoint import EPISODE_ROW_COLUMNS, EpisodeRows
 from hammer.env_host.trace import TRACE_ARRAYS, TraceWriter
 from hammer.envs.registry import make_vec_env

@@ -2,7 +2,7 @@
 
 protocol/fields.py checks an array field with numpy where the process has loaded it, and without
 (`ArraySpec.take_lite`, `WireArray`) where it has not: the edge agent of a discrete K=1 team never
-imports numpy (serve/edge.py). One schema, two ways to run its array checks: this runs the corpora
+imports numpy (serve/edge_entry.py). One schema, two ways to run its array checks: this runs the corpora
 of the codec tests (tests/test_protocol_codec.py: every named rejection, the fuzzed mutations),
 of the live fuzz (tests/test_live_fuzz.py: every key's receiver with its declared dims, key binding
 included) and of the hostile peer (tests/hostile_peer.py: its forgeries) through both paths and

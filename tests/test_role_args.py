@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 import typer
-from hammer.deploy.fleet import FleetPlan, apply_runtime, robot_command
-from hammer.deploy.fleet import role_specs as fleet_specs
+from hammer.deploy.fleet_launch import FleetPlan, apply_runtime, robot_command
+from hammer.deploy.fleet_launch import role_specs as fleet_specs
+from hammer.deploy.launcher import role_specs as up_specs
 from hammer.deploy.supervisor import role_args
-from hammer.deploy.up import role_specs as up_specs
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 

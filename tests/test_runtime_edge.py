@@ -5,7 +5,7 @@ also shows the check can see torch in a process that has it)."""
 from __future__ import annotations
 
 import psutil
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 

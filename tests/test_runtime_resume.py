@@ -12,7 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-from hammer.deploy.up import prepare_run_dir
+from hammer.deploy.launcher import prepare_run_dir
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 

@@ -368,7 +368,7 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, m
     """The launcher hands every role it (re)starts the env host's last reported step; the role's
     first-step bound starts there (not at 0, where a restart after step_window would refuse the
     real stream) and never below the run's own start."""
-    from hammer.deploy.up import Launcher
+    from hammer.deploy.launcher import Launcher
     from hammer.runtime.bounds import RUN_STEP_ENV, known_step
 
     launcher = Launcher([], tmp_path, startup_timeout_s=1.0)
@@ -385,7 +385,7 @@ def test_a_role_the_launcher_starts_mid_run_knows_the_env_hosts_step(tmp_path, m
 def test_a_role_the_launcher_starts_mid_run_knows_the_runs_policy_version(tmp_path, monkeypatch):
     """The same for weights: the env host's last reported policy version bounds a (re)started role's
     first weights; never below the run's resume update."""
-    from hammer.deploy.up import Launcher
+    from hammer.deploy.launcher import Launcher
     from hammer.runtime.bounds import RUN_VERSION_ENV, known_version
 
     launcher = Launcher([], tmp_path, startup_timeout_s=1.0)

@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.learning.config import merge_config
 from hammer.protocol.session import TransportConfig
 from hammer.runtime.settings import RuntimeSettings
@@ -120,7 +120,7 @@ def test_a_learner_that_dies_names_its_last_log_lines_and_the_resume_command(tmp
     import signal
 
     import pytest
-    from hammer.deploy.up import UpError
+    from hammer.deploy.launcher import UpError
 
     cfg = merge_config("cn3", overrides=["episodes=2000", "variant=il"])
     killed: list[int] = []

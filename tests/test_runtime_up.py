@@ -10,7 +10,7 @@ from pathlib import Path
 
 import psutil
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.experiments.train_stats import load_train_stats
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings

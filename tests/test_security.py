@@ -32,7 +32,7 @@ def idents(tmp_path_factory) -> Path:
     """A router run's identities (hub included); the peer team below uses the peer rules, which
     have no place for the hub's certificate."""
     d = tmp_path_factory.mktemp("identity")
-    create_identities(d, role_names(N, router=True))
+    create_identities(d, [*role_names(N, router=True), "policy"])  # + a served run's policy server
     return d
 
 
@@ -49,7 +49,7 @@ def team(idents):
     """env listens (the hub of this test); the other roles connect to it as peers."""
     port = free_loopback_port()
     opened = {"env": HammerSession(RUN, _tls("env", idents, listen=port), sender="env").open()}
-    for role in ("launcher", "central", "local-0", "local-1", "learner"):
+    for role in ("launcher", "central", "local-0", "local-1", "learner", "policy"):
         opened[role] = HammerSession(RUN, _tls(role, idents, connect=port), sender=role).open()
     yield opened, port
     for s in opened.values():
@@ -101,11 +101,17 @@ def test_role_table_follows_the_issue():
     publishers = {k: {r for r, x in g.items() if k in x.publish} for k in
                   (KEYS.msg("*"), KEYS.weights("local"), KEYS.weights("central"), KEYS.ctl("all"),
                    KEYS.weights_announce("local"))}
-    assert publishers == {KEYS.msg("*"): {"central"}, KEYS.weights("local"): {"learner"},
-                          KEYS.weights("central"): {"learner"}, KEYS.ctl("all"): {"launcher"},
-                          KEYS.weights_announce("local"): {"learner"}}
+    # the weights come from the learner, or in a served run from the policy server (`policy`)
+    assert publishers == {KEYS.msg("*"): {"central"}, KEYS.weights("local"): {"learner", "policy"},
+                          KEYS.weights("central"): {"learner", "policy"}, KEYS.ctl("all"): {"launcher"},
+                          KEYS.weights_announce("local"): {"learner", "policy"}}
     # only the policy server answers a chunk query: a stolen agent key cannot feed another agent's pull
-    assert {r for r, x in g.items() if KEYS.weights_chunk("local") in x.answers} == {"learner"}
+    assert {r for r, x in g.items() if KEYS.weights_chunk("local") in x.answers} == {"learner", "policy"}
+    # the policy server learns nothing: no experience comes to it
+    assert not {KEYS.exp("team"), KEYS.exp("central")} & set(g["policy"].subscribe)
+    # a run makes the identity of the one it runs
+    assert "policy" in role_names(N, served=True) and "learner" not in role_names(N, served=True)
+    assert "learner" in role_names(N) and "policy" not in role_names(N)
     acl = access_control(KEYS, N)
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
     # no router, no relay: a run whose roles meet as peers has no hub identity and no rule for one
@@ -203,6 +209,33 @@ def test_only_the_learner_answers_a_request_for_the_weights(team):
     assert _late_extra(ask_local, 0.5) == []
     s["local-0"].fetch(KEYS.weights("central"), ask_central, timeout=1.0)
     assert _late_extra(ask_central, 1.2) == []  # not a key local-0 may read
+
+
+def test_a_served_runs_policy_server_publishes_and_answers_the_weights_and_reads_no_experience(team):
+    """The policy server (`policy`, a served run's) does what the learner does for the agents, and
+    no more: its weights arrive, its answer to a late joiner arrives, the team's experience does not."""
+    from hammer.protocol.codec import decode
+    from hammer.protocol.schemas import Weights
+
+    s, _ = team
+    w_local = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    spy_exp = s["policy"].subscribe_raw(KEYS.exp("team"))
+    _settle()
+    s["policy"].put_bytes(KEYS.weights("local"), b"served")
+    s["env"].put_bytes(KEYS.exp("team"), b"x")
+    assert _wait_for(w_local, 1) == [b"served"]
+    assert _late_extra(spy_exp, 0.3) == []
+    ask = s["local-0"].subscribe_raw(KEYS.weights("local"))
+    s["policy"].answer(KEYS.weights("local"), lambda: Weights.from_blob("local", 5, b"served"))
+    _settle()
+    # asked again each second as an agent does (a loaded machine may take longer to carry the
+    # declaration); the learner of this module's team may answer too, when an earlier test declared
+    # its answer, and the thief's (local-1's, an earlier test) never arrives
+    versions, deadline = [], time.monotonic() + 10.0
+    while 5 not in versions and time.monotonic() < deadline:
+        s["local-0"].fetch(KEYS.weights("local"), ask, timeout=1.0)
+        versions += [decode(b, Weights).version for b in _wait_for(ask, 1, timeout=1.0)]
+    assert 5 in versions and 99 not in versions, versions
 
 
 def test_only_the_launcher_publishes_control(team):
@@ -328,7 +361,7 @@ def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
     """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
     joins it with local-1's identity once the run is up and is appended to the list."""
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
 
@@ -423,7 +456,7 @@ def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
 
 def test_the_same_peer_ends_a_plain_run_early(tmp_path):
     """The plain profile trusts the sender header: the forged `stop` of `launcher` is obeyed."""
-    from hammer.deploy.up import UpError
+    from hammer.deploy.launcher import UpError
 
     hostile: list = []
     with pytest.raises(UpError, match="env host stopped before the budget"):

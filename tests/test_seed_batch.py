@@ -185,7 +185,7 @@ def test_batched_mw_seed_matches_solo_run(tmp_path: Path, monkeypatch, mode: str
 
 
 def test_bench_seeds_measures_solo_and_batched() -> None:
-    from hammer.benchmarks.seeds import grid_estimate, run_bench
+    from hammer.benchmarks.seeds_bench import grid_estimate, run_bench
 
     rows = run_bench(("cn3",), (4,), updates=1)
     assert [(r["mode"], r["seeds"]) for r in rows] == [("solo", 1), ("batched", 4)]

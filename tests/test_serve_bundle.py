@@ -11,14 +11,14 @@ import sys
 
 import numpy as np
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.envs.registry import make_vec_env
 from hammer.learning.config import merge_config
 from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
 from hammer.serve.bundle import BUNDLE_FORMAT, BundleError, export_bundle, load_bundle, seal
-from hammer.serve.settings import serve_settings
+from hammer.serve.served_settings import serve_settings
 from typer.testing import CliRunner
 
 from hammer.cli import app
@@ -189,7 +189,8 @@ def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.startswith("done: 8 episodes")
     assert json.loads((run / "runtime.json").read_text())["secure"] is True
-    assert (run / "identity" / "learner.key").is_file() and not (run / "identity" / "hub.key").exists()
+    assert (run / "identity" / "policy.key").is_file() and not (run / "identity" / "hub.key").exists()
+    assert not (run / "identity" / "learner.key").exists()  # a served run has a policy server, no learner
     assert len(_metrics(run)) == 8
 
 
@@ -197,7 +198,7 @@ def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
 def test_play_renders_multiwalker_and_own_observation_teams(tmp_path, monkeypatch, preset, overrides, steps):
     """Smoke test of the other renderers: SISL multiwalker (continuous actions), and cn whose local agents
     see only their own position and the landmarks (mpe2's observation without its tail)."""
-    from hammer.benchmarks.edge import make_team
+    from hammer.benchmarks.edge_bench import make_team
     from PIL import Image, ImageSequence
 
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")

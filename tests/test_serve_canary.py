@@ -14,11 +14,11 @@ import threading
 
 import numpy as np
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.canary import CanaryError, Gate, Snapshot, judge, parse_gate, parse_stages, staged_push
 from hammer.serve.push import check_push, push, read_history, rollback
-from hammer.serve.settings import serve_settings
+from hammer.serve.served_settings import serve_settings
 from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 

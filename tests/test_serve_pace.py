@@ -89,7 +89,7 @@ class _Net:
 
 def _serve(net: _Net, policy_dir, run_dir, chunk_bytes=CHUNK) -> tuple[PolicyServer, threading.Thread]:
     settings = RuntimeSettings(run_id="pace", mode="eval", policy_dir=str(policy_dir), weights_chunk_bytes=chunk_bytes)
-    server = PolicyServer(net.session("learner"), policy_dir, True, settings, run_dir=run_dir)
+    server = PolicyServer(net.session("policy"), policy_dir, True, settings, run_dir=run_dir)
     runner = threading.Thread(target=server.run, daemon=True)
     return server, runner
 
@@ -228,9 +228,9 @@ def test_a_push_the_agents_do_not_hold_in_time_is_named_after_the_timeout(bundle
     whole (a late joiner's query) at the step that names it, and every agent still switches at one
     step, with no action of the wrong version."""
     import numpy as np
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.serve.push import push
-    from hammer.serve.settings import serve_settings
+    from hammer.serve.served_settings import serve_settings
 
     a, b = bundles
     cfg = a.config(episodes=PUSH_RUN_EPISODES, msg_dropout=0.0)
@@ -261,9 +261,9 @@ def test_a_push_is_pulled_in_a_secure_run(bundles, tmp_path):
     agents and the env host, each agent may ask for the chunks and only the policy server answers:
     the push is named once every agent holds it, none by the timeout."""
     import numpy as np
-    from hammer.deploy.up import launch
+    from hammer.deploy.launcher import launch
     from hammer.serve.push import push
-    from hammer.serve.settings import serve_settings
+    from hammer.serve.served_settings import serve_settings
 
     a, b = bundles
     settings, _ = serve_settings(a, "pacesecure", runtime=["trace=true", "secure=true"])

@@ -9,7 +9,7 @@ import shutil
 
 import numpy as np
 import pytest
-from hammer.deploy.up import launch
+from hammer.deploy.launcher import launch
 from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
 from hammer.learning.numpy_policy import NumpyCentralAgent
 from hammer.learning.sampling import ActingStreams
@@ -17,7 +17,7 @@ from hammer.local_agent.client import AgentSpec, LocalAgent
 from hammer.runtime.settings import RuntimeSettings
 from hammer.serve.bundle import BundleError, export_bundle
 from hammer.serve.push import push, read_history, rollback
-from hammer.serve.settings import serve_settings
+from hammer.serve.served_settings import serve_settings
 from safetensors.numpy import load_file, save_file
 from typer.testing import CliRunner
 
@@ -178,7 +178,7 @@ def test_the_policy_server_publishes_once_and_a_late_joiner_asks(bundles):
         port = free_loopback_port()
         peer = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[loopback_endpoint(port)])
         with HammerSession("once", TransportConfig(listen=[loopback_endpoint(port)]), sender="launcher") as hub, \
-                HammerSession("once", peer, sender="learner") as s, HammerSession("once", peer, sender="local-1") as w:
+                HammerSession("once", peer, sender="policy") as s, HammerSession("once", peer, sender="local-1") as w:
             got = w.subscribe(w.keys.weights("local"), Weights)
             time.sleep(0.5)  # the subscription has reached the other sessions
             settings = RuntimeSettings(run_id="once", mode="eval", policy_dir=str(a.path), weights_republish_s=republish_s,

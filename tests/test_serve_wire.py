@@ -87,7 +87,7 @@ def test_an_edge_agent_started_as_printed_sends_compact_actions_and_every_role_s
     assert len(sizes) == steps and max(sizes) <= 50, (len(sizes), sorted(set(sizes)))
     assert central_records == 0  # no learner listens in a served run
     # every role's last heartbeat says stopped; the external agent's carries its final counters
-    assert set(last) == {"env", "central", "learner", "local-0", "local-1", "local-2"}, sorted(last)
+    assert set(last) == {"env", "central", "policy", "local-0", "local-1", "local-2"}, sorted(last)
     assert {r: h.status for r, h in last.items()} == dict.fromkeys(last, "stopped"), dict(statuses)
     assert last["local-1"].counters["steps"] == steps
     links = json.loads((run / "links.json").read_text())

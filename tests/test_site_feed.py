@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 import pytest
-from hammer.central_agent.fleet import FleetCentral
+from hammer.central_agent.fleet_central import FleetCentral
 from hammer.protocol import codec
 from hammer.protocol.binding import check_key
 from hammer.protocol.dims import Dims
@@ -223,7 +223,7 @@ def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
 def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle, tmp_path):
     """`--external-site` with nobody publishing: the fleet runs, the central agent's state has zeros in
     the site's columns all along, and the verdict says so by name."""
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
 
     s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=4, site_external=True), tmp_path / "nobody")
     assert s["completed"] and s["site"]["never_heard"] and s["site"]["states"] == 0, s["site"]
@@ -237,7 +237,7 @@ def test_only_the_site_may_publish_the_feed_in_a_secure_fleet_not_a_stolen_robot
     forged site states on `site/state` (dropped by the rules: the central agent never takes one) and
     on robot 1's own uplink key (refused there, named in the verdict as a holder of local-1's key);
     then the real site, with its own identity, reaches the central agent."""
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
     from hammer.protocol.identity import identity_dir
     from hammer.protocol.schemas import CentralMsg
     from hammer.runtime.settings import RuntimeSettings
@@ -394,7 +394,7 @@ def test_a_site_issues_the_feed_a_kept_identity_as_it_does_a_robot(tmp_path):
 def test_an_il_warehouse_team_runs_as_a_fleet_without_a_feed(tmp_path):
     """Variant il has no central agent, so no one needs the site's columns: the fleet runs with no feed
     (no `site` in the summary), each robot on its own columns."""
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
 
     trained_run(tmp_path / "run", ("episodes=4", "env_kwargs.max_steps=100", "num_envs=4", "rollout_steps=50",
                                    "variant=il"), preset="rware-tiny-2ag")
@@ -414,7 +414,7 @@ def test_the_feed_s_own_link_cut_across_namespaces_and_restored(bundle, tmp_path
     reason = netns_reason(("ip",))
     if reason:
         pytest.skip(reason)
-    from hammer.benchmarks.fleet import CONTRACT, run_trials, trial_line
+    from hammer.benchmarks.fleet_bench import CONTRACT, run_trials, trial_line
     from hammer.benchmarks.netns import NetnsUnavailable
 
     try:

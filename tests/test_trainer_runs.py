@@ -102,7 +102,7 @@ def test_a_resumed_learner_trains_with_the_configured_learning_rate():
     resumed with another lr (config.json edited) must not silently keep the old one."""
     import torch
     from hammer.envs.registry import make_vec_env
-    from hammer.learning.learner import TeamLearner
+    from hammer.learning.ppo_update import TeamLearner
 
     cfg = merge_config("cn3", overrides=SMALL + ["variant=hammer", "central_mode=rl"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 from hammer.deploy.dashboard import dashboard_table
-from hammer.deploy.up import Board
+from hammer.deploy.launcher import Board
 from hammer.learning.config import merge_config
 from hammer.protocol.schemas import Heartbeat
 from rich.console import Console

@@ -69,7 +69,7 @@ class Clock:
 
 
 def _fleet_board(tmp_path: Path) -> tuple[LiveStatus, SimpleNamespace, Clock]:
-    """A fleet launcher's board (deploy/fleet.py: heartbeats by role, restarts, chaos log) and the
+    """A fleet launcher's board (deploy/fleet_launch.py: heartbeats by role, restarts, chaos log) and the
     live picture of it on a clock the test moves."""
     clock = Clock()
     live = LiveStatus(tmp_path, "fleet", "cn3 at 20 Hz", robots=3, roles=("env", "central"), clock=clock)
@@ -238,11 +238,11 @@ def test_metrics_have_the_documented_names_and_labels(tmp_path):
 
 
 def test_in_hammer_up_a_paused_role_with_its_token_up_is_late_and_one_whose_token_went_is_missing(tmp_path):
-    """`hammer up`'s board (deploy.up.Board, with the launcher's attendance of liveliness tokens): a
+    """`hammer up`'s board (deploy.launcher.Board, with the launcher's attendance of liveliness tokens): a
     learner in a long update still holds its token (late, no alert), a local agent whose token went is
     missing, with the attendance's leave as an event."""
     from hammer.deploy.attendance import Attendance
-    from hammer.deploy.up import Board
+    from hammer.deploy.launcher import Board
 
     clock = Clock()
     roles = {"env", "learner", "local-0"}

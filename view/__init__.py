@@ -1,1 +1,1 @@
-"""`hammer view`: the read-only web view of run directories (server.py, static/index.html)."""
+"""`hammer view`: the read-only web view of run directories (web_server.py, static/index.html)."""

@@ -8,11 +8,11 @@ part against a baseline taken in the same run:
   loop-floor   the step loop with every role's work taken out               (benchmarks.loop_floor)
   workers      multiwalker in-process vs subprocess workers vs the ceiling  (benchmarks.bench_workers)
   rware        the numpy warehouse vs rware's own: env and hammer train      (benchmarks.bench_rware_vec)
-  train        the in-process trainer's speed, PPO updates included         (benchmarks.train)
+  train        the in-process trainer's speed, PPO updates included         (benchmarks.train_bench)
   runtime      `hammer up` vs `hammer train`, same config, same run         (benchmarks.runtime)
   security     `hammer up --secure` vs plain vs a flood on one agent's key    (benchmarks.security)
-  edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge)
-  seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds)
+  edge         an edge agent's RSS and cold start: --bundle vs --run-dir     (benchmarks.edge_bench)
+  seeds        S seeds as one batched process vs one solo run                (benchmarks.seeds_bench)
   kernels      an update's layers alone (the arithmetic floor) vs the real loop (benchmarks.kernels)
   scale        cn N=3..50: train vs up vs up with agent pools, the floor      (benchmarks.scale)
   soak         a served team for N minutes: RSS per process, disk, growth    (benchmarks.soak)
@@ -261,7 +261,7 @@ def bench_train(
     """Training speed: cn3 (vectorised vs mpe2 reference), the full cn3 run's wall time, mw3 workers."""
     from rich.console import Console
 
-    from hammer.benchmarks.train import run_bench
+    from hammer.benchmarks.train_bench import run_bench
 
     err = Console(stderr=True)
     if min(cn_episodes, mw_updates, extrapolate_from) < 1:
@@ -289,7 +289,7 @@ def bench_seeds(
     and the cn3 grid's wall time (5 variants x 5 seeds x 30,000 episodes) with and without batching."""
     from rich.table import Table
 
-    from hammer.benchmarks.seeds import grid_estimate, run_bench
+    from hammer.benchmarks.seeds_bench import grid_estimate, run_bench
     from hammer.console import table_console
 
     try:
@@ -444,7 +444,7 @@ def bench_edge_command(
 
     from rich.table import Table
 
-    from hammer.benchmarks.edge import bench_edge
+    from hammer.benchmarks.edge_bench import bench_edge
     from hammer.console import table_console
 
     logging.basicConfig(level=logging.WARNING)
@@ -553,7 +553,7 @@ def bench_fleet(
     network namespaces (root): a serving machine and one namespace per robot on a bridge; links cut and
     restored, each cut repeated and every trial reported: the healthy robots' control rate during it,
     when the cut robot, the world and the central agent were back on fresh traffic (docs/fleet.md)."""
-    from hammer.benchmarks.fleet import main
+    from hammer.benchmarks.fleet_bench import main
 
     code = main([str(bundle), "--hz", str(hz), *(["--trials", trials] if trials else []),
                  *(["--insecure"] if insecure else []), "--per-fleet", str(per_fleet), "--bytes-s", str(bytes_s),
@@ -572,7 +572,7 @@ def register(app: typer.Typer) -> None:
 
 
 def print_train_table(r: dict) -> None:
-    """The table of `hammer bench train` (benchmarks.train.run_bench's figures)."""
+    """The table of `hammer bench train` (benchmarks.train_bench.run_bench's figures)."""
     from rich.table import Table
 
     from hammer.console import table_console

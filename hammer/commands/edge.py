@@ -2,7 +2,7 @@
 
 An edge device pays for every import: the console script (hammer/entry.py) sends `hammer local
 --bundle` here before typer, rich and the other commands' modules load. argparse, then the edge
-agent of hammer/serve/edge.py.
+agent of hammer/serve/edge_entry.py.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def options_help() -> str:
 def main(argv: list[str] | None = None) -> int:
     """`hammer local --bundle ...` without the CLI framework; returns the exit code (2: a usage error,
     1: the run was not reached in time)."""
-    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
+    from hammer.serve.edge_entry import DEFAULT_CONNECT_RETRY_S, JoinError, edge_inputs, run_edge
 
     a = parser().parse_args(argv)
     if a.fleet:
@@ -104,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
 def _robot(a: argparse.Namespace) -> int:
     """A robot of a fleet: the SDK's EdgeAgent driven by the world's observations (serve/edge_agent.py)."""
     from hammer.runtime.process import setup_process
-    from hammer.serve.edge import DEFAULT_CONNECT_RETRY_S
     from hammer.serve.edge_agent import EdgeAgent, robot_role
+    from hammer.serve.edge_entry import DEFAULT_CONNECT_RETRY_S
 
     if a.connect_retry_s is not None and a.connect_retry_s < 0:
         print(f"error: --connect-retry-s {a.connect_retry_s:g}: must be >= 0 (0: wait for ever)", file=sys.stderr)

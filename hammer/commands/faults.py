@@ -115,7 +115,7 @@ def eval_command(
     import json
     import time
 
-    from hammer.deploy.up import UpError, launch
+    from hammer.deploy.launcher import UpError, launch
     from hammer.experiments.fault_sweep import eval_config, eval_settings
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

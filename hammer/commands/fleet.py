@@ -2,7 +2,7 @@
 central agent and the fleet's policy server (hot updates: `hammer push`, `hammer rollback`), one
 process each; the robots are `hammer local --bundle ... --fleet` (edge.py).
 
-Hidden from `--help`: the launcher (deploy/fleet.py) starts them, and RUN/fleet.json holds the
+Hidden from `--help`: the launcher (deploy/fleet_launch.py) starts them, and RUN/fleet.json holds the
 exact command of each, for a role that runs on another machine.
 """
 
@@ -42,11 +42,11 @@ def register(app: typer.Typer) -> None:
 def _open(bundle: Path, run_id: str, connect: str | None, zenoh_config: Path | None, seed: int | None,
           insecure: bool, identity: Path | None, role: str, runtime: list[str] | None = None):
     """The bundle, the team's config at K = 1, and this role's transport: a Zenoh client of the
-    fleet's router as the robots are (serve/edge.py), TLS with the role's identity in a secure fleet,
+    fleet's router as the robots are (serve/edge_entry.py), TLS with the role's identity in a secure fleet,
     plain beyond loopback only with --insecure."""
     from hammer.serve.bundle import load_bundle
-    from hammer.serve.edge import edge_settings, edge_transport
     from hammer.serve.edge_agent import fleet_check
+    from hammer.serve.edge_entry import edge_settings, edge_transport
 
     b = load_bundle(bundle)
     fleet_check(b)
@@ -126,7 +126,7 @@ def central_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = N
     setup_process("central")
     watch_refused()
     return_large_blocks()
-    from hammer.central_agent.fleet import FleetCentral
+    from hammer.central_agent.fleet_central import FleetCentral
     from hammer.protocol.session import HammerSession
     from hammer.serve.bundle import CENTRAL
 
@@ -150,19 +150,21 @@ def policy_command(bundle: BundleOpt, run_id: RunIdOpt,
                    insecure: InsecureOpt = False, identity: IdentityOpt = None, runtime: RuntimeOpt = None) -> None:
     """The fleet's policy server: the bundle as version 0, then each version `hammer push` / `hammer
     rollback` record in RUN/pushes.json (serve/policy_server.py, the class a lock-stepped served run uses)."""
-    setup_process("learner")
+    from hammer.protocol.access import POLICY
+
+    setup_process(POLICY)
     from hammer.protocol.session import HammerSession
     from hammer.runtime.settings import RuntimeSettings
     from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
     try:
-        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "learner",
+        b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, POLICY,
                                                 runtime)
         settings = RuntimeSettings.load(run_dir)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
     try:
-        with HammerSession(run_id, transport, sender="learner") as s:
+        with HammerSession(run_id, transport, sender=POLICY) as s:
             PolicyServer(s, b.policy_dir, cfg.wiring.has_central_network, settings, run_dir).run()
     except PolicyDirError as e:
         fail(str(e))

@@ -41,6 +41,15 @@ def _settings(run_dir: Path, connect: str | None, zenoh_config: Path | None, rol
     return s, transport
 
 
+def _served(run_dir: Path) -> bool:
+    """Whether the run is served (runtime.json's mode=eval); False where runtime.json cannot be read
+    (then `_settings` says why, once the process is set up)."""
+    try:
+        return json.loads((Path(run_dir) / "runtime.json").read_text()).get("mode") == "eval"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def _read_config(run_dir: Path):
     from hammer.learning.config import build_config
 
@@ -127,7 +136,7 @@ def local_command(agent: Annotated[int | None, typer.Option(help="Local agent in
     if not 0 <= agent < cfg.n_agents:
         fail(f"--agent {agent}: this run has agents 0..{cfg.n_agents - 1}")
     from hammer.local_agent.client import AgentSpec
-    from hammer.serve.edge import run_agent
+    from hammer.serve.edge_entry import run_agent
 
     run_agent(settings, transport, AgentSpec.from_config(cfg, spec, agent), cfg.num_envs,
               step_log_dir=_step_log_dir(run_dir), run_dir=run_dir, start_step=known_step(settings.resume_step),
@@ -197,7 +206,7 @@ def _serve_pool(settings, transport, cfg, spec, agents: list[int], run_dir: Path
 def central_command(run_dir: RunDirOpt, connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The central-agent server: one batched forward per vector step, a message per local agent."""
     setup_process("central", run_dir)
-    from hammer.central_agent.server import CentralServer
+    from hammer.central_agent.central_server import CentralServer
     from hammer.protocol.session import HammerSession
 
     try:
@@ -272,22 +281,24 @@ def learner_command(run_dir: RunDirOpt,
                                                           "(needed for backprop mode; the default).")] = "team",
                     connect: ConnectOpt = None, zenoh_config: ZenohCfgOpt = None) -> None:
     """The learner: receives experience, runs the shared PPO update, broadcasts versioned weights."""
-    setup_process(f"learner-{role}", run_dir)
+    served = _served(run_dir)  # a served run (mode=eval): the policy server, role `policy`, in the learner's place
+    setup_process("policy" if served else f"learner-{role}", run_dir)
+    from hammer.protocol.access import LEARNER, POLICY
     from hammer.protocol.session import HammerSession
 
     if role != "team":
         fail(f"--role {role}: only 'team' is implemented (one learner updates both networks, as backprop mode "
               "requires); see docs/runtime.md")
     try:
-        settings, transport = _settings(run_dir, connect, zenoh_config, "learner")
+        settings, transport = _settings(run_dir, connect, zenoh_config, POLICY if served else LEARNER)
         cfg, spec = _read_config(run_dir), read_env_spec(run_dir)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
-    if settings.mode == "eval":  # serve the frozen policy; no torch, no learning
+    if served:  # serve the frozen policy; no torch, no learning
         from hammer.serve.policy_server import PolicyDirError, PolicyServer
 
         try:
-            with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
+            with HammerSession(settings.run_id, transport, settings.faults, sender=POLICY) as s:
                 PolicyServer(s, Path(settings.policy_dir), cfg.wiring.has_central_network, settings, run_dir).run()
         except PolicyDirError as e:
             fail(str(e))
@@ -299,10 +310,10 @@ def learner_command(run_dir: RunDirOpt,
 
     rd = RunDir(run_dir)
     try:
-        with HammerSession(settings.run_id, transport, settings.faults, sender="learner") as s:
+        with HammerSession(settings.run_id, transport, settings.faults, sender=LEARNER) as s:
             worker = LearnerWorker(s, cfg, spec, rd, settings, start_step=known_step(settings.resume_step))
             worker.run()
-            _write_counters(run_dir, "learner", worker.final_counters())
+            _write_counters(run_dir, LEARNER, worker.final_counters())
     except KeyboardInterrupt:
         pass
     finally:

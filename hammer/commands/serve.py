@@ -178,7 +178,7 @@ def serve_command(
     if skip and settings.secure:  # a bundle carries no identity: the agent needs the run's settings and its own key
         console.print(f"an external agent on another machine needs copies of {path}/runtime.json and of its "
                       f"{path}/identity/{{ca.pem,local-I.pem,local-I.key}} (docs/security.md)", soft_wrap=True)
-    from hammer.deploy.up import set_aside_served_session
+    from hammer.deploy.launcher import set_aside_served_session
 
     earlier = set_aside_served_session(path)  # a restarted service: same directory, same run id
     if earlier is not None:
@@ -192,11 +192,12 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
                  insecure: bool, listen, num_envs: int | None, timeline: Path | None = None,
                  site: Path | None = None, view: str | None = None, view_token: str | None = None,
                  external_site: bool = False) -> None:
-    """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet.py); what does not apply is refused."""
+    """`hammer serve --realtime HZ`: the fleet launcher (deploy/fleet_launch.py); what does not apply is refused."""
     from hammer.deploy.dashboard import fleet_status_line
-    from hammer.deploy.fleet import robot_command, robot_endpoint, run_fleet
+    from hammer.deploy.fleet_launch import robot_command, robot_endpoint, run_fleet
     from hammer.deploy.live import LiveRun
     from hammer.deploy.plan import plan_fleet
+    from hammer.protocol.access import POLICY
     from hammer.serve.bundle import BundleError
 
     try:
@@ -204,7 +205,7 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
             bundle, hz, seconds=seconds, episodes=episodes, seed=seed, fault=fault, chaos=chaos, runtime=runtime,
             external=external, out=out, run_dir=run_dir, secure=secure, insecure=insecure, listen=listen,
             num_envs=num_envs, timeline=timeline, site=site, external_site=external_site)
-        roles = ("env", *(("central",) if team.wiring().uses_central else ()), "learner")
+        roles = ("env", *(("central",) if team.wiring().uses_central else ()), POLICY)
         # the fleet's live files for `hammer view` (RUN/live.json), and the view itself with --view
         watch = LiveRun(path, "fleet", f"{bundle.name} at {hz:g} Hz", robots=int(team.env_spec_data["n_agents"]),
                         roles=roles, view=view, token=view_token)

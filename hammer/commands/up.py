@@ -165,9 +165,9 @@ def _will_run(cfg, settings, path: Path, external_agents: tuple[int, ...]) -> st
     away = {*settings.external, *(f"local-{i}" for i in external_agents)}
     groups = [[i for i in g if f"local-{i}" not in away] for g in settings.agent_groups(cfg.n_agents)]
     local = [f"local-{g[0]}" if len(g) == 1 else f"local-{g[0]}..{g[-1]} ({len(g)} agents)" for g in groups if g]
-    roles = ["learner", *(["central"] if cfg.wiring.uses_central else []), *local, "env"]
+    roles = [settings.policy_role, *(["central"] if cfg.wiring.uses_central else []), *local, "env"]
     here = [r for r in roles if r not in away]
-    names = {"learner": "policy server" if served else "learner", "central": "central agent", "env": "env host"}
+    names = {"policy": "policy server", "central": "central agent", "env": "env host"}
     return (f"will run: {cfg.episodes:,} episodes as {len(here)} processes on this host "
             f"({', '.join(names.get(r, r) for r in here)}){' + external roles' if away else ''}; logs in {path}/logs; "
             "Ctrl-C stops" + ("" if served else f", `hammer up --resume {path}` continues from the last checkpoint"))
@@ -184,12 +184,12 @@ def run_up(cfg, settings, path: Path, dashboard: bool, console, resume: bool = F
 
     from rich.live import Live
 
-    from hammer.deploy.up import Stopped, UpError, launch
+    from hammer.deploy.launcher import Stopped, UpError, launch
     from hammer.envs.registry import EnvConfigError
 
     if resume:
         console.print(f"resuming run dir: {path} (budget {cfg.episodes} episodes)")
-    from hammer.deploy.up import resolve_agents_per_process
+    from hammer.deploy.launcher import resolve_agents_per_process
 
     served = settings.mode == "eval"  # no learner: the policy server publishes the frozen weights
     console.print(_will_run(cfg, settings if resume else resolve_agents_per_process(cfg, settings), path,

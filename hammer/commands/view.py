@@ -43,7 +43,7 @@ def view_command(
     if not runs_dir.is_dir():
         fail(f"{runs_dir}: no such folder; fix: give the folder that holds the run directories (e.g. runs)")
     try:
-        from hammer.view.server import serve
+        from hammer.view.web_server import serve
     except ImportError as e:
         fail(f"hammer view needs the view extra ({e.name} is missing); fix: pip install 'hammer-marl[view]'")
     parent_watchdog()  # started by a launcher (--view): gone with it

@@ -21,7 +21,7 @@ Every step is the real CLI (a fresh process each):
      (`hammer serve --realtime 20 --secure`, the world publishing its site feed as the site), each
      robot `hammer local --bundle --fleet` from the edge venv in its own namespace and the site feed
      (`hammer.site.SiteFeed`, the warehouse's layout at reset) in its own; robot 0's link and the
-     feed's link cut and restored (benchmarks.fleet.run_trials); the site feed's figures in its summary
+     feed's link cut and restored (benchmarks.fleet_bench.run_trials); the site feed's figures in its summary
 Writes WORK/chain.json (every figure) and prints it.
 """
 
@@ -60,7 +60,7 @@ def train_team(run_dir: Path, seed: int, episodes: int, sets: tuple[str, ...] = 
 def warehouse_fleet(work: Path, run: Path, edge_python: Path) -> dict:
     """Step 6: the warehouse team `run` exported and run as a secure fleet with its site feed across
     namespaces, robot 0's port cut 2 s and the site feed's 3 s (the trials of `hammer bench fleet`)."""
-    from hammer.benchmarks.fleet import run_trials
+    from hammer.benchmarks.fleet_bench import run_trials
 
     bundle = work / "bundle-warehouse"
     export = hammer("export", str(run), "--out", str(bundle), "--force")

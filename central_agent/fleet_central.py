@@ -1,6 +1,6 @@
 """The central agent of a fleet: its state built from the robots' own uplinks, messages on its own clock.
 
-Why apart from `server.CentralServer`: in training the central agent is one step of a lock-stepped
+Why apart from `central_server.CentralServer`: in training the central agent is one step of a lock-stepped
 loop, fed the simulator's global state. A fleet has no such state and no shared step: each robot
 uplinks what its sensors saw and the action it took (`agent/up/<i>`, serve/edge_agent.py), when it
 can. So this role keeps each robot's latest uplink with its arrival time, and at every tick of its

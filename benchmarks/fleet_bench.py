@@ -7,7 +7,7 @@
 A site's LAN (benchmarks/netns.lan): the serving machine and one namespace per robot, each plugged
 into a bridge (the switch). On the serving machine the command docs/fleet.md gives, `hammer serve
 BUNDLE --realtime HZ --external 0,..,N-1 --listen tcp/<its address>:7447 --secure --run-dir RUN`
-(the same launcher as every fleet: deploy/fleet.py); in each robot's namespace, from a folder
+(the same launcher as every fleet: deploy/fleet_launch.py); in each robot's namespace, from a folder
 holding only the bundle and its copy of its three identity files, the robot command that launcher
 printed and wrote to RUN/fleet.json. Secure by default; `--insecure` runs the plain profile.
 
@@ -215,7 +215,7 @@ class Fleet:
         shutil.rmtree(home, ignore_errors=True)
         home.mkdir(parents=True)
         np.save(home / "cols.npy", obs[0, 0, b.env_spec_data["local_obs_dim"]:])
-        from hammer.deploy.fleet import LINK_FIELDS
+        from hammer.deploy.fleet_launch import LINK_FIELDS
 
         links = [r for r in self.runtime if r.split("=", 1)[0] in LINK_FIELDS]  # the link settings robots get
         args = [str(self.bundle.resolve()), self.run.name, endpoint, str(home / "cols.npy"), f"{self.hz:g}",
@@ -313,7 +313,7 @@ def soak(bundle: Path, work: Path, minutes: float, hz: float, every_s: float = 3
     import threading
 
     import psutil
-    from hammer.deploy.fleet import FleetPlan, run_fleet
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
 
     run = work / f"fleet-soak-{os.getpid()}"
     every_s = min(every_s, max(1.0, minutes * 60 / 6))  # a short soak still gets a few samples

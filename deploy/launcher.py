@@ -78,13 +78,15 @@ class Board:
 def role_specs(cfg, run_dir: Path, settings: RuntimeSettings | None = None) -> list[RoleSpec]:
     """Every process `hammer up` starts. Local agents: one process each, or agent pools of
     `settings.agents_per_process` agents (`hammer local --agents`), one process and one event loop
-    each; a pool's `members` are the liveliness names of its agents."""
+    each; a pool's `members` are the liveliness names of its agents. The weights come from the
+    learner, or in a served run from the policy server (role `policy`, the same command)."""
     from hammer.protocol.access import pool_name
 
-    specs = [RoleSpec("learner", role_args("learner", run_dir=run_dir))]
+    settings_or_default = settings or RuntimeSettings(run_id="-")
+    specs = [RoleSpec(settings_or_default.policy_role, role_args("learner", run_dir=run_dir))]
     if cfg.wiring.uses_central:
         specs.append(RoleSpec("central", role_args("central", run_dir=run_dir), restart=True))
-    groups = (settings or RuntimeSettings(run_id="-")).agent_groups(cfg.n_agents)
+    groups = settings_or_default.agent_groups(cfg.n_agents)
     external = {int(e.split("-")[1]) for e in (settings.external if settings else ()) if re.fullmatch(r"local-\d+", e)}
     for i in sorted(external):
         groups.append([i])
@@ -395,7 +397,7 @@ def _stopped_summary(cfg, settings: RuntimeSettings, run_dir: Path, summary: dic
 
 class Launcher:
     """The launcher role, the one launch-and-supervise loop of every launcher (`hammer up`, `hammer
-    serve`, and with `wait_alive=False, watch_liveliness=False` a fleet's, deploy/fleet.py): starts
+    serve`, and with `wait_alive=False, watch_liveliness=False` a fleet's, deploy/fleet_launch.py): starts
     every role, waits for their liveliness, follows their heartbeats (`heard(h)`: each one believed),
     fires the chaos schedule, restarts the ones that may be restarted, and stops them all when the
     env host is done (or on any way out, Ctrl-C included). The only publisher of control commands.
@@ -620,7 +622,8 @@ def secure_identities(n_agents: int, settings: RuntimeSettings, run_dir: Path, h
     from hammer.protocol.identity import create_identities, has_identities, identity_dir, site_run_identities
     from hammer.protocol.keys import Keys
 
-    roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub, site_feed=site_feed)
+    roles = role_names(n_agents, pools=settings.pools(n_agents), router=settings.secure_hub, site_feed=site_feed,
+                       served=settings.mode == "eval")
     if site is not None:
         site_run_identities(site, identity_dir(run_dir), roles)
     elif fresh or not has_identities(identity_dir(run_dir), roles):

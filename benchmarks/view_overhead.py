@@ -4,7 +4,7 @@ run page, on this same machine: the worst case, an operator's browser is usually
 without, the trials interleaved (the machine is shared: load drifts), each with its load average; and
 the view process's peak RSS while the page is connected.
 
-    python -m hammer.benchmarks.view --bundle BUNDLE --trials 3 --out docs/results/view-overhead.json
+    python -m hammer.benchmarks.view_overhead --bundle BUNDLE --trials 3 --out docs/results/view-overhead.json
 
 Without --view the launcher still writes the live files (RUN/live.json, 5 times a second); that
 share is in both arms."""
@@ -117,7 +117,7 @@ def live_cost(robots: int, ticks: int = 200) -> dict:
 
     clock = [0.0]
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
-        live = LiveStatus(Path(tmp), "fleet", "bench", robots=robots, roles=("env", "central", "learner"),
+        live = LiveStatus(Path(tmp), "fleet", "bench", robots=robots, roles=("env", "central", "policy"),
                           clock=lambda: clock[0])
         board = SimpleNamespace(heartbeats={}, restarts={}, chaos_log=[])
         spent = 0.0

@@ -1,7 +1,7 @@
 """`hammer serve --realtime HZ`: a trained team run as a fleet, every robot its own process.
 
 The processes (docs/fleet.md): the realtime world (env_host/world.py, the simulator stepping at HZ
-on the robots' latest actions), the fleet's central agent (central_agent/fleet.py, answering the
+on the robots' latest actions), the fleet's central agent (central_agent/fleet_central.py, answering the
 state of each of the world's ticks with a message per robot, which the world puts into that tick's
 observations) and one robot per agent (`hammer local --bundle ... --fleet`: serve/edge_agent.py,
 torch-free). No robot waits for anyone:
@@ -17,7 +17,7 @@ robot whose lease expires is one client link closed: no other robot's traffic ta
 secure fleet the router holds the run's `hub` identity and checks the access rules on every hop,
 and every role checks them again on its own link.
 
-The launcher opens the router and runs the one launch loop of every launcher (deploy.up.Launcher:
+The launcher opens the router and runs the one launch loop of every launcher (deploy.launcher.Launcher:
 no waiting for liveliness here, robots join when they can): it starts the roles, restarts a robot,
 the central agent or the policy server that dies (up to 3 times, then goes on without it; not one
 that `--chaos` killed on purpose: `kill:local-1@t=5,for=3` restarts it after 3 s), fires the
@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hammer.deploy.fleet_verdict import fleet_verdict
+from hammer.deploy.launcher import Board, Launcher, UpError, stop_on_signals
 from hammer.deploy.supervisor import RoleSpec, role_args
-from hammer.deploy.up import Board, Launcher, UpError, stop_on_signals
-from hammer.protocol.access import HUB, LAUNCHER
+from hammer.protocol.access import HUB, LAUNCHER, POLICY
 from hammer.protocol.schemas import Heartbeat
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port, loopback_endpoint
 from hammer.protocol.structs import replace
@@ -166,7 +166,7 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
     specs = [RoleSpec("env", role_args("fleet-world", **common, hz=plan.hz, hold_s=plan.hold_s, msg_wait_s=plan.msg_wait_s,
                                        run_dir=run_dir, no_site_feed=plan.site_external,
                                        timeline=plan.timeline, seconds=plan.seconds, episodes=plan.episodes)),
-             RoleSpec("learner", role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
+             RoleSpec(POLICY, role_args("fleet-policy", **common, run_dir=run_dir), restart=True, essential=False)]
     if uses_central:
         specs.append(RoleSpec("central", role_args("fleet-central", **common, hz=plan.hz,
                                                    missing_after_s=plan.missing_after_s, site_hold_s=plan.site_hold_s),
@@ -181,13 +181,13 @@ def role_specs(plan: FleetPlan, run_id: str, connect: str, n_agents: int, uses_c
 
 
 # What one fleet session leaves as its results; a new session in the same directory serves the bundle
-# given, so an earlier session's update history must not be followed again (deploy/up.py, SERVED_RESULTS).
+# given, so an earlier session's update history must not be followed again (deploy/launcher.py, SERVED_RESULTS).
 SESSION_RESULTS = ("summary.json", "world.json", "pushes.json", "policies")
 
 
 def _set_aside(run_dir: Path) -> Path | None:
     """Move an earlier session's results to RUN/previous/<time>/ (None: there were none)."""
-    from hammer.deploy.up import move_to_previous
+    from hammer.deploy.launcher import move_to_previous
 
     return move_to_previous(run_dir, SESSION_RESULTS, "fleet")
 
@@ -196,7 +196,7 @@ def fleet_settings(b, plan: FleetPlan, run_id: str):
     """The fleet's RuntimeSettings (its runtime.json): eval mode, the plan's `--runtime` items, the
     router's real port and `--listen` endpoints; a secure fleet has the router's `hub` identity.
     ValueError naming the field on a bad item."""
-    from hammer.serve.settings import serve_settings
+    from hammer.serve.served_settings import serve_settings
 
     fixed = {**plan.runtime, **({"secure": True, "secure_hub": True} if plan.secure else {}),
              **({"insecure": True} if plan.insecure else {}), "hub_port": plan.hub_port,
@@ -244,7 +244,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
     _set_aside(run_dir)
     write_served_files(b, plan, run_dir, settings)
     if plan.secure:
-        from hammer.deploy.up import secure_identities
+        from hammer.deploy.launcher import secure_identities
 
         hub_transport = secure_identities(n, settings, run_dir, hub_transport, fresh=True, site=plan.site,
                                           as_role=HUB, site_feed=site_feed)
@@ -267,7 +267,7 @@ def run_fleet(plan: FleetPlan, run_dir: Path, on_tick=None) -> dict:
         if world is not None and world.counters.get("ticks", 0) > 0:
             chaos(sup, board)
 
-    # The one launcher loop (deploy/up.py), as a fleet runs it: no waiting for anyone to be up (robots
+    # The one launcher loop (deploy/launcher.py), as a fleet runs it: no waiting for anyone to be up (robots
     # join when they can; the world waits for them), robots that keep dying are let go (the verdict
     # names their absence), on a fleet's clock.
     launcher = Launcher(specs, run_dir, settings.startup_timeout_s,
@@ -345,8 +345,8 @@ def _summary(run_dir: Path, board, stopped_by: str | None, wall_s: float, max_ab
                               if k.startswith("policy_")},
                            "version_switches": board.switches.get("central", [])},
                "site": verdict["site"],
-               "policy_server": {**roles.get("learner", {}).get("counters", {}),
-                                 **roles.get("learner", {}).get("gauges", {})},
+               "policy_server": {**roles.get(POLICY, {}).get("counters", {}),
+                                 **roles.get(POLICY, {}).get("gauges", {})},
                "pushes": _pushes(run_dir),
                "restarts": board.restarts, "chaos": board.chaos_log}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))

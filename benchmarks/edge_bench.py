@@ -36,7 +36,7 @@ class EdgeFigures:
 
 def make_team(work: Path, preset: str = "cn3", overrides: tuple[str, ...] = ()):
     """An untrained HAMMER team (cn3 unless told) as a bundle and as a `hammer up` run directory (same weights)."""
-    from hammer.deploy.up import prepare_run_dir
+    from hammer.deploy.launcher import prepare_run_dir
     from hammer.envs.registry import make_vec_env
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir
@@ -70,7 +70,7 @@ def measure(cmd: list[str], run_id: str, port: int, cfg, spec, blob: bytes, act_
     rng = np.random.default_rng(0)
     env_idx = np.arange(k, dtype=np.int64)
     with HammerSession(run_id, TransportConfig(listen=[loopback_endpoint(port)]), sender="bench") as hub:
-        hub.declare_alive("learner")  # the harness is the rest of the run: an edge agent joins once it sees a role
+        hub.declare_alive("policy")  # the harness is the rest of the (served) run: an edge agent joins once it sees a role
         w_pub = hub.publisher(hub.keys.weights("local"))
         obs_pub, msg_pub = hub.publisher(hub.keys.obs(agent)), hub.publisher(hub.keys.msg(agent))
         actions = hub.subscribe(hub.keys.act(agent), Action, dims)
