@@ -18,6 +18,7 @@ from hammer.envs.base import EnvSpec
 from hammer.learning.compiled_update import CompiledUpdate
 from hammer.learning.config import RunConfig
 from hammer.learning.networks import gaussian_logp
+from hammer.learning.precision import update_autocast
 from hammer.learning.ppo import (
     PPOUpdater,
     UpdateStats,
@@ -120,6 +121,15 @@ class TeamLearner:
 
     def losses(self, r: dict[str, torch.Tensor], masks: Masks = MASKED, with_stats: bool = True
                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
+        """`_losses` in the run's precision (`learning.precision`): under bfloat16 autocast for bf16,
+        so the eager, compiled and seed-batched updates, which all call this, run the same maths."""
+        if self.cfg.precision == "fp32":
+            return self._losses(r, masks, with_stats)
+        with update_autocast(self.cfg.precision, self.team.device):
+            return self._losses(r, masks, with_stats)
+
+    def _losses(self, r: dict[str, torch.Tensor], masks: Masks = MASKED, with_stats: bool = True
+                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
         """(local PPO loss, central PPO loss or None, statistics) on the minibatch `r` of a batch
         whose masking is `masks`; the statistics are 0-d tensors by name (none unless `with_stats`).
 
