@@ -93,7 +93,7 @@ def test_the_float32_update_is_the_plain_one_and_bf16_runs_the_forward_in_bfloat
         learner = TeamLearner(cfg, env.spec)
         rng = np.random.default_rng(0)
         for name, arr in learner.buf.arrays.items():
-            arr[...] = rng.random(arr.shape) if arr.dtype.kind == "f" else 0
+            arr[...] = rng.random(arr.shape) if arr.dtype.kind == "f" else name == "active"  # every agent present
         obs, _ = env.reset(0)
         b, masks = learner.batch(obs, learner.team.zero_prev_actions(cfg.num_envs))
         local, central, _ = learner.losses(b, masks)
