@@ -73,10 +73,10 @@ print(why(torch.device(sys.argv[1])) or "")' "$1"
 
 : >"$OUT/results.txt"
 passes=()
-for p in $PRECISIONS; do passes+=("device:$DEVICE:$p"); done
-passes+=("cpu:cpu:fp32")
+for p in $PRECISIONS; do passes+=("device:$p:$DEVICE"); done
+passes+=("cpu:fp32:cpu")
 for pass in "${passes[@]}"; do  # run names device-*, device-bf16-* and cpu-* (distinct also when DEVICE=cpu)
-    IFS=: read -r tag dev precision <<<"$pass"
+    IFS=: read -r tag precision dev <<<"$pass"  # the device last: cuda:N holds a colon
     [ "$precision" = fp32 ] || tag="$tag-$precision"
     if [ "$precision" = bf16 ] && [ "${HAMMER_ALLOW_EMULATED_BF16:-}" != 1 ]; then
         why=$(bf16_unsupported "$dev")
