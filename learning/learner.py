@@ -18,7 +18,6 @@ from hammer.envs.base import EnvSpec
 from hammer.learning.compiled_update import CompiledUpdate
 from hammer.learning.config import RunConfig
 from hammer.learning.networks import gaussian_logp
-from hammer.learning.precision import update_autocast
 from hammer.learning.ppo import (
     PPOUpdater,
     UpdateStats,
@@ -31,6 +30,7 @@ from hammer.learning.ppo import (
     normalize_advantages,
     value_loss,
 )
+from hammer.learning.precision import update_autocast
 from hammer.learning.rollout import RolloutBuffer
 from hammer.learning.rundir import optimizer_from_tensors, optimizer_to_tensors
 from hammer.learning.sampling import MINIBATCH_STREAM, stream
