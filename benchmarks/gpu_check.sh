@@ -4,8 +4,11 @@
 #   benchmarks/gpu_check.sh [OUT_DIR]      (from the repository root, on a CUDA machine)
 #
 # Prints the GPU's name, then trains cn3 for each of the paper's five variants on DEVICE, one
-# compile=true run, and the same six on the CPU, printing env-steps/s from each run's summary.json and
-# the DEVICE/CPU ratio (a compile=true run's rate includes its one-off compile). Stops at the first
+# compile=true run, the same six again with precision=bf16 on DEVICE (skipped, saying why, where the
+# device has no native bfloat16), and the six float32 ones on the CPU, printing env-steps/s from each
+# run's summary.json, the DEVICE/CPU ratio and the bf16/fp32 ratio on DEVICE (a compile=true run's
+# rate includes its one-off compile), and each bf16 run's final paper metric beside its fp32 twin's
+# (one seed: a smoke check that bf16 learns, not a comparison). Stops at the first
 # failed run (its log's tail is printed). About 3-6 minutes at the default budget (a guess: no GPU
 # has run it yet; DEVICE=cpu EPISODES=64 takes ~70 s on 2 cores); every run directory and log stays
 # under OUT_DIR.
@@ -14,12 +17,14 @@
 #   DEVICE=cuda       cuda, cuda:N, or cpu (a dry run of this script on a machine without a GPU)
 #   EPISODES=1000     episode budget per run (25 env steps each)
 #   RUN_TIMEOUT=240   seconds one run may take before the script gives up
+#   PRECISIONS="fp32 bf16"   the precisions run on DEVICE (the CPU pass is float32)
 set -euo pipefail
 
 VENV=${VENV:-.venv}
 DEVICE=${DEVICE:-cuda}
 EPISODES=${EPISODES:-1000}
 RUN_TIMEOUT=${RUN_TIMEOUT:-240}
+PRECISIONS=${PRECISIONS:-fp32 bf16}
 OUT=${1:-$(mktemp -d "${TMPDIR:-/tmp}/gpu_check.XXXXXX")}
 PY="$VENV/bin/python"
 HAMMER="$VENV/bin/hammer"
@@ -36,7 +41,8 @@ print(f"torch {torch.__version__} (cuda {torch.version.cuda}), {torch.get_num_th
 if dev.type == "cuda":
     if not torch.cuda.is_available():
         sys.exit(f"DEVICE={sys.argv[1]}: torch sees no CUDA device; fix: run on a GPU machine, or DEVICE=cpu")
-    print(f"device: {torch.cuda.get_device_name(dev)}")
+    print(f"device: {torch.cuda.get_device_name(dev)}, native bf16: "
+          f"{torch.cuda.is_bf16_supported(including_emulation=False)}")
 else:
     print("device: cpu (DEVICE=cpu: a dry run of this script)")
 EOF
@@ -59,14 +65,31 @@ run() {
     echo "$name $sps" >>"$OUT/results.txt"
 }
 
+# bf16_unsupported DEVICE: why DEVICE has no native bfloat16 (empty when it has; the refusal's own test)
+bf16_unsupported() {
+    "$PY" -c 'import sys, torch; from hammer.learning.precision import bf16_unsupported as why
+print(why(torch.device(sys.argv[1])) or "")' "$1"
+}
+
 : >"$OUT/results.txt"
-for pass in "device:$DEVICE" "cpu:cpu"; do  # run names device-* and cpu-* (distinct also when DEVICE=cpu)
-    tag=${pass%%:*} dev=${pass#*:}
-    echo "--- on $dev ($EPISODES episodes per run)"
+passes=()
+for p in $PRECISIONS; do passes+=("device:$p:$DEVICE"); done
+passes+=("cpu:fp32:cpu")
+for pass in "${passes[@]}"; do  # run names device-*, device-bf16-* and cpu-* (distinct also when DEVICE=cpu)
+    IFS=: read -r tag precision dev <<<"$pass"  # the device last: cuda:N holds a colon
+    [ "$precision" = fp32 ] || tag="$tag-$precision"
+    if [ "$precision" = bf16 ] && [ "${HAMMER_ALLOW_EMULATED_BF16:-}" != 1 ]; then
+        why=$(bf16_unsupported "$dev")
+        if [ -n "$why" ]; then
+            echo "--- bf16 on $dev: skipped ($why; HAMMER_ALLOW_EMULATED_BF16=1 runs it emulated)"
+            continue
+        fi
+    fi
+    echo "--- on $dev, precision $precision ($EPISODES episodes per run)"
     for v in "${VARIANTS[@]}"; do
-        run "$tag-$v" "$dev" "$v"
+        run "$tag-$v" "$dev" "$v" --set "precision=$precision"
     done
-    run "$tag-hammer-rl-compile" "$dev" hammer-rl --set compile=true
+    run "$tag-hammer-rl-compile" "$dev" hammer-rl --set compile=true --set "precision=$precision"
 done
 
 echo "--- $DEVICE / cpu (env-steps/s ratio; above 1: the device is faster)"
@@ -74,8 +97,23 @@ echo "--- $DEVICE / cpu (env-steps/s ratio; above 1: the device is faster)"
 import sys
 
 sps = dict(line.split() for line in open(sys.argv[1]))
-for name in [n for n in sps if n.startswith("device-")]:
+for name in [n for n in sps if n.startswith("device-") and not n.startswith("device-bf16-")]:
     what = name.removeprefix("device-")
     print(f"{what:34s} {float(sps[name]) / float(sps['cpu-' + what]):8.2f}")
 EOF
+if grep -q '^device-bf16-' "$OUT/results.txt"; then
+    echo "--- bf16 / fp32 on $DEVICE (env-steps/s ratio; final paper metric of the last 500 episodes, fp32 -> bf16)"
+    "$PY" - "$OUT" <<'EOF'
+import json
+import sys
+from pathlib import Path
+
+out = Path(sys.argv[1])
+sps = dict(line.split() for line in open(out / "results.txt"))
+for name in [n for n in sps if n.startswith("device-bf16-")]:
+    what = name.removeprefix("device-bf16-")
+    m = [json.loads((out / n / "summary.json").read_text())["final_paper_metric_last500"] for n in (f"device-{what}", name)]
+    print(f"{what:34s} {float(sps[name]) / float(sps['device-' + what]):8.2f}   {m[0]:8.2f} -> {m[1]:8.2f}")
+EOF
+fi
 echo "runs and logs: $OUT"

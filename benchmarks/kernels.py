@@ -50,21 +50,22 @@ def _tanh(x: torch.Tensor) -> torch.Tensor:
     return (x * 2.0).sigmoid_().mul_(2.0).sub_(1.0)
 
 
-def layer_costs(linears: list[nn.Linear], rows: int, backward: bool, repeats: int) -> dict[str, float]:
+def layer_costs(linears: list[nn.Linear], rows: int, backward: bool, repeats: int,
+                dtype: torch.dtype = torch.float32) -> dict[str, float]:
     """Seconds of one pass of `rows` rows through these layers (tanh after every layer but the
     last): forward matmuls, forward tanh, and with `backward` the two backward matmuls per layer
-    and tanh's backward."""
+    and tanh's backward; all in `dtype` (bfloat16: what autocast runs under precision=bf16)."""
     out = {"matmul": 0.0, "tanh": 0.0}
     for i, lin in enumerate(linears):
-        w, b = lin.weight.detach().clone(), lin.bias.detach().clone()
-        x = torch.randn(rows, w.shape[1])
-        dy = torch.randn(rows, w.shape[0])
+        w, b = lin.weight.detach().to(dtype), lin.bias.detach().to(dtype)
+        x = torch.randn(rows, w.shape[1], dtype=dtype)
+        dy = torch.randn(rows, w.shape[0], dtype=dtype)
         out["matmul"] += _time(lambda w=w, b=b, x=x: torch.addmm(b, x, w.t()), repeats)
         if backward:
             out["matmul"] += _time(lambda w=w, dy=dy: dy @ w, repeats)  # dL/dx
             out["matmul"] += _time(lambda x=x, dy=dy: dy.t() @ x, repeats)  # dL/dW
         if i < len(linears) - 1:
-            h = torch.randn(rows, w.shape[0])
+            h = torch.randn(rows, w.shape[0], dtype=dtype)
             out["tanh"] += _time(lambda h=h: _tanh(h), repeats)
             if backward:
                 y = torch.tanh(h)
@@ -87,12 +88,14 @@ def _nets(team) -> list[tuple[str, list[nn.Linear], int]]:
 
 
 def measure(variant: str = "il", compile_: bool = False, updates: int = 30, repeats: int = 300,
-            central_mode: str = "rl") -> dict[str, Any]:
-    """The floor and the real thing for one cn3 config, one core."""
+            central_mode: str = "rl", precision: str = "fp32") -> dict[str, Any]:
+    """The floor and the real thing for one cn3 config, one core. precision=bf16: the update's
+    layers in bfloat16 (the acting floor stays float32, as acting does)."""
     torch.set_num_threads(1)
     extra = {"variant": variant} | ({"central_mode": central_mode} if variant == "hammer" else {})
     cfg = merge_config("cn3", extra=extra, overrides=["episodes=1000000", "torch_threads=1",
-                                                      f"compile={str(compile_).lower()}"])
+                                                      f"compile={str(compile_).lower()}", f"precision={precision}"])
+    update_dtype = torch.bfloat16 if precision == "bf16" else torch.float32
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, RunDir.create(Path(tmp) / "run", cfg), tensorboard=False)
         samples = cfg.num_envs * cfg.rollout_steps
@@ -101,7 +104,7 @@ def measure(variant: str = "il", compile_: bool = False, updates: int = 30, repe
         floor_update = floor_act = 0.0
         parts: dict[str, float] = {}
         for name, lins, per in _nets(tr.team):
-            upd = layer_costs(lins, mb_samples * per, backward=True, repeats=repeats)
+            upd = layer_costs(lins, mb_samples * per, backward=True, repeats=repeats, dtype=update_dtype)
             act = layer_costs(lins, cfg.num_envs * per, backward=False, repeats=repeats)
             for what, s in upd.items():
                 parts[f"update.{name}.{what}"] = round(s * steps_per_update * 1e3, 3)
@@ -141,6 +144,7 @@ def measure(variant: str = "il", compile_: bool = False, updates: int = 30, repe
     floor = env_ms + (floor_act + floor_update) * 1e3
     return {
         "variant": variant + (f"-{central_mode}" if variant == "hammer" else ""), "compile": compile_,
+        "precision": precision,
         "schedule": f"{cfg.num_envs} envs x {cfg.rollout_steps} steps, {cfg.epochs} epochs x {cfg.minibatches} "
                     f"minibatches of {mb_samples} samples",
         "update_ms": round(learn * ms, 2), "update_floor_ms": round(floor_update * 1e3, 2),

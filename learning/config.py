@@ -16,11 +16,24 @@ from typing import Any, Literal
 import yaml
 from hammer.learning.presets import PRESETS
 from hammer.learning.variant import Wiring
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidationError,
+    model_serializer,
+    model_validator,
+)
 
 Variant = Literal["hammer", "il", "random", "centralized"]
 CentralMode = Literal["rl", "backprop"]
 CentralNet = Literal["concat", "set"]
+
+
+# Fields a dump (config.json, checkpoints) leaves out while they hold this default, and that a
+# config without them means: added after runs were archived, they change no float32 run's files.
+OMITTED_DEFAULTS: dict[str, Any] = {"precision": "fp32"}
 
 
 class ConfigError(ValueError):
@@ -109,6 +122,11 @@ class RunConfig(BaseModel):
         description="where the networks, their optimiser state and the PPO update live: cpu | cuda | cuda:N. "
                     "The envs and the acting draws stay numpy on the host (a host-device round trip around each "
                     "acting forward pass); `--resume RUN --set device=...` moves a run (docs/learning.md)")
+    precision: Literal["fp32", "bf16"] = Field(
+        "fp32", description="the PPO update's forward passes: fp32, or bf16 (torch.autocast to bfloat16; weights, "
+                            "gradients, Adam state and acting stay float32). bf16 only where the hardware has native "
+                            "bfloat16 matmuls (AVX512_BF16/AMX CPUs, bf16 GPUs), refused elsewhere; results differ "
+                            "from fp32 (docs/fast-envs.md)")
     out: str = Field("runs", description="root directory for run directories")
     checkpoint_every: int = Field(50, ge=1, description="updates between checkpoints")
 
@@ -130,6 +148,16 @@ class RunConfig(BaseModel):
         if self.minibatches > self.rollout_steps * self.num_envs:
             raise ValueError("minibatches: must be <= rollout_steps * num_envs")
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # Fields written only when set (OMITTED_DEFAULTS): a float32 run's config.json, checkpoint
+        # metadata and sweep snapshots are byte for byte what they were before the field existed.
+        data = handler(self)
+        for name, default in OMITTED_DEFAULTS.items():
+            if data.get(name) == default:
+                del data[name]
+        return data
 
     @property
     def effective_msg_dim(self) -> int:
@@ -160,6 +188,7 @@ _FIXES = {
     "episodes": "use a budget >= 1, e.g. --episodes 2000 (or --set episodes=2000)",
     "seed": "use an int, e.g. --seed 1 (or --set seed=1)",
     "device": "use cpu, cuda or cuda:N, e.g. --set device=cuda",
+    "precision": "use fp32 or bf16, e.g. --set precision=bf16",
 }
 
 
@@ -293,8 +322,11 @@ def config_changes(ours: dict[str, Any], reference: dict[str, Any],
     our value, sorted by key: `lr_local`, `env_kwargs.observe_others`. Nested mappings are compared
     key by key, and a key either side lacks counts as a change (ours `None` if we lack it).
     Top-level fields the reference lacks (renamed or removed since `ours` was written) and the
-    `ignore`d ones and the `RESULT_NEUTRAL` ones (dotted) are skipped. Shared by sweep snapshots (is this the same run?) and reports
+    `ignore`d ones and the `RESULT_NEUTRAL` ones (dotted) are skipped; an `OMITTED_DEFAULTS` field
+    either side lacks holds its default. Shared by sweep snapshots (is this the same run?) and reports
     (which runs pool as seeds of one setting?), so both agree on what "differs" means."""
+
+    ours, reference = {**OMITTED_DEFAULTS, **ours}, {**OMITTED_DEFAULTS, **reference}
 
     def diff(a: dict[str, Any], b: dict[str, Any], prefix: str) -> dict[str, Any]:
         out: dict[str, Any] = {}

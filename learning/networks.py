@@ -107,7 +107,7 @@ class TanhMLP(nn.Module):
             x = F.linear(x, layer.weight, layer.bias)
             if i < last or self.final_tanh:
                 x = tanh(x)
-        return x
+        return x.float()  # bfloat16 under autocast (precision=bf16): the losses take float32
 
 
 class _Exportable(nn.Module):
@@ -222,7 +222,7 @@ class CentralAgent(_Exportable):
         n, hid, m = self.head_weight.shape
         # All N heads as one (H, N*M) matmul: cheaper than an einsum (permutes + bmm) per call.
         w = self.head_weight.permute(1, 0, 2).reshape(hid, n * m)
-        out = torch.addmm(self.head_bias.reshape(n * m), h.reshape(-1, hid), w)
+        out = torch.addmm(self.head_bias.reshape(n * m), h.reshape(-1, hid), w).float()  # float32 under autocast
         return tanh(out.reshape(*h.shape[:-1], n, m))
 
     def values(self, state: torch.Tensor) -> torch.Tensor:
@@ -258,7 +258,7 @@ class AgentAttention(nn.Module):
         q, k, v = (F.linear(e, lin.weight) for lin in (self.query, self.key, self.value))
         scores = torch.matmul(q, k.transpose(-1, -2)) / math.sqrt(e.shape[-1])  # (..., N, N)
         context = torch.matmul(torch.softmax(scores, dim=-1), v)
-        return F.linear(torch.cat([e, context], dim=-1), self.out.weight, self.out.bias)
+        return F.linear(torch.cat([e, context], dim=-1), self.out.weight, self.out.bias).float()  # as TanhMLP's
 
 
 def _init_no_bias(layer: nn.Linear) -> nn.Linear:

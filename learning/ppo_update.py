@@ -30,6 +30,7 @@ from hammer.learning.ppo import (
     normalize_advantages,
     value_loss,
 )
+from hammer.learning.precision import update_autocast
 from hammer.learning.rollout import RolloutBuffer
 from hammer.learning.rundir import optimizer_from_tensors, optimizer_to_tensors
 from hammer.learning.sampling import MINIBATCH_STREAM, stream
@@ -120,6 +121,15 @@ class TeamLearner:
 
     def losses(self, r: dict[str, torch.Tensor], masks: Masks = MASKED, with_stats: bool = True
                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
+        """`_losses` in the run's precision (`learning.precision`): under bfloat16 autocast for bf16,
+        so the eager, compiled and seed-batched updates, which all call this, run the same maths."""
+        if self.cfg.precision == "fp32":
+            return self._losses(r, masks, with_stats)
+        with update_autocast(self.cfg.precision, self.team.device):
+            return self._losses(r, masks, with_stats)
+
+    def _losses(self, r: dict[str, torch.Tensor], masks: Masks = MASKED, with_stats: bool = True
+                ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, torch.Tensor]]:
         """(local PPO loss, central PPO loss or None, statistics) on the minibatch `r` of a batch
         whose masking is `masks`; the statistics are 0-d tensors by name (none unless `with_stats`).
 

@@ -22,6 +22,7 @@ from hammer.learning.config import ConfigError, RunConfig
 from hammer.learning.fused_acting import FusedActing
 from hammer.learning.networks import CentralAgent, LocalPolicy, SetCentralAgent, make_central
 from hammer.learning.numpy_policy import gaussian_logp_of_draw, numpy_central, softmax, take_last
+from hammer.learning.precision import check_precision
 from hammer.learning.run_env import check_env_fits
 from hammer.learning.sampling import ActingStreams, categorical_draw
 
@@ -31,7 +32,8 @@ _CentralForward = tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray
 
 def torch_device(cfg: RunConfig) -> torch.device:
     """The device of `cfg.device`, refused up front where torch cannot use it: a run asked for a GPU
-    must not silently train on the CPU, nor fail half-built at its first tensor."""
+    must not silently train on the CPU, nor fail half-built at its first tensor. Also refuses
+    `precision=bf16` where the device has no native bfloat16 (`learning.precision`)."""
     dev = torch.device(cfg.device)
     if dev.type == "cuda":
         if not torch.cuda.is_available():
@@ -41,6 +43,7 @@ def torch_device(cfg: RunConfig) -> torch.device:
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise ConfigError(f"config field 'device': device={cfg.device}: torch sees only "
                               f"{torch.cuda.device_count()} CUDA device(s); fix: --set device=cuda:0")
+    check_precision(cfg.precision, dev)
     return dev
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import psutil
 import pytest
+import torch
 from hammer.deploy.launcher import launch
 from hammer.experiments.train_stats import load_train_stats
 from hammer.learning.config import merge_config
@@ -103,6 +104,28 @@ def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path)
     assert len(a) == len(b) == 70 and len(set(a)) > 40
     assert a == pytest.approx(b, abs=1e-5)
     assert json.loads((up / "learner_summary.json").read_text())["updates"] >= 2
+
+
+def test_up_reproduces_the_in_process_trainer_in_bf16(tmp_path):
+    """precision=bf16: the learner's update runs under bfloat16 autocast as the trainer's does (one
+    `TeamLearner.losses`), acting stays float32 in both, so the episodes are equal; over 130
+    episodes they are not the float32 run's (bf16's first update changes an action by episode ~80)."""
+    from hammer.learning.precision import EMULATED_ENV, bf16_unsupported
+
+    env = {EMULATED_ENV: "1"} if bf16_unsupported(torch.device("cpu")) else {}
+    up, tr, fp32 = tmp_path / "up", tmp_path / "train", tmp_path / "fp32"
+    r1 = hammer("up", "--episodes", "130", "--central-mode", "rl", "--set", "precision=bf16", "--run-dir", str(up),
+                "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000", env=env)
+    assert r1.returncode == 0, r1.stderr[-2000:]
+    for run, extra in ((tr, ["--set", "precision=bf16"]), (fp32, [])):
+        r = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", *extra, "--episodes", "130",
+                   "--run-dir", str(run), "--quiet", env=env)
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((up / "config.json").read_text())["precision"] == "bf16"
+    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(fp32)
+    assert len(a) == len(b) == 130 and len(set(a)) > 80
+    assert a == pytest.approx(b, abs=1e-5)
+    assert a != pytest.approx(c, abs=1e-5)
 
 
 def test_up_reproduces_the_trainer_with_simulated_absences(tmp_path):

@@ -42,6 +42,7 @@ SPAWNS_TESTS = {
     "test_learning_networks::test_edge_modules_do_not_import_torch",
     "test_local_view::test_up_with_a_local_view_completes_and_matches_the_trainer",
     "test_messages::test_cli_writes_tables_json_figure_and_reuses_results",
+    "test_precision::test_the_compiled_update_runs_under_bf16",
     "test_protocol_cli::test_bench_transport_runs_and_writes_json",
     "test_protocol_codec::test_the_wire_path_imports_no_pydantic",
     "test_protocol_session::test_round_trip_across_two_spawned_processes",

@@ -324,16 +324,20 @@ def bench_kernels(
     variants: Annotated[str, typer.Option(help="comma-separated cn3 variants: il, hammer (rl), hammer-backprop")] = "il",
     updates: Annotated[int, typer.Option(min=1, help="timed updates of the real loop per row")] = 30,
     repeats: Annotated[int, typer.Option(min=10, help="calls per timed kernel (best of three loops)")] = 300,
+    precisions: Annotated[str, typer.Option(help="comma-separated precisions: fp32, bf16 (RunConfig.precision; "
+                                                 "bf16 needs native bfloat16, docs/fast-envs.md)")] = "fp32",
     json_out: Annotated[Path | None, typer.Option("--json", help="also write the figures to this JSON file")] = None,
 ) -> None:
     """The arithmetic floor of one cn3 training update, one core: every Linear layer's forward and
     backward matmuls and tanh at the run's shapes (no Python, optimiser, loss or sampling), with the
-    env step, against the real update and collection, eager and compile=true. A rate target above
-    the floor's rate cannot be reached by removing overhead (docs/fast-envs.md)."""
+    env step, against the real update and collection, eager and compile=true, per precision (bf16:
+    the update's layers in bfloat16). A rate target above the floor's rate cannot be reached by
+    removing overhead (docs/fast-envs.md)."""
     from rich.table import Table
 
     from hammer.benchmarks.kernels import measure
     from hammer.console import table_console
+    from hammer.learning.config import ConfigError
 
     known = {"il": ("il", "rl"), "hammer": ("hammer", "rl"), "hammer-rl": ("hammer", "rl"),
              "hammer-backprop": ("hammer", "backprop")}
@@ -341,14 +345,22 @@ def bench_kernels(
     bad = [v for v in names if v not in known]
     if bad:
         fail(f"--variants: unknown {', '.join(bad)}; fix: one of {', '.join(known)}")
-    rows = [measure(known[v][0], c, updates, repeats, central_mode=known[v][1]) for v in names for c in (False, True)]
+    precs = [p.strip() for p in precisions.split(",") if p.strip()]
+    if not precs or any(p not in ("fp32", "bf16") for p in precs):
+        fail(f"--precisions: {precisions!r}; fix: fp32, bf16 or fp32,bf16")
+    try:
+        rows = [measure(known[v][0], c, updates, repeats, central_mode=known[v][1], precision=p)
+                for v in names for p in precs for c in (False, True)]
+    except ConfigError as e:  # bf16 without native bfloat16
+        fail(str(e))
     table = Table(title="hammer bench kernels (cn3, one core; ms per update of "
                         f"{rows[0]['schedule']})")
-    for col in ("variant", "compile", "update", "floor", "collect", "env", "act floor", "env-steps/s",
+    for col in ("variant", "precision", "compile", "update", "floor", "collect", "env", "act floor", "env-steps/s",
                 "at the floor", "load"):
         table.add_column(col, justify="left" if col == "variant" else "right")
     for r in rows:
-        table.add_row(r["variant"], str(r["compile"]).lower(), f"{r['update_ms']:.1f}", f"{r['update_floor_ms']:.1f}",
+        table.add_row(r["variant"], r["precision"], str(r["compile"]).lower(), f"{r['update_ms']:.1f}",
+                      f"{r['update_floor_ms']:.1f}",
                       f"{r['collect_ms']:.1f}", f"{r['env_ms']:.1f}", f"{r['act_floor_ms']:.1f}",
                       f"{r['env_steps_per_s']:,}", f"{r['floor_env_steps_per_s']:,}", f"{r['load_1min']:.2f}")
     table_console().print(table)
