@@ -12,6 +12,11 @@ rounding differs (tests/test_learning_compile.py). The eager path never reads th
 shuffle gather, then every minibatch step in order), one call per epoch instead of one per
 minibatch: the update runs ~15-25% faster, for a compile (dynamo's tracing, mostly) about as many
 times longer as an epoch has minibatches.
+
+A seed batch (`learning.seed_batch`) runs the same graphs over stacked (S, ...) parameters and Adam
+state (`seeds=S`, `learn_stacked`): the gradient is `vmap(grad(...))` of the same losses, every
+seed's slice of the minibatch its own rows, each seed's gradient clipped by its own norm, and the
+Adam maths, elementwise, steps every slice as that seed's own optimiser would.
 """
 
 from __future__ import annotations
@@ -58,8 +63,9 @@ class CompiledUpdate:
     is one graph per minibatch size, batch fields and `Masks`: one for cn."""
 
     def __init__(self, team: Team, losses: Losses, updaters: list[PPOUpdater], epochs: int,
-                 minibatches: int, scope: str = "step") -> None:
+                 minibatches: int, scope: str = "step", seeds: int | None = None) -> None:
         allow_many_graphs()
+        self.seeds = seeds  # None: one run; S: the params and fields are stacked (S, ...) over seeds
         self.nets = _Nets(team, losses)
         self.updaters, self.epochs, self.minibatches = updaters, epochs, minibatches
         self.scope = scope  # RunConfig.compile_scope: one graph per minibatch step, or per epoch
@@ -91,6 +97,49 @@ class CompiledUpdate:
         self.compiled |= graphs
         return total.means()
 
+    def learn_stacked(self, b: dict[str, torch.Tensor], masks: Masks, rngs: list[np.random.Generator]
+                      ) -> dict[str, list[float]]:
+        """`learn` for a seed batch: `b` holds every seed's batch one after the other ((S*R, ...)
+        rows), seed s's minibatches come from `rngs[s]` as its solo run's would. Returns each
+        statistic's means, one per seed."""
+        params = [p for opt in self.updaters for p in opt.params]
+        states = [adam_state(opt) for opt in self.updaters]
+        exp_avgs, exp_avg_sqs, steps = ([t for s in states for t in s[i]] for i in range(3))
+        keys = tuple(b)
+        fields = [b[k] for k in keys]
+        rows = len(fields[0]) // len(rngs)
+        offsets = np.arange(len(rngs))[:, None] * rows
+        total = UpdateStats()
+        for epoch in range(self.epochs):
+            parts = [minibatch_indices(rows, self.minibatches, rng) for rng in rngs]
+            sizes = tuple(len(p) for p in parts[0])
+            perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
+            perm = perm.to(fields[0].device)
+            if self.scope == "epoch":
+                graph: tuple = ("epoch", sizes, masks, keys)
+                with skip_guards(graph in self.compiled):
+                    stats = self.epoch(params, exp_avgs, exp_avg_sqs, steps, keys, fields, perm, sizes, masks)
+                self.compiled.add(graph)
+            else:
+                shuffled = [self._shuffle(f, perm) for f in fields]
+                stats, start = [], 0
+                for n in sizes:
+                    graph = (n, masks, keys)
+                    with skip_guards(graph in self.compiled):
+                        stats.append(self.step(params, exp_avgs, exp_avg_sqs, steps, keys,
+                                               [f.narrow(1, start, n) for f in shuffled], masks))
+                    self.compiled.add(graph)
+                    start += n
+            if epoch == self.epochs - 1:
+                for st in stats:
+                    total.add(st)
+        return total.means()
+
+    def _shuffle(self, field: torch.Tensor, perm: torch.Tensor) -> torch.Tensor:
+        """`field`'s rows in the order `perm`; stacked over seeds: (S*R, ...) rows to (S, R, ...)."""
+        out = field.index_select(0, perm)
+        return out if self.seeds is None else out.reshape(self.seeds, len(out) // self.seeds, *out.shape[1:])
+
     def _learn_epochs(self, b: dict[str, torch.Tensor], keys: tuple[str, ...], rows: int, masks: Masks,
                       rng: np.random.Generator, params: list[torch.Tensor], exp_avgs: list[torch.Tensor],
                       exp_avg_sqs: list[torch.Tensor], steps: list[torch.Tensor]) -> dict[str, float]:
@@ -118,11 +167,12 @@ class CompiledUpdate:
         shuffled row order `perm`, then `_train_step` on each consecutive slice of `sizes` rows, in
         order (each step sees the parameters the previous one stepped). Returns each step's
         statistics."""
-        shuffled = [f.index_select(0, perm) for f in fields]
+        shuffled = [self._shuffle(f, perm) for f in fields]
+        dim = 0 if self.seeds is None else 1
         out, start = [], 0
         for n in sizes:
             out.append(self._train_step(params, exp_avgs, exp_avg_sqs, steps, keys,
-                                        [f.narrow(0, start, n) for f in shuffled], masks))
+                                        [f.narrow(dim, start, n) for f in shuffled], masks))
             start += n
         return out
 
@@ -133,21 +183,26 @@ class CompiledUpdate:
         gradients, then per network `traced_clip_and_step`. Returns the statistics by name on every
         step: one graph instead of one with and one without them (half the compile time) for a few
         reductions per step."""
-        r = dict(zip(keys, fields, strict=True))
         names = self.nets.names
 
-        def total_loss(ps: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        def total_loss(ps: tuple[torch.Tensor, ...], fs: list[torch.Tensor]
+                       ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+            r = dict(zip(keys, fs, strict=True))
             local, central, stats = torch.func.functional_call(self.nets, dict(zip(names, ps, strict=True)),
                                                                (r, masks, True))
             return (local if central is None else local + central), stats
 
-        grads, stats = torch.func.grad(total_loss, has_aux=True)(tuple(p.detach() for p in params))
+        grad = torch.func.grad(total_loss, has_aux=True)
+        if self.seeds is not None:  # each seed's gradient on its own slice of the minibatch
+            grad = torch.func.vmap(grad)
+        grads, stats = grad(tuple(p.detach() for p in params), fields)
         lo = 0
         with torch.no_grad():
             for opt in self.updaters:
                 part = slice(lo, lo + len(opt.params))
                 stats[f"{opt.name}/grad_norm"] = traced_clip_and_step(opt, params[part], list(grads[part]),
-                                                                      exp_avgs[part], exp_avg_sqs[part], steps[part])
+                                                                      exp_avgs[part], exp_avg_sqs[part], steps[part],
+                                                                      stacked=self.seeds is not None)
                 lo = part.stop
         return stats
 
@@ -187,15 +242,16 @@ def adam_state(opt: PPOUpdater) -> tuple[list[torch.Tensor], list[torch.Tensor],
 
 def traced_clip_and_step(opt: PPOUpdater, params: list[torch.Tensor], grads: list[torch.Tensor],
                          exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
-                         steps: list[torch.Tensor]) -> torch.Tensor:
+                         steps: list[torch.Tensor], stacked: bool = False) -> torch.Tensor:
     """`ppo.clip_and_step` written to be traced: the same clip rule (`clip_by_total_norm`), then
     torch's own Adam maths in its foreach/capturable form (what torch traces when it compiles an
     Adam optimiser), stepping the state from `adam_state` in place. Returns the norm before
-    clipping. Not the fused kernel `ppo.clip_and_step` calls: it mutates the Adam state in a way
+    clipping (`stacked`: every tensor (S, ...), each seed's slice clipped by its own norm; the (S,)
+    norms). Not the fused kernel `ppo.clip_and_step` calls: it mutates the Adam state in a way
     torch.compile cannot functionalize (an internal assert in torch 2.13), so a graph holds torch's
     reference maths of the same step."""
     group = opt.optimizer.param_groups[0]
-    grads, norm = clip_by_total_norm(grads, opt.max_grad_norm)
+    grads, norm = clip_by_total_norm(grads, opt.max_grad_norm, stacked)
     beta1, beta2 = group["betas"]
     # capturable: the step count stays a tensor inside the graph (torch allows it on CPU only
     # while compiling; run eagerly, e.g. under set_stance("force_eager"), the plain form runs).
@@ -205,16 +261,21 @@ def traced_clip_and_step(opt: PPOUpdater, params: list[torch.Tensor], grads: lis
     return norm
 
 
-def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
+def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float, stacked: bool = False
+                       ) -> tuple[list[torch.Tensor], torch.Tensor]:
     """`ppo.clip_grad_norm`'s rule (scale by min(1, max/(norm + 1e-6))) for a graph; returns the
-    clipped gradients and the norm before clipping.
+    clipped gradients and the norm before clipping (`stacked`: per seed, as `ppo.clip_grad_norm`).
 
     The norm is a sum of squares instead of `_foreach_norm`: inductor fuses the sums into its own
     kernels, while `_foreach_norm` stays a loop of one library call per tensor inside the graph.
     """
-    norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
+    if not stacked:
+        norm = torch.stack([g.pow(2).sum() for g in grads]).sum().sqrt()
+        coef = clip_coefficient(norm, max_norm)
+        return [g * coef for g in grads], norm
+    norm = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads], dim=1).sum(1).sqrt()
     coef = clip_coefficient(norm, max_norm)
-    return [g * coef for g in grads], norm
+    return [g * coef.reshape(-1, *([1] * (g.dim() - 1))) for g in grads], norm
 
 
 def skip_guards(seen: bool) -> contextlib.AbstractContextManager:

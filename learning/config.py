@@ -115,8 +115,8 @@ class RunConfig(BaseModel):
     compile_scope: Literal["step", "epoch"] = Field(
         "step", description="with compile=true, what one graph holds: `step`, one minibatch step; `epoch`, a "
                             "whole epoch (its shuffle and every minibatch step: one call per epoch, updates ~15-25% "
-                            "faster, but ~4x the compile; pays in long runs and benchmarks). Solo runs and `hammer up`'s "
-                            "learner; seed batches (`--seeds`) keep their own per-minibatch graph")
+                            "faster, but ~4x the compile; pays in long runs and benchmarks). Solo runs, seed batches "
+                            "(`--seeds`) and `hammer up`'s learner")
     device: str = Field(
         "cpu", pattern=r"^(cpu|cuda(:[0-9]+)?)$",
         description="where the networks, their optimiser state and the PPO update live: cpu | cuda | cuda:N. "

@@ -48,9 +48,22 @@ class FusedActing:
 
     def act(self, obs: np.ndarray, state: np.ndarray, streams: ActingStreams, dropout: float
             ) -> tuple[CentralOut, np.ndarray, np.ndarray, np.ndarray]:
+        team = self.team
+        inputs = self.inputs(obs, state, streams, dropout)
+        args = [team.tensor(np.ascontiguousarray(a)) for a in inputs]
+        key = tuple((a.shape, a.dtype) for a in args)
+        with torch.no_grad(), skip_guards(key in self.seen):
+            out = self.graph(*args)
+        self.seen.add(key)
+        return self.outputs([team.host(t) for t in out], inputs[3])
+
+    def inputs(self, obs: np.ndarray, state: np.ndarray, streams: ActingStreams, dropout: float
+               ) -> list[np.ndarray]:
+        """The graph's inputs for one vector step: what the local agents see, the global state and
+        the randomness contract's draws, in its order (central, dropout, local). A seed batch draws
+        each seed's inputs from its own streams and runs `_act` over them all (`learning.seed_batch`)."""
         team, m = self.team, self.m
         k, n = obs.shape[:2]
-        # the randomness contract's draws, in its order: central, dropout, local
         if self.random:
             c_draw = streams.central_uniform_messages(k, n, m)
         elif self.rl:
@@ -59,12 +72,12 @@ class FusedActing:
             c_draw = np.zeros((k, n, m), dtype=np.float32)
         keep = streams.dropout_keep(k, n, dropout) if m else np.ones((k, n), dtype=bool)
         l_draw = streams.local_uniforms(k) if team.discrete else streams.local_normals(k, team.act_dim)
-        args = [team.tensor(np.ascontiguousarray(a)) for a in (team.local_view(obs), state, c_draw, keep, l_draw)]
-        key = tuple((a.shape, a.dtype) for a in args)
-        with torch.no_grad(), skip_guards(key in self.seen):
-            out = self.graph(*args)
-        self.seen.add(key)
-        sent, mean, raw, c_logp, c_value, action, logp, value = (team.host(t) for t in out)
+        return [team.local_view(obs), state, c_draw, keep, l_draw]
+
+    @staticmethod
+    def outputs(out: list[np.ndarray], keep: np.ndarray) -> tuple[CentralOut, np.ndarray, np.ndarray, np.ndarray]:
+        """`Team.act`'s result from the graph's outputs on the host and the dropout draw `keep`."""
+        sent, mean, raw, c_logp, c_value, action, logp, value = out
         return CentralOut(sent, mean, raw, c_logp, c_value, keep), action, logp, value
 
     def _act(self, obs: torch.Tensor, state: torch.Tensor, c_draw: torch.Tensor, keep: torch.Tensor,

@@ -17,7 +17,10 @@ checkpoints), and its networks' parameters are views into stacked (S, ...) tenso
 Advantage normalisation and every loss mean are per seed because the losses run per slice under
 vmap. Before a checkpoint the stacked Adam state is copied into each seed's own optimiser, so a
 checkpoint is exactly a solo run's and `hammer train --resume` continues any seed alone.
-With compile=true the batched gradient and the acting forwards run as torch.compile graphs.
+With compile=true a seed batch runs the solo compiled run's graphs over the stacked parameters:
+acting is `FusedActing`'s graph under vmap (each seed's draws from its own streams first, then one
+call for every seed's networks and sampling), the update `CompiledUpdate` with `seeds=S`, one graph
+per minibatch step or, `compile_scope=epoch`, per epoch (`CompiledUpdate.learn_stacked`).
 """
 
 from __future__ import annotations
@@ -27,8 +30,10 @@ from typing import Any
 
 import numpy as np
 import torch
+from hammer.learning.compiled_update import COMPILE_OPTIONS, CompiledUpdate, skip_guards
 from hammer.learning.config import ConfigError, RunConfig, config_changes
-from hammer.learning.ppo import UpdateStats, clip_and_step, minibatch_indices, minibatch_slices
+from hammer.learning.fused_acting import FusedActing
+from hammer.learning.ppo import PPOUpdater, UpdateStats, clip_and_step, minibatch_indices, minibatch_slices
 from hammer.learning.ppo_update import Masks
 from hammer.learning.rundir import RunDir
 from hammer.learning.sampling import MINIBATCH_STREAM, env_reset_seed, stream
@@ -94,27 +99,28 @@ class SeedBatch:
         for s, p in enumerate(per_seed):  # each seed's parameters become views of its slice
             for n in self.names:
                 p[n].data = self.params[n][s]
-        # compile=true: the batched gradient and the acting forward passes as torch.compile graphs
-        self._grad = self._grads
-        self._central_fwd, self._local_fwd = self._central_forward, self._local_forward
-        if self.cfg.compile:
-            opts = {"fullgraph": True, "dynamic": False}
-            self._grad = torch.compile(self._grads, **opts)
-            self._central_fwd = torch.compile(self._central_forward, **opts)
-            self._local_fwd = torch.compile(self._local_forward, **opts)
         # one stacked Adam per network, in the order of each seed's own updaters
-        self.groups: list[tuple[list[str], torch.optim.Adam, float]] = []
+        self.groups: list[tuple[list[str], PPOUpdater]] = []
         for prefix, upd in (("local.", lead.learner.local_opt), ("central.", lead.learner.central_opt)):
             if upd is None:
                 continue
             names = [n for n in self.names if n.startswith(prefix)]
-            lr = upd.optimizer.param_groups[0]["lr"]
-            self.groups.append((names, torch.optim.Adam([self.params[n] for n in names], lr=lr, eps=1e-5,
-                                                        fused=True), upd.max_grad_norm))
+            self.groups.append((names, PPOUpdater([self.params[n] for n in names], upd.optimizer.param_groups[0]["lr"],
+                                                  upd.max_grad_norm, upd.name)))
+        # compile=true: the solo compiled run's acting graph and update over the stacked parameters
+        self.compiled: CompiledUpdate | None = None
+        if self.cfg.compile:
+            fused = lead.team.fused
+            assert fused is not None
+            self._fused, self._fused_seen = fused, set()
+            self._fused_graph = torch.compile(self._fused_act, fullgraph=True, dynamic=False, options=COMPILE_OPTIONS)
+            self.compiled = CompiledUpdate(lead.team, lead.learner.losses, [u for _, u in self.groups], self.cfg.epochs,
+                                           self.cfg.minibatches, self.cfg.compile_scope, seeds=self.n_seeds)
 
     # ----- optimiser state <-> each seed's own optimiser ----------------------------------------
     def _opt_to_seeds(self) -> None:
-        for g, (names, opt, _) in enumerate(self.groups):
+        for g, (names, stacked) in enumerate(self.groups):
+            opt = stacked.optimizer
             for s, tr in enumerate(self.trainers):
                 upd = tr.learner.updaters[g]
                 for n, p in zip(names, upd.params, strict=True):
@@ -124,7 +130,8 @@ class SeedBatch:
                                                   "exp_avg_sq": st["exp_avg_sq"][s].clone()}
 
     def _opt_from_seeds(self) -> None:
-        for g, (names, opt, _) in enumerate(self.groups):
+        for g, (names, stacked) in enumerate(self.groups):
+            opt = stacked.optimizer
             for i, n in enumerate(names):
                 states = [tr.learner.updaters[g].optimizer.state.get(tr.learner.updaters[g].params[i])
                           for tr in self.trainers]
@@ -155,10 +162,13 @@ class SeedBatch:
         lead = self.trainers[0].team
         trs = [self.trainers[s] for s in live]
         states = [tr.team.global_state(obs[s], prev[s], tr.vector_step) for s, tr in zip(live, trs, strict=True)]
+        if self.compiled is not None:
+            self._act_fused(live, trs, obs, prev, states, t)
+            return
         all_states = self._stack_all(live, states)
         mean = values = None
         if lead.central is not None:
-            mean, values = self._central_fwd(self.params, all_states)
+            mean, values = self._central_forward(self.params, all_states)
         outs = []
         if mean is not None:  # one copy to the host for every seed's sampling
             mean, values = lead.host(mean), (None if values is None else lead.host(values))
@@ -169,7 +179,7 @@ class SeedBatch:
         sent = self._stack_all(live, [c.sent for c in outs])
         all_obs = self._stack_all(live, [self.trainers[s].team.local_view(obs[s]) for s in live])  # what locals see
 
-        out, value = self._local_fwd(self.params, all_obs, sent)
+        out, value = self._local_forward(self.params, all_obs, sent)
         out, value = lead.host(out), lead.host(value)
         for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
             action, logp, v = tr.team.sample_local(out[s], value[s], tr.streams)
@@ -177,6 +187,33 @@ class SeedBatch:
             obs[s], prev[s], spent = tr._record(t, obs[s], prev[s], states[i], outs[i], action, logp, v, st)
             if spent:
                 self._done[s] = True
+
+    def _act_fused(self, live: list[int], trs: list[Trainer], obs: list[np.ndarray], prev: list[np.ndarray],
+                   states: list[np.ndarray], t: int) -> None:
+        """`_act` for compile=true: each seed's draws from its own streams (`FusedActing.inputs`),
+        then one call of the acting graph for every seed, then each seed steps its env and records."""
+        inputs = [tr.team.fused.inputs(obs[s], states[i], tr.streams, tr.cfg.msg_dropout)
+                  for i, (s, tr) in enumerate(zip(live, trs, strict=True))]
+        args = [self._stack_all(live, [np.ascontiguousarray(inp[j]) for inp in inputs]) for j in range(len(inputs[0]))]
+        key = tuple((a.shape, a.dtype) for a in args)
+        with skip_guards(key in self._fused_seen):
+            out = self._fused_graph(self.params, *args)
+        self._fused_seen.add(key)
+        lead = self.trainers[0].team
+        out = [lead.host(o) for o in out]
+        for i, (s, tr) in enumerate(zip(live, trs, strict=True)):
+            c, action, logp, v = FusedActing.outputs([o[s] for o in out], inputs[i][3])
+            st = tr.env.step(tr.team.env_action(action))
+            obs[s], prev[s], spent = tr._record(t, obs[s], prev[s], states[i], c, action, logp, v, st)
+            if spent:
+                self._done[s] = True
+
+    def _fused_act(self, params: dict[str, torch.Tensor], *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """`FusedActing._act` for every seed, each on its slice of the stacked parameters."""
+        def one(p: dict[str, torch.Tensor], *a: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            return functional_call(self.call, p, (self._fused._act, *a))
+
+        return vmap(one)(params, *args)
 
     def _central_forward(self, params: dict[str, torch.Tensor], states: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -226,6 +263,9 @@ class SeedBatch:
         rows = lead.buf.t * lead.buf.k
         big = {k: torch.cat([b[k] for b in bs]) for k in bs[0]}  # (S*R, ...)
         rngs = [stream(tr.cfg.seed, MINIBATCH_STREAM, update) for tr in self.trainers]
+        if self.compiled is not None:
+            means = self.compiled.learn_stacked(big, masks, rngs)
+            return [{k: v[s] for k, v in means.items()} for s in range(self.n_seeds)]
         offsets = np.arange(self.n_seeds)[:, None] * rows
         total = UpdateStats()
         for epoch in range(cfg.epochs):
@@ -255,17 +295,18 @@ class SeedBatch:
 
     def _step(self, mb: dict[str, torch.Tensor], masks: Masks, with_stats: bool) -> dict[str, torch.Tensor]:
         """One minibatch step for every seed; returns the statistics and grad norms by name, each (S,)."""
-        grads, stats = self._grad(self.params, mb, masks, with_stats)
+        grads, stats = self._grads(self.params, mb, masks, with_stats)
         norms = {}
         with torch.no_grad():
-            for names, opt, max_norm in self.groups:
+            for names, upd in self.groups:
                 # the fused Adam kernel reads a gradient in its parameter's memory layout: vmap can
                 # return a permuted one (the central heads), so lay every gradient out densely
                 gs = [grads[n].contiguous() for n in names]
                 ps = [self.params[n] for n in names]
                 for p, g in zip(ps, gs, strict=True):
                     p.grad = g
-                norms[f"{names[0].split('.', 1)[0]}/grad_norm"] = clip_and_step(opt, ps, gs, max_norm, stacked=True)
+                norms[f"{names[0].split('.', 1)[0]}/grad_norm"] = clip_and_step(upd.optimizer, ps, gs, upd.max_grad_norm,
+                                                                                   stacked=True)
         return {**stats, **norms}
 
     # ----- the loop -----------------------------------------------------------------------------
