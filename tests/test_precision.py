@@ -144,14 +144,15 @@ def test_a_bf16_seed_batch_trains(tmp_path, bf16_here):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # four compiles; on a loaded 2-core machine one took over 5 min
-@pytest.mark.parametrize("scope", ["step", "epoch"])
-def test_the_compiled_update_runs_under_bf16(tmp_path, bf16_here, scope):
-    """compile=true traces the autocast region into its graph; the run trains and differs from the
-    compiled float32 run (one compile each)."""
+@pytest.mark.timeout(1800)  # one compile; on a loaded 2-core machine one took over 5 min
+def test_the_compiled_update_runs_under_bf16(tmp_path, bf16_here):
+    """compile=true (one graph per epoch, as seed batches and grids run) traces the autocast region
+    into its graph: the run trains, and its weights are bfloat16's distance from the eager float32
+    run's (compiling alone moves them by rounding, ~1e-7; bfloat16 by ~1e-4)."""
     rows = {}
-    for precision in ("fp32", "bf16"):
-        cfg = _cfg(f"precision={precision}", "compile=true", f"compile_scope={scope}")
-        train(cfg, RunDir.create(tmp_path / precision, cfg), tensorboard=False)
-        rows[precision] = RunDir.load_checkpoint(RunDir(tmp_path / precision).latest_checkpoint())[0]
-    assert any(not torch.equal(rows["fp32"][k], rows["bf16"][k]) for k in rows["fp32"] if k.startswith("local/"))
+    for name, extra in (("fp32", ()), ("bf16", ("precision=bf16", "compile=true", "compile_scope=epoch"))):
+        cfg = _cfg(*extra)
+        train(cfg, RunDir.create(tmp_path / name, cfg), tensorboard=False)
+        rows[name] = RunDir.load_checkpoint(RunDir(tmp_path / name).latest_checkpoint())[0]
+    gap = max((rows["fp32"][k] - rows["bf16"][k]).abs().max().item() for k in rows["fp32"] if k.startswith("local/"))
+    assert gap > 1e-5, gap
