@@ -113,8 +113,8 @@ class CompiledUpdate:
         for epoch in range(self.epochs):
             parts = [minibatch_indices(rows, self.minibatches, rng) for rng in rngs]
             sizes = tuple(len(p) for p in parts[0])
-            perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1))
-            perm = perm.to(fields[0].device)
+            perm = torch.from_numpy((np.stack([np.concatenate(p) for p in parts]) + offsets).reshape(-1)).to(
+                fields[0].device)
             if self.scope == "epoch":
                 graph: tuple = ("epoch", sizes, masks, keys)
                 with skip_guards(graph in self.compiled):

@@ -62,7 +62,65 @@ class EdgeCounters:
         return dict(self.__dict__)
 
 
-class EdgeAgent:
+class FleetClient:
+    """What every client of a fleet's router shares (a robot, the site feed): its session opened here
+    (`wait`) or in the background while it works without one, and a close that the session cannot
+    outlive. A subclass sets `name`, `settings`, `transport` and `counts`, and declares what it
+    sends and hears in `_join`; `_alone` says what it does while it has no session."""
+
+    _alone = "working without the fleet"
+
+    def _start(self, wait: bool, retry_s: float) -> None:
+        self.session = None
+        self._closed = threading.Event()
+        self._joiner: threading.Thread | None = None
+        if wait:
+            self._join(retry_s)
+        else:
+            self._joiner = threading.Thread(target=self._join_quietly, args=(retry_s,), daemon=True,
+                                            name=f"{self.name}-join")
+            self._joiner.start()
+
+    def _join(self, retry_s: float) -> None:
+        raise NotImplementedError
+
+    def _open(self, retry_s: float):
+        """The session, or None if closed meanwhile (ConnectionError: no router within `retry_s`)."""
+        from hammer.protocol.session import HammerSession
+
+        session = open_fleet_client(HammerSession, self.settings, self.transport, self.name, retry_s, self._closed)
+        if session is not None and self._closed.is_set():  # closed while this was opening
+            session.close()
+            return None
+        return session
+
+    def _joined(self) -> None:
+        log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
+                 ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
+
+    def _join_quietly(self, retry_s: float) -> None:
+        try:
+            self._join(retry_s)
+        except ConnectionError as e:
+            log.warning("%s (%s)", e, self._alone)
+
+    def close(self) -> None:
+        counts = self.counts.as_dict() if hasattr(self.counts, "as_dict") else self.counts
+        log.info("%s leaves run %s: %s", self.name, self.settings.run_id, counts)
+        self._closed.set()
+        if self._joiner is not None:
+            self._joiner.join(30)  # an open under way ends within its open timeout; the session must not outlive us
+        if self.session is not None:
+            self.session.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class EdgeAgent(FleetClient):
     """Agent `agent` of the team in `bundle`, joined to run `run_id` (`act`, `run`, `close`).
 
     Transport: `connect` (the fleet's router: the robot is a Zenoh client of it, which no other
@@ -78,6 +136,8 @@ class EdgeAgent:
     `fed_by_world`: a simulated robot (`robot_role`): its sensors are the world's observation, which
     carries the central message (`act_on_world`), so it neither uplinks nor listens to `central/msg/<i>`.
     """
+
+    _alone = "acting on the fallback"
 
     def __init__(self, bundle: str | Path, agent: int, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
@@ -122,27 +182,15 @@ class EdgeAgent:
         # The robot is a client of the fleet's router, whose session opens only once the router
         # answers. `wait`: here, up to connect_retry_s (ConnectionError after); else in the
         # background, while `act` acts on the fallback (a robot started before its fleet).
-        self.session = self._msgs = self._up = self.weights = None
-        self._closed = threading.Event()
-        self._joiner: threading.Thread | None = None
-        if wait:
-            self._join(connect_retry_s)
-        else:
-            self._joiner = threading.Thread(target=self._join_quietly, args=(connect_retry_s,), daemon=True,
-                                            name=f"{self.name}-join")
-            self._joiner.start()
+        self._msgs = self._up = self.weights = None
+        self._start(wait, connect_retry_s)
 
     def _join(self, retry_s: float) -> None:
         """Open the session and declare what the robot sends and hears (ConnectionError: no router)."""
         from hammer.protocol.dims import Dims
         from hammer.protocol.schemas import CentralMsg
-        from hammer.protocol.session import HammerSession
-
-        session = self._open(HammerSession, retry_s)
+        session = self._open(retry_s)
         if session is None:
-            return
-        if self._closed.is_set():  # closed while this was opening
-            session.close()
             return
         try:
             keys = session.keys
@@ -159,14 +207,7 @@ class EdgeAgent:
             raise
         self._msgs, self._up = msgs, up
         self.session = session  # last: `act` uses the session once all of it is declared
-        log.info("%s joined run %s (%s)", self.name, self.settings.run_id,
-                 ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
-
-    def _join_quietly(self, retry_s: float) -> None:
-        try:
-            self._join(retry_s)
-        except ConnectionError as e:
-            log.warning("%s (acting on the fallback)", e)
+        self._joined()
 
     def _intake(self, session):
         """The local network's weights from the run's policy server. Nothing held from the run at
@@ -211,9 +252,6 @@ class EdgeAgent:
         known = -1 if self.weights is None else self.weights.known
         return {"policy_version": self.policy_version, "policy_held": max(known, self.policy_version),
                 "policy_pulling": -1 if pulling is None else pulling}
-
-    def _open(self, session_type, retry_s: float):
-        return open_fleet_client(session_type, self.settings, self.transport, self.name, retry_s, self._closed)
 
     # ----- the control step -----------------------------------------------------------------------
     def act(self, obs: Any) -> np.ndarray:
@@ -318,21 +356,6 @@ class EdgeAgent:
         while not should_stop():
             if clock.due(0.2):
                 actuate(self.act(sense()))
-
-    # ----- lifetime ---------------------------------------------------------------------------------
-    def close(self) -> None:
-        log.info("%s leaves run %s: %s", self.name, self.settings.run_id, self.counts.as_dict())
-        self._closed.set()
-        if self._joiner is not None:
-            self._joiner.join(30)  # an open under way ends within its open timeout; the session must not outlive us
-        if self.session is not None:
-            self.session.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_fleet_client(session_type, settings, transport, name: str, retry_s: float, closed: threading.Event):

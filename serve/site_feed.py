@@ -22,18 +22,17 @@ control DROP. Torch-free, as the robot's side is.
 from __future__ import annotations
 
 import logging
-import threading
 from pathlib import Path
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 from hammer.protocol.access import SITE
-from hammer.serve.edge_agent import open_fleet_client, site_columns
+from hammer.serve.edge_agent import FleetClient, site_columns
 
 log = logging.getLogger("hammer.site")
 
 
-class SiteFeed:
+class SiteFeed(FleetClient):
     """The site feed of the team in `bundle`, for run `run_id` (`publish`, `close`).
 
     Transport as `hammer.edge.EdgeAgent`'s: `connect` (the fleet's router) or `zenoh_config`;
@@ -41,6 +40,8 @@ class SiteFeed:
     accept plain traffic beyond loopback; `runtime`: RuntimeSettings items (`zenoh_lease_s=30`, ...);
     `wait=True`: open the session here (ConnectionError after `connect_retry_s`), else in the
     background. `counts`: `published`, `unjoined` (calls before the session was open)."""
+
+    _alone = "the feed sends nothing"
 
     def __init__(self, bundle: str | Path, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
@@ -58,15 +59,8 @@ class SiteFeed:
         self.name = SITE
         self.counts = {"published": 0, "unjoined": 0}
         self._env_idx = np.zeros(1, np.int64)
-        self.session = self._pub = None
-        self._closed = threading.Event()
-        self._joiner: threading.Thread | None = None
-        if wait:
-            self._join(connect_retry_s)
-        else:
-            self._joiner = threading.Thread(target=self._join_quietly, args=(connect_retry_s,), daemon=True,
-                                            name="site-join")
-            self._joiner.start()
+        self._pub = None
+        self._start(wait, connect_retry_s)
 
     @staticmethod
     def columns(bundle: str | Path) -> int:
@@ -85,13 +79,8 @@ class SiteFeed:
         return cols
 
     def _join(self, retry_s: float) -> None:
-        from hammer.protocol.session import HammerSession
-
-        session = open_fleet_client(HammerSession, self.settings, self.transport, self.name, retry_s, self._closed)
+        session = self._open(retry_s)
         if session is None:
-            return
-        if self._closed.is_set():
-            session.close()
             return
         try:
             pub = session.publisher(session.keys.site_state(), express=True, block=False)
@@ -101,14 +90,7 @@ class SiteFeed:
             raise
         self._pub = pub
         self.session = session  # last: `publish` uses the session once all of it is declared
-        log.info("site feed joined run %s (%s)", self.settings.run_id,
-                 ", ".join(self.transport.connect) or self.transport.zenoh_config_file or "-")
-
-    def _join_quietly(self, retry_s: float) -> None:
-        try:
-            self._join(retry_s)
-        except ConnectionError as e:
-            log.warning("%s (the feed sends nothing)", e)
+        self._joined()
 
     def publish(self, state: Any) -> bool:
         """Send the site's state: the C central-only columns (or a whole observation row of D, of which
@@ -127,17 +109,3 @@ class SiteFeed:
         self._pub.publish(SiteState(step=self.counts["published"], env_idx=self._env_idx, cols=c[None]))
         self.counts["published"] += 1
         return True
-
-    def close(self) -> None:
-        log.info("site feed leaves run %s: %s", self.settings.run_id, self.counts)
-        self._closed.set()
-        if self._joiner is not None:
-            self._joiner.join(30)  # an open under way ends within its open timeout; the session must not outlive us
-        if self.session is not None:
-            self.session.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -70,7 +70,7 @@ def test_a_killed_agent_is_logged_counted_and_degrades_the_run_and_served_files_
     # away from the kill to its restart 3 s later and beyond (less the launcher's 0.25 s tick at most)
     assert att["roles"]["local-1"]["longest_absence_s"] >= 2.5
     assert {n: r["leaves"] for n, r in att["roles"].items() if n != "local-1"} == dict.fromkeys(
-        ["central", "env", "learner", "local-0", "local-2"], 0)
+        ["central", "env", "policy", "local-0", "local-2"], 0)
     assert [(e["role"], e["event"]) for e in att["events"] if e["event"] != "join"] == [("local-1", "leave"),
                                                                                          ("local-1", "rejoin")]
     launcher_log = (run / "logs" / "launcher.log").read_text()
