@@ -123,12 +123,12 @@ paper: $(LINKS)
 	$(MAKE) paper-report
 
 # Pilot first (3 seeds of hammer-rl and IL at each N), then the grid; the plan says when B doubles.
+# N = 2's pilot doubled B (plan-warehouse.md, addendum of 2026-12-06 15:10): its grid runs at 10M,
+# not here; N = 4's stays at 5M unless its own pilot says otherwise.
 paper-warehouse-5m: $(LINKS)
 	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
 	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
-	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
 	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
-	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il,hammer-backprop,random --seeds 0-9 --snapshot-every 20
 	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il,hammer-backprop,random --seeds 0-9 --snapshot-every 20
 
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
