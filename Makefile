@@ -123,7 +123,7 @@ paper: $(LINKS)
 	$(MAKE) paper-report
 
 # Pilot first (3 seeds of hammer-rl and IL at each N), then the grid; the plan says when B doubles.
-# N = 2's pilot doubled B (plan-warehouse.md, addendum of 2026-12-06 15:10): its grid runs at 10M,
+# N = 2's pilot doubled B (plan-warehouse.md, addendum of 2026-12-06 15:13): its grid runs at 10M,
 # not here; N = 4's stays at 5M unless its own pilot says otherwise.
 paper-warehouse-5m: $(LINKS)
 	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
