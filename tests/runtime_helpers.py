@@ -124,3 +124,29 @@ def trained_pair(directory: Path, episodes: int = 16) -> tuple[Path, Path]:
     w = load_file(str(final / "local.safetensors"))
     save_file({k: v + np.float32(0.01) for k, v in w.items()}, str(final / "local.safetensors"))
     return a, export_bundle(directory / "run-b", directory / "B", works_with=(directory / "run" / "final",)).path
+
+
+def run_block_beside_serve(command: str, code: str, folder: Path, run_name: str, port: str
+                           ) -> tuple[subprocess.CompletedProcess, subprocess.Popen, str]:
+    """A docs' Python block run as it stands against the `hammer serve ...` command the docs name
+    (port made `port`), both from the user's `folder`: the block starts once the fleet's central agent
+    is up; then SIGTERM to `hammer serve`. Returns the block's result, the server and its output."""
+    import signal
+    import time
+
+    serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
+                             cwd=folder, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        # the block starts once the central agent is up (on a loaded machine the launcher takes seconds)
+        central_log = folder / "runs" / run_name / "logs" / "central.log"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "central alive" not in (
+                central_log.read_text() if central_log.is_file() else ""):
+            assert serve.poll() is None, "hammer serve exited before its central agent was up"
+            time.sleep(0.1)
+        r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=folder, env=ENV,
+                           capture_output=True, text=True, timeout=120, check=False)
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        out = serve.communicate(timeout=60)[0].decode()
+    return r, serve, out

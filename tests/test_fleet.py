@@ -11,7 +11,6 @@ import json
 import logging
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -28,7 +27,7 @@ from hammer.runtime.presence import Presence
 from hammer.serve.bundle import CENTRAL, load_bundle
 from hammer.serve.edge_agent import EdgeAgent
 
-from tests.runtime_helpers import ENV, ROOT, netns_reason, trained_bundle
+from tests.runtime_helpers import ENV, ROOT, netns_reason, run_block_beside_serve, trained_bundle
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -490,24 +489,9 @@ def test_the_readme_robot_example_runs_against_a_served_fleet(bundle, tmp_path):
     command = re.search(r"`(hammer serve bundles/lib-cn3 --realtime [^`]*)`", section).group(1)
     port = str(free_loopback_port())
     shutil.copytree(bundle, tmp_path / "bundles" / "lib-cn3")
-    serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
-                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        # "With `hammer serve ...` running": the robot starts once the fleet's central agent is up (on a
-        # loaded machine the launcher takes seconds, longer than the example's 3 s loop)
-        central_log = tmp_path / "runs" / "site-a" / "logs" / "central.log"
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and "central alive" not in (
-                central_log.read_text() if central_log.is_file() else ""):
-            assert serve.poll() is None, "hammer serve exited before its central agent was up"
-            time.sleep(0.1)
-        r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=tmp_path, env=ENV,
-                           capture_output=True, text=True, timeout=120, check=False)
-        assert r.returncode == 0, r.stderr[-3000:]
-        assert r.stdout.split() == ["True", "True"]
-    finally:
-        serve.send_signal(signal.SIGTERM)
-        out = serve.communicate(timeout=60)[0].decode()
+    r, serve, out = run_block_beside_serve(command, code, tmp_path, "site-a", port)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["True", "True"]
     assert serve.returncode == 0, out[-2000:]
     s = json.loads((tmp_path / "runs" / "site-a" / "summary.json").read_text())
     assert s["interrupted"] is True and s["stopped_by"] == "SIGTERM" and "local-0" not in s["restarts"]

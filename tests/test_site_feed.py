@@ -11,7 +11,6 @@ import json
 import logging
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -31,7 +30,7 @@ from hammer.serve.bundle import CENTRAL, export_bundle, load_bundle
 from hammer.serve.edge_agent import EdgeAgent
 
 from hammer.site import SiteFeed
-from tests.runtime_helpers import ENV, ROOT, trained_run
+from tests.runtime_helpers import ENV, ROOT, run_block_beside_serve, trained_run
 
 pytestmark = pytest.mark.timeout(240)
 RUN = "site-feed"
@@ -197,22 +196,9 @@ def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
     code, command = _docs_block()
     port = str(free_loopback_port())
     shutil.copytree(bundle, tmp_path / "bundles" / "lib-rware")
-    serve = subprocess.Popen([sys.executable, "-P", "-m", "hammer.cli", *command.replace("7447", port).split()[1:]],
-                             cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        central_log = tmp_path / "runs" / "site-w" / "logs" / "central.log"
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and "central alive" not in (
-                central_log.read_text() if central_log.is_file() else ""):
-            assert serve.poll() is None, "hammer serve exited before its central agent was up"
-            time.sleep(0.1)
-        r = subprocess.run([sys.executable, "-c", code.replace("7447", port)], cwd=tmp_path, env=ENV,
-                           capture_output=True, text=True, timeout=120, check=False)
-        assert r.returncode == 0, r.stderr[-3000:]
-        assert r.stdout.split() == ["60"]
-    finally:
-        serve.send_signal(signal.SIGTERM)
-        out = serve.communicate(timeout=60)[0].decode()
+    r, serve, out = run_block_beside_serve(command, code, tmp_path, "site-w", port)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["60"]
     assert serve.returncode == 0, out[-2000:]
     assert "waiting for the site feed: hammer.site.SiteFeed('bundles/lib-rware'" in out, out[-2000:]
     s = json.loads((tmp_path / "runs" / "site-w" / "summary.json").read_text())
