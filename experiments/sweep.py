@@ -9,6 +9,9 @@ run directory (pids of the sweep and its child) keeps them from running the same
 With an archive (`experiments.archive`), finished runs and snapshots of runs in progress are
 committed to git, so a sweep continues from a fresh clone: archived runs are skipped, and a
 point with no run directory but a partial snapshot is restored from it and resumed.
+With `extend_from`, a point with neither continues the same point of a shorter budget found there
+(`extend_points`): its run directory is branched from that run's last checkpoint under this point's
+name and budget, then resumed like any other, as `hammer train --resume RUN --episodes N` would.
 All of that is decided here, for every backend; a launcher (`experiments.launch`) only starts each
 command: as a child process (the default) or as a task on a Ray cluster (`experiments.ray_backend`).
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import time
 from dataclasses import dataclass, field
@@ -124,6 +128,7 @@ class SweepResult:
     skipped: list[str] = field(default_factory=list)
     failed: list[tuple[str, int]] = field(default_factory=list)
     restored: list[str] = field(default_factory=list)  # resumed from a partial snapshot in the archive
+    extended: list[str] = field(default_factory=list)  # continued from a shorter run (`extend_points`)
     broken: list[tuple[str, str]] = field(default_factory=list)  # (name, reason): snapshot unusable, ran fresh
 
 
@@ -178,7 +183,8 @@ def _batch_key(p: SweepPoint, budget: int | None) -> tuple | None:
 
 def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, episodes: int | None = None,
               on_event=None, archive: Path | None = None, snapshot_every_s: float | None = None,
-              seed_batch: int | None = None, launcher: Launcher | None = None) -> SweepResult:
+              seed_batch: int | None = None, launcher: Launcher | None = None,
+              extend_from: Path | None = None) -> SweepResult:
     """Run every point not yet finished; returns what happened. `on_event(kind, name)` reports progress.
 
     With `archive`, a point already archived there counts as finished, and every run that finishes
@@ -196,12 +202,17 @@ def run_sweep(points: list[SweepPoint], out: Path, jobs: int | None = None, epis
     one ordinary run directory each; points to resume or restore, and mw points, run alone.
 
     `launcher`: where each command runs (`experiments.launch`): child processes here by default,
-    or tasks on a Ray cluster (`experiments.ray_backend`); everything above is the same for both."""
+    or tasks on a Ray cluster (`experiments.ray_backend`); everything above is the same for both.
+
+    `extend_from`: a folder of runs of these points at a shorter budget (`extend_points`); raises
+    ExtendError before anything runs if one of them cannot be continued."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     launcher = launcher or LocalLauncher()
     cap = seed_cap() if seed_batch is None else max(1, seed_batch)
     s = _Scheduler(out, archive, episodes, cap, launcher, on_event)
+    if extend_from is not None:
+        s.result.extended = extend_points(points, out, extend_from, archive, episodes, on_event)
     s.queue_points(points)
     jobs = jobs or launcher.slots()
     last_snap = time.monotonic()
@@ -374,6 +385,97 @@ def _take_batch(queue: list[tuple[SweepPoint, Path, str]], key: tuple, n: int, o
         queue.remove(item)
         taken.append((q, d))
     return taken
+
+
+class ExtendError(ValueError):
+    """A run the sweep was asked to continue cannot be: one line, naming the fix."""
+
+
+def _unbudgeted(name: str) -> str:
+    """A point's name without its budget (`-ep10000` before the seed): equal for the same point at any budget."""
+    return re.sub(r"-ep\d+(?=-s\d+$)", "", name)
+
+
+def extension_source(p: SweepPoint, budget: int | None, src_dir: Path) -> Path | None:
+    """The run in `src_dir` that point `p` (at `budget` episodes) continues: the same point at another
+    budget, found by name (the point's name but for its `epN` part). None if there is none; ExtendError
+    if the one there differs from `p` in anything but `episodes`, has no checkpoint, or is not shorter."""
+    from hammer.learning.config import ConfigError, build_config, config_changes
+
+    key = _unbudgeted(p.name)
+    found = sorted(d for d in Path(src_dir).iterdir() if d.is_dir() and d.name != p.name and _unbudgeted(d.name) == key)
+    if not found:
+        return None
+    fix = f"fix: drop --extend-from for {p.name}, or point it at a folder of runs of this grid at a shorter budget"
+    if len(found) > 1:
+        raise ExtendError(f"--extend-from {src_dir}: {', '.join(d.name for d in found)} all continue to "
+                          f"{p.name}; {fix} (one each)")
+    src = found[0]
+    expected = p.expected_config(budget)
+    try:
+        cfg = build_config(json.loads((src / "config.json").read_text())).model_dump(mode="json")
+    except (OSError, ValueError, ConfigError) as e:
+        raise ExtendError(f"--extend-from: {src} has no readable config.json ({str(e).splitlines()[0][:80]}); {fix}") from None
+    diff = list(config_changes(cfg, expected, ignore={"out", "torch_threads", "episodes"}))
+    if diff:
+        raise ExtendError(f"--extend-from: {src} differs from {p.name} in {', '.join(diff)} (only episodes may); {fix}")
+    if cfg["episodes"] >= expected["episodes"]:
+        raise ExtendError(f"--extend-from: {src} runs {cfg['episodes']} episodes, not fewer than {p.name}'s "
+                          f"{expected['episodes']}; {fix}")
+    if latest_checkpoint(src) is None:
+        raise ExtendError(f"--extend-from: {src} has no checkpoint (an archive keeps none); fix: point --extend-from "
+                          "at the sweep directory that ran it, whose run directories keep their checkpoints/")
+    return src
+
+
+def extend_points(points: list[SweepPoint], out: Path, src_dir: Path, archive: Path | None = None,
+                  episodes: int | None = None, on_event=None) -> list[str]:
+    """Continue shorter runs to these points' budget: for each point with no run (nothing in `out`,
+    not archived, no snapshot in the archive's _partial/) whose same point at a shorter budget is in
+    `src_dir` (`extension_source`), branch that run's last checkpoint into `out/<point name>`, with the
+    config `hammer train --resume RUN --episodes N` would write (`RunDir.branch`, as `hammer train
+    --branch` does): the point is then an interrupted run, which the sweep resumes, `--snapshot`
+    snapshots and `--status` shows like any other. `src_dir` is not touched. Every source is checked
+    before anything is copied (ExtendError, one line). `src_dir` is read only for points with no run of
+    their own, so it may be missing once they all have one. Returns the names extended (event "extend")."""
+    from hammer.learning.config import merge_config
+    from hammer.learning.rundir import RunDir
+
+    src_dir, out = Path(src_dir), Path(out)
+    todo = []
+    for p in points:
+        budget = episodes if episodes is not None else p.episodes
+        if (state_of(out / p.name) != "new" or (archive is not None and (
+                is_archived(archive, p.name) or partial_dir(archive, p.name).is_dir()))):
+            continue  # its own run (here, archived or snapshotted) goes on instead
+        if not src_dir.is_dir():  # asked only for a point with no run of its own: a clone may lack the folder
+            raise ExtendError(f"--extend-from {src_dir}: no such directory, and {p.name} has no run of its own; "
+                              "fix: pass the sweep directory holding the shorter runs, or drop --extend-from "
+                              "to train these points from the start")
+        src = extension_source(p, budget, src_dir)
+        if src is not None:
+            todo.append((p, budget, src))
+    done = []
+    for p, budget, src in todo:
+        run_dir = out / p.name
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if not _lock(run_dir):
+            continue  # another sweep is on it
+        try:
+            if state_of(run_dir) != "new":
+                continue
+            src_rd, src_cfg = RunDir.open(src)
+            cfg = merge_config(None, None, [], {"episodes": p.expected_config(budget)["episodes"]},
+                               base=src_cfg.model_dump(mode="json"))
+            RunDir.branch(src_rd, run_dir, cfg)
+        finally:
+            _unlock(run_dir)
+        done.append(p.name)
+        if on_event:
+            stem = latest_checkpoint(run_dir)
+            at = _latest_checkpoint_episodes(run_dir)
+            on_event("extend", f"{p.name} from {src} ({stem.name}, {at:,} episodes)")
+    return done
 
 
 def _exit_on_sigterm(signal_name: str) -> None:

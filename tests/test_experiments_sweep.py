@@ -128,3 +128,126 @@ def test_competing_sweeps_never_both_take_a_point(tmp_path):
         p.join(30)
     taken = sorted(r for w in won for r in w)
     assert taken == list(range(rounds)), f"{len(taken) - len(set(taken))} points taken twice"
+
+
+# Two episodes an update and a checkpoint after each: a 4-episode run's last checkpoint is at episode 2,
+# so its extension computes episodes 3-4 again (as `hammer train --resume` does) before going on.
+EXTEND_GRID = [("num_envs", ["2"]), ("rollout_steps", ["25"]), ("checkpoint_every", ["1"])]
+
+
+def _metrics(run_dir):
+    """Every column but wall_time (the only one that may differ between two runs of one point)."""
+    return [{k: v for k, v in row.items() if k != "wall_time"} for row in _rows(run_dir)]
+
+
+def _tree(d):
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """A finished 4-episode hammer rl run in a sweep directory, and the point at 4 and at 8 episodes."""
+    tmp = tmp_path_factory.mktemp("extend")
+    short = expand(["cn3"], ["hammer-rl"], [0], EXTEND_GRID, episodes=4)
+    long = expand(["cn3"], ["hammer-rl"], [0], EXTEND_GRID, episodes=8)
+    assert run_sweep(short, tmp / "short", jobs=1, seed_batch=1).done == [short[0].name]
+    return tmp / "short", short, long
+
+
+def test_extend_from_continues_shorter_runs_as_train_resume_does(short_run, tmp_path):
+    """A sweep at 8 episodes with --extend-from a sweep of the same point at 4 continues that run from its
+    last checkpoint: the same metrics as `hammer train --resume COPY --episodes 8`, its first rows the
+    source's; through --snapshot it continues from an archive alone (a fresh clone); the source is untouched."""
+    import shutil
+    import subprocess
+    import sys
+
+    from hammer.experiments.archive import is_archived, latest_checkpoint, partial_dir
+    from hammer.experiments.sweep import sweep_status
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    short_dir, short, long = short_run
+    src = short_dir / short[0].name
+    assert latest_checkpoint(src).name == "ckpt_0000001" and len(_rows(src)) == 4
+    before = _tree(short_dir)
+
+    ref = tmp_path / "ref"
+    shutil.copytree(src, ref)
+    subprocess.run([sys.executable, "-m", "hammer.cli", "train", "--resume", str(ref), "--episodes", "8", "--quiet"],
+                   check=True, capture_output=True)
+    assert len(_rows(ref)) == 8
+
+    events = []
+    res = run_sweep(long, tmp_path / "long", jobs=1, archive=tmp_path / "arch", extend_from=short_dir,
+                    on_event=lambda k, n: events.append((k, n)))
+    run = tmp_path / "long" / long[0].name
+    assert res.extended == [long[0].name] and res.done == [long[0].name] and not res.failed
+    assert events[0][0] == "extend" and "ckpt_0000001, 2 episodes" in events[0][1]
+    assert _metrics(run) == _metrics(ref) and _metrics(run)[:4] == _metrics(src)
+    assert json.loads((run / "config.json").read_text())["episodes"] == 8
+    assert json.loads((run / "summary.json").read_text())["episodes"] == 8
+    assert is_archived(tmp_path / "arch", long[0].name) and _tree(short_dir) == before
+    # Done now: the source folder is not even looked for.
+    again = run_sweep(long, tmp_path / "long", jobs=1, archive=tmp_path / "arch", extend_from=tmp_path / "nowhere")
+    assert again.skipped == [long[0].name] and not again.extended
+
+    # A fresh clone: --snapshot --extend-from commits the continuation to the archive's _partial/, and a sweep
+    # with that archive alone (no run directory, no source folder) restores and finishes it, the same run.
+    grid = ["--presets", "cn3", "--variants", "hammer-rl", "--seeds", "0", "--episodes", "8",
+            *[a for k, v in EXTEND_GRID for a in ("--grid", f"{k}={v[0]}")]]
+    cli = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "prep"), "--archive", str(tmp_path / "arch2"),
+                                   *grid, "--extend-from", str(short_dir), "--snapshot"])
+    assert cli.exit_code == 0, cli.output
+    assert "extend" in cli.output and "update 1, 2 episodes" in cli.output
+    assert partial_dir(tmp_path / "arch2", long[0].name).is_dir()
+    assert [r.state for r in sweep_status(long, tmp_path / "clone", tmp_path / "arch2")] == ["snapshot"]
+    res = run_sweep(long, tmp_path / "clone", jobs=1, archive=tmp_path / "arch2", extend_from=tmp_path / "nowhere")
+    assert res.restored == [long[0].name] and res.done == [long[0].name]
+    assert _metrics(tmp_path / "clone" / long[0].name) == _metrics(ref)
+    assert _tree(short_dir) == before
+
+
+def test_extend_from_refuses_runs_it_cannot_continue(short_run, tmp_path):
+    """A source differing in anything but episodes, without a checkpoint, not shorter, or doubled, and a
+    missing folder: refused in one line naming the fix, before anything is copied or run."""
+    import shutil
+
+    from hammer.experiments.sweep import ExtendError
+    from typer.testing import CliRunner
+
+    from hammer.cli import app
+
+    short_dir, short, long = short_run
+    src = short_dir / short[0].name
+
+    def refused(src_dir, match, points=long):
+        out = tmp_path / "out"
+        with pytest.raises(ExtendError, match=match) as e:
+            run_sweep(points, out, jobs=1, extend_from=src_dir)
+        assert "\n" not in str(e.value) and "fix:" in str(e.value)
+        assert not (out / points[0].name).exists()  # nothing copied, nothing run
+        return str(e.value)
+
+    other = tmp_path / "other" / src.name
+    shutil.copytree(src, other)
+    cfg = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps(dict(cfg, lr_local=cfg["lr_local"] * 2)))
+    refused(other.parent, "differs from .* in lr_local")
+    shutil.rmtree(other / "checkpoints")
+    (other / "config.json").write_text(json.dumps(cfg))
+    refused(other.parent, "no checkpoint.*fix: point --extend-from at the sweep directory")
+    longer = tmp_path / "longer" / long[0].name
+    shutil.copytree(src, longer)
+    (longer / "config.json").write_text(json.dumps(dict(cfg, episodes=8)))
+    refused(longer.parent, "runs 8 episodes, not fewer than .*'s 4", points=short)
+    shutil.copytree(src, tmp_path / "twice" / src.name)
+    shutil.copytree(src, tmp_path / "twice" / src.name.replace("-ep4-", "-ep6-"))
+    refused(tmp_path / "twice", "all continue to")
+    refused(tmp_path / "nowhere", "no such directory")
+
+    res = CliRunner().invoke(app, ["sweep", "--out", str(tmp_path / "o"), "--presets", "cn3", "--variants", "hammer-rl",
+                                   "--seeds", "0", "--episodes", "8", "--extend-from", str(other.parent),
+                                   *[a for k, v in EXTEND_GRID for a in ("--grid", f"{k}={v[0]}")]])
+    assert res.exit_code == 2 and "no checkpoint" in res.output and "Traceback" not in res.output

@@ -68,6 +68,12 @@ def sweep(
     status: Annotated[bool, typer.Option(
         help="Run nothing: print where every point of the grid stands (archived, done, running, "
              "resumable, snapshot, not started) with its episodes and final metric. Safe while the sweep runs.")] = False,
+    extend_from: Annotated[Path | None, typer.Option(
+        help="A sweep directory holding these points at a shorter budget (e.g. runs/paper/rware5m-2 for a grid "
+             "with --episodes 20000): a point with no run yet (here, in --archive or its _partial/) continues "
+             "that run from its last checkpoint, as `hammer train --resume RUN --episodes N` would; DIR is not "
+             "touched. Refused in one line if that run differs in anything but episodes, has no checkpoint or "
+             "is not shorter. With --snapshot: make those continuations and snapshot them, running nothing.")] = None,
     snapshot_every: Annotated[float, typer.Option(
         help="With --archive: also snapshot the runs in progress every this many minutes while the sweep "
              "runs, so a session cut off without warning still leaves them in ARCHIVE/_partial/. 0: never.",
@@ -88,8 +94,10 @@ def sweep(
     """
     from hammer.console import table_console
     from hammer.experiments.sweep import (
+        ExtendError,
         duplicate_points,
         expand,
+        extend_points,
         parse_grid_overrides,
         parse_seeds,
         run_sweep,
@@ -113,6 +121,11 @@ def sweep(
     if snapshot:
         if archive is None:
             fail("--snapshot writes into the archive; fix: pass --archive DIR too")
+        if extend_from is not None:
+            try:
+                extend_points(points, out, extend_from, archive, on_event=event)
+            except ExtendError as e:
+                fail(str(e))
         if not out.is_dir():  # not an error: `make snapshot` covers grids this machine never ran
             console.print(f"snapshot: {out} does not exist here, nothing to snapshot")
             return
@@ -129,10 +142,14 @@ def sweep(
     console.print(f"sweep: {len(points)} runs into {out}" + (f" ({launcher.describe()})" if backend == "ray" else ""))
     try:
         res = run_sweep(points, out, jobs=jobs, on_event=event, archive=archive, launcher=launcher,
-                        snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None, seed_batch=seed_batch)
+                        snapshot_every_s=snapshot_every * 60.0 if snapshot_every > 0 else None, seed_batch=seed_batch,
+                        extend_from=extend_from)
+    except ExtendError as e:
+        fail(str(e))
     finally:
         launcher.close()
-    console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots), "
+    console.print(f"finished {len(res.done)} ({len(res.restored)} restored from snapshots"
+                  + (f", {len(res.extended)} extended from {extend_from}" if extend_from is not None else "") + "), "
                   f"skipped (already done) {len(res.skipped)}, failed {len(res.failed)}")
     if res.failed:
         fail("failed runs: " + ", ".join(f"{n} (exit {c}; see {out / n / 'train.log'})" for n, c in res.failed))
