@@ -204,6 +204,50 @@ def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
     s = json.loads((tmp_path / "runs" / "site-w" / "summary.json").read_text())
     assert s["interrupted"] and s["site"]["states"] > 0 and not s["site"]["never_heard"], s["site"]
     assert s["site"]["published_by_world"] is None  # the world did not publish it: the block did
+    assert s["site"]["recorded_by_world"] > 0  # the world wrote the warehouse's columns that the block read
+
+
+def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset(tmp_path):
+    """A trained warehouse team (the archived rware-tiny-2ag hammer rl team, exported) served with
+    `--external-site`: the world writes the env's current central-only columns for the site
+    (RUN/warehouse.npy, every tick) and a site beside it (`hammer.site.simulated_warehouse` +
+    `SiteFeed`) publishes them. What the site published follows the warehouse: not its layout at
+    reset (the world's env, reset with the team's seed), and changing as the robots carry shelves
+    and deliver; the central agent took the states."""
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
+    from hammer.learning.run_env import make_env
+    from hammer.site import simulated_warehouse
+
+    bundle = export_bundle(ROOT / "docs" / "results" / "runs" / "rware5m-2" / "rware-tiny-2ag-hammer-rl-ep10000-s0",
+                           tmp_path / "bundle").path
+    b = load_bundle(bundle)
+    cfg, local = b.config(num_envs=1), b.env_spec_data["local_obs_dim"]
+    with make_env(cfg) as env:
+        reset = env.reset(cfg.seed)[0][0, 0, local:]
+    run, sent = tmp_path / "fleet", []
+
+    def site() -> None:
+        assert _wait(lambda: (run / "fleet.json").is_file(), 60), "the fleet did not start"
+        connect = "tcp/" + json.loads((run / "fleet.json").read_text())["hub"].split("/", 1)[1]
+        wms_state = simulated_warehouse(run)
+        with SiteFeed(bundle, run_id=run.name, connect=connect, wait=True) as feed:
+            while not (run / "summary.json").is_file():
+                state = wms_state()
+                if state is not None and feed.publish(state):
+                    sent.append(state)
+                time.sleep(0.05)
+
+    t = threading.Thread(target=site, daemon=True)
+    t.start()
+    s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=10, site_external=True), run)
+    t.join(10)
+    assert s["completed"] and not s["degraded"], s["degraded_reasons"]
+    site_view = s["site"]
+    assert site_view["recorded_by_world"] > 150 and site_view["published_by_world"] is None, site_view
+    assert site_view["states"] > 100 and not site_view["never_heard"], site_view
+    assert len(sent) > 100 and all(c.shape == reset.shape for c in sent)
+    assert not all(np.array_equal(c, reset) for c in sent), "the site's feed stayed at the warehouse's layout at reset"
+    assert len({c.tobytes() for c in sent}) >= 3, "the feed did not follow the warehouse"
 
 
 def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle, tmp_path):
