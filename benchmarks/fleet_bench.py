@@ -159,12 +159,14 @@ class Fleet:
 
     def __init__(self, bundle: Path, work: Path, net, hz: float, secure: bool, edge_python: Path | None,
                  runtime: tuple[str, ...] = (), seconds: float = 86400, site: bool = False) -> None:
-        self.bundle, self.work, self.net, self.hz, self.secure = bundle, work, net, hz, secure
+        self.bundle, self.work, self.net, self.hz, self.secure = Path(os.path.abspath(bundle)), work, net, hz, secure
         self.site = site  # the site feed from a namespace of its own: the LAN's last "robot" namespace
         self.n = len(net.robots) - site
         self.run = work / "run"
         self.procs = Procs(work)
-        self.edge_python, self.runtime, self.seconds = edge_python, runtime, seconds
+        # absolute, not resolved: each robot starts from its own folder, and a venv's python is a link
+        self.edge_python = None if edge_python is None else Path(os.path.abspath(edge_python))
+        self.runtime, self.seconds = runtime, seconds
         self.serve: subprocess.Popen | None = None
 
     def start(self) -> None:
