@@ -18,7 +18,8 @@ and random streams of the runtime, the central agent's state built by `CentralAc
 the fleet's rules) on the same env, SIM_EPISODES episodes per kind, 16 at once: `live`; `site` (over the
 same ticks as the fleet's cut: the feed's last columns held `site_hold_s`, then zeros); `port` (robot 0's
 last action held `hold_s`, then the default one; its row zeros in the central agent's state from
-`missing_after_s`); `zeros` (the site's columns zeros for the whole episode).
+`missing_after_s`); `zeros` (the site's columns zeros for the whole episode). And how much the
+central agent's messages depend on the site's columns at all (`message_dependence`).
 """
 
 from __future__ import annotations
@@ -91,6 +92,45 @@ def simulate(bundle: Path, kind: str, episodes: int, cut_at: float, cut_s: float
     finally:
         env.close()
     return [round(float(v), 3) for v in out[:episodes]]
+
+
+def message_dependence(bundle: Path, steps: int = 300, seed: int = 1000, copies: int = 16) -> dict:
+    """How much the team's central messages depend on the site's columns, on the states of `steps`
+    steps of the team playing live: the mean |message with the feed - message with its columns zeros|
+    (the messages' means, before rl's draw)
+    against the messages' own spread (mean |message - its mean|), and how often that change turns a
+    robot's most likely action (its policy's argmax) into another."""
+    from hammer.envs.local_view import local_view_from_config
+    from hammer.envs.registry import make_vec_env
+    from hammer.learning.central_acting import zero_prev_actions
+    from hammer.learning.rollout import next_prev_actions
+    from hammer.serve.bundle import load_bundle
+    from hammer.serve.play import team
+
+    cfg, spec, agents, messages = team(load_bundle(bundle), seed, num_envs=copies)
+    local, view = spec.local_obs_dim, local_view_from_config(cfg, spec)
+    zeros = (local, np.zeros(copies, bool))
+    env = make_vec_env(cfg.env, spec.n_agents, copies, env_kwargs=cfg.env_kwargs or None)
+    shift, spread, flips = [], [], []
+    try:
+        obs, _ = env.reset(seed)
+        prev = zero_prev_actions(spec, copies)
+        for _ in range(steps):
+            live, blind = messages(obs, prev, means=True), messages(obs, prev, None, zeros, means=True)
+            shift.append(np.abs(live - blind).mean())
+            spread.append(np.abs(live - live.mean((0, 1))).mean())
+            seen = view(obs)
+            for i, ag in enumerate(agents):
+                out = [ag.policy.actor_out(ag.policy_input(seen[:, i], m[:, i])) for m in (live, blind)]
+                flips.append((out[0].argmax(1) != out[1].argmax(1)).mean())
+            sent = messages(obs, prev)  # the team plays as in a fleet: on the messages it sends
+            actions = np.stack([ag.act(seen[:, i], sent[:, i]) for i, ag in enumerate(agents)], axis=1)
+            step = env.step(spec.env_action(actions))
+            prev, obs = next_prev_actions(spec, actions, step).prev, step.obs
+    finally:
+        env.close()
+    return {"steps": steps * copies, "msg_shift": round(float(np.mean(shift)), 4),
+            "msg_spread": round(float(np.mean(spread)), 4), "argmax_changed": round(float(np.mean(flips)), 4)}
 
 
 def _episodes(timeline: list[dict]) -> tuple[dict, dict]:
@@ -180,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"simulation, {kind:5}: {_mean(sim[kind])} per episode over {len(sim[kind])} episodes "
                   f"({time.monotonic() - t:.0f} s, load {os.getloadavg()[0]:.2f})")
         r["simulation"] = {k: {"mean": _mean(v), "std": round(float(np.std(v)), 3), "episodes": v} for k, v in sim.items()}
+        dep = r["message_dependence"] = message_dependence(a.bundle)
+        print(f"messages with the site's columns zeros: mean change {dep['msg_shift']} (their spread "
+              f"{dep['msg_spread']}); a robot's most likely action changed on {dep['argmax_changed']:.1%} of steps")
     if not a.sim_only:
         if os.geteuid() != 0:
             print("error: network namespaces need root (--sim-only: the reference alone)", file=sys.stderr)

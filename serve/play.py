@@ -165,7 +165,7 @@ def team(bundle, seed: int | None = None, num_envs: int = 1):
     central agent do (numpy forwards, the runtime's random streams): `messages(obs, prev, present=None,
     site=None)` -> (K, N, M), the central agent's state built by `CentralActing.global_state` with the
     missing rule (`present`, (K, N) bool) and the site feed's silent rule (`site`, (L, (K,) bool)) as a
-    fleet's central agent applies them."""
+    fleet's central agent applies them; `means`: the messages' means, not what is sent (rl: a draw)."""
     from hammer.learning.central_acting import CentralActing
     from hammer.learning.numpy_policy import numpy_central
     from hammer.learning.sampling import ActingStreams
@@ -183,10 +183,11 @@ def team(bundle, seed: int | None = None, num_envs: int = 1):
            if w.has_central_network else None)
 
     def messages(obs: np.ndarray, prev: np.ndarray, present: np.ndarray | None = None,
-                 site: tuple[int, np.ndarray] | None = None) -> np.ndarray:
-        return acting.messages(acting.global_state(obs, prev, present, site), streams, 0.0,
-                               net.message_mean if net is not None else None,
-                               net.values if net is not None and acting.rl else None).sent
+                 site: tuple[int, np.ndarray] | None = None, means: bool = False) -> np.ndarray:
+        out = acting.messages(acting.global_state(obs, prev, present, site), streams, 0.0,
+                              net.message_mean if net is not None else None,
+                              net.values if net is not None and acting.rl else None)
+        return out.mean if means else out.sent
 
     return cfg, spec, agents, messages
 
