@@ -207,7 +207,14 @@ def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
     assert s["site"]["recorded_by_world"] > 0  # the world wrote the warehouse's columns that the block read
 
 
-def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset(tmp_path):
+@pytest.fixture(scope="module")
+def trained_bundle(tmp_path_factory):
+    """The archived trained warehouse team (rware-tiny-2ag hammer rl, seed 0, 5M env steps), exported."""
+    run = ROOT / "docs" / "results" / "runs" / "rware5m-2" / "rware-tiny-2ag-hammer-rl-ep10000-s0"
+    return export_bundle(run, tmp_path_factory.mktemp("trained") / "bundle").path
+
+
+def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset(trained_bundle, tmp_path):
     """A trained warehouse team (the archived rware-tiny-2ag hammer rl team, exported) served with
     `--external-site`: the world writes the env's current central-only columns for the site
     (RUN/warehouse.npy, every tick) and a site beside it (`hammer.site.simulated_warehouse` +
@@ -216,10 +223,10 @@ def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layo
     and deliver; the central agent took the states."""
     from hammer.deploy.fleet_launch import FleetPlan, run_fleet
     from hammer.learning.run_env import make_env
+
     from hammer.site import simulated_warehouse
 
-    bundle = export_bundle(ROOT / "docs" / "results" / "runs" / "rware5m-2" / "rware-tiny-2ag-hammer-rl-ep10000-s0",
-                           tmp_path / "bundle").path
+    bundle = trained_bundle
     b = load_bundle(bundle)
     cfg, local = b.config(num_envs=1), b.env_spec_data["local_obs_dim"]
     with make_env(cfg) as env:
@@ -458,3 +465,20 @@ def test_the_feed_s_own_link_cut_across_namespaces_and_restored(bundle, tmp_path
     site = r["fleets"][0]["summary"]["site"]
     assert site["silences"] >= 1 and site["longest_silence_s"] >= 2.0 and site["states"] > 0, site
     assert site["published_by_world"] is None  # the namespace's site published it, not the world
+
+
+def test_the_simulated_reference_applies_the_fleet_s_rules_to_the_same_team(trained_bundle):
+    """benchmarks/site_play.simulate, the reference without a fleet, on the archived trained team: a
+    feed silent from the first tick to the end with no hold is the feed's columns zeros all along
+    (`zeros`), episode for episode; the same kind twice plays the same episodes (seeds and streams);
+    a robot cut (its action held, then the default; its row zeros for the central agent) plays other
+    episodes than the live team, with fewer deliveries."""
+    from hammer.benchmarks.site_play import simulate
+
+    length = load_bundle(trained_bundle).env_spec().max_steps
+    whole = simulate(trained_bundle, "site", 4, cut_at=0.0, cut_s=length / 20, site_hold_s=0.0, copies=4)
+    assert whole == simulate(trained_bundle, "zeros", 4, cut_at=0.0, cut_s=0.0, copies=4) and len(whole) == 4
+    live = simulate(trained_bundle, "live", 4, cut_at=5.0, cut_s=10.0, copies=4)
+    assert live == simulate(trained_bundle, "live", 4, cut_at=5.0, cut_s=10.0, copies=4) and sum(live) > 0
+    cut = simulate(trained_bundle, "port", 4, cut_at=5.0, cut_s=10.0, copies=4)
+    assert sum(cut) < sum(live), (cut, live)
