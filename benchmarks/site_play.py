@@ -144,6 +144,18 @@ def _episodes(timeline: list[dict]) -> tuple[dict, dict]:
     return metric, first
 
 
+def _health(timeline: list[dict], e: int) -> dict:
+    """What the fleet was like over episode `e` (the timeline's lines from its first to the next's):
+    the wall seconds it took (its ticks at HZ: 25 s for rware's 500 at 20 Hz, more where the world
+    stalled) and each robot's ticks on the default action (a robot the world did not hear: a cut, or
+    a stall of the machine)."""
+    lines = [x for x in timeline if x.get("episodes") in (e, e + 1)]
+    a = next(x for x in lines if x["episodes"] == e)
+    b = next(x for x in lines if x["episodes"] == e + 1)
+    return {"episode_wall_s": round(b["t"] - a["t"], 1), "ticks": b["ticks"] - a["ticks"],
+            "defaults": [y - x for x, y in zip(a["defaults"], b["defaults"], strict=True)]}
+
+
 def fleet_trials(bundle: Path, work: Path, rounds: int, cut_at: float, cut_s: float, hz: float = 20.0,
                  edge_python: Path | None = None, kinds: tuple[str, ...] = KINDS, progress=print) -> dict:
     """Rounds of one-episode trials of each kind in one secure fleet on a LAN of namespaces (module
@@ -178,6 +190,7 @@ def fleet_trials(bundle: Path, work: Path, rounds: int, cut_at: float, cut_s: fl
                     while e + 1 not in (metric := _episodes(_timeline(fleet.run))[0]):
                         time.sleep(0.5)
                     trial["paper_metric"] = round(metric[e + 1] - metric[e], 3)
+                    trial.update(_health(_timeline(fleet.run), e))
                     trials.append(trial)
                     progress(trial_line(trial))
                     e += 1
@@ -190,7 +203,10 @@ def trial_line(t: dict) -> str:
     c = t.get("cut")
     cut = "" if c is None else (f"  cut {','.join(c['cut'])} {c['seconds']:g} s, back {c['back_max_s']} s, healthy "
                                 f"{c['healthy_min_fraction']} of rate")
-    return f"{t['kind']:4}  round {t['round']}  episode {t['episode']:3}: {t['paper_metric']:6.2f}{cut}  load {t['load1']}"
+    health = "" if "ticks" not in t else (f"  ({t['ticks']} ticks in {t['episode_wall_s']} s, robot-ticks on the "
+                                          f"default action {t['defaults']})")
+    return (f"{t['kind']:4}  round {t['round']}  episode {t['episode']:3}: {t['paper_metric']:6.2f}{cut}  "
+            f"load {t['load1']}{health}")
 
 
 def _mean(xs: list[float]) -> float | None:
