@@ -16,9 +16,9 @@ deliveries per episode; from the world's timeline), the cut's figures (fleet_ben
 The reference without a fleet: the same team in this process (`serve.play.team`: the numpy forwards
 and random streams of the runtime, the central agent's state built by `CentralActing.global_state` with
 the fleet's rules) on the same env, SIM_EPISODES episodes per kind, 16 at once: `live`; `site` (over the
-same ticks as the fleet's cut: the feed's last columns held `site_hold_s`, then zeros); `port` (robot 0's
+same ticks as the fleet's cut: the feed's last columns held `site_hold_s`, then zeros); `port` (a robot's
 last action held `hold_s`, then the default one; its row zeros in the central agent's state from
-`missing_after_s`); `zeros` (the site's columns zeros for the whole episode). And how much the
+`missing_after_s`; robots in turn over the copies); `zeros` (the site's columns zeros for the whole episode). And how much the
 central agent's messages depend on the site's columns at all (`message_dependence`).
 """
 
@@ -58,6 +58,7 @@ def simulate(bundle: Path, kind: str, episodes: int, cut_at: float, cut_s: float
     a, x = round(cut_at * hz), round(cut_s * hz)
     held_site, held_robot, missing = round(site_hold_s * hz), round(hold_s * hz), round(missing_after_s * hz)
     env = make_vec_env(cfg.env, n, copies, env_kwargs=cfg.env_kwargs or None)
+    rows, gone = np.arange(copies), np.arange(copies) % n  # the robot a port cut takes: in turn, as the fleet's
     out: list[float] = []
     try:
         for batch in range(-(-episodes // copies)):
@@ -74,15 +75,15 @@ def simulate(bundle: Path, kind: str, episodes: int, cut_at: float, cut_s: float
                     seen[..., local:] = last_cols[:, None]
                 if kind == "port" and t >= a + missing and cut:
                     present = np.ones((copies, n), bool)
-                    present[:, 0] = False
+                    present[rows, gone] = False
                 msgs = messages(seen, prev, present, None if there is None else (local, there))
                 local_obs = view(obs)
                 actions = np.stack([ag.act(local_obs[:, i], msgs[:, i] if cfg.wiring.msg_dim else None)
                                     for i, ag in enumerate(agents)], axis=1)
-                if kind == "port" and cut:  # robot 0 hears nothing: its last action held, then the default
-                    actions[:, 0] = last_act if t < a + held_robot else spec.default_actions(copies)[:, 0]
+                if kind == "port" and cut:  # the cut robot hears nothing: its last action held, then the default
+                    actions[rows, gone] = last_act if t < a + held_robot else spec.default_actions(copies)[rows, gone]
                 elif kind == "port":
-                    last_act = actions[:, 0].copy()
+                    last_act = actions[rows, gone].copy()
                 if not (kind == "site" and cut):
                     last_cols = obs[:, 0, local:].copy()
                 step = env.step(spec.env_action(actions))
