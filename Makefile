@@ -280,11 +280,12 @@ faults-ownobs: $(LINKS)
 
 # The edge chain on this machine (root: network namespaces): the archived trained cn3 team exported,
 # served with its central agent and each edge agent (a torch-free venv) in namespaces of their own,
-# a hot update and a rollback through the CLI, then `hammer play`; then a warehouse team (rware-tiny-2ag, trained
-# briefly) as a secure fleet with its site feed, robots on the edge venv, robot 0's link and the feed's link cut
+# a hot update and a rollback through the CLI, then `hammer play`; then the archived trained warehouse team
+# (rware-tiny-2ag hammer rl s0, 5M env steps) as a secure fleet with its site feed from a namespace of its own
+# (publishing the warehouse's current columns), robots on the edge venv, robot 0's link and the feed's link cut
 # and restored; figures in runs/edge-chain/chain.json.
 # ARGS='--train-episodes 3000' trains both teams with `hammer train` first; ARGS='--rates 0,1024,256' per link rate;
-# ARGS='--warehouse RUN' a trained warehouse team instead, '--warehouse-episodes 0' none.
+# ARGS='--warehouse RUN' another trained warehouse team, '--warehouse-episodes N' one trained N episodes, '--no-warehouse' none.
 edge-chain: $(LINKS)
 	$(PY) -m tests.harness.edge_chain $(ARGS)
 

@@ -16,8 +16,8 @@ takes the cut robot's switch port down (the switch or access point lost it), `ni
 interface (it drove out of range), `hub` the serving machine's port (every robot cut). Each trial
 is appended to a JSON-lines file as it finishes (`<out>.trials.jsonl`). `site` (a team with a site
 feed, docs/fleet.md "The site feed"): the site is a `hammer.site.SiteFeed` in a namespace of its own
-(`hammer serve --external-site`), publishing the warehouse's columns at its reset at HZ (a static
-management system: this measures the feed's link, not the policy), and its switch port goes down;
+(`hammer serve --external-site`), publishing at HZ the warehouse's current columns as the simulated
+world writes them for its management system (`hammer.site.simulated_warehouse`), and its switch port goes down;
 per trial the robots' rates during the cut and how long after the return the central agent took the
 feed again. run the same command again
 and it runs only the trials still missing. Per trial: every healthy robot's control rate during the
@@ -52,14 +52,16 @@ CONTRACT = {"healthy_fraction": 0.98, "back_s": 1.5}  # docs/fleet.md "Recovery"
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 KINDS = ("port", "nic", "hub", "site")
 SITE_SCRIPT = """
-import sys, time, numpy as np
-from hammer.site import SiteFeed
-bundle, run_id, connect, cols, hz, profile = sys.argv[1:7]
-state = np.load(cols)
+import sys, time
+from hammer.site import SiteFeed, simulated_warehouse
+bundle, run_dir, run_id, connect, hz, profile = sys.argv[1:7]
+wms_state = simulated_warehouse(run_dir)
 with SiteFeed(bundle, run_id=run_id, connect=connect, identity="identity" if profile == "secure" else None,
               insecure=profile != "secure", runtime=tuple(sys.argv[7:])) as site:
     while True:
-        site.publish(state)
+        state = wms_state()
+        if state is not None:
+            site.publish(state)
         time.sleep(1 / float(hz))
 """
 
@@ -157,12 +159,14 @@ class Fleet:
 
     def __init__(self, bundle: Path, work: Path, net, hz: float, secure: bool, edge_python: Path | None,
                  runtime: tuple[str, ...] = (), seconds: float = 86400, site: bool = False) -> None:
-        self.bundle, self.work, self.net, self.hz, self.secure = bundle, work, net, hz, secure
+        self.bundle, self.work, self.net, self.hz, self.secure = Path(os.path.abspath(bundle)), work, net, hz, secure
         self.site = site  # the site feed from a namespace of its own: the LAN's last "robot" namespace
         self.n = len(net.robots) - site
         self.run = work / "run"
         self.procs = Procs(work)
-        self.edge_python, self.runtime, self.seconds = edge_python, runtime, seconds
+        # absolute, not resolved: each robot starts from its own folder, and a venv's python is a link
+        self.edge_python = None if edge_python is None else Path(os.path.abspath(edge_python))
+        self.runtime, self.seconds = runtime, seconds
         self.serve: subprocess.Popen | None = None
 
     def start(self) -> None:
@@ -202,23 +206,16 @@ class Fleet:
                   if self.log("env").is_file() else False, 120, [self.serve])
 
     def _start_site(self, endpoint: str) -> None:
-        """The site feed in its namespace, from a folder holding its copy of its three identity files."""
-        import numpy as np
-        from hammer.learning.run_env import make_env
-        from hammer.serve.bundle import load_bundle
+        """The site feed in its namespace, from a folder holding its copy of its three identity files,
+        publishing at HZ what the simulated warehouse's management system knows: the world's current
+        columns (RUN/warehouse.npy, read out of band: the port cut silences the feed, not the site)."""
+        from hammer.deploy.fleet_launch import LINK_FIELDS
 
-        b = load_bundle(self.bundle)
-        cfg = b.config(num_envs=1)
-        with make_env(cfg) as env:
-            obs, _ = env.reset(cfg.seed)
         home = self.work / "site"
         shutil.rmtree(home, ignore_errors=True)
         home.mkdir(parents=True)
-        np.save(home / "cols.npy", obs[0, 0, b.env_spec_data["local_obs_dim"]:])
-        from hammer.deploy.fleet_launch import LINK_FIELDS
-
         links = [r for r in self.runtime if r.split("=", 1)[0] in LINK_FIELDS]  # the link settings robots get
-        args = [str(self.bundle.resolve()), self.run.name, endpoint, str(home / "cols.npy"), f"{self.hz:g}",
+        args = [str(self.bundle.resolve()), str(self.run.resolve()), self.run.name, endpoint, f"{self.hz:g}",
                 "secure" if self.secure else "plain", *links]
         if self.secure:
             (home / "identity").mkdir()

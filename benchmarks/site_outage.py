@@ -2,7 +2,8 @@
 
 A fleet of a team with a site feed (`hammer serve BUNDLE --realtime 20 --external-site`, every robot
 its own process) on loopback, and the site an SDK client (`hammer.site.SiteFeed`) publishing at 20 Hz
-from the world's clock start; it stops for `--cut-s` at `--cut-at` s, then publishes again until the
+the warehouse's current columns (`hammer.site.simulated_warehouse`: as the world writes them) from the
+world's clock start; it stops for `--cut-s` at `--cut-at` s, then publishes again until the
 fleet's end. Printed: the central agent's view of the feed (states taken, ticks on zeros, silences,
 longest silence), the verdict, the robots' control rates, the load; the central agent's log lines
 about the feed.
@@ -20,15 +21,18 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
 
 def measure(bundle: Path, run: Path, cut_at: float, cut_s: float, seconds: float, hz: float = 20.0) -> dict:
     from hammer.deploy.fleet_launch import FleetPlan, run_fleet
-    from hammer.serve.site_feed import SiteFeed
+    from hammer.serve.site_feed import SiteFeed, simulated_warehouse
 
-    c = SiteFeed.columns(bundle)
+    wms_state = simulated_warehouse(run)  # the world's current columns, as its management system knows them
     sent = {"published": 0}
+
+    def publish(s: SiteFeed) -> None:
+        state = wms_state()
+        if state is not None:
+            s.publish(state)
 
     def site() -> None:
         while not (run / "fleet.json").is_file():
@@ -36,14 +40,13 @@ def measure(bundle: Path, run: Path, cut_at: float, cut_s: float, seconds: float
         connect = "tcp/" + json.loads((run / "fleet.json").read_text())["hub"].split("/", 1)[1]
         env_log = run / "logs" / "env.log"
         with SiteFeed(bundle, run_id=run.name, connect=connect, wait=True) as s:
-            state = np.ones(c, np.float32)
             while not (env_log.is_file() and "world clock starts" in env_log.read_text(errors="replace")):
-                s.publish(state)
+                publish(s)
                 time.sleep(1 / hz)
             t0 = time.monotonic()
             while (t := time.monotonic() - t0) < seconds + 2:  # past the fleet's end: its last silence is the cut's
                 if not cut_at <= t < cut_at + cut_s:
-                    s.publish(state)
+                    publish(s)
                 time.sleep(1 / hz)
             sent["published"] = s.counts["published"]
 

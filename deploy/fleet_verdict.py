@@ -67,7 +67,9 @@ def site_feed_view(central_counters: dict, world: dict) -> dict:
             "silences": int(central_counters.get("site_silences", 0)),
             "longest_silence_s": float(central_counters.get("site.absent_max_s", 0.0)),
             "never_heard": not central_counters.get("site.joined", 1),
-            "published_by_world": world.get("site_published")}
+            "published_by_world": world.get("site_published"),
+            # a site elsewhere in simulation: the ticks the world handed it (RUN/warehouse.npy)
+            "recorded_by_world": world.get("site_recorded")}
 
 
 def fleet_verdict(names: list[str], absences: dict[str, dict], world: dict, roles: dict[str, dict],

@@ -22,15 +22,17 @@ waited for. `msg_wait_s` = 0: never wait, every observation carries the message 
 
 The site (docs/fleet.md, "The site feed"): a team whose rows have central-only columns [L, D)
 (rware's requested shelves and goals) has them from the site, not from any robot. So the world
-publishes them as the site does (`site`: an object with `publish(cols)`, the site feed SDK
-`serve/site_feed.SiteFeed` on its own session and identity, which the world command opens) at every
-tick before the state; a robot's observation holds its own columns [0, L) only (the site's would be
+hands the env's current columns to `site` (an object with `publish(cols)`) at every tick before the
+state: the site feed SDK `serve/site_feed.SiteFeed` on its own session and identity, which the world
+command opens (the world is the site), or, when the site runs elsewhere, `WarehouseRecord` (a file
+in the run directory that site reads, as a management system reads its database); a robot's observation holds its own columns [0, L) only (the site's would be
 zeros: bytes on its link for nothing), and the state's rows have zeros there: the central agent
 composes its state from the robots' rows and the feed, as with a real site.
 
 What it measures is what a fleet is judged by: per robot, the actions that arrived (its control
 rate) and their age when applied; the ticks it overran; the episodes' paper metric. `timeline`: a
-file that gets one JSON line a second (wall time, per-robot totals), for a bench to cut by outage.
+file that gets one JSON line a second (wall time, ticks, per-robot totals, episodes ended and their
+paper metric's running sum), for a bench to cut by outage.
 """
 
 from __future__ import annotations
@@ -102,6 +104,8 @@ class RealtimeWorld(Role):
         local = self.spec.local_obs_dim
         self.local_dim = local if local not in (None, self.spec.obs_dim) else None  # [L, D): the site's columns
         self.site, self.site_published = (site if self.local_dim is not None else None), 0
+        # the feed's publisher counts as the world's publishing; a site elsewhere's record as what it handed on
+        self.site_counter = getattr(site, "counter", "site_published")
         self.obs, self.active = self._site_split(*env.reset(seed))
         self.startup_s = startup_s
         self.timeline = None if timeline is None else open(timeline, "a", buffering=1)  # noqa: SIM115 - closed in on_stop
@@ -116,7 +120,7 @@ class RealtimeWorld(Role):
         return {"ticks": self.clock.ticks, "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "default_actions": int(self.defaults.sum()), "msgs_attached": self.msgs_attached,
                 "msgs_missed": self.msgs_missed, "msgs_late": self.msgs_late, **self.presence.counters(), **per_robot,
-                **({"site_published": self.site_published} if self.site is not None else {})}
+                **({self.site_counter: self.site_published} if self.site is not None else {})}
 
     def gauges(self) -> dict[str, float]:
         return {"paper_metric_100": float(np.mean(self.recent)) if self.recent else 0.0,
@@ -192,7 +196,9 @@ class RealtimeWorld(Role):
         if self.timeline is not None and now - self._timeline_t >= 1.0:
             self._timeline_t = now
             self.timeline.write(json.dumps({"t": round(time.time(), 3), "ticks": self.clock.ticks,
-                                            "fresh": self.fresh.tolist(), "defaults": self.defaults.tolist()}) + "\n")
+                                            "fresh": self.fresh.tolist(), "defaults": self.defaults.tolist(),
+                                            # the episodes ended and their paper metric's running sum
+                                            "episodes": self.episodes, "metric": round(self.metric_sum, 6)}) + "\n")
         if self.episodes_budget is not None and self.episodes >= self.episodes_budget:
             self.stop_reason = f"{self.episodes} episodes done"
         elif self.seconds is not None and now - self.started >= self.seconds:
@@ -279,7 +285,7 @@ class RealtimeWorld(Role):
         return {"hz": round(1 / self.clock.period, 3), "seconds": round(elapsed, 3), "ticks": self.clock.ticks,
                 "ticks_skipped": self.clock.skipped, "episodes": self.episodes,
                 "msgs_attached": self.msgs_attached, "msgs_missed": self.msgs_missed, "msgs_late": self.msgs_late,
-                **({"site_published": self.site_published} if self.site is not None else {}),
+                **({self.site_counter: self.site_published} if self.site is not None else {}),
                 "paper_metric_mean": self.metric_sum / self.episodes if self.episodes else None,
                 "team_return_mean": self.return_sum / self.episodes if self.episodes else None,
                 "presence": self.presence.counters(), "absences": self.presence.absences(),

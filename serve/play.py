@@ -160,23 +160,19 @@ def _warehouse_episodes(cfg, spec, episodes: int, max_steps: int, act):
         env.close()
 
 
-def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
-         fps: float = 8.0, stills: int = 4, progress=None) -> dict:
-    """Render `episodes` episodes of the bundle's team into the GIF `out` (a *.png: a sheet of `stills`
-    frames spread over them); returns what was played. `progress(line)`: a line as each episode ends
-    (drawing a frame takes a good part of a second: a warehouse episode is a minute)."""
-    from hammer.envs.rware_vec import is_rware
-    from hammer.learning.central_acting import CentralActing, encode_actions, zero_prev_actions
+def team(bundle, seed: int | None = None, num_envs: int = 1):
+    """(cfg, spec, local agents, messages) of the bundle's frozen team, acting as a fleet's robots and
+    central agent do (numpy forwards, the runtime's random streams): `messages(obs, prev, present=None,
+    site=None)` -> (K, N, M), the central agent's state built by `CentralActing.global_state` with the
+    missing rule (`present`, (K, N) bool) and the site feed's silent rule (`site`, (L, (K,) bool)) as a
+    fleet's central agent applies them; `means`: the messages' means, not what is sent (rl: a draw)."""
+    from hammer.learning.central_acting import CentralActing
     from hammer.learning.numpy_policy import numpy_central
     from hammer.learning.sampling import ActingStreams
     from hammer.local_agent.client import AgentSpec, LocalAgent
-    from PIL import Image
     from safetensors.numpy import load as load_safetensors
 
-    kind = Path(out).suffix.lower()
-    if kind not in (".gif", ".png"):
-        raise PlayError(f"--out {out}: play writes a GIF (or a PNG sheet of still frames); fix: name it *.gif or *.png")
-    cfg = bundle.config(msg_dropout=0.0, **({} if seed is None else {"seed": seed}))
+    cfg = bundle.config(msg_dropout=0.0, num_envs=num_envs, **({} if seed is None else {"seed": seed}))
     spec, w = bundle.env_spec(), cfg.wiring
     local_blob = (bundle.path / "local.safetensors").read_bytes()
     agents = [LocalAgent(AgentSpec.from_config(cfg, spec, i)) for i in range(cfg.n_agents)]
@@ -186,10 +182,30 @@ def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_step
     net = (numpy_central(load_safetensors((bundle.path / "central.safetensors").read_bytes()))
            if w.has_central_network else None)
 
-    def messages(obs: np.ndarray, prev: np.ndarray) -> np.ndarray:
-        return acting.messages(acting.global_state(obs, prev), streams, 0.0,
-                               net.message_mean if net is not None else None,
-                               net.values if net is not None and acting.rl else None).sent
+    def messages(obs: np.ndarray, prev: np.ndarray, present: np.ndarray | None = None,
+                 site: tuple[int, np.ndarray] | None = None, means: bool = False) -> np.ndarray:
+        out = acting.messages(acting.global_state(obs, prev, present, site), streams, 0.0,
+                              net.message_mean if net is not None else None,
+                              net.values if net is not None and acting.rl else None)
+        return out.mean if means else out.sent
+
+    return cfg, spec, agents, messages
+
+
+def play(bundle, out: Path, episodes: int = 3, seed: int | None = None, max_steps: int = 200,
+         fps: float = 8.0, stills: int = 4, progress=None) -> dict:
+    """Render `episodes` episodes of the bundle's team into the GIF `out` (a *.png: a sheet of `stills`
+    frames spread over them); returns what was played. `progress(line)`: a line as each episode ends
+    (drawing a frame takes a good part of a second: a warehouse episode is a minute)."""
+    from hammer.envs.rware_vec import is_rware
+    from hammer.learning.central_acting import encode_actions, zero_prev_actions
+    from PIL import Image
+
+    kind = Path(out).suffix.lower()
+    if kind not in (".gif", ".png"):
+        raise PlayError(f"--out {out}: play writes a GIF (or a PNG sheet of still frames); fix: name it *.gif or *.png")
+    cfg, spec, agents, messages = team(bundle, seed)
+    w = cfg.wiring
 
     frames: list[np.ndarray] = []
     t_start = [time.monotonic()]

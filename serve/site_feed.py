@@ -22,6 +22,7 @@ control DROP. Torch-free, as the robot's side is.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -109,3 +110,43 @@ class SiteFeed(FleetClient):
         self._pub.publish(SiteState(step=self.counts["published"], env_idx=self._env_idx, cols=c[None]))
         self.counts["published"] += 1
         return True
+
+
+WAREHOUSE_FILE = "warehouse.npy"  # in a simulated fleet's run directory: the warehouse's current site columns
+
+
+class WarehouseRecord:
+    """A simulated warehouse's management system, as far as the site feed needs one: the world of a
+    fleet whose site runs elsewhere (`hammer serve --realtime --external-site`) writes the env's
+    current central-only columns here at every tick (`publish`, the world's one way to hand them on),
+    and that site reads them (`simulated_warehouse`) to publish them. Out of band, as a real management
+    system reads its own database: cutting the site's link silences the feed, not what the site knows.
+    Each write replaces the file whole (os.replace), so a reader gets one tick's columns or the one before."""
+
+    counter = "site_recorded"  # the world's count of ticks it handed on (not published: the site does)
+
+    def __init__(self, run_dir: str | Path) -> None:
+        self.path = Path(run_dir) / WAREHOUSE_FILE
+        self._tmp = self.path.with_name(f".{WAREHOUSE_FILE}.{os.getpid()}")
+
+    def publish(self, cols: np.ndarray) -> bool:
+        with open(self._tmp, "wb") as f:
+            np.save(f, np.asarray(cols, np.float32), allow_pickle=False)
+        os.replace(self._tmp, self.path)
+        return True
+
+
+def simulated_warehouse(run_dir: str | Path):
+    """In simulation, the site's view of the warehouse: a function returning the C central-only
+    columns the world last wrote to RUN/warehouse.npy (`WarehouseRecord`), or None before its first
+    tick. `SiteFeed(...).publish(simulated_warehouse(run)())` is what a site of a simulated fleet sends."""
+    path = Path(run_dir) / WAREHOUSE_FILE
+
+    def state() -> np.ndarray | None:
+        try:
+            with open(path, "rb") as f:
+                return np.load(f, allow_pickle=False)
+        except FileNotFoundError:
+            return None
+
+    return state

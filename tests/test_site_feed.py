@@ -204,6 +204,57 @@ def test_the_docs_site_example_runs_against_a_served_fleet(bundle, tmp_path):
     s = json.loads((tmp_path / "runs" / "site-w" / "summary.json").read_text())
     assert s["interrupted"] and s["site"]["states"] > 0 and not s["site"]["never_heard"], s["site"]
     assert s["site"]["published_by_world"] is None  # the world did not publish it: the block did
+    assert s["site"]["recorded_by_world"] > 0  # the world wrote the warehouse's columns that the block read
+
+
+@pytest.fixture(scope="module")
+def trained_bundle(tmp_path_factory):
+    """The archived trained warehouse team (rware-tiny-2ag hammer rl, seed 0, 5M env steps), exported."""
+    run = ROOT / "docs" / "results" / "runs" / "rware5m-2" / "rware-tiny-2ag-hammer-rl-ep10000-s0"
+    return export_bundle(run, tmp_path_factory.mktemp("trained") / "bundle").path
+
+
+def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset(trained_bundle, tmp_path):
+    """A trained warehouse team (the archived rware-tiny-2ag hammer rl team, exported) served with
+    `--external-site`: the world writes the env's current central-only columns for the site
+    (RUN/warehouse.npy, every tick) and a site beside it (`hammer.site.simulated_warehouse` +
+    `SiteFeed`) publishes them. What the site published follows the warehouse: not its layout at
+    reset (the world's env, reset with the team's seed), and changing as the robots carry shelves
+    and deliver; the central agent took the states."""
+    from hammer.deploy.fleet_launch import FleetPlan, run_fleet
+    from hammer.learning.run_env import make_env
+
+    from hammer.site import simulated_warehouse
+
+    bundle = trained_bundle
+    b = load_bundle(bundle)
+    cfg, local = b.config(num_envs=1), b.env_spec_data["local_obs_dim"]
+    with make_env(cfg) as env:
+        reset = env.reset(cfg.seed)[0][0, 0, local:]
+    run, sent = tmp_path / "fleet", []
+
+    def site() -> None:
+        assert _wait(lambda: (run / "fleet.json").is_file(), 60), "the fleet did not start"
+        connect = "tcp/" + json.loads((run / "fleet.json").read_text())["hub"].split("/", 1)[1]
+        wms_state = simulated_warehouse(run)
+        with SiteFeed(bundle, run_id=run.name, connect=connect, wait=True) as feed:
+            while not (run / "summary.json").is_file():
+                state = wms_state()
+                if state is not None and feed.publish(state):
+                    sent.append(state)
+                time.sleep(0.05)
+
+    t = threading.Thread(target=site, daemon=True)
+    t.start()
+    s = run_fleet(FleetPlan(bundle=bundle, hz=20, seconds=10, site_external=True), run)
+    t.join(10)
+    assert s["completed"] and not s["degraded"], s["degraded_reasons"]
+    site_view = s["site"]
+    assert site_view["recorded_by_world"] > 150 and site_view["published_by_world"] is None, site_view
+    assert site_view["states"] > 100 and not site_view["never_heard"], site_view
+    assert len(sent) > 100 and all(c.shape == reset.shape for c in sent)
+    assert not all(np.array_equal(c, reset) for c in sent), "the site's feed stayed at the warehouse's layout at reset"
+    assert len({c.tobytes() for c in sent}) >= 3, "the feed did not follow the warehouse"
 
 
 def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle, tmp_path):
@@ -414,3 +465,20 @@ def test_the_feed_s_own_link_cut_across_namespaces_and_restored(bundle, tmp_path
     site = r["fleets"][0]["summary"]["site"]
     assert site["silences"] >= 1 and site["longest_silence_s"] >= 2.0 and site["states"] > 0, site
     assert site["published_by_world"] is None  # the namespace's site published it, not the world
+
+
+def test_the_simulated_reference_applies_the_fleet_s_rules_to_the_same_team(trained_bundle):
+    """benchmarks/site_play.simulate, the reference without a fleet, on the archived trained team: a
+    feed silent from the first tick to the end with no hold is the feed's columns zeros all along
+    (`zeros`), episode for episode; the same kind twice plays the same episodes (seeds and streams);
+    a robot cut (its action held, then the default; its row zeros for the central agent) plays other
+    episodes than the live team, with fewer deliveries."""
+    from hammer.benchmarks.site_play import simulate
+
+    length = load_bundle(trained_bundle).env_spec().max_steps
+    whole = simulate(trained_bundle, "site", 4, cut_at=0.0, cut_s=length / 20, site_hold_s=0.0, copies=4)
+    assert whole == simulate(trained_bundle, "zeros", 4, cut_at=0.0, cut_s=0.0, copies=4) and len(whole) == 4
+    live = simulate(trained_bundle, "live", 4, cut_at=5.0, cut_s=10.0, copies=4)
+    assert live == simulate(trained_bundle, "live", 4, cut_at=5.0, cut_s=10.0, copies=4) and sum(live) > 0
+    cut = simulate(trained_bundle, "port", 4, cut_at=5.0, cut_s=10.0, copies=4)
+    assert sum(cut) < sum(live), (cut, live)

@@ -74,7 +74,10 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
                   runtime: RuntimeOpt = None,
                   site_feed: Annotated[bool, typer.Option(help="A team with central-only columns (rware): publish "
                                                                 "them as the site (its identity `site`); "
-                                                                "--no-site-feed when a real site does.")] = True) -> None:
+                                                                "--no-site-feed when a site elsewhere does (with "
+                                                                "--run-dir, the world writes the warehouse's "
+                                                                "current columns to RUN_DIR/warehouse.npy for "
+                                                                "it).")] = True) -> None:
     """The realtime world: steps the env at --hz on the robots' latest actions."""
     setup_process("env")
     watch_refused()
@@ -89,19 +92,23 @@ def world_command(bundle: BundleOpt, run_id: RunIdOpt, connect: ConnectOpt = Non
     try:
         b, cfg, transport, run_id = _open(bundle, run_id, connect, zenoh_config, seed, insecure, identity, "env",
                                           runtime)
-        # in simulation the world is also the site: the feed on its own session, as the site's identity
-        feed = None
-        if site_feed and cfg.wiring.uses_central and site_columns(b.env_spec_data) is not None:
-            from hammer.serve.site_feed import SiteFeed
+        # in simulation the world is also the site: the feed on its own session, as the site's identity;
+        # with the site elsewhere (--no-site-feed), the warehouse's current columns for it in RUN_DIR
+        feed, opened = None, nullcontext()
+        if cfg.wiring.uses_central and site_columns(b.env_spec_data) is not None:
+            from hammer.serve.site_feed import SiteFeed, WarehouseRecord
 
-            # open before the world's first state (the router is up before the roles): no state without it
-            feed = SiteFeed(bundle, run_id=run_id, connect=connect, zenoh_config=zenoh_config, identity=identity,
-                            insecure=insecure, runtime=tuple(runtime or ()), wait=True, connect_retry_s=60)
+            if site_feed:  # open before the world's first state (the router is up before the roles)
+                feed = SiteFeed(bundle, run_id=run_id, connect=connect, zenoh_config=zenoh_config, identity=identity,
+                                insecure=insecure, runtime=tuple(runtime or ()), wait=True, connect_retry_s=60)
+                opened = feed
+            elif run_dir is not None:
+                feed = WarehouseRecord(run_dir)
     except (FileNotFoundError, ValueError, ConnectionError) as e:
         fail(str(e))
     world = None
     try:
-        with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s, (feed or nullcontext()):
+        with make_env(cfg) as env, HammerSession(run_id, transport, sender="env") as s, opened:
             world = RealtimeWorld(s, env, hz, hold_s, cfg.seed, episodes=episodes, seconds=seconds, timeline=timeline,
                                   msg_dim=cfg.msg_dim, central=cfg.wiring.uses_central, msg_wait_s=msg_wait_s,
                                   site=feed)

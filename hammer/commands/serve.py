@@ -133,7 +133,8 @@ def serve_command(
              "keep the files they were given, revoked ones are refused (docs/security.md).")] = None,
     external_site: Annotated[bool, typer.Option(
         help="--realtime, a team with a site feed (rware): the site publishes it from elsewhere "
-             "(`hammer.site.SiteFeed`, identity `site`), not the simulated world (docs/fleet.md).")] = False,
+             "(`hammer.site.SiteFeed`, identity `site`), not the simulated world, which writes the warehouse's "
+             "current columns to RUN/warehouse.npy for it (`hammer.site.simulated_warehouse`; docs/fleet.md).")] = False,
     view: ViewOpt = None,
     view_token: ViewTokenOpt = None,
 ) -> None:
@@ -231,7 +232,8 @@ def _serve_fleet(console, bundle: Path, hz: float, seconds: float | None, episod
         console.print(f"waiting for the site feed: hammer.site.SiteFeed({str(bundle)!r}, run_id={path.name!r}, "
                       f"connect={robot_endpoint(plan)!r}"
                       + (f", identity=<a directory holding a copy of {path}/identity/{{ca.pem,site.pem,site.key}}>"
-                         if secure else "") + ")", soft_wrap=True)
+                         if secure else "") + f"); the simulated warehouse's columns: "
+                      f"hammer.site.simulated_warehouse({str(path)!r})", soft_wrap=True)
     if watch.url:
         console.print(f"view: {watch.url}", soft_wrap=True)
     ended = "failed"

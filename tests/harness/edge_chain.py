@@ -16,12 +16,13 @@ Every step is the real CLI (a fresh process each):
      (benchmarks.push_driver); the env host's trace is replayed with each version's weights: every
      step was acted on with the version it names, and after the rollback exactly as A acts
   5. `hammer play A --out WORK/team.gif`
-  6. a warehouse fleet: a rware-tiny-2ag team (--warehouse RUN, or `hammer train` of
-     --warehouse-episodes, default 8; 0 skips it) exported and served as a secure fleet
-     (`hammer serve --realtime 20 --secure`, the world publishing its site feed as the site), each
+  6. a warehouse fleet: a trained rware-tiny-2ag team (--warehouse RUN, default the archived hammer rl
+     team of seed 0, 5M env steps; or `hammer train` of --warehouse-episodes; --no-warehouse skips it)
+     exported and served as a secure fleet (`hammer serve --realtime 20 --secure --external-site`), each
      robot `hammer local --bundle --fleet` from the edge venv in its own namespace and the site feed
-     (`hammer.site.SiteFeed`, the warehouse's layout at reset) in its own; robot 0's link and the
-     feed's link cut and restored (benchmarks.fleet_bench.run_trials); the site feed's figures in its summary
+     (`hammer.site.SiteFeed`, publishing the warehouse's current columns as the simulated world writes
+     them) in its own; robot 0's link and the feed's link cut and restored
+     (benchmarks.fleet_bench.run_trials); the site feed's figures and the deliveries in its summary
 Writes WORK/chain.json (every figure) and prints it.
 """
 
@@ -37,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 ARCHIVE = ROOT / "docs" / "results" / "runs" / "cn3-ownobs"
 ARCHIVED_TEAM = "cn3-hammer-rl-env_kwargs_observe_others=false-s{seed}"
+ARCHIVED_WAREHOUSE = ROOT / "docs" / "results" / "runs" / "rware5m-2" / "rware-tiny-2ag-hammer-rl-ep10000-s0"
 
 
 def hammer(*args: str, timeout: float = 900) -> str:
@@ -167,9 +169,11 @@ def summary_lines(report: dict, work: Path) -> list[str]:
         trials = "; ".join(f"{t['kind']} {t['seconds']:g} s cut: back in {t['back_max_s']} s, healthy "
                            f"{t['healthy_min_fraction']} of rate" for t in wh["trials"])
         link = wh.get("link") or {}
+        metric = wh["fleets"][0]["summary"].get("paper_metric_mean") if wh["fleets"] else None
         lines.append(f"warehouse fleet (secure, its site feed from a namespace of its own): {trials}; feed states taken "
                      f"{site.get('states')}, silences {site.get('silences')}; robot 0's link "
-                     f"{link.get('bytes_per_step')} B, {link.get('packets_per_step')} packets per step")
+                     f"{link.get('bytes_per_step')} B, {link.get('packets_per_step')} packets per step; paper metric "
+                     f"{'-' if metric is None else f'{metric:.2f}'} per episode (the whole run, cuts included)")
     lines.append(f"every figure: {work / 'chain.json'}")
     return lines
 
@@ -189,9 +193,11 @@ def main() -> None:
                     help="per run; the push and the rollback each take a CLI start and a heartbeat (~2 s)")
     ap.add_argument("--work", type=Path, default=Path("runs/edge-chain"))
     ap.add_argument("--edge-venv", type=Path, help="python of a torch-free venv (default: build WORK/edge-venv)")
-    ap.add_argument("--warehouse", type=Path, help="a trained rware team's run directory for step 6")
-    ap.add_argument("--warehouse-episodes", type=int, default=8,
-                    help="without --warehouse: train one this long for step 6 (0: no warehouse fleet)")
+    ap.add_argument("--warehouse", type=Path, default=ARCHIVED_WAREHOUSE,
+                    help="a trained rware team's run directory for step 6 (default: the archived hammer rl s0)")
+    ap.add_argument("--warehouse-episodes", type=int, default=0,
+                    help="train a warehouse team this long for step 6 instead of --warehouse")
+    ap.add_argument("--no-warehouse", action="store_true", help="no warehouse fleet (step 6)")
     a = ap.parse_args()
     import signal
 
@@ -204,8 +210,8 @@ def main() -> None:
             team = train_team(a.work / "train-a", 0, a.train_episodes)
             update = train_team(a.work / "train-b", 1, a.train_episodes)
         edge = a.edge_venv or build_edge_venv(a.work / "edge-venv")
-        warehouse = a.warehouse or (train_warehouse(a.work / "train-warehouse", a.warehouse_episodes)
-                                    if a.warehouse_episodes else None)
+        warehouse = (None if a.no_warehouse else train_warehouse(a.work / "train-warehouse", a.warehouse_episodes)
+                     if a.warehouse_episodes else a.warehouse)
         r = chain(a.work, team, update, edge, tuple(int(x) for x in a.rates.split(",")), a.episodes,
                   warehouse=warehouse)
     except (RuntimeError, EdgeVenvError, NetnsUnavailable) as e:
