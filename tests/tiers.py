@@ -67,6 +67,7 @@ SPAWNS_TESTS = {
     "test_site_feed::test_hammer_up_reproduces_hammer_train_with_the_feed_s_absences",
     "test_site_feed::test_an_il_warehouse_team_runs_as_a_fleet_without_a_feed",
     "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
+    "test_site_feed::test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset",
 }
 
 LEARNS_MODULES = {"test_trainer_learning"}
@@ -89,6 +90,7 @@ SERIAL_MODULES = {"test_view_browser"}
 SERIAL_TESTS = {
     "test_fleet::test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract",
     "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
+    "test_site_feed::test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset",
     "test_messages_warehouse::test_a_warehouse_team_is_analysed_with_its_targets_and_cuts",
 }
 
