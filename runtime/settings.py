@@ -23,6 +23,7 @@ import msgspec
 from hammer.protocol.fault_injection import FaultSpec
 from hammer.protocol.session import (
     FLEET_LEASE_MS,
+    FLEET_LOOPBACK_OPEN_TIMEOUT_MS,
     FLEET_OPEN_TIMEOUT_MS,
     FLEET_RECONNECT_MAX_MS,
     TransportConfig,
@@ -261,7 +262,9 @@ class RuntimeSettings(Settings):
         if self.zenoh_open_timeout_s is not None:
             update["open_timeout_ms"] = round(self.zenoh_open_timeout_s * 1000)
         elif fleet:
-            update["open_timeout_ms"] = FLEET_OPEN_TIMEOUT_MS
+            # over loopback no SYN is lost: an attempt waits for a stalled router's turn (protocol.session)
+            loopback = bool(transport.connect) and all(is_loopback_endpoint(e) for e in transport.connect)
+            update["open_timeout_ms"] = FLEET_LOOPBACK_OPEN_TIMEOUT_MS if loopback else FLEET_OPEN_TIMEOUT_MS
         if self.reconnect_max_s is not None:
             update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
         elif fleet:
