@@ -13,7 +13,9 @@ printed and wrote to RUN/fleet.json. Secure by default; `--insecure` runs the pl
 
 Trials (`--trials KIND:SECONDS[xN],...`), one after another, GAP_S apart, robots in turn: `port`
 takes the cut robot's switch port down (the switch or access point lost it), `nic` the robot's own
-interface (it drove out of range), `hub` the serving machine's port (every robot cut). Each trial
+interface (it drove out of range), `hub` the serving machine's port (every robot cut); no link
+down: `world` stops the world process (SIGSTOP) and `router` the launcher, whose session is the
+fleet's router, for SECONDS, then lets it go (SIGCONT): a server starved of CPU. Each trial
 is appended to a JSON-lines file as it finishes (`<out>.trials.jsonl`). `site` (a team with a site
 feed, docs/fleet.md "The site feed"): the site is a `hammer.site.SiteFeed` in a namespace of its own
 (`hammer serve --external-site`), publishing at HZ the warehouse's current columns as the simulated
@@ -486,7 +488,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", default="port:0.5x2,port:5x2,port:8x2,port:30x2,nic:8x2,nic:30x1,hub:8x2",
                     help="KIND:SECONDS[xN], comma-separated: port (the cut robot's switch port), nic (the robot's "
                          "own interface), hub (the serving machine's port: every robot), site (the site feed's "
-                         "port: a team with a site feed; the site then runs in a namespace of its own); robots in turn.")
+                         "port: a team with a site feed; the site then runs in a namespace of its own), world (the world "
+                         "process stopped: SIGSTOP, SIGCONT after SECONDS), router (the launcher, whose session is "
+                         "the fleet's router, stopped likewise); robots in turn.")
     ap.add_argument("--insecure", action="store_true", help="The plain profile (default: --secure, as documented).")
     ap.add_argument("--per-fleet", type=int, default=10, help="Trials per fleet session (a fresh fleet after).")
     ap.add_argument("--bytes-s", type=float, default=0.0, help="First measure bytes and packets per control step "

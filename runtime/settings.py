@@ -252,8 +252,8 @@ class RuntimeSettings(Settings):
         """`transport` with this run's lease, open timeout and reconnect period (`zenoh_lease_s`,
         `zenoh_open_timeout_s`, `reconnect_max_s`); a Zenoh config file keeps its own retry periods
         unless `reconnect_max_s` is set here (unset: 0.5 s). `fleet`: a fleet's link, whose unset lease, open timeout
-        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS,
-        FLEET_RECONNECT_MAX_MS)."""
+        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS or,
+        for a client dialling over loopback, FLEET_LOOPBACK_OPEN_TIMEOUT_MS, FLEET_RECONNECT_MAX_MS)."""
         update: dict = {}
         if self.zenoh_lease_s is not None:
             update["lease_ms"] = round(self.zenoh_lease_s * 1000)
