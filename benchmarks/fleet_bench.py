@@ -13,7 +13,9 @@ printed and wrote to RUN/fleet.json. Secure by default; `--insecure` runs the pl
 
 Trials (`--trials KIND:SECONDS[xN],...`), one after another, GAP_S apart, robots in turn: `port`
 takes the cut robot's switch port down (the switch or access point lost it), `nic` the robot's own
-interface (it drove out of range), `hub` the serving machine's port (every robot cut). Each trial
+interface (it drove out of range), `hub` the serving machine's port (every robot cut); no link
+down: `world` stops the world process (SIGSTOP) and `router` the launcher, whose session is the
+fleet's router, for SECONDS, then lets it go (SIGCONT): a server starved of CPU. Each trial
 is appended to a JSON-lines file as it finishes (`<out>.trials.jsonl`). `site` (a team with a site
 feed, docs/fleet.md "The site feed"): the site is a `hammer.site.SiteFeed` in a namespace of its own
 (`hammer serve --external-site`), publishing at HZ the warehouse's current columns as the simulated
@@ -50,7 +52,8 @@ SETTLE_S = 5.0  # from the world's clock starting to the first cut
 RECOVER_WAIT_S = 30.0  # how long after a return a role may take before it counts as stranded
 CONTRACT = {"healthy_fraction": 0.98, "back_s": 1.5}  # docs/fleet.md "Recovery"
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
-KINDS = ("port", "nic", "hub", "site")
+KINDS = ("port", "nic", "hub", "site", "world", "router")
+STALLED = {"world": "fleet-world", "router": None}  # a stall trial's process: the world role, or the launcher (the router)
 SITE_SCRIPT = """
 import sys, time
 from hammer.site import SiteFeed, simulated_warehouse
@@ -226,22 +229,43 @@ class Fleet:
                 ["ip", "netns", "exec", self.net.robots[self.n], sys.executable, "-P", "-c", SITE_SCRIPT, *args],
                 cwd=home, stdout=f, stderr=subprocess.STDOUT))
 
+    def pid(self, kind: str) -> int:
+        """The process a stall trial stops: the launcher (whose session is the fleet's router), or its
+        child running the world role (`hammer.cli fleet-world`)."""
+        if STALLED[kind] is None:
+            return self.serve.pid
+        for child in Path(f"/proc/{self.serve.pid}/task/{self.serve.pid}/children").read_text().split():
+            try:
+                argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+            except FileNotFoundError:
+                continue
+            if STALLED[kind].encode() in argv:
+                return int(child)
+        raise RuntimeError(f"no {STALLED[kind]} process under the launcher (pid {self.serve.pid})")
+
     def log(self, role: str) -> Path:
         return self.work / f"{role}.log" if role.startswith("local-") else self.run / "logs" / f"{role}.log"
 
     def cut(self, kind: str, robot: int, seconds: float) -> dict:
         """One trial: the link down `seconds`, back up; the figures once every cut robot is back (or
         RECOVER_WAIT_S passed), and at least GAP_S after the return."""
-        ns, dev = ((self.net.switch, self.net.ports["server"]) if kind == "hub" else
+        ns, dev = ((None, None) if kind in STALLED else
+                   (self.net.switch, self.net.ports["server"]) if kind == "hub" else
                    (self.net.switch, self.net.ports[f"local-{self.n}"]) if kind == "site" else
                    (self.net.switch, self.net.ports[f"local-{robot}"]) if kind == "port" else
                    self.net.nics[f"local-{robot}"])
-        cut = list(range(self.n)) if kind == "hub" else [] if kind == "site" else [robot]
+        cut = list(range(self.n)) if kind in ("hub", *STALLED) else [] if kind == "site" else [robot]
         load = os.getloadavg()[0]
         down = time.time()
-        subprocess.run(["ip", "-n", ns, "link", "set", dev, "down"], check=True, timeout=10)
-        time.sleep(seconds)
-        subprocess.run(["ip", "-n", ns, "link", "set", dev, "up"], check=True, timeout=10)
+        if kind in STALLED:  # no link down: the process starved (SIGSTOP), then running again
+            pid = self.pid(kind)
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(seconds)
+            os.kill(pid, signal.SIGCONT)
+        else:
+            subprocess.run(["ip", "-n", ns, "link", "set", dev, "down"], check=True, timeout=10)
+            time.sleep(seconds)
+            subprocess.run(["ip", "-n", ns, "link", "set", dev, "up"], check=True, timeout=10)
         up = time.time()
 
         def back() -> dict:
@@ -464,7 +488,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", default="port:0.5x2,port:5x2,port:8x2,port:30x2,nic:8x2,nic:30x1,hub:8x2",
                     help="KIND:SECONDS[xN], comma-separated: port (the cut robot's switch port), nic (the robot's "
                          "own interface), hub (the serving machine's port: every robot), site (the site feed's "
-                         "port: a team with a site feed; the site then runs in a namespace of its own); robots in turn.")
+                         "port: a team with a site feed; the site then runs in a namespace of its own), world (the world "
+                         "process stopped: SIGSTOP, SIGCONT after SECONDS), router (the launcher, whose session is "
+                         "the fleet's router, stopped likewise); robots in turn.")
     ap.add_argument("--insecure", action="store_true", help="The plain profile (default: --secure, as documented).")
     ap.add_argument("--per-fleet", type=int, default=10, help="Trials per fleet session (a fresh fleet after).")
     ap.add_argument("--bytes-s", type=float, default=0.0, help="First measure bytes and packets per control step "

@@ -102,6 +102,17 @@ RECONNECT = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_facto
 # default while it cannot): what is left of a robot's return after a long cut is that timer's.
 FLEET_LEASE_MS = 1200
 FLEET_OPEN_TIMEOUT_MS = 500
+# ...but not for a client that dials the router over loopback (the serving machine's own roles, and
+# every robot of a fleet on one machine), where no SYN is ever lost and a short attempt only does
+# harm: Zenoh's TLS listener sleeps 100 ms after every handshake that fails (its accept loop's
+# throttle, a compile-time constant), so it takes at most 10 failed handshakes a second, first come
+# first served. While the router is stalled (SIGSTOP, a starved CPU) the kernel still completes every
+# connection, and each attempt given up after 0.5 s leaves a handshake that will fail: once six
+# clients of one listener are retrying, every new attempt waits behind more than 0.5 s of dead ones,
+# is given up in turn, and the router admits no one, for as long as the clients keep trying (robots
+# stranded 40 s and more after a 4 s stall, docs/fleet.md "A stalled server"). An attempt that waits
+# for its turn instead (Zenoh's own 10 s) is admitted as soon as the dead ones ahead of it are done.
+FLEET_LOOPBACK_OPEN_TIMEOUT_MS = 10_000
 FLEET_RECONNECT_MAX_MS = 100
 
 

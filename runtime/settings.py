@@ -23,6 +23,7 @@ import msgspec
 from hammer.protocol.fault_injection import FaultSpec
 from hammer.protocol.session import (
     FLEET_LEASE_MS,
+    FLEET_LOOPBACK_OPEN_TIMEOUT_MS,
     FLEET_OPEN_TIMEOUT_MS,
     FLEET_RECONNECT_MAX_MS,
     TransportConfig,
@@ -251,8 +252,8 @@ class RuntimeSettings(Settings):
         """`transport` with this run's lease, open timeout and reconnect period (`zenoh_lease_s`,
         `zenoh_open_timeout_s`, `reconnect_max_s`); a Zenoh config file keeps its own retry periods
         unless `reconnect_max_s` is set here (unset: 0.5 s). `fleet`: a fleet's link, whose unset lease, open timeout
-        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS,
-        FLEET_RECONNECT_MAX_MS)."""
+        and reconnect period are the fleet's (protocol.session.FLEET_LEASE_MS, FLEET_OPEN_TIMEOUT_MS or,
+        for a client dialling over loopback, FLEET_LOOPBACK_OPEN_TIMEOUT_MS, FLEET_RECONNECT_MAX_MS)."""
         update: dict = {}
         if self.zenoh_lease_s is not None:
             update["lease_ms"] = round(self.zenoh_lease_s * 1000)
@@ -261,7 +262,9 @@ class RuntimeSettings(Settings):
         if self.zenoh_open_timeout_s is not None:
             update["open_timeout_ms"] = round(self.zenoh_open_timeout_s * 1000)
         elif fleet:
-            update["open_timeout_ms"] = FLEET_OPEN_TIMEOUT_MS
+            # over loopback no SYN is lost: an attempt waits for a stalled router's turn (protocol.session)
+            loopback = bool(transport.connect) and all(is_loopback_endpoint(e) for e in transport.connect)
+            update["open_timeout_ms"] = FLEET_LOOPBACK_OPEN_TIMEOUT_MS if loopback else FLEET_OPEN_TIMEOUT_MS
         if self.reconnect_max_s is not None:
             update["reconnect_max_ms"] = round(self.reconnect_max_s * 1000)
         elif fleet:

@@ -89,6 +89,7 @@ SLOW_TESTS = {
 SERIAL_MODULES = {"test_view_browser"}
 SERIAL_TESTS = {
     "test_fleet::test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract",
+    "test_fleet::test_robots_are_back_at_once_after_the_serving_machine_stalls",
     "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
     "test_site_feed::test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset",
     "test_messages_warehouse::test_a_warehouse_team_is_analysed_with_its_targets_and_cuts",
