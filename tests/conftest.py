@@ -141,3 +141,39 @@ def _fast_tier_starts_no_process(request):
     if len(_started) > start:
         pytest.fail(f"{request.node.nodeid} starts a process ({', '.join(sorted(set(_started[start:])))}) "
                     "in the fast tier: mark it in tests/tiers.py", pytrace=False)
+
+
+# HAMMER_TEST_CPU=FILE (off by default): each test's CPU seconds, appended to FILE as CSV rows
+# (nodeid, cpu_s, wall_s). The suite is CPU-bound on a small machine, so this, not wall time, says
+# which tests to make cheaper. Counted: this process (all its threads), the children it reaped, and
+# every live descendant with the children each of those reaped (a compile worker pool, a role and
+# its own workers), as deltas over the test's setup, call and teardown; a module's fixtures count
+# in its first test.
+_CPU_FILE = os.environ.get("HAMMER_TEST_CPU")
+
+
+def _cpu_now() -> float:
+    import resource
+
+    import psutil
+
+    total = sum(getattr(resource.getrusage(w), f) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+                for f in ("ru_utime", "ru_stime"))
+    for p in psutil.Process().children(recursive=True):
+        try:
+            t = p.cpu_times()
+            total += t.user + t.system + t.children_user + t.children_system
+        except psutil.Error:  # gone in between: its parent has it, or it is lost (an orphan)
+            pass
+    return total
+
+
+if _CPU_FILE:
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import time
+
+        cpu, wall = _cpu_now(), time.monotonic()
+        yield
+        with open(_CPU_FILE, "a") as f:
+            f.write(f"{item.nodeid},{_cpu_now() - cpu:.2f},{time.monotonic() - wall:.2f}\n")

@@ -66,6 +66,11 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
 # inherits it), so that modules training the same team train it once.
 TEAMS_ENV = "HAMMER_TEST_TEAMS"
 SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
+# The networks of the tests that torch.compile: one hidden layer of 16 each, not the presets' two.
+# A compile's cost (inductor's codegen and the C++ build, per graph, on a cold cache in CI) grows
+# with the layers the graph steps through (forward, backward, clip, Adam per tensor); what those
+# tests check (compiled = eager, the device, bf16, seed batches) does not depend on the depth.
+COMPILE_NETS = ("actor_hidden=[16]", "critic_hidden=[16]", "central_hidden=[16]")
 
 
 def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> Path:

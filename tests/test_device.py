@@ -26,6 +26,8 @@ from hammer.learning.seed_batch import train_seeds
 from hammer.learning.trainer import Trainer, train
 from typer.testing import CliRunner
 
+from tests.runtime_helpers import COMPILE_NETS
+
 ROOT = Path(__file__).resolve().parents[1]
 # 4 copies x 25-step episodes: 4 episodes per update, a checkpoint at every one
 SMALL = ["num_envs=4", "rollout_steps=25", "epochs=2", "minibatches=2", "checkpoint_every=1", "device=cpu"]
@@ -93,8 +95,8 @@ def test_gaussian_actions_masked_losses_and_the_set_network_name_their_device(tm
 
 @pytest.mark.slow
 def test_compiled_update_names_its_device(tmp_path: Path) -> None:
-    """compile=true: the Adam state the compiled step creates, and the graph's inputs (~30 s: one compile)."""
-    cfg = _cfg("hammer", "rl", 12, ["compile=true"])
+    """compile=true: the Adam state the compiled step creates, and the graph's inputs (one compile)."""
+    cfg = _cfg("hammer", "rl", 12, ["compile=true", *COMPILE_NETS])
     with default_device_meta():
         summary = train(cfg, RunDir.create(tmp_path / "c", cfg), tensorboard=False)
     assert summary["episodes"] == 12

@@ -13,6 +13,8 @@ from hammer.envs.registry import make_vec_env
 from hammer.learning.config import merge_config
 from hammer.learning.ppo_update import TeamLearner
 
+from tests.runtime_helpers import COMPILE_NETS
+
 
 def _fill(learner: TeamLearner, rng: np.random.Generator, spec) -> tuple[np.ndarray, np.ndarray]:
     """A rollout buffer of random but well-formed experience (episodes end at the last step)."""
@@ -72,7 +74,9 @@ def _assert_same_update(eager: TeamLearner, compiled: TeamLearner, obs, prev, up
     ["variant=hammer", "central_mode=backprop", "epochs=1", "compile_scope=epoch"],
 ])
 def test_compiled_update_matches_eager(overrides):
-    cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=10", "minibatches=2", *overrides])
+    # 4 copies x 25 steps, 2 minibatches: tests/test_device.py's compiled run has these shapes, so
+    # in one session its update graph comes from inductor's cache instead of another C++ build.
+    cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=25", "minibatches=2", *COMPILE_NETS, *overrides])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)
     eager = TeamLearner(cfg, env.spec)
     compiled = TeamLearner(cfg.model_copy(update={"compile": True}), env.spec)  # same seed: same weights
@@ -97,7 +101,7 @@ def test_compiled_update_matches_eager(overrides):
 def test_compiled_update_resumes_from_a_checkpoint_exactly():
     """A compiled learner restored from another's state continues bit-identically (the compiled
     step reads the Adam state the optimiser holds, also after `load_state` replaced it)."""
-    cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=10", "minibatches=2", "epochs=1",
+    cfg = merge_config("cn3", overrides=["num_envs=4", "rollout_steps=25", "minibatches=2", "epochs=1", *COMPILE_NETS,
                                          "variant=hammer", "central_mode=rl", "compile=true"])
     env = make_vec_env(cfg.env, cfg.n_agents, cfg.num_envs)
     first = TeamLearner(cfg, env.spec)

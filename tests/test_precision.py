@@ -21,6 +21,8 @@ from hammer.learning.rundir import RunDir
 from hammer.learning.trainer import Trainer, train
 from typer.testing import CliRunner
 
+from tests.runtime_helpers import COMPILE_NETS
+
 SMALL = ["num_envs=4", "rollout_steps=25", "epochs=2", "minibatches=2", "checkpoint_every=1"]
 NO_NATIVE_BF16 = bf16_unsupported(torch.device("cpu"))
 
@@ -151,7 +153,7 @@ def test_the_compiled_update_runs_under_bf16(tmp_path, bf16_here):
     run's (compiling alone moves them by rounding, ~1e-7; bfloat16 by ~1e-4)."""
     rows = {}
     for name, extra in (("fp32", ()), ("bf16", ("precision=bf16", "compile=true", "compile_scope=epoch"))):
-        cfg = _cfg(*extra)
+        cfg = _cfg(*COMPILE_NETS, *extra)
         train(cfg, RunDir.create(tmp_path / name, cfg), tensorboard=False)
         rows[name] = RunDir.load_checkpoint(RunDir(tmp_path / name).latest_checkpoint())[0]
     gap = max((rows["fp32"][k] - rows["bf16"][k]).abs().max().item() for k in rows["fp32"] if k.startswith("local/"))

@@ -202,9 +202,17 @@ def test_a_rollback_to_weights_held_needs_no_pull(policies, tmp_path):
         agent = net.session("local-0")
         intake = WeightsIntake(agent, "local", lambda data, v: None, timeout_s=5.0)
         time.sleep(0.5)
-        run = _served(tmp_path, b)
+        run = tmp_path / "run"
+        run.mkdir()
         _, runner = _serve(net, a, run)
         runner.start()
+        # Version 0 held first, as an agent holds it: the server's first publication, or, when that
+        # went out before the new server's session learnt of this subscription (a loaded machine),
+        # the query an agent without its version sends. Pushed while it was unheld, it could only
+        # be pulled whole later, which is not what this test is about.
+        intake.take(0)
+        assert intake.version == 0 and intake.chunk_queries == 0
+        (run / "pushes.json").write_text(json.dumps([{"version": 1, "action": "push", "policy_dir": str(b)}]))
         _pull(intake)
         asked = intake.chunk_queries
         intake.take(1)
