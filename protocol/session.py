@@ -110,7 +110,7 @@ FLEET_OPEN_TIMEOUT_MS = 500
 # connection, and each attempt given up after 0.5 s leaves a handshake that will fail: once six
 # clients of one listener are retrying, every new attempt waits behind more than 0.5 s of dead ones,
 # is given up in turn, and the router admits no one, for as long as the clients keep trying (robots
-# stranded 40 s and more after a 4 s stall, docs/fleet.md "A stalled server"). An attempt that waits
+# stranded, docs/fleet.md "A stalled server"). An attempt that waits
 # for its turn instead (Zenoh's own 10 s) is admitted as soon as the dead ones ahead of it are done.
 FLEET_LOOPBACK_OPEN_TIMEOUT_MS = 10_000
 FLEET_RECONNECT_MAX_MS = 100

@@ -208,9 +208,9 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
 
 
 def _connect(address: str):
-    """A driver on the module's head. A loaded machine can keep the head's GCS from answering a new
-    driver within Ray's own connect timeout (once in a CI run, after earlier drivers had come and
-    gone): asked again, it answers; what these tests check comes after the connection."""
+    """A driver on the module's head, asked up to three times: a loaded machine can keep the head
+    from answering a new driver within Ray's own connect timeout, and what these tests check comes
+    after the connection (a head that never answers still fails them)."""
     from hammer.experiments.ray_backend import RayLauncher, RayUnavailable
 
     for attempt in range(3):
