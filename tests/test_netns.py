@@ -48,12 +48,14 @@ def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv)
     b = _update_of(a, tmp_path / "b")
     tag = f"t{os.getpid() % 10000}"
     try:
-        r = chain(tmp_path / "chain", a, b, edge_venv, rates=(1024,), episodes=320, tag=tag)  # 1,000 steps: a push is pulled in chunks (~70 steps) before it is named
+        # 1,250 steps: a push is pulled in chunks before it is named, and on a loaded machine each of
+        # the push and the rollback (a CLI start each) can take a couple of hundred steps
+        r = chain(tmp_path / "chain", a, b, edge_venv, rates=(1024,), episodes=400, tag=tag)
     except NetnsUnavailable as e:
         pytest.skip(str(e))
     run = r["runs"][0]
     assert run["completed"] and run["edge_exit_codes"] == [0, 0, 0], run
-    assert run["steps"] == 1000 and run["default_actions"] == 0 and run["off_policy_actions"] == 0
+    assert run["steps"] == 1250 and run["default_actions"] == 0 and run["off_policy_actions"] == 0
     assert set(run["bytes_per_step"]) == {"local-0", "local-1", "local-2", "central"}
     assert all(x > 300 for x in run["bytes_per_step"].values()), run  # each step crossed every link
     up = run["updates"]
@@ -68,7 +70,7 @@ def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv)
     assert only_a["match_per_version"][1] < 0.7  # B did act differently in its window
     assert (tmp_path / "chain" / "team.gif").stat().st_size > 10_000 and "25 frames" in r["play"]
     said = summary_lines(r, tmp_path / "chain")  # what `make edge-chain` prints: a line per step, no JSON
-    assert said[1].startswith("served, agent 0's link 1024 kbit/s: completed, 320 episodes")
+    assert said[1].startswith("served, agent 0's link 1024 kbit/s: completed, 400 episodes")
     assert "push and rollback: steps acted per version v0 " in said[2] and "no step missed: True" in said[2]
     assert said[3].startswith("  replay with each version's weights: 100.0% of the actions match")
     assert not any(line.lstrip().startswith(("{", "}", '"')) for line in said)
