@@ -22,7 +22,7 @@ waited for. `msg_wait_s` = 0: never wait, every observation carries the message 
 
 The site (docs/fleet.md, "The site feed"): a team whose rows have central-only columns [L, D)
 (rware's requested shelves and goals) has them from the site, not from any robot. So the world
-hands the env's current columns to `site` (an object with `publish(cols)`) at every tick before the
+hands the env's current columns to `site` (an object with `publish(cols)` and `counter`, its count's name) at every tick before the
 state: the site feed SDK `serve/site_feed.SiteFeed` on its own session and identity, which the world
 command opens (the world is the site), or, when the site runs elsewhere, `WarehouseRecord` (a file
 in the run directory that site reads, as a management system reads its database); a robot's observation holds its own columns [0, L) only (the site's would be
@@ -105,7 +105,7 @@ class RealtimeWorld(Role):
         self.local_dim = local if local not in (None, self.spec.obs_dim) else None  # [L, D): the site's columns
         self.site, self.site_published = (site if self.local_dim is not None else None), 0
         # the feed's publisher counts as the world's publishing; a site elsewhere's record as what it handed on
-        self.site_counter = getattr(site, "counter", "site_published")
+        self.site_counter = site.counter if self.site is not None else ""
         self.obs, self.active = self._site_split(*env.reset(seed))
         self.startup_s = startup_s
         self.timeline = None if timeline is None else open(timeline, "a", buffering=1)  # noqa: SIM115 - closed in on_stop

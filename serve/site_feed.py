@@ -43,6 +43,7 @@ class SiteFeed(FleetClient):
     background. `counts`: `published`, `unjoined` (calls before the session was open)."""
 
     _alone = "the feed sends nothing"
+    counter = "site_published"  # the world's count of ticks whose columns went out on the feed
 
     def __init__(self, bundle: str | Path, *, run_id: str, connect: str | None = None,
                  zenoh_config: Path | None = None, identity: Path | None = None, insecure: bool = False,
@@ -117,22 +118,30 @@ WAREHOUSE_FILE = "warehouse.npy"  # in a simulated fleet's run directory: the wa
 
 class WarehouseRecord:
     """A simulated warehouse's management system, as far as the site feed needs one: the world of a
-    fleet whose site runs elsewhere (`hammer serve --realtime --external-site`) writes the env's
+    fleet whose site runs elsewhere (`hammer serve --realtime --external-site`) hands the env's
     current central-only columns here at every tick (`publish`, the world's one way to hand them on),
     and that site reads them (`simulated_warehouse`) to publish them. Out of band, as a real management
     system reads its own database: cutting the site's link silences the feed, not what the site knows.
-    Each write replaces the file whole (os.replace), so a reader gets one tick's columns or the one before."""
+    The file is rewritten only when the columns change (requests and goals move on a delivery, not on
+    every tick), so the world's tick loop does no file I/O on most ticks; each write replaces the file
+    whole (os.replace), so a reader gets one state's columns or the one before."""
 
     counter = "site_recorded"  # the world's count of ticks it handed on (not published: the site does)
 
     def __init__(self, run_dir: str | Path) -> None:
         self.path = Path(run_dir) / WAREHOUSE_FILE
         self._tmp = self.path.with_name(f".{WAREHOUSE_FILE}.{os.getpid()}")
+        self._written: np.ndarray | None = None
+        self.writes = 0
 
     def publish(self, cols: np.ndarray) -> bool:
+        cols = np.asarray(cols, np.float32)
+        if self._written is not None and np.array_equal(cols, self._written):
+            return True  # the record already holds these columns
         with open(self._tmp, "wb") as f:
-            np.save(f, np.asarray(cols, np.float32), allow_pickle=False)
+            np.save(f, cols, allow_pickle=False)
         os.replace(self._tmp, self.path)
+        self._written, self.writes = cols.copy(), self.writes + 1
         return True
 
 

@@ -217,7 +217,7 @@ def trained_bundle(tmp_path_factory):
 def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset(trained_bundle, tmp_path):
     """A trained warehouse team (the archived rware-tiny-2ag hammer rl team, exported) served with
     `--external-site`: the world writes the env's current central-only columns for the site
-    (RUN/warehouse.npy, every tick) and a site beside it (`hammer.site.simulated_warehouse` +
+    (RUN/warehouse.npy, whenever they change) and a site beside it (`hammer.site.simulated_warehouse` +
     `SiteFeed`) publishes them. What the site published follows the warehouse: not its layout at
     reset (the world's env, reset with the team's seed), and changing as the robots carry shelves
     and deliver; the central agent took the states."""
@@ -255,6 +255,23 @@ def test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layo
     assert len(sent) > 100 and all(c.shape == reset.shape for c in sent)
     assert not all(np.array_equal(c, reset) for c in sent), "the site's feed stayed at the warehouse's layout at reset"
     assert len({c.tobytes() for c in sent}) >= 3, "the feed did not follow the warehouse"
+
+
+def test_the_warehouse_record_is_rewritten_only_when_the_columns_change(tmp_path):
+    """The world hands the record every tick's columns; the file (what the site reads) is replaced
+    only when they differ from the last written, and a reader always gets the latest."""
+    from hammer.serve.site_feed import WarehouseRecord
+
+    from hammer.site import simulated_warehouse
+
+    record, read = WarehouseRecord(tmp_path), simulated_warehouse(tmp_path)
+    assert read() is None
+    a, b = np.zeros(5, np.float32), np.arange(5, dtype=np.float32)
+    for cols in (a, a, a.copy(), b, b, a):
+        assert record.publish(cols)
+        assert np.array_equal(read(), cols)
+    assert record.writes == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["warehouse.npy"]
 
 
 def test_a_team_without_a_feed_or_a_fleet_without_one_is_told_in_one_line(bundle, tmp_path):
