@@ -42,11 +42,19 @@ up: $(LINKS)
 # fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
 JOBS ?= 2
 XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup --no-loadscope-reorder)
-# Two stages: the tests judged on time (mark `serial`, tests/tiers.py) alone first, then the rest on
-# the workers; the 20 slowest of the second stage close the output.
+# Two pytest runs at once: the tests judged on time (mark `serial`, tests/tiers.py) one at a time,
+# beside the rest on the workers, which run at the lowest CPU priority (nice 19) so that a serial
+# test's processes get a core whenever they want one and the workers only the cycles they leave (most
+# serial tests wait on clocks and links). The serial run's output follows the workers'; the 20 slowest
+# tests of each close it. Exit status 5 is "none selected" (e.g. ARGS="-k codec").
 test: $(LINKS)
-	$(PY) -m pytest -q -m serial $(ARGS) || [ $$? -eq 5 ]  # 5: none selected (e.g. ARGS="-k codec")
-	$(PY) -m pytest -q -m "not serial" $(XDIST) --durations=20 $(ARGS) || [ $$? -eq 5 ]
+	@serial=$$(mktemp); \
+	$(PY) -m pytest -q -m serial -p no:cacheprovider --durations=20 $(ARGS) > $$serial 2>&1 & pid=$$!; \
+	nice -n 19 $(PY) -m pytest -q -m "not serial" $(XDIST) --durations=20 $(ARGS); workers=$$?; \
+	wait $$pid; alone=$$?; \
+	echo "== the tests judged on time (mark serial), run beside the workers at a higher priority =="; \
+	cat $$serial; rm -f $$serial; \
+	[ $$workers -eq 0 -o $$workers -eq 5 ] && [ $$alone -eq 0 -o $$alone -eq 5 ]
 
 # The development loop's default: the tests without a tier mark (tests/tiers.py).
 check: $(LINKS)
