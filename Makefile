@@ -38,9 +38,10 @@ setup: $(LINKS)
 up: $(LINKS)
 	$(VENV)/bin/hammer up $(ARGS)
 
-# The suite on $(JOBS) xdist workers; tests/conftest.py keeps a module's tests on one worker (its
+# The suite on $(JOBS) xdist workers (three: a third fills the cores the others' tests leave idle
+# while they wait on clocks and links); tests/conftest.py keeps a module's tests on one worker (its
 # fixtures are built once) and names what else must share one. JOBS=0 runs it in this process.
-JOBS ?= 2
+JOBS ?= 3
 XDIST = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadgroup --no-loadscope-reorder)
 # Two pytest runs at once: the tests judged on time (mark `serial`, tests/tiers.py) one at a time,
 # beside the rest on the workers, which run at the lowest CPU priority (nice 19) so that a serial

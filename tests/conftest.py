@@ -61,7 +61,7 @@ def pytest_addoption(parser):
 
 
 def pytest_ignore_collect(collection_path, config):
-    """`-m serial` alone (make test's first stage) imports only the files that hold a serial test:
+    """`-m serial` alone (make test's run of the serial tests) imports only the files that hold a serial test:
     importing the others (torch, the envs, every module's helpers) would only end in deselecting
     them, seconds spent before the stage's first test."""
     if (config.getoption("markexpr", "") == "serial" and collection_path.suffix == ".py"
@@ -144,8 +144,8 @@ def _fast_tier_starts_no_process(request):
 
 
 # HAMMER_TEST_CPU=FILE (off by default): each test's CPU seconds, appended to FILE as CSV rows
-# (nodeid, cpu_s, wall_s). The suite is CPU-bound on a small machine, so this, not wall time, says
-# which tests to make cheaper. Counted: this process (all its threads), the children it reaped, and
+# (nodeid, cpu_s, wall_s, worker, start as Unix time). The suite is CPU-bound on a small machine, so
+# this, not wall time, says which tests to make cheaper; the worker and start show the schedule. Counted: this process (all its threads), the children it reaped, and
 # every live descendant with the children each of those reaped (a compile worker pool, a role and
 # its own workers), as deltas over the test's setup, call and teardown; a module's fixtures count
 # in its first test.
@@ -176,4 +176,5 @@ if _CPU_FILE:
         cpu, wall = _cpu_now(), time.monotonic()
         yield
         with open(_CPU_FILE, "a") as f:
-            f.write(f"{item.nodeid},{_cpu_now() - cpu:.2f},{time.monotonic() - wall:.2f}\n")
+            f.write(f"{item.nodeid},{_cpu_now() - cpu:.2f},{time.monotonic() - wall:.2f},"
+                    f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')},{time.time() - (time.monotonic() - wall):.1f}\n")

@@ -7,8 +7,8 @@
   installs  builds a venv or a wheel with pip
   slow      long in any other way
   serial    judged on time (a rate, a deadline, a page that must change within seconds) with processes
-            of its own: `make test` runs these first, one at a time, before the xdist workers start,
-            so the other worker's load cannot fail them
+            of its own: `make test` runs these one at a time beside the xdist workers, which run at
+            nice 19, so the workers' load takes only the cycles these leave and cannot fail them
 
 `make test` (the README's and CI's command) runs them all. A whole module is named by its file's stem;
 single tests as "stem::test_name" (parametrised cases included). In the fast tier a test that starts a
