@@ -111,8 +111,10 @@ paper-dose: $(LINKS)
 # The warehouse study at its planned budget (docs/results/plan-warehouse.md, addendum): 5M env steps.
 G_RW5M_2 := --out runs/paper/rware5m-2 --archive $(A)/rware5m-2 --presets rware-tiny-2ag --episodes 10000
 G_RW5M_4 := --out runs/paper/rware5m-4 --archive $(A)/rware5m-4 --presets rware-tiny-4ag --episodes 10000
-# N = 2 at 10M env steps (20,000 episodes): its 5M pilot was still rising (addendum of 2026-12-06 15:13).
+# Both N at 10M env steps (20,000 episodes): each 5M pilot was still rising (addenda of 2026-12-06 15:13
+# for N = 2, 20:05 for N = 4).
 G_RW10M_2 := --out runs/paper/rware10m-2 --archive $(A)/rware10m-2 --presets rware-tiny-2ag --episodes 20000
+G_RW10M_4 := --out runs/paper/rware10m-4 --archive $(A)/rware10m-4 --presets rware-tiny-4ag --episodes 20000
 # Every variant and seed of a warehouse family: what `snapshot` and `status` look at.
 RW_ALL := --variants hammer-rl,il,hammer-backprop,random --seeds 0-9
 paper-warehouse: $(LINKS)
@@ -135,24 +137,24 @@ paper: $(LINKS)
 	$(H) sweep $(G_MW5_PILOT)
 	$(MAKE) paper-report
 
-# Pilot first (3 seeds of hammer-rl and IL at each N), then the grid; the plan says when B doubles.
-# N = 2's pilot doubled B (plan-warehouse.md, addendum of 2026-12-06 15:13): its grid runs at 10M in
-# `make paper-warehouse-10m`, not here; N = 4's stays at 5M unless its own pilot says otherwise.
+# The pilots (3 seeds of hammer-rl and IL at each N, archived): the plan's rule on them doubled B at both N
+# (plan-warehouse.md, addenda of 2026-12-06 15:13 and 20:05), so the grid runs at 10M in
+# `make paper-warehouse-10m`; on a clone this skips the archived pilots.
 paper-warehouse-5m: $(LINKS)
 	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
 	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 0-2 --snapshot-every 20
-	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
-	$(H) sweep $(G_RW5M_4) --variants hammer-rl,il,hammer-backprop,random --seeds 0-9 --snapshot-every 20
 
-# N = 2 at 10M (plan-warehouse.md, addenda of 2026-12-06): the six 5M pilot runs continued from their last
-# checkpoint to 20,000 episodes (committed in $(A)/rware10m-2/_partial/, so a fresh clone restores and resumes
-# them; on the machine that ran the pilot, --extend-from finds them in its sweep directory too), then hammer rl
-# and IL seeds 3-9, then all four variants. The plan orders N = 2 before N = 4 at each stage: run this beside
-# `make paper-warehouse-5m` (a sweep each, one core each) or before its N = 4 stages.
+# The study at 10M (plan-warehouse.md, addenda of 2026-12-06), in the plan's order, N = 2 before N = 4 at
+# each stage: the 5M pilot runs continued from their last checkpoint to 20,000 episodes (committed in
+# $(A)/rware10m-N/_partial/, so a fresh clone restores and resumes them; on the machine that ran a pilot,
+# --extend-from finds them in its sweep directory too), then hammer rl and IL seeds 3-9, then all four variants.
 paper-warehouse-10m: $(LINKS)
 	$(H) sweep $(G_RW10M_2) --variants hammer-rl,il --seeds 0-2 --extend-from runs/paper/rware5m-2 --snapshot-every 20
+	$(H) sweep $(G_RW10M_4) --variants hammer-rl,il --seeds 0-2 --extend-from runs/paper/rware5m-4 --snapshot-every 20
 	$(H) sweep $(G_RW10M_2) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
+	$(H) sweep $(G_RW10M_4) --variants hammer-rl,il --seeds 3-9 --snapshot-every 20
 	$(H) sweep $(G_RW10M_2) $(RW_ALL) --snapshot-every 20
+	$(H) sweep $(G_RW10M_4) $(RW_ALL) --snapshot-every 20
 
 # Before a session stops: copy every unfinished run of the paper grids (latest checkpoint, config,
 # gzipped metrics) to $(A)/<grid>/_partial/ and commit it; `make paper` on a fresh clone restores
@@ -175,6 +177,7 @@ snapshot: $(LINKS)
 	$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --snapshot
 	$(H) sweep $(G_RW5M_4) $(RW_ALL) --snapshot
 	$(H) sweep $(G_RW10M_2) $(RW_ALL) --snapshot
+	$(H) sweep $(G_RW10M_4) $(RW_ALL) --snapshot
 
 # Where every grid stands (archived, running, resumable, snapshot, not started); changes nothing.
 status: $(LINKS)
@@ -195,6 +198,7 @@ status: $(LINKS)
 	@$(H) sweep $(G_RW5M_2) --variants hammer-rl,il --seeds 0-2 --status
 	@$(H) sweep $(G_RW5M_4) $(RW_ALL) --status
 	@$(H) sweep $(G_RW10M_2) $(RW_ALL) --status
+	@$(H) sweep $(G_RW10M_4) $(RW_ALL) --status
 
 # The re-analysis of every published comparison as one family (docs/results/plan-reanalysis.md):
 # msglen's m=4 seeds are the cn3 grid's own runs, so only m=1, 2, 8 join.
@@ -239,12 +243,12 @@ paper-report: $(LINKS)
 	$(if $(call FAMILY_DONE,rware-cmp4),-$(H) plot $(A)/rware-cmp4 --band iqm --out docs/results/warehouse-cmp4-curves)
 	$(if $(filter 6,$(words $(wildcard $(A)/rware5m-2/*/summary.json))),-$(H) plot $(A)/rware5m-2 --out docs/results/warehouse5m-2-pilot-curves)
 	$(if $(filter 6,$(words $(RW5M_4_PILOT))),-$(H) plot $(RW5M_4_PILOT) --out docs/results/warehouse5m-4-pilot-curves)
-	$(if $(call FAMILY_DONE,rware5m-4),-$(H) report $(A)/rware5m-4 --last 1000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse5m-4-table.md)
-	$(if $(call FAMILY_DONE,rware5m-4),-$(H) report $(A)/rware5m-4 --auc 10000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse5m-4-auc-table.md)
-	$(if $(call FAMILY_DONE,rware5m-4),-$(H) plot $(A)/rware5m-4 --band iqm --out docs/results/warehouse5m-4-curves)
 	$(if $(call FAMILY_DONE,rware10m-2),-$(H) report $(A)/rware10m-2 --last 2000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse10m-2-table.md)
 	$(if $(call FAMILY_DONE,rware10m-2),-$(H) report $(A)/rware10m-2 --auc 20000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse10m-2-auc-table.md)
 	$(if $(call FAMILY_DONE,rware10m-2),-$(H) plot $(A)/rware10m-2 --band iqm --out docs/results/warehouse10m-2-curves)
+	$(if $(call FAMILY_DONE,rware10m-4),-$(H) report $(A)/rware10m-4 --last 2000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse10m-4-table.md)
+	$(if $(call FAMILY_DONE,rware10m-4),-$(H) report $(A)/rware10m-4 --auc 20000 --comparisons $(RW_CMP) --digits 3 --out docs/results/warehouse10m-4-auc-table.md)
+	$(if $(call FAMILY_DONE,rware10m-4),-$(H) plot $(A)/rware10m-4 --band iqm --out docs/results/warehouse10m-4-curves)
 	-$(MAKE) --no-print-directory messages
 
 # Still frames of a trained 4-robot team (the pilot's hammer rl seed 1) with its messages: warehouse-team.png.
@@ -269,8 +273,8 @@ messages: $(LINKS)
 	$(if $(wildcard $(A)/cn3-dose),$(H) messages $(MESSAGE_RUNS) $(A)/cn3-dose $(A)/cn3-dose-full --teams hammer-rl$(,)random --out docs/results/messages --figure docs/results/messages-episode-dose.png)
 	$(if $(call FAMILY_DONE,rware-cmp),$(call WAREHOUSE_MESSAGES,rware-cmp,warehouse2))
 	$(if $(call FAMILY_DONE,rware-cmp4),$(call WAREHOUSE_MESSAGES,rware-cmp4,warehouse4))
-	$(if $(call FAMILY_DONE,rware5m-4),$(call WAREHOUSE_MESSAGES,rware5m-4,warehouse5m-4))
 	$(if $(call FAMILY_DONE,rware10m-2),$(call WAREHOUSE_MESSAGES,rware10m-2,warehouse10m-2))
+	$(if $(call FAMILY_DONE,rware10m-4),$(call WAREHOUSE_MESSAGES,rware10m-4,warehouse10m-4))
 
 # The cn3-ownobs teams (archived with their weights) under the real runtime: hammer with its messages
 # and with every message cut, IL without faults; 10 training seeds (backprop mode: 5) x 2 eval seeds
