@@ -595,26 +595,47 @@ def sweep_status(points: list[SweepPoint], out: Path, archive: Path | None = Non
 LOCK = ".sweep.lock"
 
 
-def _alive(pid: int) -> bool:
+def _started(pid: int) -> str | None:
+    """When process `pid` started (clock ticks since boot, Linux's /proc), or None where unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _holder(pid: int) -> str:
+    """A lock's entry for `pid`: "PID@START", so that another process given the same pid later (pids
+    are reused, and a lock can outlive its sweep by days) is not taken for the holder."""
+    start = _started(pid)
+    return f"{pid}@{start}" if start is not None else str(pid)
+
+
+def _alive(holder: str) -> bool:
+    pid_text, _, start = holder.partition("@")
+    pid = int(pid_text)
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    return not start or _started(pid) in (start, None)
 
 
-def _holders(path: Path) -> list[int]:
+def _holders(path: Path) -> list[str]:
     try:
-        return [int(x) for x in path.read_text().split()]
+        entries = path.read_text().split()
+        for e in entries:
+            int(e.partition("@")[0])
+        return entries
     except (OSError, ValueError):
         return []
 
 
 def _held(run_dir: Path) -> bool:
     """Whether a live process (a sweep or its `hammer train` child) holds the run directory's lock."""
-    return any(_alive(pid) for pid in _holders(run_dir / LOCK))
+    return any(_alive(h) for h in _holders(run_dir / LOCK))
 
 
 def _create(path: Path, text: str) -> bool:
@@ -642,7 +663,7 @@ def _lock(run_dir: Path, child: int | None = None) -> bool:
     over, so of two sweeps that both found it stale only one moves it; the other then finds the
     winner's lock and backs off (a lock it moved by mistake, taken meanwhile, goes back)."""
     path = run_dir / LOCK
-    me = f"{os.getpid()} {child or ''}".strip()
+    me = " ".join(_holder(pid) for pid in (os.getpid(), child) if pid is not None)
     if child is not None:  # we hold it already: record the child too
         tmp = path.with_name(f"{LOCK}.{os.getpid()}.tmp")
         tmp.write_text(me)
@@ -658,7 +679,7 @@ def _lock(run_dir: Path, child: int | None = None) -> bool:
             os.rename(path, aside)  # stale: its sweep and child are gone
         except FileNotFoundError:
             continue  # another sweep moved it first
-        if any(_alive(pid) for pid in _holders(aside)):  # a live lock taken between our check and the move
+        if any(_alive(h) for h in _holders(aside)):  # a live lock taken between our check and the move
             try:
                 os.link(aside, path)
             except FileExistsError:

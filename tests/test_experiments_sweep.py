@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 
 import pytest
 from hammer.experiments.sweep import expand, parse_grid_overrides, parse_seeds, run_sweep, state_of
@@ -82,6 +83,26 @@ def test_a_point_held_by_a_live_sweep_is_not_run_twice(tmp_path):
         holder.wait()
     res = run_sweep(pts, tmp_path, jobs=1, episodes=8)  # the holder is gone: a stale lock
     assert res.done == [pts[0].name] and not (run_dir / LOCK).exists()
+
+
+def test_a_lock_whose_pid_now_belongs_to_another_process_is_stale(tmp_path):
+    """A lock outlives its sweep (the machine's session ends), and the kernel gives its pids to other
+    processes: a lock names each holder with its start time, so a live process that took over a pid
+    does not hold the point ("busy" for a run nobody runs); a bare pid (older locks) still counts."""
+    from hammer.experiments.sweep import LOCK, _held, _holder, _lock
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    me = _holder(os.getpid())
+    assert me.startswith(f"{os.getpid()}@")
+    (run_dir / LOCK).write_text(me)
+    assert _held(run_dir)
+    pid, start = me.split("@")
+    (run_dir / LOCK).write_text(f"{pid}@{int(start) - 1}")  # this pid, another process's start
+    assert not _held(run_dir)
+    assert _lock(run_dir) and (run_dir / LOCK).read_text() == me  # taken over as stale
+    (run_dir / LOCK).write_text(pid)
+    assert _held(run_dir)
 
 
 def test_points_that_differ_only_in_a_field_their_variant_ignores_are_named():
