@@ -71,13 +71,15 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
 
 
 def test_the_edge_install_runs_on_python_3_13(tmp_path):
-    """Debian 13's Python: the base install and an edge agent from it in a served run (skipped where
-    no python3.13 is on PATH)."""
+    """Debian 13's Python: the base install (the session's wheel, which is for any Python 3) and an edge
+    agent from it in a served run (skipped where no python3.13 is on PATH)."""
     import os
     import shutil
     from pathlib import Path
 
     from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+
+    from tests.runtime_helpers import hammer_wheel
 
     pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
     found = [shutil.which("python3.13"), *map(str, sorted(pyenv.glob("3.13*/bin/python3.13")))]
@@ -88,7 +90,8 @@ def test_the_edge_install_runs_on_python_3_13(tmp_path):
         pytest.skip("no python3.13 interpreter (PATH, pyenv)")
     py313 = works[0]
     try:
-        py = build_edge_venv(tmp_path / "venv313", compile_pyc=False, python=py313)
+        py = build_edge_venv(tmp_path / "venv313", compile_pyc=False, python=py313, wheel=hammer_wheel(tmp_path),
+                             own_pip=False)
     except EdgeVenvError as e:
         if e.offline:
             pytest.skip(f"the package index is unreachable: {e}")
