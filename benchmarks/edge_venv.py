@@ -38,21 +38,26 @@ def clean_env() -> dict[str, str]:
 
 
 def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180, compile_pyc: bool = True,
-                    python: str | Path = sys.executable) -> Path:
+                    python: str | Path = sys.executable, wheel: Path | None = None, own_pip: bool = True) -> Path:
     """Make `path` a venv with only the base install of `project`; returns its python.
     Reuses a venv already built there from the same sources (its marker file). compile_pyc=False:
     pip skips byte-compiling (quicker to build; the first imports compile what they load).
-    `python`: the interpreter of the venv (e.g. a python3.13, what Debian 13 ships)."""
+    `python`: the interpreter of the venv (e.g. a python3.13, what Debian 13 ships).
+    `wheel`: a wheel already built from `project` (build_wheel), installed as it is; default: pip
+    builds one from a copy of the sources. own_pip=False: the venv gets no pip of its own and this
+    interpreter's pip installs into it (`pip --python`), which skips bootstrapping pip there."""
     path = Path(path)
     py = path / "bin" / "python"
     marker, stamp = path / ".hammer-edge", f"{python} {source_stamp(project)}"
     if py.is_file() and marker.is_file() and marker.read_text() == stamp:
         return py
-    subprocess.run([str(python), "-m", "venv", "--clear", str(path)], check=True, timeout=60, env=clean_env())
+    subprocess.run([str(python), "-m", "venv", "--clear", *([] if own_pip else ["--without-pip"]), str(path)],
+                   check=True, timeout=60, env=clean_env())
     base = tomllib.loads((project / "pyproject.toml").read_text())["project"]["dependencies"]
-    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", *([] if compile_pyc else ["--no-compile"])]
+    pip = [*([str(py), "-m", "pip"] if own_pip else [sys.executable, "-m", "pip", "--python", str(py)]),
+           "install", "-q", "--disable-pip-version-check", *([] if compile_pyc else ["--no-compile"])]
     with tempfile.TemporaryDirectory(prefix="hammer-src-") as tmp:
-        src = source_copy(project, Path(tmp) / "src")
+        src = wheel or source_copy(project, Path(tmp) / "src")
         for args in (["--no-deps", str(src)], base):
             r = subprocess.run([*pip, *args], check=False, timeout=timeout_s, capture_output=True, text=True,
                                env=clean_env())
@@ -62,6 +67,16 @@ def build_edge_venv(path: Path, project: Path = ROOT, timeout_s: float = 180, co
                                     offline=any(s in r.stderr for s in OFFLINE_SIGNS))
     marker.write_text(stamp)
     return py
+
+
+def build_wheel(dest: Path, project: Path = ROOT, timeout_s: float = 300) -> Path:
+    """The wheel of `project` (no dependencies), built into `dest` by this interpreter's pip with its own
+    setuptools (no isolated build environment to set up); returns its path."""
+    with tempfile.TemporaryDirectory(prefix="hammer-src-") as tmp:
+        src = source_copy(project, Path(tmp) / "src")
+        subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                        str(dest), str(src)], check=True, capture_output=True, timeout=timeout_s)
+    return next(Path(dest).glob("hammer_marl-*.whl"))
 
 
 def source_copy(project: Path, dest: Path) -> Path:

@@ -26,11 +26,16 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 @pytest.fixture(scope="session")
 def edge_venv(tmp_path_factory):
     """The python of a fresh venv with only the edge install of this checkout (benchmarks.edge_venv),
-    built once per session; skipped only when the package index is unreachable."""
+    built once per session from the session's wheel (tests/runtime_helpers.hammer_wheel), by this
+    interpreter's pip (the venv needs none of its own); skipped only when the package index is unreachable."""
     from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
 
+    from tests.runtime_helpers import hammer_wheel
+
+    edge = tmp_path_factory.mktemp("edge")
     try:
-        return build_edge_venv(tmp_path_factory.mktemp("edge") / "venv", compile_pyc=False)  # quicker to build
+        return build_edge_venv(edge / "venv", compile_pyc=False, wheel=hammer_wheel(edge),  # quicker to build
+                               own_pip=False)
     except EdgeVenvError as e:
         if e.offline:
             pytest.skip(f"the package index is unreachable, so no edge venv can be built: {e}")

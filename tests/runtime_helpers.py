@@ -62,8 +62,8 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
     return None
 
 
-# Where trained teams are kept for the whole session (tests/conftest.py sets it; every xdist worker
-# inherits it), so that modules training the same team train it once.
+# Where trained teams (and the wheel) are kept for the whole session (tests/conftest.py sets it; every
+# xdist worker inherits it), so that modules training the same team train it once.
 TEAMS_ENV = "HAMMER_TEST_TEAMS"
 SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
 # The networks of the tests that torch.compile: one hidden layer of 16 each, not the presets' two.
@@ -77,7 +77,6 @@ def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> P
     """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides`. Each
     distinct team is trained once a session, under a file lock in the shared cache, and copied here:
     the copy is the test's own to change."""
-    import fcntl
     import hashlib
     import shutil
 
@@ -89,21 +88,42 @@ def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> P
         cfg = merge_config(preset, overrides=list(overrides))
         train(cfg, RunDir.create(d, cfg), tensorboard=False)
 
-    cache = os.environ.get(TEAMS_ENV)
-    if not cache:
+    key = hashlib.sha256(repr((preset, tuple(overrides))).encode()).hexdigest()[:16]
+    kept = made_once(key, train_at)
+    if kept is None:
         train_at(run)
         return run
-    key = hashlib.sha256(repr((preset, tuple(overrides))).encode()).hexdigest()[:16]
+    shutil.copytree(kept, run)
+    return run
+
+
+def made_once(key: str, make) -> Path | None:
+    """The session's one copy of what `make(path)` writes at a path, made by the first worker that
+    asks, under a file lock in the shared cache (TEAMS_ENV); None outside such a session."""
+    import fcntl
+    import shutil
+
+    cache = os.environ.get(TEAMS_ENV)
+    if not cache:
+        return None
     kept = Path(cache) / key / "run"
     kept.parent.mkdir(parents=True, exist_ok=True)
     with open(kept.parent / "lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker may be training this team now
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker may be making it now
         if not (kept.parent / "done").exists():
             shutil.rmtree(kept, ignore_errors=True)
-            train_at(kept)
+            make(kept)
             (kept.parent / "done").touch()
-    shutil.copytree(kept, run)
-    return run
+    return kept
+
+
+def hammer_wheel(directory: Path) -> Path:
+    """The wheel of this checkout (benchmarks.edge_venv.build_wheel), built once a session for every
+    test that installs it; outside a session, built into `directory`."""
+    from hammer.benchmarks.edge_venv import build_wheel
+
+    kept = made_once("wheel", lambda d: build_wheel(d))
+    return next(kept.glob("hammer_marl-*.whl")) if kept is not None else build_wheel(directory)
 
 
 def trained_bundle(directory: Path, episodes: int) -> Path:

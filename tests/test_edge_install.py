@@ -11,22 +11,13 @@ import subprocess
 import pytest
 from hammer.benchmarks.edge_venv import clean_env
 from hammer.deploy.launcher import launch
-from hammer.learning.config import merge_config
-from hammer.learning.rundir import RunDir
-from hammer.learning.trainer import train
 from hammer.protocol.session import free_loopback_port
-from hammer.serve.bundle import export_bundle
+from hammer.serve.bundle import load_bundle
 from hammer.serve.served_settings import serve_settings
 
+from tests.runtime_helpers import trained_bundle
+
 pytestmark = pytest.mark.timeout(240)
-
-
-def _bundle(tmp_path, episodes: int):
-    """A briefly trained cn3 team (8 copies) exported as a bundle."""
-    run = tmp_path / "run"
-    cfg = merge_config("cn3", overrides=["num_envs=8", "rollout_steps=25", "epochs=1", f"episodes={episodes}", "seed=2"])
-    train(cfg, RunDir.create(run, cfg), tensorboard=False)
-    return export_bundle(run, tmp_path / "bundle")
 
 
 def _served_with_edge_agent(hammer: str, bundle, tmp_path, agent: int, episodes: int):
@@ -59,7 +50,7 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
     r = subprocess.run([hammer, "train", "--episodes", "1"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
 
-    bundle = _bundle(tmp_path, episodes=24)
+    bundle = load_bundle(trained_bundle(tmp_path, episodes=16))
     r = subprocess.run([hammer, "play", str(bundle.path), "--out", "team.gif"], check=False, capture_output=True,
                        text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "pip install 'hammer-marl[train]'" in r.stderr
@@ -71,13 +62,15 @@ def test_an_edge_only_install_serves_in_a_real_run(tmp_path, edge_venv):
 
 
 def test_the_edge_install_runs_on_python_3_13(tmp_path):
-    """Debian 13's Python: the base install and an edge agent from it in a served run (skipped where
-    no python3.13 is on PATH)."""
+    """Debian 13's Python: the base install (the session's wheel, which is for any Python 3) and an edge
+    agent from it in a served run (skipped where no python3.13 is on PATH)."""
     import os
     import shutil
     from pathlib import Path
 
     from hammer.benchmarks.edge_venv import EdgeVenvError, build_edge_venv
+
+    from tests.runtime_helpers import hammer_wheel
 
     pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
     found = [shutil.which("python3.13"), *map(str, sorted(pyenv.glob("3.13*/bin/python3.13")))]
@@ -88,7 +81,8 @@ def test_the_edge_install_runs_on_python_3_13(tmp_path):
         pytest.skip("no python3.13 interpreter (PATH, pyenv)")
     py313 = works[0]
     try:
-        py = build_edge_venv(tmp_path / "venv313", compile_pyc=False, python=py313)
+        py = build_edge_venv(tmp_path / "venv313", compile_pyc=False, python=py313, wheel=hammer_wheel(tmp_path),
+                             own_pip=False)
     except EdgeVenvError as e:
         if e.offline:
             pytest.skip(f"the package index is unreachable: {e}")
@@ -96,7 +90,7 @@ def test_the_edge_install_runs_on_python_3_13(tmp_path):
     env = clean_env()
     assert subprocess.run([str(py), "-c", "import sys; assert sys.version_info[:2] == (3, 13)"], check=False,
                           env=env).returncode == 0
-    bundle = _bundle(tmp_path, episodes=8)
+    bundle = load_bundle(trained_bundle(tmp_path, episodes=16))
     res, out, code = _served_with_edge_agent(str(py.parent / "hammer"), bundle, tmp_path, agent=0, episodes=8)
     assert res.summary["completed"] and code == 0, out
     assert res.links["local->env"]["defaults"] == 0

@@ -1,5 +1,6 @@
-"""The edge chain across Linux network namespaces (tests/harness/edge_chain.py, benchmarks/netns.py): a team
-trained with `hammer train`, exported with `hammer export`, served with `hammer serve` in the hub namespace
+"""The edge chain across Linux network namespaces (tests/harness/edge_chain.py, benchmarks/netns.py): a
+briefly trained team (the session's, tests/runtime_helpers.trained_run: the chain's `hammer train` step is
+the same training in a process of its own), exported with `hammer export`, served with `hammer serve` in the hub namespace
 (router, env host, policy server), its central agent in a namespace of its own and each edge agent
 (`hammer local --bundle`, from a torch-free venv) in its own, joined by veth pairs with addresses private
 to them, agent 0's link limited with tc tbf; a hot update (`hammer push`) and a rollback (`hammer rollback`)
@@ -16,8 +17,8 @@ import pytest
 from hammer.benchmarks.netns import NetnsUnavailable
 from safetensors.numpy import load_file, save_file
 
-from tests.harness.edge_chain import chain, replay_check, summary_lines, train_team
-from tests.runtime_helpers import netns_reason
+from tests.harness.edge_chain import chain, replay_check, summary_lines
+from tests.runtime_helpers import SHORT_RUN, netns_reason, trained_run
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -43,8 +44,7 @@ def test_the_chain_across_namespaces_from_a_torch_free_venv(tmp_path, edge_venv)
     reason = netns_reason(("ip", "tc"))
     if reason:
         pytest.skip(reason)
-    a = train_team(tmp_path / "a", seed=1, episodes=16,
-                   sets=("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2"))
+    a = trained_run(tmp_path / "a", (*SHORT_RUN, "episodes=16", "seed=4"))
     b = _update_of(a, tmp_path / "b")
     tag = f"t{os.getpid() % 10000}"
     try:

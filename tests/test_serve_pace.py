@@ -24,10 +24,10 @@ from hammer.serve.policy_server import PolicyServer
 
 pytestmark = pytest.mark.timeout(120)
 CHUNK = 1024
-# The served runs that take a push at step 100: 4 env copies, so 2,500 steps. The switch came
+# The served runs that take a push at step 100: 4 env copies, so 1,250 steps. The switch came
 # within a few hundred steps of the push (the launcher's tick, the server's history check, ~70 chunks
 # of 512 B or one whole-weights query), so the run outlasts it several times over.
-PUSH_RUN_EPISODES = 400
+PUSH_RUN_EPISODES = 200
 
 
 @pytest.fixture(scope="module")

@@ -17,10 +17,10 @@ import venv
 from pathlib import Path
 
 import pytest
-from hammer.benchmarks.edge_venv import clean_env, source_copy
+from hammer.benchmarks.edge_venv import clean_env
 from hammer.protocol.session import free_loopback_port
 
-from tests.runtime_helpers import ROOT
+from tests.runtime_helpers import hammer_wheel
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -29,20 +29,18 @@ SHADOWS = ("experiments", "learning", "protocol", "deploy", "envs", "runtime", "
 
 @pytest.fixture(scope="module")
 def wheel_venv(tmp_path_factory):
-    """(python, site-packages) of a fresh venv with hammer installed from its wheel."""
+    """(python, site-packages) of a fresh venv with hammer installed from its wheel (the session's:
+    tests/runtime_helpers.hammer_wheel), by this interpreter's pip (the venv needs none of its own)."""
     d = tmp_path_factory.mktemp("wheel")
-    src = source_copy(ROOT, d / "src")
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
-                    str(d / "dist"), str(src)], check=True, capture_output=True, timeout=300)
-    wheel = next((d / "dist").glob("hammer_marl-*.whl"))
-    venv.EnvBuilder(with_pip=True).create(d / "venv")
+    wheel = hammer_wheel(d / "dist")
+    venv.EnvBuilder(with_pip=False).create(d / "venv")
     py = d / "venv" / "bin" / "python"
     sp = d / "venv" / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
     # every site-packages this interpreter reads (a venv's own, or the ones a path file of it adds)
     deps = [p for p in sys.path if p.endswith("site-packages") and Path(p).is_dir()] or site.getsitepackages()
     (sp / "hammer-deps.pth").write_text("\n".join(deps) + "\n")
-    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True,
-                   capture_output=True, timeout=300)
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps", "--no-index",
+                    str(wheel)], check=True, capture_output=True, timeout=300)
     return py, sp
 
 
