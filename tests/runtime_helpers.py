@@ -66,6 +66,13 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
 # inherits it), so that modules training the same team train it once.
 TEAMS_ENV = "HAMMER_TEST_TEAMS"
 SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
+# `hammer train --preset cn3 --variant hammer --central-mode rl` as the runtime tests run it (the
+# CLI takes HAMMER_TORCH_THREADS=1 from ENV): the trainer reference that `hammer up` must equal.
+CN3_RL = ("variant=hammer", "central_mode=rl", "torch_threads=1")
+# The team several modules compare against: the float32 rl run without absences or a local view,
+# with its TensorBoard events; a shorter run's episodes are its first ones (no schedule depends on
+# the episode budget).
+CN3_RL_100 = (*CN3_RL, "episodes=100")
 # The networks of the tests that torch.compile: one hidden layer of 16 each, not the presets' two.
 # A compile's cost (inductor's codegen and the C++ build, per graph, on a cold cache in CI) grows
 # with the layers the graph steps through (forward, backward, clip, Adam per tensor); what those
@@ -73,10 +80,10 @@ SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
 COMPILE_NETS = ("actor_hidden=[16]", "critic_hidden=[16]", "central_hidden=[16]")
 
 
-def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> Path:
-    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides`. Each
-    distinct team is trained once a session, under a file lock in the shared cache, and copied here:
-    the copy is the test's own to change."""
+def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3", tensorboard: bool = False) -> Path:
+    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides` (and its
+    TensorBoard events with `tensorboard`). Each distinct team is trained once a session, under a
+    file lock in the shared cache, and copied here: the copy is the test's own to change."""
     import fcntl
     import hashlib
     import shutil
@@ -87,13 +94,13 @@ def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> P
 
     def train_at(d: Path) -> None:
         cfg = merge_config(preset, overrides=list(overrides))
-        train(cfg, RunDir.create(d, cfg), tensorboard=False)
+        train(cfg, RunDir.create(d, cfg), tensorboard=tensorboard)
 
     cache = os.environ.get(TEAMS_ENV)
     if not cache:
         train_at(run)
         return run
-    key = hashlib.sha256(repr((preset, tuple(overrides))).encode()).hexdigest()[:16]
+    key = hashlib.sha256(repr((preset, tuple(overrides), *(("tb",) if tensorboard else ()))).encode()).hexdigest()[:16]
     kept = Path(cache) / key / "run"
     kept.parent.mkdir(parents=True, exist_ok=True)
     with open(kept.parent / "lock", "w") as lock:
