@@ -80,14 +80,32 @@ CN3_RL_100 = (*CN3_RL, "episodes=100")
 COMPILE_NETS = ("actor_hidden=[16]", "critic_hidden=[16]", "central_hidden=[16]")
 
 
-def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3", tensorboard: bool = False) -> Path:
-    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides` (and its
-    TensorBoard events with `tensorboard`). Each distinct team is trained once a session, under a
-    file lock in the shared cache, and copied here: the copy is the test's own to change."""
+def _kept(run: Path, key: tuple, make) -> Path:
+    """`make(d)` builds a run directory at `d`; each distinct `key` is built once a session, under a
+    file lock in the shared cache, and copied to `run`: the copy is the test's own to change."""
     import fcntl
     import hashlib
     import shutil
 
+    cache = os.environ.get(TEAMS_ENV)
+    if not cache:
+        make(run)
+        return run
+    kept = Path(cache) / hashlib.sha256(repr(key).encode()).hexdigest()[:16] / "run"
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    with open(kept.parent / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker may be building this run now
+        if not (kept.parent / "done").exists():
+            shutil.rmtree(kept, ignore_errors=True)
+            make(kept)
+            (kept.parent / "done").touch()
+    shutil.copytree(kept, run)
+    return run
+
+
+def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3", tensorboard: bool = False) -> Path:
+    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides` (and its
+    TensorBoard events with `tensorboard`), trained once a session (`_kept`)."""
     from hammer.learning.config import merge_config
     from hammer.learning.rundir import RunDir
     from hammer.learning.trainer import train
@@ -96,21 +114,26 @@ def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3", tens
         cfg = merge_config(preset, overrides=list(overrides))
         train(cfg, RunDir.create(d, cfg), tensorboard=tensorboard)
 
-    cache = os.environ.get(TEAMS_ENV)
-    if not cache:
-        train_at(run)
-        return run
-    key = hashlib.sha256(repr((preset, tuple(overrides), *(("tb",) if tensorboard else ()))).encode()).hexdigest()[:16]
-    kept = Path(cache) / key / "run"
-    kept.parent.mkdir(parents=True, exist_ok=True)
-    with open(kept.parent / "lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker may be training this team now
-        if not (kept.parent / "done").exists():
-            shutil.rmtree(kept, ignore_errors=True)
-            train_at(kept)
-            (kept.parent / "done").touch()
-    shutil.copytree(kept, run)
-    return run
+    return _kept(run, (preset, tuple(overrides), *(("tb",) if tensorboard else ())), train_at)
+
+
+# `hammer up` of cn3 in backprop mode, 100 episodes, with deadlines generous enough that a loaded
+# machine turns no slow message into a fallback: the one-process-per-agent run that both
+# test_runtime_up (against the trainer) and test_local_pool (against pooled agents) compare with.
+UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dashboard",
+                   "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+
+
+def up_run(run: Path, args: tuple[str, ...]) -> Path:
+    """A run directory at `run` of `hammer up ARGS` (a fresh CLI process, as a user starts it), run
+    once a session (`_kept`); its stdout is kept as `up.out` in the run directory."""
+
+    def up_at(d: Path) -> None:
+        r = hammer("up", *args, "--run-dir", str(d))
+        assert r.returncode == 0, r.stderr[-2000:]
+        (d / "up.out").write_text(r.stdout)
+
+    return _kept(run, ("up", tuple(args)), up_at)
 
 
 def trained_bundle(directory: Path, episodes: int) -> Path:

@@ -16,7 +16,15 @@ from hammer.experiments.train_stats import load_train_stats
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 
-from tests.runtime_helpers import CN3_RL, CN3_RL_100, hammer, processes_mentioning, trained_run
+from tests.runtime_helpers import (
+    CN3_RL,
+    CN3_RL_100,
+    UP_CN3_BACKPROP,
+    hammer,
+    processes_mentioning,
+    trained_run,
+    up_run,
+)
 
 
 def _metric_column(run_dir: Path) -> list[float]:
@@ -60,12 +68,10 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     over the first updates (100 episodes = 3 PPO updates of 32 episodes + the start of a 4th). The
     reference is the trainer run in process, as the CLI runs it (the session's cached team: the rl
     one is the reference of other tests too)."""
-    up = tmp_path / "up"
     # Generous deadlines: this test is about equality without faults, so a loaded CI machine must
-    # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py).
-    r1 = hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard",
-                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
-    assert r1.returncode == 0, r1.stderr[-2000:]
+    # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py). The
+    # backprop run is also test_local_pool's reference: the session runs it once.
+    up = up_run(tmp_path / "up", tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP))
     tr = trained_run(tmp_path / "train", tuple(o.replace("=rl", f"={mode}") for o in CN3_RL_100), tensorboard=True)
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
