@@ -62,8 +62,8 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
     return None
 
 
-# Where trained teams are kept for the whole session (tests/conftest.py sets it; every xdist worker
-# inherits it), so that modules training the same team train it once.
+# Where trained teams and `hammer up` runs are kept for the whole session (tests/conftest.py sets it;
+# every xdist worker inherits it), so that modules building the same run build it once.
 TEAMS_ENV = "HAMMER_TEST_TEAMS"
 SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
 # `hammer train --preset cn3 --variant hammer --central-mode rl` as the runtime tests run it (the
