@@ -43,9 +43,10 @@ def edge_venv(tmp_path_factory):
 
 
 def pytest_configure(config):
-    """The session's cache of trained teams (tests/runtime_helpers.trained_run), made by the main
-    process before any xdist worker starts, so that every worker inherits it; in the fast tier, the
-    watch on started processes (in each xdist worker, not in the main process that starts them)."""
+    """The session's cache of trained teams and `hammer up` runs (tests/runtime_helpers.trained_run,
+    up_run), made by the main process before any xdist worker starts, so that every worker inherits
+    it; in the fast tier, the watch on started processes (in each xdist worker, not in the main
+    process that starts them)."""
     if config.getoption("--fast") and (hasattr(config, "workerinput") or not config.getoption("numprocesses", None)):
         _watch_processes()
     if not hasattr(config, "workerinput") and TEAMS_ENV not in os.environ:

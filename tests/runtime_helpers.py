@@ -62,39 +62,22 @@ def netns_reason(tools: tuple[str, ...] = ("ip",)) -> str | None:
     return None
 
 
-# Where trained teams (and the wheel) are kept for the whole session (tests/conftest.py sets it; every
-# xdist worker inherits it), so that modules training the same team train it once.
+# Where trained teams, `hammer up` runs and the wheel are kept for the whole session (tests/conftest.py
+# sets it; every xdist worker inherits it), so that modules building the same thing build it once.
 TEAMS_ENV = "HAMMER_TEST_TEAMS"
 SHORT_RUN = ("num_envs=8", "rollout_steps=25", "epochs=1", "minibatches=2")
+# `hammer train --preset cn3 --variant hammer --central-mode rl` as the runtime tests run it (the
+# CLI takes HAMMER_TORCH_THREADS=1 from ENV): the trainer reference that `hammer up` must equal.
+CN3_RL = ("variant=hammer", "central_mode=rl", "torch_threads=1")
+# The team several modules compare against: the float32 rl run without absences or a local view,
+# with its TensorBoard events; a shorter run's episodes are its first ones (no schedule depends on
+# the episode budget).
+CN3_RL_100 = (*CN3_RL, "episodes=100")
 # The networks of the tests that torch.compile: one hidden layer of 16 each, not the presets' two.
 # A compile's cost (inductor's codegen and the C++ build, per graph, on a cold cache in CI) grows
 # with the layers the graph steps through (forward, backward, clip, Adam per tensor); what those
 # tests check (compiled = eager, the device, bf16, seed batches) does not depend on the depth.
 COMPILE_NETS = ("actor_hidden=[16]", "critic_hidden=[16]", "central_hidden=[16]")
-
-
-def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3") -> Path:
-    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides`. Each
-    distinct team is trained once a session, under a file lock in the shared cache, and copied here:
-    the copy is the test's own to change."""
-    import hashlib
-    import shutil
-
-    from hammer.learning.config import merge_config
-    from hammer.learning.rundir import RunDir
-    from hammer.learning.trainer import train
-
-    def train_at(d: Path) -> None:
-        cfg = merge_config(preset, overrides=list(overrides))
-        train(cfg, RunDir.create(d, cfg), tensorboard=False)
-
-    key = hashlib.sha256(repr((preset, tuple(overrides))).encode()).hexdigest()[:16]
-    kept = made_once(key, train_at)
-    if kept is None:
-        train_at(run)
-        return run
-    shutil.copytree(kept, run)
-    return run
 
 
 def made_once(key: str, make) -> Path | None:
@@ -115,6 +98,53 @@ def made_once(key: str, make) -> Path | None:
             make(kept)
             (kept.parent / "done").touch()
     return kept
+
+
+def _kept(run: Path, key: tuple, make) -> Path:
+    """`make(d)` builds a run directory at `d`; each distinct `key` is built once a session
+    (`made_once`) and copied to `run`: the copy is the test's own to change."""
+    import hashlib
+    import shutil
+
+    kept = made_once(hashlib.sha256(repr(key).encode()).hexdigest()[:16], make)
+    if kept is None:
+        make(run)
+        return run
+    shutil.copytree(kept, run)
+    return run
+
+
+def trained_run(run: Path, overrides: tuple[str, ...], preset: str = "cn3", tensorboard: bool = False) -> Path:
+    """A run directory at `run` of an in-process `hammer train` of `preset` with `overrides` (and its
+    TensorBoard events with `tensorboard`), trained once a session (`_kept`)."""
+    from hammer.learning.config import merge_config
+    from hammer.learning.rundir import RunDir
+    from hammer.learning.trainer import train
+
+    def train_at(d: Path) -> None:
+        cfg = merge_config(preset, overrides=list(overrides))
+        train(cfg, RunDir.create(d, cfg), tensorboard=tensorboard)
+
+    return _kept(run, (preset, tuple(overrides), *(("tb",) if tensorboard else ())), train_at)
+
+
+# `hammer up` of cn3 in backprop mode, 100 episodes, with deadlines generous enough that a loaded
+# machine turns no slow message into a fallback: the one-process-per-agent run that both
+# test_runtime_up (against the trainer) and test_local_pool (against pooled agents) compare with.
+UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dashboard",
+                   "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+
+
+def up_run(run: Path, args: tuple[str, ...]) -> Path:
+    """A run directory at `run` of `hammer up ARGS` (a fresh CLI process, as a user starts it), run
+    once a session (`_kept`); its stdout is kept as `up.out` in the run directory."""
+
+    def up_at(d: Path) -> None:
+        r = hammer("up", *args, "--run-dir", str(d))
+        assert r.returncode == 0, r.stderr[-2000:]
+        (d / "up.out").write_text(r.stdout)
+
+    return _kept(run, ("up", tuple(args)), up_at)
 
 
 def hammer_wheel(directory: Path) -> Path:

@@ -180,8 +180,6 @@ def test_extend_from_continues_shorter_runs_as_train_resume_does(short_run, tmp_
     last checkpoint: the same metrics as `hammer train --resume COPY --episodes 8`, its first rows the
     source's; through --snapshot it continues from an archive alone (a fresh clone); the source is untouched."""
     import shutil
-    import subprocess
-    import sys
 
     from hammer.experiments.archive import is_archived, latest_checkpoint, partial_dir
     from hammer.experiments.sweep import sweep_status
@@ -196,8 +194,9 @@ def test_extend_from_continues_shorter_runs_as_train_resume_does(short_run, tmp_
 
     ref = tmp_path / "ref"
     shutil.copytree(src, ref)
-    subprocess.run([sys.executable, "-m", "hammer.cli", "train", "--resume", str(ref), "--episodes", "8", "--quiet"],
-                   check=True, capture_output=True)
+    # the CLI's own path in this process (the sweep's runs are the processes under test)
+    resumed = CliRunner().invoke(app, ["train", "--resume", str(ref), "--episodes", "8", "--quiet"])
+    assert resumed.exit_code == 0, resumed.output
     assert len(_rows(ref)) == 8
 
     events = []

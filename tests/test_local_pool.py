@@ -22,7 +22,7 @@ from hammer.protocol.keys import Keys
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
 from hammer.runtime.settings import RuntimeSettings, auto_agents_per_process
 
-from tests.runtime_helpers import processes_mentioning
+from tests.runtime_helpers import UP_CN3_BACKPROP, processes_mentioning, up_run
 
 
 def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
@@ -43,9 +43,10 @@ def _run(run_dir: Path, agents_per_process: int, mode: str = "backprop", preset:
 
 @pytest.fixture(scope="module")
 def one_per_process(tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("solo") / "run"
-    res = _run(run, 1)
-    assert res.summary["completed"]
+    """What `_run(run, 1)` makes, by the `hammer up` CLI: the session's run that test_runtime_up
+    compares with the trainer (the same config, seed and deadlines), run once."""
+    run = up_run(tmp_path_factory.mktemp("solo") / "run", UP_CN3_BACKPROP)
+    assert json.loads((run / "summary.json").read_text())["completed"]
     return run
 
 

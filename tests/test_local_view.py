@@ -15,7 +15,7 @@ from hammer.learning.config import merge_config
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.team import Team
 
-from tests.runtime_helpers import hammer
+from tests.runtime_helpers import CN3_RL, CN3_RL_100, hammer, trained_run
 
 
 def _expected_mask(env: VecSimpleSpread, radius: float) -> np.ndarray:
@@ -109,21 +109,19 @@ def _metric_column(run_dir) -> list[float]:
 def test_up_with_a_local_view_completes_and_matches_the_trainer(tmp_path):
     """The env host masks what it sends each local agent as the trainer masks its local inputs: the
     distributed run's episodes equal the in-process trainer's; and the view changes the run."""
-    up, tr, full = tmp_path / "up", tmp_path / "train", tmp_path / "full"
+    up = tmp_path / "up"
     opt = ("--set", "env_kwargs.obs_radius=0.6")
     r1 = hammer("up", "--episodes", "64", "--central-mode", "rl", "--run-dir", str(up), "--no-dashboard", *opt,
                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--episodes", "64",
-                "--run-dir", str(tr), "--quiet", *opt)
-    assert r2.returncode == 0, r2.stderr[-2000:]
-    r3 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--episodes", "64",
-                "--run-dir", str(full), "--quiet")
-    assert r3.returncode == 0, r3.stderr[-2000:]
+    # the trainer in process as the CLI runs it; the full view's run is the session's cached rl team
+    # (its first 64 episodes)
+    tr = trained_run(tmp_path / "train", (*CN3_RL, opt[1], "episodes=64"))
+    full = trained_run(tmp_path / "full", CN3_RL_100, tensorboard=True)
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
-    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(full)
-    assert len(a) == len(b) == 64
+    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(full)[:64]
+    assert len(a) == len(b) == len(c) == 64
     assert a == pytest.approx(b, abs=1e-5)
     assert a[32:] != pytest.approx(c[32:], abs=1e-3)  # after the first update the masked team acts differently
     # every run's summary says which CPU path computed it (learning.host_info)

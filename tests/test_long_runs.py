@@ -51,7 +51,9 @@ def team(tmp_path_factory):
 @pytest.mark.timeout(300)
 def test_a_killed_agent_is_logged_counted_and_degrades_the_run_and_served_files_stay_bounded(tmp_path, team):
     policy, base = team
-    cfg = base.model_copy(update={"episodes": 2560})  # 4,000 vector steps: the agent is back long before the end
+    # 2,000 vector steps: the agent is back long before the end (the outage slows only the steps
+    # from the kill to its return; the env host steps the rest as fast as the roles go)
+    cfg = base.model_copy(update={"episodes": 1280})
     run = tmp_path / "served"
     settings = RuntimeSettings(
         run_id="long-run", mode="eval", policy_dir=str(policy), agents_per_process=1,
@@ -60,7 +62,7 @@ def test_a_killed_agent_is_logged_counted_and_degrades_the_run_and_served_files_
         max_absence_s=1.0, step_log_max_mb=0.02, trace=True, trace_max_mb=0.05)
     res = launch(cfg, settings, run)
     s = res.summary
-    assert s["completed"] and s["episodes"] == 2560
+    assert s["completed"] and s["episodes"] == 1280
 
     # 1. the outage: one leave and one rejoin of local-1, logged with counters; nobody else left,
     # and the roles stopping at the end of the run are no leaves
@@ -90,7 +92,7 @@ def test_a_killed_agent_is_logged_counted_and_degrades_the_run_and_served_files_
         assert f.stat().st_size < 0.02 * 2**20, f
     with open(run / "episode_links.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["episode"]) for r in rows] == list(range(1, 2561))
+    assert [int(r["episode"]) for r in rows] == list(range(1, 1281))
     early = [r for r in rows if int(r["start_step"]) <= cut]
     late = [r for r in rows if int(r["start_step"]) > cut]
     assert early and late

@@ -16,7 +16,15 @@ from hammer.experiments.train_stats import load_train_stats
 from hammer.learning.config import merge_config
 from hammer.runtime.settings import RuntimeSettings
 
-from tests.runtime_helpers import hammer, processes_mentioning
+from tests.runtime_helpers import (
+    CN3_RL,
+    CN3_RL_100,
+    UP_CN3_BACKPROP,
+    hammer,
+    processes_mentioning,
+    trained_run,
+    up_run,
+)
 
 
 def _metric_column(run_dir: Path) -> list[float]:
@@ -57,16 +65,14 @@ def test_short_up_run_completes_writes_metrics_and_leaves_no_process(tmp_path):
 @pytest.mark.parametrize("mode", ["backprop", "rl"])
 def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     """Same config and seed, no faults: the distributed run's episode returns equal hammer train's
-    over the first updates (100 episodes = 3 PPO updates of 32 episodes + the start of a 4th)."""
-    up, tr = tmp_path / "up", tmp_path / "train"
+    over the first updates (100 episodes = 3 PPO updates of 32 episodes + the start of a 4th). The
+    reference is the trainer run in process, as the CLI runs it (the session's cached team: the rl
+    one is the reference of other tests too)."""
     # Generous deadlines: this test is about equality without faults, so a loaded CI machine must
-    # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py).
-    r1 = hammer("up", "--episodes", "100", "--central-mode", mode, "--run-dir", str(up), "--no-dashboard",
-                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
-    assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", mode, "--episodes", "100",
-                 "--run-dir", str(tr), "--quiet")
-    assert r2.returncode == 0, r2.stderr[-2000:]
+    # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py). The
+    # backprop run is also test_local_pool's reference: the session runs it once.
+    up = up_run(tmp_path / "up", tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP))
+    tr = trained_run(tmp_path / "train", tuple(o.replace("=rl", f"={mode}") for o in CN3_RL_100), tensorboard=True)
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
     a, b = _metric_column(up), _metric_column(tr)
@@ -90,13 +96,11 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
 def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path):
     """central_net=set through every role: the central server runs the numpy twin of the set net on
     the weights the learner publishes (two updates), and the episodes equal hammer train's."""
-    up, tr = tmp_path / "up", tmp_path / "train"
+    up = tmp_path / "up"
     r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", "--set", "central_net=set", "--run-dir", str(up),
                 "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", "--set", "central_net=set",
-                "--episodes", "70", "--run-dir", str(tr), "--quiet")
-    assert r2.returncode == 0, r2.stderr[-2000:]
+    tr = trained_run(tmp_path / "train", (*CN3_RL, "central_net=set", "episodes=70"))
     assert json.loads((up / "config.json").read_text())["central_net"] == "set"
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
@@ -106,24 +110,25 @@ def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path)
     assert json.loads((up / "learner_summary.json").read_text())["updates"] >= 2
 
 
-def test_up_reproduces_the_in_process_trainer_in_bf16(tmp_path):
+def test_up_reproduces_the_in_process_trainer_in_bf16(tmp_path, monkeypatch):
     """precision=bf16: the learner's update runs under bfloat16 autocast as the trainer's does (one
-    `TeamLearner.losses`), acting stays float32 in both, so the episodes are equal; over 130
-    episodes they are not the float32 run's (bf16's first update changes an action by episode ~80)."""
+    `TeamLearner.losses`), acting stays float32 in both, so the episodes are equal; over 100
+    episodes they are not the float32 run's (bf16's first update changes an action by episode ~80;
+    the float32 run is the rl reference of test_up_reproduces_the_in_process_trainer)."""
     from hammer.learning.precision import EMULATED_ENV, bf16_unsupported
 
     env = {EMULATED_ENV: "1"} if bf16_unsupported(torch.device("cpu")) else {}
-    up, tr, fp32 = tmp_path / "up", tmp_path / "train", tmp_path / "fp32"
-    r1 = hammer("up", "--episodes", "130", "--central-mode", "rl", "--set", "precision=bf16", "--run-dir", str(up),
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)  # the in-process trainer reads it as the CLI would
+    up = tmp_path / "up"
+    r1 = hammer("up", "--episodes", "100", "--central-mode", "rl", "--set", "precision=bf16", "--run-dir", str(up),
                 "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000", env=env)
     assert r1.returncode == 0, r1.stderr[-2000:]
-    for run, extra in ((tr, ["--set", "precision=bf16"]), (fp32, [])):
-        r = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", *extra, "--episodes", "130",
-                   "--run-dir", str(run), "--quiet", env=env)
-        assert r.returncode == 0, r.stderr[-2000:]
+    tr = trained_run(tmp_path / "train", (*CN3_RL, "precision=bf16", "episodes=100"))
+    fp32 = trained_run(tmp_path / "fp32", CN3_RL_100, tensorboard=True)
     assert json.loads((up / "config.json").read_text())["precision"] == "bf16"
     a, b, c = _metric_column(up), _metric_column(tr), _metric_column(fp32)
-    assert len(a) == len(b) == 130 and len(set(a)) > 80
+    assert len(a) == len(b) == len(c) == 100 and len(set(a)) > 80
     assert a == pytest.approx(b, abs=1e-5)
     assert a != pytest.approx(c, abs=1e-5)
 
@@ -133,19 +138,17 @@ def test_up_reproduces_the_trainer_with_simulated_absences(tmp_path):
     zeros) for windows of steps. `hammer up`'s central server and learner derive who is missing
     from the step number as the trainer does, so the episodes are equal; they differ from a run
     without absences (the central agent's inputs did change)."""
-    up, tr, plain = tmp_path / "up", tmp_path / "train", tmp_path / "plain"
+    up = tmp_path / "up"
     absences = ["--set", "missing_prob=0.3", "--set", "missing_window=5"]
     r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", *absences, "--run-dir", str(up), "--no-dashboard",
                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
-    for run, extra in ((tr, absences), (plain, [])):
-        r = hammer("train", "--preset", "cn3", "--variant", "hammer", "--central-mode", "rl", *extra, "--episodes", "70",
-                   "--run-dir", str(run), "--quiet")
-        assert r.returncode == 0, r.stderr[-2000:]
+    tr = trained_run(tmp_path / "train", (*CN3_RL, *absences[1::2], "episodes=70"))
+    plain = trained_run(tmp_path / "plain", CN3_RL_100, tensorboard=True)  # its first 70 episodes
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
-    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(plain)
-    assert len(a) == len(b) == 70 and len(set(a)) > 40
+    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(plain)[:70]
+    assert len(a) == len(b) == len(c) == 70 and len(set(a)) > 40
     assert a == pytest.approx(b, abs=1e-5)
     assert a != pytest.approx(c, abs=1e-5)
 
@@ -173,8 +176,7 @@ def test_multiwalker_runs_distributed_like_the_trainer(tmp_path):
     r1 = hammer("up", "--preset", "mw3", "--episodes", "12", "--run-dir", str(up), "--no-dashboard",
                 "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
     assert r1.returncode == 0, r1.stderr[-2000:]
-    r2 = hammer("train", "--preset", "mw3", "--episodes", "12", "--run-dir", str(tr), "--quiet")
-    assert r2.returncode == 0, r2.stderr[-2000:]
+    trained_run(tr, ("episodes=12", "torch_threads=1"), preset="mw3")
     summary = json.loads((up / "summary.json").read_text())
     assert summary["links"]["default_actions"] == 0 and summary["links"]["msg_fallback_copies"] == 0
     cfg = json.loads((up / "config.json").read_text())
