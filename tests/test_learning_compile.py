@@ -88,8 +88,10 @@ def test_compiled_update_matches_eager(overrides):
     assert any(k.startswith("local/") for k in moved)
     if cfg.variant == "hammer":
         assert any(k.startswith("central/") for k in moved)
-    if cfg.central_mode == "rl" and cfg.variant == "hammer":
-        # Absent agents and dropped messages: the masked losses (another graph) match too.
+    if cfg.central_mode == "rl" and cfg.variant == "hammer" and cfg.compile_scope == "step":
+        # Absent agents and dropped messages: the masked losses (another graph) match too. Checked
+        # on the step graph only: an epoch graph runs that same step body on each slice, and what
+        # the epoch adds (the shuffle, the steps in order) the unmasked epoch case checks.
         rng = np.random.default_rng(1)
         eager.buf.active[:] = rng.random(eager.buf.active.shape) > 0.2
         eager.buf.keep[:] = rng.random(eager.buf.keep.shape) > 0.2
