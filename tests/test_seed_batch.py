@@ -208,6 +208,7 @@ def test_bench_seeds_measures_solo_and_batched() -> None:
     rows = run_bench(("cn3",), (4,), updates=1)
     assert [(r["mode"], r["seeds"]) for r in rows] == [("solo", 1), ("batched", 4)]
     assert all(r["env_steps_per_s"] > 0 and r["seconds"] > 0 for r in rows)
-    assert rows[1]["ratio"] == pytest.approx(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], rel=0.01)
+    # the bench prints the ratio to two decimals: equal up to that rounding, whatever its size
+    assert rows[1]["ratio"] == pytest.approx(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], abs=0.005)
     grid = grid_estimate(rows)
     assert grid["solo_s"] > 0 and grid["batched_s"] > 0
