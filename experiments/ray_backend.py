@@ -80,6 +80,29 @@ def _token_available() -> bool:
                 or (Path.home() / ".ray" / "auth_token").is_file())
 
 
+def _forget_cached_token() -> None:
+    """Ray keeps the first token a process reads for the rest of its life: a driver that has
+    already run another instance (a private one, whose default token is ~/.ray/auth_token, or
+    another cluster) would present that token to this cluster and be refused. Reading it again
+    at each connect makes RAY_AUTH_TOKEN(_PATH) mean what it says now."""
+    try:
+        from ray._raylet import AuthenticationTokenLoader
+    except ImportError:  # a Ray without token authentication caches nothing
+        return
+    AuthenticationTokenLoader.instance().reset_cache()
+
+
+def _auth_failure(e: BaseException) -> bool:
+    import ray
+
+    seen = e
+    while seen is not None:
+        if isinstance(seen, ray.exceptions.AuthenticationError) or "InvalidAuthToken" in str(seen):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
 class RayLauncher:
     """Runs each command as a Ray task holding `num_cpus` CPUs; `address` None starts a local instance."""
 
@@ -87,6 +110,7 @@ class RayLauncher:
         loopback = _is_loopback(address)
         ray = self.ray = import_ray(loopback)
         kw = {"_node_ip_address": "127.0.0.1"} if loopback else {}
+        _forget_cached_token()
         try:
             if address is None:
                 ray.init(address="local", include_dashboard=False, object_store_memory=100 * 2**20,
@@ -102,6 +126,10 @@ class RayLauncher:
             raise RayUnavailable(f"Ray token authentication: {_first_line(e)}; fix: copy the head node's "
                                  "~/.ray/auth_token to this machine (or set RAY_AUTH_TOKEN_PATH)") from None
         except ConnectionError as e:
+            if _auth_failure(e):  # Ray wraps a rejected token in its generic connection error
+                raise RayUnavailable(f"Ray token authentication: the cluster at {address} rejected this "
+                                     "machine's token; fix: copy the head node's ~/.ray/auth_token here (or set "
+                                     "RAY_AUTH_TOKEN_PATH to it)") from None
             raise RayUnavailable(f"cannot connect to the Ray cluster at {address} ({_first_line(e)}); fix: check "
                                  "--ray-address and that the cluster is up (ray status on its head); with token "
                                  "authentication, copy the head's ~/.ray/auth_token here") from None

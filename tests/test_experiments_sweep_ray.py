@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from hammer.experiments.ray_backend import RayLauncher
 from hammer.experiments.sweep import expand, run_sweep, state_of
 
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
@@ -207,24 +208,6 @@ def _interrupt_cli_sweep(address: str, out: Path) -> list[str]:
     return left
 
 
-def _connect(address: str):
-    """A driver on the module's head, asked up to three times: a loaded machine can keep the head
-    from answering a new driver within Ray's own connect timeout, and what these tests check comes
-    after the connection (a head that never answers still fails them)."""
-    from hammer.experiments.ray_backend import RayLauncher, RayUnavailable
-
-    for attempt in range(3):
-        try:
-            return RayLauncher(address)
-        except RayUnavailable:
-            import ray
-
-            ray.shutdown()
-            if attempt == 2:
-                raise
-            time.sleep(2.0)
-
-
 @needs_ray
 def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head, tmp_path):
 
@@ -236,7 +219,7 @@ def test_ray_sweep_matches_local_skips_finished_and_resumes_interrupted(ray_head
 
     interrupted = _interrupt_cli_sweep(ray_head.address, tmp_path / "ray")
     events: list[tuple[str, str]] = []
-    launcher = _connect(ray_head.address)
+    launcher = RayLauncher(ray_head.address)
     try:
         res = run_sweep(pts, tmp_path / "ray", jobs=2, launcher=launcher, seed_batch=1,
                         on_event=lambda k, n: events.append((k, n)))
@@ -265,7 +248,7 @@ def test_a_node_that_cannot_see_out_fails_the_run_saying_so(ray_head, tmp_path):
     pts = expand(["cn3"], ["il"], [0], GRID, episodes=8)
     out = ray_head.hidden / "out"
     events: list[tuple[str, str]] = []
-    launcher = _connect(ray_head.address)
+    launcher = RayLauncher(ray_head.address)
     try:
         res = run_sweep(pts, out, jobs=1, launcher=launcher, on_event=lambda k, n: events.append((k, n)))
     finally:
@@ -297,28 +280,37 @@ def test_backend_flags_fail_in_one_line_naming_the_fix(tmp_path, monkeypatch):
 
 
 @needs_ray
-def test_default_ray_is_a_private_instance_on_loopback(tmp_path):
+def test_default_ray_is_a_private_instance_on_loopback(ray_head, tmp_path, monkeypatch):
     """No --ray-address: Ray starts on this machine for the sweep alone, every socket on 127.0.0.1,
-    and stops with it."""
+    and stops with it; the same driver then joins a cluster that has its own token (Ray keeps the
+    first token a process reads: here the private instance's default one)."""
     import psutil
-    from hammer.experiments.ray_backend import RayLauncher
 
     pts = expand(["cn3"], ["il"], [0], GRID, episodes=8)
     before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. this module's Ray head
-    launcher = RayLauncher()
-    try:
-        assert "1 node" in launcher.describe()
-        res = run_sweep(pts, tmp_path, jobs=1, launcher=launcher)
-        ray_procs = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
-        assert len(ray_procs) > 3, "the local Ray instance's processes were not found"
-        assert _off_loopback([os.getpid(), *(p.pid for p in ray_procs)]) == []
-    finally:
-        launcher.close()
+    with monkeypatch.context() as private:  # a driver with no cluster token: Ray's default, in a home of its own
+        private.delenv("RAY_AUTH_TOKEN_PATH")
+        private.delenv("RAY_AUTH_MODE")
+        private.setenv("HOME", str(tmp_path / "home"))
+        launcher = RayLauncher()
+        try:
+            assert "1 node" in launcher.describe()
+            res = run_sweep(pts, tmp_path, jobs=1, launcher=launcher)
+            ray_procs = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+            assert len(ray_procs) > 3, "the local Ray instance's processes were not found"
+            assert _off_loopback([os.getpid(), *(p.pid for p in ray_procs)]) == []
+        finally:
+            launcher.close()
     assert res.done == [pts[0].name] and len(_metrics(tmp_path / pts[0].name)) == 8
     _gone, alive = psutil.wait_procs(ray_procs, timeout=20)
     for p in alive:
         p.kill()
     assert not alive, f"Ray processes left after the sweep: {[p.pid for p in alive]}"
+    cluster = RayLauncher(ray_head.address)
+    try:
+        assert "1 node" in cluster.describe()
+    finally:
+        cluster.close()
 
 
 @needs_ray
@@ -333,7 +325,7 @@ def test_stopping_a_ray_job_ends_its_command_while_connected(ray_head, tmp_path)
     run_dir.mkdir()
     (run_dir / LOCK).write_text(str(os.getpid()))  # as the sweep's lock would be
     marker = f"hammer-stop-test-{secrets.token_hex(4)}"
-    launcher = _connect(ray_head.address)
+    launcher = RayLauncher(ray_head.address)
     try:
         job = launcher.launch(["-c", f"import time; time.sleep(600)  # {marker}"], run_dir / "train.log", [run_dir])
         deadline = time.monotonic() + 60
