@@ -201,8 +201,14 @@ def test_per_episode_link_counters_add_up_to_the_run_and_repeat_with_the_seed(tm
         l2e = sum(e["local_env_dropped"] for e in episodes) / sum(e["local_env_sent"] for e in episodes)
         assert 0.2 < c2l < 0.4 and 0.03 < l2e < 0.2
         per_run.append(episodes)
-    # 4. Same fault seed: the same faults on the same episodes (what the senders decided).
+    # 4. Same fault seed: the same faults on the same episodes (what the senders decided). Not the
+    # episodes that end on the run's last step: the stop that follows the budget's last episode
+    # races the senders' messages for that step (the env host has acted on fallbacks by then), so
+    # whether they were sent, and so decided, is timing, not the seed.
     sender = ["episode", "env_index", "start_step", "end_step",
               *(f"{lid}_{e}" for lid in LINK_IDS.values() for e in ("sent", "dropped", "duplicated"))]
-    a, b = ([{c: e[c] for c in sender} for e in eps] for eps in per_run)
-    assert a == b
+    last = max(e["end_step"] for e in per_run[0])
+    a, b = ([{c: e[c] for c in sender} for e in eps if e["end_step"] < last] for eps in per_run)
+    assert len(a) == len(b) == 32  # 16 copies x 2 rounds; the 8 episodes of the third end on the last step
+    for x, y in zip(a, b, strict=True):
+        assert x == y, {c: (x[c], y[c]) for c in sender if x[c] != y[c]} | {"episode": x["episode"]}
