@@ -27,7 +27,7 @@ SPAWNS_MODULES = {
     "test_fused_acting", "test_key_table", "test_learning_compile", "test_live_fuzz", "test_local_pool",
     "test_long_runs", "test_netns", "test_runtime_edge", "test_runtime_hub", "test_runtime_resume",
     "test_runtime_stall", "test_runtime_up", "test_serve_bundle", "test_serve_canary",
-    "test_serve_lifecycle", "test_serve_push", "test_serve_wire", "test_trainer_runs", "test_view",
+    "test_serve_lifecycle", "test_serve_push", "test_serve_wire", "test_suite_schedule", "test_trainer_runs", "test_view",
     "test_view_browser",
 }
 # Single tests that start processes in modules that otherwise do not (torch.compile runs a C++ compiler:
