@@ -319,23 +319,20 @@ def test_slices_and_errors() -> None:
 
 
 def test_hammer_train_is_the_same_run_with_either_impl(tmp_path) -> None:
-    """`hammer train` on the preset with the same seed gives the same metrics.csv (all but wall_time)
-    and, after its PPO updates, the same weights bit for bit with impl=numpy and impl=rware. Rewards
-    are sparse in short episodes, so the weights are the sharp check: one different observation
-    value or action anywhere in the run would move them."""
+    """The trainer (in process, as `hammer train` runs it) on the preset with the same seed gives the
+    same metrics.csv (all but wall_time) and, after its PPO updates, the same weights bit for bit with
+    impl=numpy and impl=rware. Rewards are sparse in short episodes, so the weights are the sharp
+    check: one different observation value or action anywhere in the run would move them."""
     import csv
 
     from safetensors.numpy import load as load_safetensors
 
-    from tests.runtime_helpers import hammer
+    from tests.runtime_helpers import trained_run
 
-    runs = {}
-    for impl in ("numpy", "rware"):
-        runs[impl] = tmp_path / impl
-        res = hammer("train", "--preset", "rware-tiny-4ag", "--variant", "hammer", "--seed", "3", "--episodes", "12",
-                     "--set", "env_kwargs.max_steps=100", "--set", "num_envs=4", "--set", "rollout_steps=50",
-                     "--set", f"env_kwargs.impl={impl}", "--run-dir", str(runs[impl]), "--quiet")
-        assert res.returncode == 0, res.stderr[-2000:]
+    runs = {impl: trained_run(tmp_path / impl, ("variant=hammer", "seed=3", "episodes=12", "env_kwargs.max_steps=100",
+                                                "num_envs=4", "rollout_steps=50", f"env_kwargs.impl={impl}",
+                                                "torch_threads=1"), preset="rware-tiny-4ag")
+            for impl in ("numpy", "rware")}
 
     def rows(run):
         with open(run / "metrics.csv", newline="") as f:

@@ -5,6 +5,7 @@ decided without waiting on a timeout alone."""
 
 from __future__ import annotations
 
+import json
 import stat
 import time
 from pathlib import Path
@@ -388,14 +389,19 @@ def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure:
 
 
 @pytest.fixture(scope="module")
-def calm(tmp_path_factory):
-    """The secure run nobody attacks: what an attacked run must reproduce exactly."""
-    d = tmp_path_factory.mktemp("calm")
-    return _secure_run(d / "calm", "sec-calm"), d / "calm"
+def calm(tmp_path_factory) -> Path:
+    """The run nobody attacks, what an attacked run must reproduce exactly: the session's `hammer up`
+    of the same config with the same deadlines (runtime_helpers.up_run, test_runtime_up's rl run).
+    It is a plain run: the secure profile changes the transport and its access rules, not one value
+    of the run, so a secure run nobody attacks is this run too."""
+    from tests.runtime_helpers import UP_CN3_BACKPROP, up_run
+
+    calm = up_run(tmp_path_factory.mktemp("calm") / "calm", tuple(a.replace("backprop", "rl") for a in UP_CN3_BACKPROP))
+    assert json.loads((calm / "summary.json").read_text())["completed"]
+    return calm
 
 
 def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path, calm):
-    calm, calm_dir = calm
     hostile: list = []
     attacked = _secure_run(tmp_path / "attacked", "sec-attacked", hostile)
     peer = hostile[0]
@@ -407,8 +413,8 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     # (Whether it caught a publication is timing on a loaded host, so it is not asserted.)
     assert peer.sent["weights"] > 0
     assert peer.obs_seen == 0, "local-1's identity read agent 0's observations"
-    assert calm.summary["completed"] and attacked.summary["completed"]
-    a, b = _metrics_without_wall_time(calm_dir), _metrics_without_wall_time(tmp_path / "attacked")
+    assert attacked.summary["completed"]
+    a, b = _metrics_without_wall_time(calm), _metrics_without_wall_time(tmp_path / "attacked")
     assert len(a) == 100 and a == b
     links = attacked.summary["links"]
     assert links["default_actions"] == 0 and links["off_policy_actions"] == 0
@@ -427,9 +433,6 @@ def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
     own keys: act for agents 0 and 2, file heartbeats under `env`, negative and falling counters, a
     4 MB flood. None takes effect; each is counted and named in summary.json; the run completes with
     exactly the calm run's metrics."""
-    import json
-
-    calm, calm_dir = calm
     hostile: list = []
     run = tmp_path / "thief"
     attacked = _secure_run(run, "sec-thief", hostile, peer=_thief)
@@ -438,7 +441,7 @@ def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
     assert thief.obs_seen > 0, "the thief never read agent 1's observations: it was not in the run"
     assert all(n > 0 for n in thief.sent.values()), thief.sent
     assert attacked.summary["completed"] and attacked.summary["episodes"] == 100
-    assert _metrics_without_wall_time(calm_dir) == _metrics_without_wall_time(run)
+    assert _metrics_without_wall_time(calm) == _metrics_without_wall_time(run)
     rejected = attacked.summary["rejected"]
     # the env host: actions naming agents 0 and 2 (or sender local-0) on agent 1's key; the flood,
     # refused on arrival by its size (an action of this run weighs at most a few kB)

@@ -33,6 +33,11 @@ def _head(w: dict) -> str:
     return f"actor.layers.{last}"
 
 
+# The served runs' env copies (the team trained on 8): a window of 128 episodes fills in 4 episode
+# lengths, not 16; the gates compare the canary's episodes with the rest's whatever the copies.
+COPIES = 32
+
+
 @pytest.fixture(scope="module")
 def teams(tmp_path_factory):
     """A (a short real training run), A again (another export of the same team: as good), a worse
@@ -156,7 +161,7 @@ def _serve_and_roll_out(teams, tmp_path, window: int) -> tuple[list[str], list[s
     """Serve team A (agents 0-1 pooled, agent 2 alone); once it runs, a canary push of the worse team (agents 0 and 1 first), then of the
     good one in three stages; the run is stopped (SIGINT, a served run's normal end) after both."""
     a = teams["a"]
-    cfg = a.config(episodes=10**6, msg_dropout=0.0)
+    cfg = a.config(episodes=10**6, msg_dropout=0.0, num_envs=COPIES)
     # Agents 0 and 1 in one pool (one process, one stacked forward): at the good team's stage 2 the
     # pool holds a canary agent and another, whose steps name two versions (local_agent/pool.py).
     settings, _ = serve_settings(a, "canary", runtime=["agents_per_process=2"])
@@ -249,11 +254,13 @@ def test_across_namespaces_from_the_command_line(teams, tmp_path):
                 hub = procs.start(top.hub, [*py, "hub", "--listen", f"tcp/0.0.0.0:{PORT}", "--insecure"], "hub.log")
                 _wait_for("the hub listening", lambda: b"listening" in (work / "hub.log").read_bytes(), 30, [hub])
                 inside = client_config(work / "hub-client.json5", f"tcp/127.0.0.1:{PORT}")
-                serve = procs.start(top.hub, [*py, "serve", str(a.path), "--episodes", "1000000", "--external",
+                serve = procs.start(top.hub, [*py, "serve", str(a.path), "--episodes", "1000000", "--num-envs",
+                                              str(COPIES), "--external",
                                               "0,1,2,central", "--runtime", f"zenoh_config_file={inside}", "--runtime",
                                               "insecure=true", "--run-dir", str(run), "--no-dashboard"], "serve.log")
                 edges = [procs.start(ns, [sys.executable, "-P", "-m", "hammer", "local", "--bundle", str(a.path),
-                                          "--agent", str(i), "--run-id", run.name, "--insecure", "--zenoh-config",
+                                          "--agent", str(i), "--run-id", run.name, "--num-envs", str(COPIES),
+                                          "--insecure", "--zenoh-config",
                                           str(client_config(work / f"edge{i}.json5",
                                                             f"tcp/{top.links[f'local-{i}'][1]}:{PORT}"))],
                                      f"local-{i}.log") for i, ns in enumerate(top.agents)]
