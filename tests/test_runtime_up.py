@@ -73,8 +73,11 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     # backprop run is also test_local_pool's reference: the session runs it once.
     up = up_run(tmp_path / "up", tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP))
     tr = trained_run(tmp_path / "train", tuple(o.replace("=rl", f"={mode}") for o in CN3_RL_100), tensorboard=True)
-    links = json.loads((up / "summary.json").read_text())["links"]
+    summary = json.loads((up / "summary.json").read_text())
+    links = summary["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
+    # an undisturbed run says so: nothing rejected, not degraded (test_runtime_stall's attacked runs are)
+    assert summary["completed"] and summary["degraded"] is False and summary["rejected"] == {}
     a, b = _metric_column(up), _metric_column(tr)
     assert len(a) == len(b) == 100
     assert a == pytest.approx(b, abs=1e-5)
