@@ -137,11 +137,13 @@ UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dash
 
 def up_run(run: Path, args: tuple[str, ...]) -> Path:
     """A run directory at `run` of `hammer up ARGS` (a fresh CLI process, as a user starts it), run
-    once a session (`_kept`); its stdout is kept as `up.out` in the run directory."""
+    once a session (`_kept`); its stdout is kept as `up.out` in the run directory. No process of the
+    run may outlive the CLI (the run directory is on every role's command line)."""
 
     def up_at(d: Path) -> None:
         r = hammer("up", *args, "--run-dir", str(d))
         assert r.returncode == 0, r.stderr[-2000:]
+        assert processes_mentioning(str(d)) == [], "a process of the run outlived hammer up"
         (d / "up.out").write_text(r.stdout)
 
     return _kept(run, ("up", tuple(args)), up_at)

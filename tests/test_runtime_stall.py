@@ -2,9 +2,10 @@
 
 Real `hammer up` runs of cn3 on 127.0.0.1 (real processes, Zenoh, env and torch), plain profile:
 a peer sends each message that used to freeze a role or end the run (tests/stall_peer.py) into a
-live run; the run completes with the metrics of an undisturbed run and every attempt is in the
-rejection counters the roles persist. A run whose central->local link drops everything is
-reported degraded, on stdout and in summary.json; the undisturbed one is not.
+live run; the run completes with the metrics of an undisturbed run (the in-process trainer's, which
+an undisturbed `hammer up` equals: test_runtime_up) and every attempt is in the rejection counters
+the roles persist. A run whose central->local link drops everything is reported degraded, on stdout
+and in summary.json; an undisturbed one is not (test_runtime_up).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from hammer.learning.config import merge_config
 from hammer.protocol.session import TransportConfig
 from hammer.runtime.settings import RuntimeSettings
 
-from tests.runtime_helpers import hammer
+from tests.runtime_helpers import CN3_RL, hammer, trained_run
 from tests.stall_peer import EarlyStallPeer, StallPeer
 
 
@@ -33,7 +34,7 @@ def _run(run_dir: Path, run_id: str, peers: list | None = None, early: EarlyStal
     # 20 updates: the peer starts at the first heartbeat of a live run and must get its attempts in
     # while the run is live, also on an idle machine where a rollout takes a fraction of a second
     # (weights that arrive while the env host steps are checked at its next wait or at the end).
-    cfg = merge_config("cn3", overrides=[f"episodes={episodes}", "variant=hammer"])
+    cfg = merge_config("cn3", overrides=[*CN3_RL, f"episodes={episodes}"])  # the calm run's config
     # Generous deadlines: the comparison is about forged traffic, so a loaded host must not turn a
     # slow message into a fallback.
     settings = RuntimeSettings(run_id=run_id, msg_deadline_ms=5000, act_deadline_ms=10000)
@@ -59,11 +60,9 @@ def _run(run_dir: Path, run_id: str, peers: list | None = None, early: EarlyStal
 
 @pytest.fixture(scope="module")
 def calm(tmp_path_factory):
-    """An undisturbed run, the reference of every attacked one (same config and seed)."""
-    run_dir = tmp_path_factory.mktemp("stall") / "calm"
-    res = _run(run_dir, "stall-calm")
-    assert res.summary["completed"] and res.summary["degraded"] is False and res.summary["rejected"] == {}
-    return _metrics_without_wall_time(run_dir)
+    """The undisturbed run, the reference of every attacked one: the same config and seed trained in
+    process (the session's team cache), whose episodes an undisturbed `hammer up` reproduces."""
+    return _metrics_without_wall_time(trained_run(tmp_path_factory.mktemp("stall") / "calm", (*CN3_RL, "episodes=640")))
 
 
 def test_stall_messages_are_rejected_counted_and_change_nothing(tmp_path, calm):

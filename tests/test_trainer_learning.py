@@ -38,8 +38,10 @@ def test_il_beats_uniform_random_play(tmp_path):
 
 
 def test_hammer_improves_in_both_central_modes(tmp_path):
+    """1,000 episodes: on seeds 0-2, in both modes and with either central net (test_central_set), the
+    last 200 clear the bar, the closest of them by more than the closest at 1,200 episodes did."""
     for mode in ("rl", "backprop"):
-        m = _train(tmp_path, mode, ["variant=hammer", f"central_mode={mode}", "episodes=1200", "seed=0"])
+        m = _train(tmp_path, mode, ["variant=hammer", f"central_mode={mode}", "episodes=1000", "seed=0"])
         assert m[-200:].mean() > m[:200].mean() + 1.0, (mode, m[:200].mean(), m[-200:].mean())
 
 
