@@ -68,13 +68,16 @@ def _act_side_by_side(cfg, steps: int = 12, perturb_at: int | None = None) -> in
     {"variant": "centralized"},
 ], ids=lambda e: "-".join(f"{v}" for v in e.values()))
 def test_fused_acting_acts_as_eager(extra):
-    cfg = merge_config("cn3", extra=extra, overrides=["num_envs=8"])
-    assert _act_side_by_side(cfg) == 12 * 8 * 3
+    # 4 copies and the small networks: the compiled runs of tests/test_device.py,
+    # tests/test_precision.py (hammer) and the teams below (il) act through these graphs, so in one
+    # session inductor's cache builds each once.
+    cfg = merge_config("cn3", extra=extra, overrides=["num_envs=4", *COMPILE_NETS])
+    assert _act_side_by_side(cfg) == 12 * 4 * 3
 
 
 def test_fused_acting_follows_a_weight_change_and_a_local_view():
     cfg = merge_config("cn3", extra={"variant": "hammer", "central_mode": "rl"},
-                       overrides=["num_envs=8", "env_kwargs.obs_radius=0.6"])
+                       overrides=["num_envs=4", *COMPILE_NETS, "env_kwargs.obs_radius=0.6"])
     _act_side_by_side(cfg, steps=8, perturb_at=4)
 
 
@@ -103,7 +106,7 @@ def test_many_compiled_teams_in_one_process(monkeypatch):
     import torch._dynamo.config as dynamo_config
 
     monkeypatch.setattr(dynamo_config, "recompile_limit", 2)
-    for k in range(1, 4):
+    for k in range(2, 5):  # 4: the graph of acts_as_eager[il]
         cfg = merge_config("cn3", extra={"variant": "il"}, overrides=[f"num_envs={k}", "compile=true", *COMPILE_NETS])
         env = make_env(cfg)
         obs, _ = env.reset(0)
