@@ -96,7 +96,7 @@ def test_fused_acting_with_a_conv_encoder_on_images():
     _act_side_by_side(cfg, steps=4)
 
 
-def test_many_compiled_teams_in_one_process(monkeypatch):
+def test_many_compiled_teams_in_one_process():
     """Dynamo keeps `recompile_limit` graphs per code object (8 by default) and, with fullgraph,
     fails at the next: a script training many compiled runs of different shapes in one process (or
     this test session) must not stop there. With the limit lowered to 2, three team sizes make three
@@ -105,13 +105,15 @@ def test_many_compiled_teams_in_one_process(monkeypatch):
     their size)."""
     import torch._dynamo.config as dynamo_config
 
-    monkeypatch.setattr(dynamo_config, "recompile_limit", 2)
-    for k in range(2, 5):  # 4: the graph of acts_as_eager[il]
-        cfg = merge_config("cn3", extra={"variant": "il"}, overrides=[f"num_envs={k}", "compile=true", *COMPILE_NETS])
-        env = make_env(cfg)
-        obs, _ = env.reset(0)
-        team = Team(cfg, env.spec)
-        _, action, _, _ = team.act(obs, team.global_state(obs, team.zero_prev_actions(k)),
-                                   ActingStreams(0, cfg.n_agents))
-        assert action.shape == (k, 3)
-        env.close()
+    # dynamo's own patch, which puts the limit back afterwards (monkeypatch's undo deletes it)
+    with dynamo_config.patch(recompile_limit=2):
+        for k in range(2, 5):  # 4: the graph of acts_as_eager[il]
+            cfg = merge_config("cn3", extra={"variant": "il"},
+                               overrides=[f"num_envs={k}", "compile=true", *COMPILE_NETS])
+            env = make_env(cfg)
+            obs, _ = env.reset(0)
+            team = Team(cfg, env.spec)
+            _, action, _, _ = team.act(obs, team.global_state(obs, team.zero_prev_actions(k)),
+                                       ActingStreams(0, cfg.n_agents))
+            assert action.shape == (k, 3)
+            env.close()
