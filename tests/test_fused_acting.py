@@ -68,13 +68,16 @@ def _act_side_by_side(cfg, steps: int = 12, perturb_at: int | None = None) -> in
     {"variant": "centralized"},
 ], ids=lambda e: "-".join(f"{v}" for v in e.values()))
 def test_fused_acting_acts_as_eager(extra):
-    cfg = merge_config("cn3", extra=extra, overrides=["num_envs=8"])
-    assert _act_side_by_side(cfg) == 12 * 8 * 3
+    # 4 copies and the small networks: the compiled runs of tests/test_device.py,
+    # tests/test_precision.py (hammer) and the teams below (il) act through these graphs, so in one
+    # session inductor's cache builds each once.
+    cfg = merge_config("cn3", extra=extra, overrides=["num_envs=4", *COMPILE_NETS])
+    assert _act_side_by_side(cfg) == 12 * 4 * 3
 
 
 def test_fused_acting_follows_a_weight_change_and_a_local_view():
     cfg = merge_config("cn3", extra={"variant": "hammer", "central_mode": "rl"},
-                       overrides=["num_envs=8", "env_kwargs.obs_radius=0.6"])
+                       overrides=["num_envs=4", *COMPILE_NETS, "env_kwargs.obs_radius=0.6"])
     _act_side_by_side(cfg, steps=8, perturb_at=4)
 
 
@@ -94,16 +97,23 @@ def test_fused_acting_with_a_conv_encoder_on_images():
 
 
 def test_many_compiled_teams_in_one_process():
-    """Dynamo keeps 8 graphs per code object by default and, with fullgraph, fails at a ninth: a
-    script training many compiled runs of different shapes in one process (or this test session)
-    must not stop there. Nine team sizes, nine graphs of the one acting function: the first past the
-    default limit (small networks: the limit counts graphs, whatever their size)."""
-    for k in range(1, 10):
-        cfg = merge_config("cn3", extra={"variant": "il"}, overrides=[f"num_envs={k}", "compile=true", *COMPILE_NETS])
-        env = make_env(cfg)
-        obs, _ = env.reset(0)
-        team = Team(cfg, env.spec)
-        _, action, _, _ = team.act(obs, team.global_state(obs, team.zero_prev_actions(k)),
-                                   ActingStreams(0, cfg.n_agents))
-        assert action.shape == (k, 3)
-        env.close()
+    """Dynamo keeps `recompile_limit` graphs per code object (8 by default) and, with fullgraph,
+    fails at the next: a script training many compiled runs of different shapes in one process (or
+    this test session) must not stop there. With the limit lowered to 2, three team sizes make three
+    graphs of the one acting function, the third past the limit: the mechanism of the ninth at the
+    default, for three compiles instead of nine (small networks: the limit counts graphs, whatever
+    their size)."""
+    import torch._dynamo.config as dynamo_config
+
+    # dynamo's own patch, which puts the limit back afterwards (monkeypatch's undo deletes it)
+    with dynamo_config.patch(recompile_limit=2):
+        for k in range(2, 5):  # 4: the graph of acts_as_eager[il]
+            cfg = merge_config("cn3", extra={"variant": "il"},
+                               overrides=[f"num_envs={k}", "compile=true", *COMPILE_NETS])
+            env = make_env(cfg)
+            obs, _ = env.reset(0)
+            team = Team(cfg, env.spec)
+            _, action, _, _ = team.act(obs, team.global_state(obs, team.zero_prev_actions(k)),
+                                       ActingStreams(0, cfg.n_agents))
+            assert action.shape == (k, 3)
+            env.close()

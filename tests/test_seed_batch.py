@@ -75,16 +75,17 @@ def _check_batched_matches_solo(tmp_path: Path, variant: str, mode: str, extra: 
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("variant", "mode"), [("il", "rl"), ("hammer", "rl")])
-def test_compiled_batched_seed_matches_its_solo_run(tmp_path: Path, variant: str, mode: str) -> None:
-    """compile=true, compile_scope=epoch: the batch acts through the fused acting graph under vmap
-    and updates through the epoch graph over the stacked parameters, so a seed is its solo run up
-    to rounding. The solo runs are eager: a solo compiled run is its eager run up to rounding (the
-    epoch-scope cases of tests/test_learning_compile.py, tests/test_fused_acting.py), so compiling
-    them too would build two more graphs for nothing this check needs, and TOL covers both
-    roundings. Two seeds, not three: what a third seed adds, stacking beyond a pair, the eager
-    batches check."""
-    _check_batched_matches_solo(tmp_path, variant, mode, ["compile=true", "compile_scope=epoch", *COMPILE_NETS],
+@pytest.mark.parametrize(("variant", "mode", "scope"), [("il", "rl", "step"), ("hammer", "rl", "epoch")])
+def test_compiled_batched_seed_matches_its_solo_run(tmp_path: Path, variant: str, mode: str, scope: str) -> None:
+    """compile=true: the batch acts through the fused acting graph under vmap and updates through
+    the compiled graph over the stacked parameters, so a seed is its solo run up to rounding. Each
+    compile_scope once: one graph per epoch (its shuffle and minibatch slices over the stacked
+    seeds) on hammer, whose graph holds both networks; one per minibatch step on il, the cheaper
+    compile. The solo runs are eager: a solo compiled run is its eager run up to
+    rounding (tests/test_learning_compile.py, tests/test_fused_acting.py), so compiling them too
+    would build two more graphs for nothing this check needs, and TOL covers both roundings. Two
+    seeds, not three: what a third seed adds, stacking beyond a pair, the eager batches check."""
+    _check_batched_matches_solo(tmp_path, variant, mode, ["compile=true", f"compile_scope={scope}", *COMPILE_NETS],
                                 seeds=[0, 1], solo_eager=True)
 
 
