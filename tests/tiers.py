@@ -98,14 +98,16 @@ SERIAL_TESTS = {
 FULL_ONLY = ("spawns", "learns", "installs", "slow", "serial")
 
 # The longest groups of `make test` (a module, or "edge-venv": every test on the session's edge venv),
-# longest first: xdist hands them out first, so that no long one starts last while the other worker
-# idles. The rest follow in file order.
+# longest first by their time on a worker in a clean-clone run: xdist hands them out in this order, so
+# that no long one starts last while the other workers idle. The rest follow in file order.
 LONGEST_FIRST = (
-    "edge-venv", "test_wheel_install", "test_fleet", "test_fleet_life", "test_security",
-    "test_serve_lifecycle", "test_experiments_sweep_ray", "test_key_table", "test_foreign_client",
-    "test_messages_warehouse", "test_runtime_up", "test_serve_canary", "test_trainer_learning",
-    "test_central_set", "test_serve_bundle", "test_edge_entry", "test_live_fuzz", "test_long_runs",
-    "test_site_feed",
+    "test_seed_batch", "test_runtime_up", "test_learning_compile", "test_fleet", "test_experiments_sweep_ray",
+    "test_security", "test_fleet_life", "test_site_feed", "edge-venv", "test_serve_lifecycle",
+    "test_faults_runtime", "test_fused_acting", "test_device", "test_rware", "test_experiments_sweep",
+    "test_precision", "test_local_pool", "test_runtime_stall", "test_serve_canary", "test_serve_bundle",
+    "test_edge_entry", "test_rware_exact", "test_experiments_snapshot", "test_foreign_client",
+    "test_central_set", "test_serve_push", "test_messages_warehouse", "test_edge_install", "test_serve_pace",
+    "test_trainer_learning", "test_wheel_install", "test_key_table", "test_live_fuzz", "test_long_runs",
 )
 
 
