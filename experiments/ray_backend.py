@@ -92,12 +92,11 @@ def _forget_cached_token() -> None:
     AuthenticationTokenLoader.instance().reset_cache()
 
 
-def _auth_failure(e: BaseException) -> bool:
-    import ray
-
+def _auth_failure(e: BaseException, auth_error: type) -> bool:
+    """Whether Ray's error, or one it wraps, is a rejected token."""
     seen = e
     while seen is not None:
-        if isinstance(seen, ray.exceptions.AuthenticationError) or "InvalidAuthToken" in str(seen):
+        if isinstance(seen, auth_error) or "InvalidAuthToken" in str(seen):
             return True
         seen = seen.__cause__ or seen.__context__
     return False
@@ -122,13 +121,11 @@ class RayLauncher:
                     os.environ["RAY_AUTH_MODE"] = "token"
                 _check_reachable(address)
                 ray.init(address=address, logging_level="WARNING", **kw)
-        except ray.exceptions.AuthenticationError as e:
-            raise RayUnavailable(f"Ray token authentication: {_first_line(e)}; fix: copy the head node's "
-                                 "~/.ray/auth_token to this machine (or set RAY_AUTH_TOKEN_PATH)") from None
-        except ConnectionError as e:
-            if _auth_failure(e):  # Ray wraps a rejected token in its generic connection error
-                raise RayUnavailable(f"Ray token authentication: the cluster at {address} rejected this "
-                                     "machine's token; fix: copy the head node's ~/.ray/auth_token here (or set "
+        except (ray.exceptions.AuthenticationError, ConnectionError) as e:
+            # Ray wraps a rejected token in its generic connection error when it joins a cluster
+            if _auth_failure(e, ray.exceptions.AuthenticationError):
+                raise RayUnavailable(f"Ray token authentication: the cluster at {address or 'this machine'} rejected "
+                                     "this machine's token; fix: copy the head node's ~/.ray/auth_token here (or set "
                                      "RAY_AUTH_TOKEN_PATH to it)") from None
             raise RayUnavailable(f"cannot connect to the Ray cluster at {address} ({_first_line(e)}); fix: check "
                                  "--ray-address and that the cluster is up (ray status on its head); with token "

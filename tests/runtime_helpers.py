@@ -135,6 +135,11 @@ UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dash
                    "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
 
 
+def up_cn3(mode: str) -> tuple[str, ...]:
+    """UP_CN3_BACKPROP's run in central mode `mode` (the session runs each mode's once)."""
+    return tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP)
+
+
 def up_run(run: Path, args: tuple[str, ...]) -> Path:
     """A run directory at `run` of `hammer up ARGS` (a fresh CLI process, as a user starts it), run
     once a session (`_kept`); its stdout is kept as `up.out` in the run directory. No process of the

@@ -23,6 +23,7 @@ from tests.runtime_helpers import (
     hammer,
     processes_mentioning,
     trained_run,
+    up_cn3,
     up_run,
 )
 
@@ -70,7 +71,7 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
     # Generous deadlines: this test is about equality without faults, so a loaded CI machine must
     # not turn a slow message into a fallback (that case is tested in test_faults_runtime.py). The
     # backprop run is also test_local_pool's reference: the session runs it once.
-    up = up_run(tmp_path / "up", tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP))
+    up = up_run(tmp_path / "up", up_cn3(mode))
     tr = trained_run(tmp_path / "train", tuple(o.replace("=rl", f"={mode}") for o in CN3_RL_100), tensorboard=True)
     summary = json.loads((up / "summary.json").read_text())
     links = summary["links"]

@@ -394,9 +394,9 @@ def calm(tmp_path_factory) -> Path:
     of the same config with the same deadlines (runtime_helpers.up_run, test_runtime_up's rl run).
     It is a plain run: the secure profile changes the transport and its access rules, not one value
     of the run, so a secure run nobody attacks is this run too."""
-    from tests.runtime_helpers import UP_CN3_BACKPROP, up_run
+    from tests.runtime_helpers import up_cn3, up_run
 
-    calm = up_run(tmp_path_factory.mktemp("calm") / "calm", tuple(a.replace("backprop", "rl") for a in UP_CN3_BACKPROP))
+    calm = up_run(tmp_path_factory.mktemp("calm") / "calm", up_cn3("rl"))
     assert json.loads((calm / "summary.json").read_text())["completed"]
     return calm
 
