@@ -63,10 +63,11 @@ def test_an_edge_agent_started_as_printed_sends_compact_actions_and_every_role_s
                                         stdout=subprocess.DEVNULL, stderr=log)
             assert serve.wait(240) == 0, "".join(lines)[-3000:]
             assert edge.wait(60) == 0, (tmp_path / "edge.log").read_text()[-3000:]
-            sizes = []
+            sizes, flagged = [], []
             while (data := acts.get(timeout=0.5)) is not None:
-                sizes.append(len(data))
-                assert codec.decode(data, Action).msg is None
+                a = codec.decode(data, Action)
+                assert a.msg is None
+                (flagged if a.fallback.any() else sizes).append(len(data))
             central_records = 0
             while records.get(timeout=0.1) is not None:
                 central_records += 1
@@ -83,8 +84,10 @@ def test_an_edge_agent_started_as_printed_sends_compact_actions_and_every_role_s
     summary = json.loads((run / "summary.json").read_text())
     steps = summary["step"]
     assert summary["completed"] and steps == 2 * 25  # two episodes of 25 steps on each of the K copies
-    # item: an action at K = 32 carries 32 one-byte ids and its header, not the message it acted on
-    assert len(sizes) == steps and max(sizes) <= 50, (len(sizes), sorted(set(sizes)))
+    # item: an action at K = 32 carries 32 one-byte ids and its header, not the message it acted on;
+    # one acted on a late message's fallback also carries its K flags (a busy machine makes some late)
+    assert len(sizes) + len(flagged) == steps and sizes, (len(sizes), len(flagged))
+    assert max(sizes) <= 50 and max(flagged, default=0) <= 50 + K + 8, (sorted(set(sizes)), sorted(set(flagged)))
     assert central_records == 0  # no learner listens in a served run
     # every role's last heartbeat says stopped; the external agent's carries its final counters
     assert set(last) == {"env", "central", "policy", "local-0", "local-1", "local-2"}, sorted(last)
