@@ -44,9 +44,11 @@ class HostilePeer(PeerThread):
         self.obs_seen = 0
         self.weights_seen = -1  # the newest real version it read (local-1 may read the local weights)
         self.max_peers = 0
+        self.timeline: dict[str, float] = {"started": time.monotonic()}  # for a failure's message
 
     def _attack(self) -> None:
         with HammerSession(self.run_id, self.transport, sender="launcher") as s:
+            self.timeline["open"] = time.monotonic()
             k = s.keys
             obs = s.subscribe(k.obs(self.agent), LocalObs)
             real_weights = s.subscribe(k.weights("local"), Weights)
@@ -54,7 +56,10 @@ class HostilePeer(PeerThread):
             last_blind = 0.0
             guess = 0
             while not self.stop_event.is_set():
-                self.max_peers = max(self.max_peers, len(list(s.zenoh.info.peers_zid())))
+                peers = len(list(s.zenoh.info.peers_zid()))
+                if peers > self.max_peers:
+                    self.max_peers = peers
+                    self.timeline[f"peers={peers}"] = time.monotonic()
                 for o in obs.drain():
                     self.obs_seen += 1
                     act.publish(Action(agent=self.agent, step=o.step, env_idx=o.env_idx,
@@ -70,6 +75,7 @@ class HostilePeer(PeerThread):
                     self._weights(s)
                     self._stops(s)
                 time.sleep(0.002)
+            self.timeline["stopped"] = time.monotonic()
 
     def _blind_actions(self, act, guess: int) -> int:
         """Actions for agent 0 at 50 guessed steps (the real agent's are the ones that count)."""

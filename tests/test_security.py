@@ -342,26 +342,30 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
-def _weight_templates(cfg, run_dir: Path) -> dict[str, bytes]:
+def _weight_templates(cfg) -> dict[str, bytes]:
     """Blobs of the run's own architecture: what an attacker who read the public code can build."""
+    from hammer.envs.registry import make_vec_env
     from hammer.learner.worker import weights_blob
     from hammer.learning.team import Team
-    from hammer.runtime.settings import read_env_spec
 
-    team = Team(cfg, read_env_spec(run_dir))
+    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
+    team = Team(cfg, env.spec)
+    env.close()
     return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}
 
 
-def _hostile_peer(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
+def _hostile_peer(cfg):
     from tests.hostile_peer import HostilePeer
 
-    return HostilePeer(run_id, stolen, cfg.num_envs, agent=0, templates=_weight_templates(cfg, run_dir),
-                       msg_dim=cfg.wiring.msg_dim)
+    templates = _weight_templates(cfg)
+    return lambda stolen, run_id: HostilePeer(run_id, stolen, cfg.num_envs, agent=0, templates=templates,
+                                              msg_dim=cfg.wiring.msg_dim)
 
 
 def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure: bool = True, peer=_hostile_peer):
-    """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg, run_dir, transport, run_id)`
-    joins it with local-1's identity once the run is up and is appended to the list."""
+    """A `hammer up --secure` cn3 run; with `hostile` (a list), `peer(cfg)(transport, run_id)` joins it
+    with local-1's identity once the run is up and is appended to the list. `peer(cfg)` prepares
+    before the run starts, so that the peer joins on the launcher's first tick, before step 0 is far behind."""
     from hammer.deploy.launcher import launch
     from hammer.learning.config import merge_config
     from hammer.runtime.settings import RuntimeSettings
@@ -371,12 +375,14 @@ def _secure_run(run_dir: Path, run_id: str, hostile: list | None = None, secure:
     # slow message into a fallback.
     settings = RuntimeSettings(run_id=run_id, secure=secure, msg_deadline_ms=5000, act_deadline_ms=10000)
 
+    make = peer(cfg) if hostile is not None else None
+
     def chaos(sup, board) -> None:
         if hostile is not None and not hostile:
             rt = RuntimeSettings.load(run_dir)
             stolen = rt.secured(TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{rt.hub_port}"]),
                                 "local-1", run_dir, cfg.n_agents)
-            p = peer(cfg, run_dir, stolen, rt.run_id)
+            p = make(stolen, rt.run_id)
             p.start()
             hostile.append(p)
 
@@ -406,7 +412,9 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     attacked = _secure_run(tmp_path / "attacked", "sec-attacked", hostile)
     peer = hostile[0]
     assert peer.error is None, peer.error
-    assert peer.max_peers >= 2, "the hostile peer never joined the run: the test would prove nothing"
+    t0 = peer.timeline["started"]
+    assert peer.max_peers >= 2, ("the hostile peer never joined the run: the test would prove nothing",
+                                 {k: round(t - t0, 2) for k, t in peer.timeline.items()})
     assert peer.sent["blind_actions"] > 0 and peer.sent["control"] > 0
     # it forged weights for both networks, inside every bound: the next version once it had read the
     # real local weights (local-1 may: test_legitimate_traffic_flows), a guess among the first 20 before.
@@ -422,10 +430,10 @@ def test_secure_run_is_unmoved_by_a_hostile_peer_with_a_stolen_identity(tmp_path
     assert attacked.summary["rejected"] == {} and attacked.summary["degraded"] is False
 
 
-def _thief(cfg, run_dir: Path, stolen: TransportConfig, run_id: str):
+def _thief(cfg):
     from tests.own_key_thief import OwnKeyThief
 
-    return OwnKeyThief(run_id, stolen, agent=1)
+    return lambda stolen, run_id: OwnKeyThief(run_id, stolen, agent=1)
 
 
 def test_a_stolen_agent_key_is_that_agent_and_nothing_more(tmp_path, calm):
