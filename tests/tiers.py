@@ -84,12 +84,14 @@ SLOW_TESTS = {
     "test_messages_warehouse::test_the_probe_finds_a_planted_robot_and_not_what_the_trained_team_does_not_say",
 }
 
-# Pass or fail on time with their own processes running: the fleet's rate contract across namespaces
-# and through a push and a rollback, a browser page that must turn a row missing within 2 s, an analysis under a timeout.
+# Pass or fail on time with their own processes running: the fleet's rate contract across namespaces,
+# through a push and a rollback and while a robot is paused (the others must never miss a tick), a
+# browser page that must turn a row missing within 2 s, an analysis under a timeout.
 SERIAL_MODULES = {"test_view_browser"}
 SERIAL_TESTS = {
     "test_fleet::test_a_secure_fleet_across_namespaces_keeps_its_recovery_contract",
     "test_fleet::test_a_fleet_takes_a_push_and_a_rollback_each_robot_on_its_own",
+    "test_fleet::test_a_realtime_fleet_keeps_going_while_a_robot_and_the_central_agent_are_away",
     "test_fleet::test_robots_are_back_at_once_after_the_serving_machine_stalls",
     "test_site_feed::test_the_feed_s_own_link_cut_across_namespaces_and_restored",
     "test_site_feed::test_a_site_elsewhere_publishes_the_warehouse_s_current_columns_not_its_layout_at_reset",
