@@ -219,19 +219,29 @@ def test_a_thief_of_the_edge_agents_files_is_that_agent_and_nothing_more(served,
     assert res.summary["degraded"] is True
 
 
-def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(team1, tmp_path):
-    """The lite edge agent of a discrete K=1 team, from a signed bundle it checks with
-    --trust, acts every step of a served run and never maps numpy (its memory maps are read while it
-    acts, so an import anywhere on the acting path, lazy or not, would show)."""
+@pytest.fixture(scope="module")
+def lite_push_run(team1, tmp_path_factory):
+    """One served run of the K=1 team, signed, that the two tests below check: its agent 0 is the lite
+    edge agent started from the signed bundle with --trust (its memory maps read every 50 ms while it
+    runs), and the run takes a push mid-run (a bundle of the same team with other local weights)."""
+    import numpy as np
     from hammer.serve.bundle import export_bundle
+    from hammer.serve.push import push
     from hammer.serve.signing import new_key
+    from safetensors.numpy import load_file, save_file
 
     bundle, _ = team1
-    _, public = new_key(tmp_path / "keys" / "site")
-    signed = export_bundle(bundle.path.parent / "run", tmp_path / "signed", sign=tmp_path / "keys" / "site.key")
+    tmp = tmp_path_factory.mktemp("lite")
+    _, public = new_key(tmp / "keys" / "site")
+    signed = export_bundle(bundle.path.parent / "run", tmp / "signed", sign=tmp / "keys" / "site.key")
+    src = tmp / "b-run"
+    shutil.copytree(bundle.path.parent / "run", src)
+    w = load_file(str(src / "final" / "local.safetensors"))
+    save_file({k: (v + np.float32(0.25)).astype(v.dtype) for k, v in w.items()}, str(src / "final" / "local.safetensors"))
+    b = export_bundle(src, tmp / "B")
     port = free_loopback_port()
-    settings, _ = serve_settings(signed, "lite-edge", runtime=[f"hub_port={port}"])
-    out: dict = {"maps": 0, "numpy": []}
+    settings, _ = serve_settings(signed, "lite-push", runtime=[f"hub_port={port}"])
+    run, out, pushed = tmp / "served", {"maps": 0, "numpy": []}, []
 
     def edge() -> None:
         proc = out["proc"] = subprocess.Popen(
@@ -247,64 +257,42 @@ def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(te
             out["numpy"] += [ln for ln in maps.splitlines() if "numpy" in ln][:3]
             time.sleep(0.05)
 
-    watcher = threading.Thread(target=edge)
-    watcher.start()
-    try:
-        res = launch(signed.config(episodes=2, msg_dropout=0.0), settings, tmp_path / "served", external_agents=(0,))
-        watcher.join(timeout=30)
-        text, _ = out["proc"].communicate(timeout=30)
-    finally:
-        if "proc" in out and out["proc"].poll() is None:
-            out["proc"].kill()
-        watcher.join(timeout=30)
-    assert res.summary["completed"] and res.summary["episodes"] == 2
-    assert out["proc"].returncode == 0, text
-    assert "acts in plain Python, without numpy" in text and "'steps': 50," in text, text
-    assert res.links["local->env"]["defaults"] == 0
-    assert out["maps"] >= 3 and out["numpy"] == [], out["numpy"]
-
-
-def test_a_push_reaches_a_lite_edge_agent_in_chunks_and_is_named_once_held(team1, tmp_path):
-    """A paced push to the lite edge agent: a served run whose agent 0 is the lite edge agent (K=1, no
-    numpy) takes a push mid-run; the agent pulls the new weights in paced chunks like the numpy
-    agents, says it holds them, and the env host names the version for every agent only then."""
-    import numpy as np
-    from hammer.serve.bundle import export_bundle
-    from hammer.serve.push import push
-    from safetensors.numpy import load_file, save_file
-
-    bundle, _ = team1
-    src = tmp_path / "b-run"
-    shutil.copytree(bundle.path.parent / "run", src)
-    w = load_file(str(src / "final" / "local.safetensors"))
-    save_file({k: (v + np.float32(0.25)).astype(v.dtype) for k, v in w.items()}, str(src / "final" / "local.safetensors"))
-    b = export_bundle(src, tmp_path / "B")
-    port = free_loopback_port()
-    settings, _ = serve_settings(bundle, "lite-push", runtime=[f"hub_port={port}"])
-    run, out, pushed = tmp_path / "served", {}, []
-
-    def edge() -> None:
-        out["proc"] = subprocess.Popen(
-            [sys.executable, "-m", "hammer", "local", "--bundle", str(bundle.path), "--agent", "0", "--run-id",
-             settings.run_id, "--connect", f"tcp/127.0.0.1:{port}"],
-            cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
     def chaos(sup, board) -> None:  # push once the run is stepping
         env = board.heartbeats.get("env")
         if not pushed and env is not None and int(env.counters.get("step", 0)) >= 25:
             push(b.path, run)
             pushed.append(True)
 
-    starter = threading.Thread(target=edge)
-    starter.start()
+    watcher = threading.Thread(target=edge)
+    watcher.start()
     try:
-        res = launch(bundle.config(episodes=24, msg_dropout=0.0), settings, run, chaos=chaos, external_agents=(0,))
-        starter.join(timeout=30)
+        res = launch(signed.config(episodes=24, msg_dropout=0.0), settings, run, chaos=chaos, external_agents=(0,))
+        watcher.join(timeout=30)
         text, _ = out["proc"].communicate(timeout=30)
     finally:
-        starter.join(timeout=30)
         if "proc" in out and out["proc"].poll() is None:
             out["proc"].kill()
+        watcher.join(timeout=30)
+    return res, out, text, run, pushed
+
+
+def test_a_k1_edge_agent_from_a_signed_bundle_acts_without_ever_loading_numpy(lite_push_run):
+    """The lite edge agent of a discrete K=1 team, from a signed bundle it checks with
+    --trust, acts every step of a served run and never maps numpy (its memory maps are read while it
+    acts, so an import anywhere on the acting path, lazy or not, would show), a push's pull included."""
+    res, out, text, _, _ = lite_push_run
+    assert res.summary["completed"] and res.summary["episodes"] == 24
+    assert out["proc"].returncode == 0, text
+    assert "acts in plain Python, without numpy" in text and "'steps': 600," in text, text  # 24 episodes of 25 steps
+    assert res.links["local->env"]["defaults"] == 0
+    assert out["maps"] >= 3 and out["numpy"] == [], out["numpy"]
+
+
+def test_a_push_reaches_a_lite_edge_agent_in_chunks_and_is_named_once_held(lite_push_run):
+    """A paced push to the lite edge agent: a served run whose agent 0 is the lite edge agent (K=1, no
+    numpy) takes a push mid-run; the agent pulls the new weights in paced chunks like the numpy
+    agents, says it holds them, and the env host names the version for every agent only then."""
+    res, out, text, run, pushed = lite_push_run
     assert res.summary["completed"] and pushed
     assert out["proc"].returncode == 0, text
     assert "acts in plain Python, without numpy" in text, text

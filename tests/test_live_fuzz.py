@@ -51,7 +51,7 @@ from tests.runtime_helpers import ENV, ROOT, processes_mentioning
 
 EXAMPLES = 200
 RUN = "fuzz"
-EPISODES = 160  # 5 rollouts of 32 episodes: the junk is taken in during the first ones
+EPISODES = 96  # 3 rollouts of 32 episodes: the junk is taken in during the first one, and updates follow it
 LOGGED = 10  # a subscription logs its first 10 rejections per reason (then every 1000th)
 LINE = re.compile(r"rejected message #(\d+) \((\w+)\) on (\S+):")
 

@@ -176,22 +176,31 @@ def test_play_renders_the_team_with_its_messages(trained, tmp_path, monkeypatch)
     assert r.exit_code == 2 and "error:" in r.output and "GIF" in r.output
 
 
-def test_hammer_serve_secure_serves_the_team_over_mutual_tls(trained, tmp_path):
-    """`hammer serve --secure` is the secure profile of `hammer up --secure`: identities in RUN/identity/,
-    runtime.json says secure, and the served run completes."""
-    import json
-
+@pytest.fixture(scope="module")
+def served_secure_float16(trained, tmp_path_factory):
+    """One `hammer serve --secure --runtime weights_float16=true` of the team (16 episodes): the served
+    run both tests below check, the secure profile's and float16 weights' (neither changes what the
+    other checks: the identities and access rules, the bytes the policy server sends)."""
     from tests.runtime_helpers import hammer
 
-    bundle = export_bundle(trained, tmp_path / "b")
-    run = tmp_path / "secure"
-    res = hammer("serve", str(bundle.path), "--episodes", "8", "--run-dir", str(run), "--no-dashboard", "--secure")
+    tmp = tmp_path_factory.mktemp("served")
+    bundle = export_bundle(trained, tmp / "b")
+    run = tmp / "secure"
+    res = hammer("serve", str(bundle.path), "--episodes", "16", "--run-dir", str(run), "--no-dashboard", "--secure",
+                 "--runtime", "weights_float16=true")
+    return bundle, run, res
+
+
+def test_hammer_serve_secure_serves_the_team_over_mutual_tls(served_secure_float16):
+    """`hammer serve --secure` is the secure profile of `hammer up --secure`: identities in RUN/identity/,
+    runtime.json says secure, and the served run completes."""
+    _, run, res = served_secure_float16
     assert res.returncode == 0, res.stderr[-2000:]
-    assert res.stdout.startswith("done: 8 episodes")
+    assert res.stdout.startswith("done: 16 episodes")
     assert json.loads((run / "runtime.json").read_text())["secure"] is True
     assert (run / "identity" / "policy.key").is_file() and not (run / "identity" / "hub.key").exists()
     assert not (run / "identity" / "learner.key").exists()  # a served run has a policy server, no learner
-    assert len(_metrics(run)) == 8
+    assert len(_metrics(run)) == 16
 
 
 @pytest.mark.parametrize(("preset", "overrides", "steps"), [("mw3", (), 3), ("cn3", ("env_kwargs.observe_others=false",), 4)])
@@ -327,13 +336,13 @@ def test_signed_bundles_load_only_against_a_trusted_key(trained, tmp_path):
         assert r.returncode == 2 and what in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
-def test_weights_sent_as_float16_halve_the_bytes_and_serve(trained, tmp_path):
+def test_weights_sent_as_float16_halve_the_bytes_and_serve(served_secure_float16):
     """`weights_float16`: the policy server sends half the bytes; every receiver computes in float32
     (learning.numpy_policy.params_from_blob), and a served run completes with no default action."""
     from hammer.learning.numpy_policy import float16_blob, params_from_blob
     from safetensors.numpy import load
 
-    b = export_bundle(trained, tmp_path / "b")
+    b, run, r = served_secure_float16
     blob = (b.path / "local.safetensors").read_bytes()
     half = float16_blob(blob)
     assert len(half) < 0.55 * len(blob)
@@ -341,10 +350,6 @@ def test_weights_sent_as_float16_halve_the_bytes_and_serve(trained, tmp_path):
     assert set(got) == set(exact) and all(got[k].dtype == np.float32 for k in got)
     assert max(float(np.abs(got[k] - exact[k]).max()) for k in got) < 1e-2
     assert all(np.array_equal(params_from_blob(blob)[k], exact[k]) for k in exact)  # float32 untouched
-    run = tmp_path / "served"
-    r = subprocess.run([sys.executable, "-P", "-m", "hammer.cli", "serve", str(b.path), "--episodes", "16",
-                        "--run-dir", str(run), "--no-dashboard", "--runtime", "weights_float16=true"],
-                       env=ENV, capture_output=True, text=True, timeout=300, check=False)
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads((run / "runtime.json").read_text())["weights_float16"] is True
     links = json.loads((run / "summary.json").read_text())["links"]
