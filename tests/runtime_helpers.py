@@ -154,6 +154,52 @@ def up_run(run: Path, args: tuple[str, ...]) -> Path:
     return _kept(run, ("up", tuple(args)), up_at)
 
 
+def _maps_torch(pid: int) -> bool:
+    return any("libtorch" in m.path for m in psutil.Process(pid).memory_maps())
+
+
+def pipelined_run(run: Path) -> Path:
+    """A run directory at `run` of `hammer up` of cn3 (rl mode) for 320 episodes with
+    max_policy_lag=1 and generous deadlines, the launcher in this process, run once a session
+    (`_kept`): test_runtime_up judges its pipelined rollouts, test_runtime_edge which roles load
+    torch, which the run records in `torch_maps.json` (role -> libtorch mapped) from one look at
+    every role's memory maps while it ran (320 episodes: long enough to be looked at before the roles
+    exit). No process of the run may outlive the launcher."""
+    import json
+
+    from hammer.deploy.launcher import launch
+    from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
+
+    def launch_at(d: Path) -> None:
+        seen: dict[str, bool] = {}
+
+        def inspect(sup, board) -> None:
+            """All five roles at one tick, or none: a role not started yet, or already exiting (a
+            zombie on a loaded machine), is looked at again at the next tick."""
+            if seen or len(board.heartbeats) < 3:
+                return
+            maps = {}
+            for name in ("local-0", "local-2", "central", "env", "learner"):
+                pid = sup.pid(name)
+                if pid is None:
+                    return
+                try:
+                    maps[name] = _maps_torch(pid)
+                except psutil.NoSuchProcess:  # ZombieProcess included
+                    return
+            seen.update(maps)
+
+        cfg = merge_config("cn3", overrides=["episodes=320", "central_mode=rl"])
+        settings = RuntimeSettings(run_id="pipelined", max_policy_lag=1, msg_deadline_ms=5000, act_deadline_ms=10000)
+        res = launch(cfg, settings, d, chaos=inspect)
+        assert res.summary["completed"]
+        assert processes_mentioning(str(d)) == [], "a process of the run outlived the launcher"
+        (d / "torch_maps.json").write_text(json.dumps(seen))
+
+    return _kept(run, ("pipelined",), launch_at)
+
+
 def hammer_wheel(directory: Path) -> Path:
     """The wheel of this checkout (benchmarks.edge_venv.build_wheel), built once a session for every
     test that installs it; outside a session, built into `directory`."""
