@@ -135,6 +135,16 @@ UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dash
                    "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
 
 
+# `hammer up` of cn3 in rl mode, 70 episodes (two updates), with the set central network and a local
+# view of radius 0.6: the run that test_runtime_up (the set net) and test_local_view (the view) each
+# compare with the trainer. The view masks only the local agents' inputs and the set net is only the
+# central agent's forward (its state stays full), so neither changes what the other's check sees.
+UP_CN3_SET_VIEW = ("--episodes", "70", "--central-mode", "rl", "--set", "central_net=set",
+                   "--set", "env_kwargs.obs_radius=0.6", "--no-dashboard",
+                   "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+CN3_SET_VIEW = (*CN3_RL, "central_net=set", "env_kwargs.obs_radius=0.6")
+
+
 def up_cn3(mode: str) -> tuple[str, ...]:
     """UP_CN3_BACKPROP's run in central mode `mode` (the session runs each mode's once)."""
     return tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP)

@@ -19,7 +19,9 @@ from hammer.runtime.settings import RuntimeSettings
 from tests.runtime_helpers import (
     CN3_RL,
     CN3_RL_100,
+    CN3_SET_VIEW,
     UP_CN3_BACKPROP,
+    UP_CN3_SET_VIEW,
     hammer,
     pipelined_run,
     processes_mentioning,
@@ -99,12 +101,11 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
 
 def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path):
     """central_net=set through every role: the central server runs the numpy twin of the set net on
-    the weights the learner publishes (two updates), and the episodes equal hammer train's."""
-    up = tmp_path / "up"
-    r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", "--set", "central_net=set", "--run-dir", str(up),
-                "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
-    assert r1.returncode == 0, r1.stderr[-2000:]
-    tr = trained_run(tmp_path / "train", (*CN3_RL, "central_net=set", "episodes=70"))
+    the weights the learner publishes (two updates), and the episodes equal hammer train's. The run
+    is the session's UP_CN3_SET_VIEW (also test_local_view's: its local view touches only the local
+    agents' inputs)."""
+    up = up_run(tmp_path / "up", UP_CN3_SET_VIEW)
+    tr = trained_run(tmp_path / "train", (*CN3_SET_VIEW, "episodes=70"))
     assert json.loads((up / "config.json").read_text())["central_net"] == "set"
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
