@@ -135,6 +135,16 @@ UP_CN3_BACKPROP = ("--episodes", "100", "--central-mode", "backprop", "--no-dash
                    "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
 
 
+# `hammer up` of cn3 in rl mode, 70 episodes (two updates), with the set central network and a local
+# view of radius 0.6: the run that test_runtime_up (the set net) and test_local_view (the view) each
+# compare with the trainer. The view masks only the local agents' inputs and the set net is only the
+# central agent's forward (its state stays full), so neither changes what the other's check sees.
+UP_CN3_SET_VIEW = ("--episodes", "70", "--central-mode", "rl", "--set", "central_net=set",
+                   "--set", "env_kwargs.obs_radius=0.6", "--no-dashboard",
+                   "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
+CN3_SET_VIEW = (*CN3_RL, "central_net=set", "env_kwargs.obs_radius=0.6")
+
+
 def up_cn3(mode: str) -> tuple[str, ...]:
     """UP_CN3_BACKPROP's run in central mode `mode` (the session runs each mode's once)."""
     return tuple(a.replace("backprop", mode) for a in UP_CN3_BACKPROP)
@@ -152,6 +162,52 @@ def up_run(run: Path, args: tuple[str, ...]) -> Path:
         (d / "up.out").write_text(r.stdout)
 
     return _kept(run, ("up", tuple(args)), up_at)
+
+
+def _maps_torch(pid: int) -> bool:
+    return any("libtorch" in m.path for m in psutil.Process(pid).memory_maps())
+
+
+def pipelined_run(run: Path) -> Path:
+    """A run directory at `run` of `hammer up` of cn3 (rl mode) for 320 episodes with
+    max_policy_lag=1 and generous deadlines, the launcher in this process, run once a session
+    (`_kept`): test_runtime_up judges its pipelined rollouts, test_runtime_edge which roles load
+    torch, which the run records in `torch_maps.json` (role -> libtorch mapped) from one look at
+    every role's memory maps while it ran (320 episodes: long enough to be looked at before the roles
+    exit). No process of the run may outlive the launcher."""
+    import json
+
+    from hammer.deploy.launcher import launch
+    from hammer.learning.config import merge_config
+    from hammer.runtime.settings import RuntimeSettings
+
+    def launch_at(d: Path) -> None:
+        seen: dict[str, bool] = {}
+
+        def inspect(sup, board) -> None:
+            """All five roles at one tick, or none: a role not started yet, or already exiting (a
+            zombie on a loaded machine), is looked at again at the next tick."""
+            if seen or len(board.heartbeats) < 3:
+                return
+            maps = {}
+            for name in ("local-0", "local-2", "central", "env", "learner"):
+                pid = sup.pid(name)
+                if pid is None:
+                    return
+                try:
+                    maps[name] = _maps_torch(pid)
+                except psutil.NoSuchProcess:  # ZombieProcess included
+                    return
+            seen.update(maps)
+
+        cfg = merge_config("cn3", overrides=["episodes=320", "central_mode=rl"])
+        settings = RuntimeSettings(run_id="pipelined", max_policy_lag=1, msg_deadline_ms=5000, act_deadline_ms=10000)
+        res = launch(cfg, settings, d, chaos=inspect)
+        assert res.summary["completed"]
+        assert processes_mentioning(str(d)) == [], "a process of the run outlived the launcher"
+        (d / "torch_maps.json").write_text(json.dumps(seen))
+
+    return _kept(run, ("pipelined",), launch_at)
 
 
 def hammer_wheel(directory: Path) -> Path:

@@ -19,6 +19,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from hammer.learning import categorical
 from hammer.learning.sampling import categorical_draw
 
@@ -35,8 +36,8 @@ z, u = case["logits"], case["u"]
 ids = categorical_draw(z, u)[0]
 lite = [categorical.draw(r, x) for r, x in zip(z.tolist(), u.tolist())]
 e = np.exp(-np.abs(np.random.default_rng(0).standard_normal(100000)) * 4)
-print(json.dumps({"draws": ids.tolist(), "lite_agrees": ids.tolist() == lite,
-                  "np_exp": hashlib.sha256(e.tobytes()).hexdigest()}))
+draws = {"draws": ids.tolist(), "lite_agrees": ids.tolist() == lite,
+         "np_exp": hashlib.sha256(e.tobytes()).hexdigest()}
 """
 
 
@@ -63,7 +64,7 @@ from hammer.learning.run_env import make_env
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.team import Team
 
-out = {}
+central = {}
 for net in ("concat", "set"):
     cfg = config("cn3", variant="hammer", central_mode="rl", central_net=net, num_envs=8)
     spec = make_env(cfg).spec
@@ -83,8 +84,7 @@ for net in ("concat", "set"):
         same.append({f: getattr(mine, f).tobytes() == getattr(theirs, f).tobytes()
                      for f in ("sent", "mean", "raw", "logp", "value", "keep")})
         same[-1]["torch_within_1e-5"] = bool(np.abs(torch_mean - mine.mean).max() < 1e-5)
-    out[net] = same
-print(json.dumps(out))
+    central[net] = same
 """
 
 
@@ -130,10 +130,20 @@ def test_the_numpy_draw_is_the_exact_draw_also_on_a_boundary():
     assert categorical_draw(nan_row, np.array([0.5]))[0].tolist() == [categorical.draw(nan_row[0].tolist(), 0.5)]
 
 
-def test_draws_are_the_same_under_every_dispatch(tmp_path):
+@pytest.fixture(scope="module")
+def under_every_dispatch(tmp_path_factory) -> dict[str, dict]:
+    """Each setting's draws and central forwards, from one fresh interpreter per setting (the
+    settings act at a process's start; an interpreter's start-up is most of a check's cost). The
+    draws are made before the central script imports torch, as in an interpreter of their own."""
+    case = tmp_path_factory.mktemp("draws") / "case.npz"
+    _boundary_case(case)
+    code = f"{_DRAWS}{_CENTRAL}print(json.dumps({{'draws': draws, 'central': central}}))"
+    return {name: _run(code, env, str(case)) for name, env in DISPATCH.items()}
+
+
+def test_draws_are_the_same_under_every_dispatch(under_every_dispatch):
     """80,000 draws on CDF values, numpy's and the lite agent's, under each setting: one list."""
-    _boundary_case(tmp_path / "case.npz")
-    got = {name: _run(_DRAWS, env, str(tmp_path / "case.npz")) for name, env in DISPATCH.items()}
+    got = {name: r["draws"] for name, r in under_every_dispatch.items()}
     for name, r in got.items():
         assert r["lite_agrees"], f"{name}: the numpy agent's draw is not the lite agent's"
     ref = got["default"]["draws"]
@@ -143,11 +153,11 @@ def test_draws_are_the_same_under_every_dispatch(tmp_path):
                              f"(numpy's exp {'differs' if r['np_exp'] != got['default']['np_exp'] else 'agrees'})")
 
 
-def test_the_trainers_central_forward_is_the_central_servers_under_every_dispatch():
+def test_the_trainers_central_forward_is_the_central_servers_under_every_dispatch(under_every_dispatch):
     """Both central networks, before and after an in-place weight change: the trainer's messages,
     samples, log-densities and critic values are the central server's, bit for bit (torch's
     forward, for comparison, is only close)."""
-    for name, env in DISPATCH.items():
-        for net, rounds in _run(_CENTRAL, env).items():
+    for name, r in under_every_dispatch.items():
+        for net, rounds in r["central"].items():
             for i, fields in enumerate(rounds):
                 assert all(fields.values()), f"{name}, central_net={net}, round {i}: {fields}"

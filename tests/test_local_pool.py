@@ -22,7 +22,7 @@ from hammer.protocol.keys import Keys
 from hammer.protocol.session import HammerSession, TransportConfig, free_loopback_port
 from hammer.runtime.settings import RuntimeSettings, auto_agents_per_process
 
-from tests.runtime_helpers import UP_CN3_BACKPROP, processes_mentioning, up_run
+from tests.runtime_helpers import UP_CN3_BACKPROP, processes_mentioning, trained_run, up_run
 
 
 def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
@@ -50,12 +50,21 @@ def one_per_process(tmp_path_factory) -> Path:
     return run
 
 
-def test_a_pooled_run_writes_the_same_metrics_as_one_process_per_agent(one_per_process, tmp_path):
+@pytest.fixture(scope="module")
+def pooled(tmp_path_factory) -> SimpleNamespace:
+    """`hammer up --secure` of cn3 with agents_per_process=2: agents 0 and 1 in one pool process,
+    agent 2 alone, each with its own identity. Both tests below judge this one run: the secure
+    profile changes the transport and its access rules, not one value of the run, and pools in the
+    plain profile run in the pool-of-five and pool-killing tests."""
+    run = tmp_path_factory.mktemp("pooled") / "run"
+    return SimpleNamespace(dir=run, res=_run(run, 2, secure=True))
+
+
+def test_a_pooled_run_writes_the_same_metrics_as_one_process_per_agent(one_per_process, pooled):
     """agents_per_process=2 on cn3: agents 0 and 1 in one pool process, agent 2 alone. Same seed,
     no faults: metrics.csv is identical (every column but wall_time) to one process per agent, and
     every agent still reports as itself (counters, heartbeats, the link table)."""
-    run = tmp_path / "pooled"
-    res = _run(run, 2)
+    run, res = pooled.dir, pooled.res
     assert res.summary["completed"] and not res.summary["degraded"]
     a, b = _metrics_without_wall_time(one_per_process), _metrics_without_wall_time(run)
     assert len(a) == 100 and a == b
@@ -76,24 +85,25 @@ def test_a_pooled_run_writes_the_same_metrics_as_one_process_per_agent(one_per_p
     assert processes_mentioning(str(run)) == []
 
 
-def test_a_secure_pool_holds_exactly_its_agents_grants_and_runs_like_the_others(one_per_process, tmp_path):
-    """`hammer up --secure` with pools of 3 (cn3: one pool): the pool's identity is granted exactly
-    its agents' keys, and the run reproduces the plain one-process-per-agent run."""
-    run = tmp_path / "secure"
-    res = _run(run, 3, secure=True)
+def test_a_secure_pool_holds_exactly_its_agents_grants_and_runs_like_the_others(one_per_process, pooled):
+    """`hammer up --secure` with pools of 2 (cn3: a pool of agents 0 and 1, agent 2 alone): the
+    pool's identity is granted exactly its agents' keys (agent 2's own identity holds the rest),
+    and the run reproduces the plain one-process-per-agent run."""
+    run, res = pooled.dir, pooled.res
     assert res.summary["completed"] and res.summary["rejected"] == {}
     assert _metrics_without_wall_time(run) == _metrics_without_wall_time(one_per_process)
-    assert (run / "identity" / "locals-0-2.key").is_file()
+    assert (run / "identity" / "locals-0-1.key").is_file() and (run / "identity" / "local-2.key").is_file()
 
 
-def test_a_pool_of_five_with_batched_bursts_matches_one_process_per_agent(tmp_path):
-    """cn5, rl mode: five agents in one pool against one process per agent. Bursts of five puts go
-    out batched in both runs (the env host's observations, the central agent's messages;
+def test_a_pool_of_five_with_batched_bursts_matches_the_trainer(tmp_path):
+    """cn5, rl mode: five agents in one pool against the in-process trainer, whose episodes one
+    process per agent reproduces bit for bit (test_runtime_stall, test_runtime_up). Bursts of five
+    puts go out batched (the env host's observations, the central agent's messages;
     protocol.session.BATCH_MIN) and the pool's five actions too: the episodes are the same."""
-    solo, pooled = tmp_path / "solo", tmp_path / "pooled"
-    a = _run(solo, 1, mode="rl", preset="cn5", episodes=64)
+    pooled = tmp_path / "pooled"
     b = _run(pooled, 5, mode="rl", preset="cn5", episodes=64)
-    assert a.summary["completed"] and b.summary["completed"]
+    solo = trained_run(tmp_path / "train", ("variant=hammer", "central_mode=rl", "episodes=64"), preset="cn5")
+    assert b.summary["completed"]
     assert b.summary["links"]["msg_fallback_copies"] == 0 and b.summary["links"]["default_actions"] == 0
     rows = _metrics_without_wall_time(pooled)
     assert len(rows) == 64 and rows == _metrics_without_wall_time(solo)

@@ -15,7 +15,7 @@ from hammer.learning.config import merge_config
 from hammer.learning.sampling import ActingStreams
 from hammer.learning.team import Team
 
-from tests.runtime_helpers import CN3_RL, CN3_RL_100, hammer, trained_run
+from tests.runtime_helpers import CN3_RL, CN3_SET_VIEW, UP_CN3_SET_VIEW, trained_run, up_run
 
 
 def _expected_mask(env: VecSimpleSpread, radius: float) -> np.ndarray:
@@ -108,20 +108,19 @@ def _metric_column(run_dir) -> list[float]:
 
 def test_up_with_a_local_view_completes_and_matches_the_trainer(tmp_path):
     """The env host masks what it sends each local agent as the trainer masks its local inputs: the
-    distributed run's episodes equal the in-process trainer's; and the view changes the run."""
-    up = tmp_path / "up"
-    opt = ("--set", "env_kwargs.obs_radius=0.6")
-    r1 = hammer("up", "--episodes", "64", "--central-mode", "rl", "--run-dir", str(up), "--no-dashboard", *opt,
-                "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
-    assert r1.returncode == 0, r1.stderr[-2000:]
-    # the trainer in process as the CLI runs it; the full view's run is the session's cached rl team
-    # (its first 64 episodes)
-    tr = trained_run(tmp_path / "train", (*CN3_RL, opt[1], "episodes=64"))
-    full = trained_run(tmp_path / "full", CN3_RL_100, tensorboard=True)
+    distributed run's episodes equal the in-process trainer's; and the view changes the run. The run
+    is the session's UP_CN3_SET_VIEW (also test_runtime_up's set-net run: the set net is only the
+    central agent's forward, whose state the view leaves full), so the full view's reference is the
+    trainer with the set net."""
+    up = up_run(tmp_path / "up", UP_CN3_SET_VIEW)
+    assert json.loads((up / "config.json").read_text())["env_kwargs"]["obs_radius"] == 0.6
+    # the trainer in process as the CLI runs it, with the view and without it
+    tr = trained_run(tmp_path / "train", (*CN3_SET_VIEW, "episodes=70"))
+    full = trained_run(tmp_path / "full", (*CN3_RL, "central_net=set", "episodes=70"))
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
-    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(full)[:64]
-    assert len(a) == len(b) == len(c) == 64
+    a, b, c = _metric_column(up), _metric_column(tr), _metric_column(full)
+    assert len(a) == len(b) == len(c) == 70
     assert a == pytest.approx(b, abs=1e-5)
     assert a[32:] != pytest.approx(c[32:], abs=1e-3)  # after the first update the masked team acts differently
     # every run's summary says which CPU path computed it (learning.host_info)

@@ -4,36 +4,15 @@ also shows the check can see torch in a process that has it)."""
 
 from __future__ import annotations
 
-import psutil
-from hammer.deploy.launcher import launch
-from hammer.learning.config import merge_config
-from hammer.runtime.settings import RuntimeSettings
+import json
 
-
-def _maps_torch(pid: int) -> bool:
-    return any("libtorch" in m.path for m in psutil.Process(pid).memory_maps())
+from tests.runtime_helpers import pipelined_run
 
 
 def test_only_the_learner_runs_torch(tmp_path):
-    cfg = merge_config("cn3", overrides=["episodes=320"])  # long enough to be inspected before the roles exit
-    seen: dict[str, bool] = {}
-
-    def inspect(sup, board) -> None:
-        """All five roles at one tick, or none: a role not started yet, or already exiting (a zombie
-        on a loaded machine, CI 2026-12-04), is looked at again at the next tick."""
-        if seen or len(board.heartbeats) < 3:
-            return
-        maps = {}
-        for name in ("local-0", "local-2", "central", "env", "learner"):
-            pid = sup.pid(name)
-            if pid is None:
-                return
-            try:
-                maps[name] = _maps_torch(pid)
-            except psutil.NoSuchProcess:  # ZombieProcess included
-                return
-        seen.update(maps)
-
-    res = launch(cfg, RuntimeSettings(run_id="edge"), tmp_path / "run", chaos=inspect)
-    assert res.summary["completed"]
+    """The session's pipelined cn3 run (runtime_helpers.pipelined_run, also test_runtime_up's)
+    looked at every role's memory maps at one tick while it ran."""
+    run = pipelined_run(tmp_path / "run")
+    assert json.loads((run / "summary.json").read_text())["completed"]
+    seen = json.loads((run / "torch_maps.json").read_text())
     assert seen == {"local-0": False, "local-2": False, "central": False, "env": False, "learner": True}

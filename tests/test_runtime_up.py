@@ -19,8 +19,11 @@ from hammer.runtime.settings import RuntimeSettings
 from tests.runtime_helpers import (
     CN3_RL,
     CN3_RL_100,
+    CN3_SET_VIEW,
     UP_CN3_BACKPROP,
+    UP_CN3_SET_VIEW,
     hammer,
+    pipelined_run,
     processes_mentioning,
     trained_run,
     up_cn3,
@@ -98,12 +101,11 @@ def test_up_reproduces_the_in_process_trainer(tmp_path, mode):
 
 def test_up_reproduces_the_in_process_trainer_with_the_set_central_net(tmp_path):
     """central_net=set through every role: the central server runs the numpy twin of the set net on
-    the weights the learner publishes (two updates), and the episodes equal hammer train's."""
-    up = tmp_path / "up"
-    r1 = hammer("up", "--episodes", "70", "--central-mode", "rl", "--set", "central_net=set", "--run-dir", str(up),
-                "--no-dashboard", "--runtime", "msg_deadline_ms=5000", "--runtime", "act_deadline_ms=10000")
-    assert r1.returncode == 0, r1.stderr[-2000:]
-    tr = trained_run(tmp_path / "train", (*CN3_RL, "central_net=set", "episodes=70"))
+    the weights the learner publishes (two updates), and the episodes equal hammer train's. The run
+    is the session's UP_CN3_SET_VIEW (also test_local_view's: its local view touches only the local
+    agents' inputs)."""
+    up = up_run(tmp_path / "up", UP_CN3_SET_VIEW)
+    tr = trained_run(tmp_path / "train", (*CN3_SET_VIEW, "episodes=70"))
     assert json.loads((up / "config.json").read_text())["central_net"] == "set"
     links = json.loads((up / "summary.json").read_text())["links"]
     assert links["msg_fallback_copies"] == 0 and links["default_actions"] == 0
@@ -195,12 +197,9 @@ def test_multiwalker_runs_distributed_like_the_trainer(tmp_path):
 def test_policy_lag_pipelines_rollouts_with_one_version_each(tmp_path):
     """max_policy_lag=1: the env host steps on while the learner updates. Every rollout is still
     acted by one version (no off-policy action), the learner evaluates lagged chunks with that
-    version, and nothing is lost or counted twice."""
-    run = tmp_path / "lag"
-    res = hammer("up", "--episodes", "160", "--central-mode", "rl", "--run-dir", str(run), "--no-dashboard",
-                  "--runtime", "max_policy_lag=1", "--runtime", "msg_deadline_ms=5000",
-                  "--runtime", "act_deadline_ms=10000")
-    assert res.returncode == 0, res.stderr[-2000:]
+    version, and nothing is lost or counted twice. The run is the session's pipelined one
+    (runtime_helpers.pipelined_run, which also checks that none of its processes outlives it)."""
+    run = pipelined_run(tmp_path / "lag")
     summary = json.loads((run / "summary.json").read_text())
     learner = json.loads((run / "learner_summary.json").read_text())
     cfg = json.loads((run / "config.json").read_text())
@@ -210,8 +209,7 @@ def test_policy_lag_pipelines_rollouts_with_one_version_each(tmp_path):
     assert learner["stale_chunks"] == learner["bad_chunks"] == learner["central_steps_missing"] == 0
     links = summary["links"]
     assert links["off_policy_actions"] == 0 and links["default_actions"] == 0 and links["msg_fallback_copies"] == 0
-    assert len(_metric_column(run)) == 160
-    assert processes_mentioning(str(run)) == []
+    assert summary["completed"] and len(_metric_column(run)) == summary["episodes"] == 320
 
 
 def test_sigkilled_local_agent_is_restarted_and_the_run_completes(tmp_path):
