@@ -95,8 +95,7 @@ def test_the_probe_finds_a_planted_robot_and_not_what_the_trained_team_does_not_
     layout = actor.view()
     assert layout == WarehouseLayout(71, 32, 2, 1)
     planted = TeamActor(_plant_other_robot(TEAM, tmp_path / "planted"))
-    # 8 episodes: on seeds 0-2 the planted gain is more than twice its bar, the trained team's under a
-    # tenth of its own
+    # 8 episodes: on seeds 0-2 the planted gain is more than twice its bar, the trained team's a tenth of its own
     got = probe_recording(planted.rollout(0, 8, record=True), layout)
     real = probe_recording(actor.rollout(0, 8, record=True), layout)
     assert got["H_agents"]["gain"] > 0.3, got["H_agents"]
