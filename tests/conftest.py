@@ -11,6 +11,14 @@ import tempfile
 
 import pytest
 
+# One maths-library thread in each test process and every process it starts (the roles get the same
+# from the launcher's supervisor): make test runs three workers beside the serial tests on two cores,
+# and a pool of BLAS/OpenMP threads per process would outnumber the cores, its idle threads spinning
+# on CPU the other tests need. Read when numpy and torch load, so set before any test module imports
+# them; a value given in the environment is kept.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 from tests import tiers
 from tests.runtime_helpers import TEAMS_ENV
 
