@@ -11,13 +11,11 @@ import tempfile
 
 import pytest
 
-# One maths-library thread in each test process and every process it starts (the roles get the same
-# from the launcher's supervisor): make test runs three workers beside the serial tests on two cores,
-# and a pool of BLAS/OpenMP threads per process would outnumber the cores, its idle threads spinning
-# on CPU the other tests need. Read when numpy and torch load, so set before any test module imports
-# them; a value given in the environment is kept.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+# One BLAS thread for numpy in each test process and every process it starts: make test runs three
+# workers beside the serial tests on two cores, and OpenBLAS's idle threads spin on CPU the other tests
+# need. Read when numpy loads, so set before any test module imports it; a value given is kept. (Torch
+# keeps its own: the trainer and the roles set theirs.)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from tests import tiers
 from tests.runtime_helpers import TEAMS_ENV
