@@ -17,7 +17,9 @@ from hammer.envs.registry import make_vec_env
 from hammer.learning.config import merge_config
 from hammer.learning.team import Team
 from rware.warehouse import RewardType, Warehouse
+from typer.testing import CliRunner
 
+from hammer.cli import app
 from tests.runtime_helpers import DISPATCH, hammer, processes_mentioning, trained_run
 
 LOCAL = 71  # rware's flattened view at sensor_range 1: 8 own values + 9 cells x 7
@@ -167,10 +169,6 @@ def _metrics(run) -> list[dict[str, str]]:
 
 def test_hammer_train_runs_a_few_episodes(tmp_path):
     run = tmp_path / "train"
-    from typer.testing import CliRunner
-
-    from hammer.cli import app
-
     # the CLI's own path in this process: what is checked is the rware run it starts, not the process
     res = CliRunner().invoke(app, ["train", "--preset", "rware-tiny-2ag", "--episodes", "8", *_SHORT, "--run-dir",
                                    str(run), "--quiet"])

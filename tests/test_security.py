@@ -344,11 +344,11 @@ def _metrics_without_wall_time(run_dir: Path) -> list[dict[str, str]]:
 
 def _weight_templates(cfg) -> dict[str, bytes]:
     """Blobs of the run's own architecture: what an attacker who read the public code can build."""
-    from hammer.envs.registry import make_vec_env
     from hammer.learner.worker import weights_blob
+    from hammer.learning.run_env import make_env
     from hammer.learning.team import Team
 
-    env = make_vec_env(cfg.env, cfg.n_agents, 1, env_kwargs=cfg.env_kwargs or None, adapters=cfg.env_adapters)
+    env = make_env(cfg)
     team = Team(cfg, env.spec)
     env.close()
     return {"local": weights_blob(team.local.export_numpy()), "central": weights_blob(team.central.export_numpy())}

@@ -12,6 +12,8 @@ from hammer.learning.trainer import train
 from safetensors.numpy import load_file
 from typer.testing import CliRunner
 
+from hammer.cli import app
+
 SMALL = ["num_envs=8", "rollout_steps=25", "epochs=2", "minibatches=2"]
 
 
@@ -79,8 +81,6 @@ def test_run_directory_contents(tmp_path):
 
 
 def test_cli_train_and_one_line_errors(tmp_path):
-    from hammer.cli import app
-
     runner = CliRunner()
     res = runner.invoke(app, ["train", "--preset", "cn3", "--variant", "random", "--seed", "2", "--episodes", "40",
                               "--out", str(tmp_path), "--quiet", "--set", "num_envs=8", "--set", "rollout_steps=25"])
@@ -124,8 +124,6 @@ def test_a_resumed_learner_trains_with_the_configured_learning_rate():
 def test_branch_continues_a_copy_with_changed_settings(tmp_path):
     """`hammer train --branch RUN --run-dir NEW --set k=v`: an unchanged branch is the run itself
     resumed; a changed one shares everything up to the checkpoint; the original is untouched."""
-    from hammer.cli import app
-
     sets = ["variant=hammer", "central_mode=rl", "checkpoint_every=3", "seed=1"]
     _run(tmp_path, "full", sets + ["episodes=160"])
     _run(tmp_path, "cut", sets + ["episodes=100"])  # newest checkpoint at 96 episodes
@@ -182,8 +180,6 @@ def test_an_interrupted_hammer_train_says_so_in_one_line_and_how_to_continue(tmp
     assert f"`hammer train --resume {run}` continues from the last checkpoint (ckpt_" in last
     assert "Traceback" not in err and out == ""
     if sig == "SIGINT":
-        from hammer.cli import app
-
         # the CLI's own path in this process: the stopped process is the one under test
         r = CliRunner().invoke(app, ["train", "--resume", str(run), "--episodes", "16", "--quiet"])
         assert r.exit_code == 0 and (run / "summary.json").is_file(), r.output
